@@ -1,0 +1,5 @@
+import sys
+
+from mehs.cli import main
+
+sys.exit(main())

@@ -1,0 +1,68 @@
+"""The ``mehs`` command line.
+
+Each sub-command lives in its own module ``mehs.cli.<name>`` exposing
+``configure(parser)`` (add arguments; keep imports light) and ``run(args) -> int``
+(do the work; import heavy libraries here). :class:`~mehs.errors.MehsError` is
+printed as ``mehs: error: …`` without a traceback and exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from mehs import __version__
+from mehs.errors import MehsError
+
+#: (sub-command, module under mehs.cli, one-line help) in pipeline order.
+COMMANDS: list[tuple[str, str, str]] = [
+    ("info", "info", "summarise an ENVI cube, a Specim IQ folder or an OpenEXR image"),
+    ("sim-device", "sim_device", "start the simulated stage and camera and print their ports"),
+    ("capture", "capture", "capture a bracketed scene (dark/white refs + exposures)"),
+    ("fuse", "fuse", "recover the response curve and merge a bracket into an HDR cube"),
+    ("resample", "resample", "resample a cube to a target band set (default 400:700:10)"),
+    ("rgb", "rgb", "make pseudo-HDR-RGB (EXR), LDR-RGB (PNG) and previews of an HS cube"),
+    ("export", "export", "export an HS cube for spectral rendering (EXR per wavelength)"),
+    ("build", "build", "build the ME HS dataset from bracketed scenes"),
+    ("report", "report", "write the HTML report of a dataset or an evaluation"),
+    ("train-baseline", "train_baseline", "fit the regression SSR baseline on a dataset"),
+    ("evaluate", "evaluate", "score SSR models on a dataset (SAM, MRAE, RMSE, PSNR)"),
+    ("train-ssr", "train_ssr", "train the HDR SSR network (needs the torch extra)"),
+    ("demo", "demo", "run the whole pipeline on the simulated device"),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mehs",
+        description="High dynamic range hyperspectral capture, synthesis, datasets "
+                    "and spectral super-resolution evaluation.")
+    parser.add_argument("--version", action="version", version=f"mehs {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module, help_ in COMMANDS:
+        mod = importlib.import_module(f"mehs.cli.{module}")
+        p = sub.add_parser(name, help=help_, description=help_)
+        mod.configure(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 1
+    try:
+        return int(args._run(args) or 0)
+    except MehsError as exc:
+        print(f"mehs: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mehs: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

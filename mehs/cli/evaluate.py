@@ -1,0 +1,11 @@
+"""`mehs evaluate` — placeholder until its issue lands (replace this module)."""
+
+from mehs.errors import MehsError
+
+
+def configure(parser):
+    pass
+
+
+def run(args):
+    raise MehsError("'mehs evaluate' is not implemented yet")

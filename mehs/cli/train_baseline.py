@@ -1,0 +1,11 @@
+"""`mehs train-baseline` — placeholder until its issue lands (replace this module)."""
+
+from mehs.errors import MehsError
+
+
+def configure(parser):
+    pass
+
+
+def run(args):
+    raise MehsError("'mehs train-baseline' is not implemented yet")
