@@ -1,11 +1,75 @@
-"""`mehs build` — placeholder until its issue lands (replace this module)."""
+"""`mehs build` — build the ME HS dataset from bracketed scenes (or HS cubes with --from-hs)."""
 
-from mehs.errors import MehsError
+from __future__ import annotations
 
 
 def configure(parser):
-    pass
+    parser.add_argument("scenes", nargs="+", metavar="SCENES",
+                        help="scene folders (scene.json + exposures/), folders of them, or "
+                             "CSV/TOML scene lists (columns scene_id,folder_short,folder_mid,"
+                             "folder_long: Specim IQ folders); with --from-hs: ENVI .hdr "
+                             "cubes or folders of them")
+    parser.add_argument("--out", "-o", required=True, metavar="DATASET",
+                        help="dataset folder (created; an existing one is resumed/extended)")
+    parser.add_argument("--from-hs", action="store_true",
+                        help="inputs are existing HS cubes (31 or 204 bands, ...): resample "
+                             "to 31 bands and pair them with RGB, no bracket")
+    parser.add_argument("--workers", "-j", type=int, default=None, metavar="N",
+                        help="scenes built at once (default: CPU count)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                        help="run scenes on a Dask distributed scheduler (needs mehs[dask]); "
+                             "the dataset folder must be reachable at the same path")
+    parser.add_argument("--force", action="store_true",
+                        help="rebuild scenes even when inputs and parameters are unchanged")
+    parser.add_argument("--response", metavar="CURVE",
+                        help="response curve file to use for every scene instead of "
+                             "recovering one per scene")
+    parser.add_argument("--method", default="poisson",
+                        help="merge estimator (default: poisson)")
+    parser.add_argument("--ghosts", default="detect", help="ghost handling (default: detect)")
+    parser.add_argument("--resample", default="gaussian", choices=["gaussian", "linear", "box"],
+                        help="resampling to 400..700 nm step 10 (default: gaussian)")
+    parser.add_argument("--fwhm", type=float, default=10.0, help="target FWHM nm (default 10)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of sampling and splits")
+    parser.add_argument("--splits", default="0.7,0.15,0.15", metavar="TRAIN,VAL,TEST",
+                        help="split fractions over passing scenes (default 0.7,0.15,0.15)")
+    q = parser.add_argument_group("pass/fail rules")
+    q.add_argument("--max-ghost", type=float, default=0.01, metavar="F",
+                   help="max ghost fraction (default 0.01)")
+    q.add_argument("--max-saturated", type=float, default=0.005, metavar="F",
+                   help="max saturated-in-every-exposure fraction (default 0.005)")
+    q.add_argument("--max-invalid", type=float, default=0.05, metavar="F",
+                   help="max other-invalid fraction (default 0.05)")
+    q.add_argument("--min-dr", type=float, default=None, metavar="STOPS",
+                   help="min dynamic range in stops (default 4; off with --from-hs)")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
 def run(args):
-    raise MehsError("'mehs build' is not implemented yet")
+    from mehs.dataset.build import build_dataset, build_from_hs
+    from mehs.dataset.quality import QualityRules
+    from mehs.errors import InputError
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers must be at least 1")
+    min_dr = args.min_dr if args.min_dr is not None else (0.0 if args.from_hs else 4.0)
+    rules = QualityRules(max_ghost_fraction=args.max_ghost,
+                         max_saturated_fraction=args.max_saturated,
+                         max_invalid_fraction=args.max_invalid,
+                         min_dynamic_range_stops=min_dr)
+    common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
+                  rules=rules, resample=args.resample, fwhm=args.fwhm,
+                  scheduler=args.scheduler, progress=not args.quiet)
+    if args.from_hs:
+        manifest = build_from_hs(args.scenes, args.out, **common)
+    else:
+        manifest = build_dataset(args.scenes, args.out, response=args.response,
+                                 method=args.method, ghosts=args.ghosts, **common)
+    scenes = manifest["scenes"]
+    n_pass = sum(s["status"] == "pass" for s in scenes)
+    print(f"{args.out}: {len(scenes)} scenes, {n_pass} pass, {len(scenes) - n_pass} fail; "
+          f"splits " + ", ".join(f"{k} {len(v)}" for k, v in manifest["splits"].items()))
+    for s in scenes:
+        if s["status"] != "pass":
+            print(f"  {s['id']}: fail: {'; '.join(s['reasons'])}")
+    return 0

@@ -1,0 +1,700 @@
+"""Build the ME HS dataset: bracketed scenes → HDR-HS + HDR-RGB/LDR-RGB pairs.
+
+Per scene (one task, run in a worker): hash the inputs → scene key; if the
+dataset already holds this key, skip. Otherwise read the bracket
+(:func:`mehs.synthesis.bracket.load_bracket`), fuse it (dark subtraction,
+response recovery or a given curve, merge, ghost detection —
+:func:`mehs.synthesis.fuse.fuse_bracket`), resample to the 31 bands
+400..700 nm (:func:`mehs.synthesis.resample.resample_cube`), make the
+pseudo-HDR-RGB and LDR-RGB images (:func:`mehs.rgb.hdr_rgb`,
+:func:`mehs.rgb.ldr_rgb`) and a tone-mapped preview, and write them into
+``scenes/.tmp-<id>/``. The main process then renames that folder to
+``scenes/<id>/`` and rewrites the manifest atomically (the commit point), so
+an interrupted build leaves no half scene listed and re-running finishes it.
+
+Outputs are deterministic: no timestamps in data files; wall-clock times live
+only in the manifest's volatile ``scenes[].provenance.run`` subtree.
+
+Files of one scene (relative to the dataset folder, ``files`` in the manifest)::
+
+    scenes/<id>/hs.hdr + hs.dat   ENVI float32 (lines, samples, 31) bil, 400..700 nm
+    scenes/<id>/hdr_rgb.exr       half-float linear sRGB, channels R, G, B
+    scenes/<id>/ldr_rgb.png       8-bit sRGB-encoded LDR-RGB
+    scenes/<id>/mask.png          uint8: 0 valid, 1 saturated in all, 2 ghost, 4 other invalid
+    scenes/<id>/preview.png       tone-mapped 8-bit preview (report thumbnails)
+    scenes/<id>/response.json     the response curve used (bracket scenes)
+    scenes/<id>/fusion.json       the fusion summary (bracket scenes)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import os
+import shutil
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from mehs import __version__
+from mehs.dataset import manifest as mf
+from mehs.dataset.parallel import default_workers, report_stage, run_tasks
+from mehs.dataset.quality import QualityRules, judge
+from mehs.dataset.scene_list import SceneSource, collect_hs_cubes, collect_scenes
+from mehs.dataset.splits import make_splits, parse_fractions, write_split_files
+from mehs.errors import InputError, MehsError
+from mehs.io.atomic import sha256_file
+
+LOCK_NAME = ".mehs-build.lock"
+TMP_PREFIX = ".tmp-"
+OLD_PREFIX = ".old-"
+
+#: How the LDR-RGB image is exposed (recorded in the manifest's ``rgb`` block).
+LDR_EXPOSURE_RULE_FALLBACK = ("mehs.rgb.ldr_rgb default: exposure chosen per image, "
+                              "recorded per scene as quality.ldr_exposure")
+
+
+@dataclass(frozen=True)
+class BuildParams:
+    """Parameters that change a scene's outputs (they enter the scene key).
+
+    Attributes
+    ----------
+    method
+        Merge estimator name (a key of ``mehs.synthesis.merge.MERGE_METHODS``).
+    response
+        Path of a response-curve file to use for every scene, or ``None`` to
+        recover one per scene.
+    ghosts
+        Ghost handling passed to ``fuse_bracket`` (``"detect"`` by default).
+    seed
+        Seed of every random choice (response sampling); also the split seed.
+    resample
+        Resampling method to 31 bands (``"gaussian"``, ``"linear"``, ``"box"``).
+    fwhm
+        Target band FWHM in nm for Gaussian/box resampling.
+    """
+
+    method: str = "poisson"
+    response: str | None = None
+    ghosts: str = "detect"
+    seed: int = 0
+    resample: str = "gaussian"
+    fwhm: float = 10.0
+
+
+@dataclass
+class SceneTask:
+    """Everything a worker needs to build one scene (picklable)."""
+
+    source: SceneSource
+    dataset: str
+    params: BuildParams
+    previous_key: str | None = None
+    response_sha256: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------- worker side
+
+def input_files(source: SceneSource) -> dict[str, Path]:
+    """Files a scene is built from, by a stable relative name → absolute path.
+
+    Scene folders: ``scene.json`` and every file of the exposure folders that
+    ``scene.json`` lists as complete (not ``truth/``). Specim IQ folders: every
+    file, prefixed ``<k>/`` for the k-th folder. HS cubes: the header and data file.
+    """
+    out: dict[str, Path] = {}
+    if source.kind == "scene":
+        import json
+
+        root = Path(source.paths[0])
+        meta = json.loads((root / "scene.json").read_text(encoding="utf-8"))
+        out["scene.json"] = root / "scene.json"
+        for exp in meta.get("exposures", []):
+            if exp.get("status", "complete") != "complete":
+                continue
+            folder = root / exp["folder"]
+            if not folder.is_dir():
+                raise InputError(f"exposure folder {exp['folder']} is missing", root)
+            for f in sorted(folder.rglob("*")):
+                if f.is_file():
+                    out[f.relative_to(root).as_posix()] = f
+    elif source.kind == "specim":
+        for k, folder in enumerate(source.paths):
+            for f in sorted(Path(folder).rglob("*")):
+                if f.is_file():
+                    out[f"{k}/{f.relative_to(folder).as_posix()}"] = f
+    else:
+        hdr = Path(source.paths[0])
+        out[hdr.name] = hdr
+        for ext in (".dat", ".raw", ".img", ".bil", ".bsq", ".bip", ""):
+            data = hdr.with_suffix(ext)
+            if data != hdr and data.is_file():
+                out[data.name] = data
+                break
+    return out
+
+
+def _params_for_key(task: SceneTask) -> dict[str, Any]:
+    p = asdict(task.params)
+    p["response"] = task.response_sha256  # the curve's content, not where it lives
+    if task.source.kind == "hs":
+        for k in ("method", "response", "ghosts"):
+            p.pop(k)
+    return p
+
+
+def build_scene(task: SceneTask) -> dict[str, Any]:
+    """Build one scene into ``scenes/.tmp-<id>/`` (worker entry point; never raises).
+
+    Returns
+    -------
+    dict
+        ``{"id", "key", "outcome": "skipped"|"built"|"failed", "entry"}`` where
+        ``entry`` is the manifest entry (status judged later by the main
+        process) and, for failures, ``"error"`` and ``"error_kind"``
+        (``"input"`` for a :class:`MehsError`, deterministic and not retried;
+        ``"internal"`` otherwise, retried on the next run).
+    """
+    sid = task.source.scene_id
+    run: dict[str, Any] = {"started": _now(), "stage_seconds": {}}
+    t_all = time.perf_counter()
+    key = None
+    try:
+        report_stage(sid, "hash")
+        with _timed(run, "hash"):
+            files = input_files(task.source)
+            hashes = {name: sha256_file(p) for name, p in files.items()}
+        key = mf.scene_key(hashes, _params_for_key(task), __version__)
+        if task.previous_key == key:
+            return {"id": sid, "key": key, "outcome": "skipped", "entry": None}
+        tmp = Path(task.dataset) / "scenes" / f"{TMP_PREFIX}{sid}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        if task.source.kind == "hs":
+            quality, extra_prov = _build_from_cube(task, tmp, run)
+        else:
+            quality, extra_prov = _build_from_bracket(task, tmp, run)
+        report_stage(sid, "hash outputs")
+        out_files = {name: f"scenes/{sid}/{p.name}" for name, p in sorted(_outputs(tmp).items())}
+        out_sha = {name: sha256_file(tmp / Path(rel).name) for name, rel in out_files.items()}
+        outcome, error, kind = "built", None, None
+    except MehsError as exc:
+        outcome, error, kind = "failed", str(exc), "input"
+        out_files, out_sha, quality, extra_prov, hashes = {}, {}, {}, {}, locals().get("hashes", {})
+    except Exception as exc:  # noqa: BLE001 - recorded, reported and retried next run
+        outcome, error, kind = "failed", f"{type(exc).__name__}: {exc}", "internal"
+        out_files, out_sha, quality, extra_prov, hashes = {}, {}, {}, {}, locals().get("hashes", {})
+        run["traceback"] = traceback.format_exc()
+    run["finished"] = _now()
+    run["seconds"] = round(time.perf_counter() - t_all, 3)
+    entry = {
+        "id": sid, "status": "fail" if error else "pass", "reasons": [],
+        "files": out_files, "sha256": out_sha, "quality": quality,
+        "key": key if kind != "internal" else None,
+        "provenance": {"kind": task.source.kind, "inputs": list(task.source.paths),
+                       "input_sha256": hashes, "params": asdict(task.params),
+                       "response_sha256": task.response_sha256,
+                       "software_version": __version__, "run": run, **extra_prov},
+    }
+    if error:
+        entry["error"] = error
+    return {"id": sid, "key": key, "outcome": outcome, "entry": entry,
+            "error": error, "error_kind": kind}
+
+
+_OUTPUT_NAMES = {"hs": "hs.hdr", "hs_data": "hs.dat", "hdr_rgb": "hdr_rgb.exr",
+                 "ldr_rgb": "ldr_rgb.png", "mask": "mask.png", "preview": "preview.png",
+                 "response": "response.json", "fusion": "fusion.json"}
+
+
+def _outputs(folder: Path) -> dict[str, Path]:
+    return {k: folder / n for k, n in _OUTPUT_NAMES.items() if (folder / n).is_file()}
+
+
+@contextlib.contextmanager
+def _timed(run: dict[str, Any], stage: str):
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        st = run["stage_seconds"]
+        st[stage] = round(st.get(stage, 0.0) + time.perf_counter() - t0, 4)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _build_from_bracket(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]:
+    import json
+
+    import numpy as np
+
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    sid = task.source.scene_id
+    p = task.params
+    report_stage(sid, "read")
+    with _timed(run, "read"):
+        bracket = load_bracket(task.source.load_arg)
+    report_stage(sid, "fuse")
+    with _timed(run, "fuse"):
+        response: Any = "auto"
+        if p.response:
+            response = load_response(p.response)
+        result = fuse_bracket(bracket, **_fuse_kwargs(fuse_bracket, p, response))
+    del bracket
+    summary = dict(result.summary or {})
+    mask = np.asarray(result.mask, dtype=np.uint8)
+    quality = _quality(summary, mask)
+    quality["n_exposures"] = int(summary.get("n_exposures", len(summary.get("exposure_ratios") or []) or 0)) or None
+    cube = result.radiance
+    with _timed(run, "write"):
+        _save_response(result.response, tmp / "response.json")
+        from mehs.io.atomic import write_json_atomic
+
+        write_json_atomic(tmp / "fusion.json", _jsonable(summary))
+    del result
+    _finish_scene(task, cube, mask, tmp, run, quality)
+    return quality, {}
+
+
+def _fuse_kwargs(fuse_bracket, p: BuildParams, response) -> dict[str, Any]:
+    import inspect
+
+    params = inspect.signature(fuse_bracket).parameters
+    kw: dict[str, Any] = {"method": p.method, "response": response, "ghosts": p.ghosts}
+    for name in ("seed", "rng"):
+        if name in params:
+            kw[name] = p.seed
+    return kw
+
+
+def load_response(path: str | Path):
+    """Read a response-curve file written by the synthesis stage."""
+    from mehs.synthesis import response as resp
+
+    for name in ("load_response", "read_response"):
+        if hasattr(resp, name):
+            return getattr(resp, name)(path)
+    return resp.ResponseCurve.load(path)
+
+
+def _save_response(curve, path: Path) -> None:
+    from mehs.io.atomic import write_json_atomic
+
+    if curve is None:
+        return
+    for name in ("save", "write"):
+        if hasattr(curve, name):
+            getattr(curve, name)(path)
+            return
+    to_dict = getattr(curve, "to_dict", None)
+    write_json_atomic(path, _jsonable(to_dict() if to_dict else asdict(curve)))
+
+
+def _jsonable(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+def _quality(summary: dict, mask) -> dict[str, Any]:
+    import numpy as np
+
+    n = max(1, mask.size)
+    q = {
+        "dynamic_range_stops": summary.get("dynamic_range_stops"),
+        "saturated_fraction": float(np.count_nonzero(mask & 1) / n),
+        "ghost_fraction": float(np.count_nonzero(mask & 2) / n),
+        "invalid_fraction": float(np.count_nonzero(mask & 4) / n),
+        "exposure_ratios": summary.get("exposure_ratios"),
+    }
+    return _jsonable(q)
+
+
+def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]:
+    import numpy as np
+
+    from mehs.io.envi import read_envi
+
+    sid = task.source.scene_id
+    report_stage(sid, "read")
+    with _timed(run, "read"):
+        cube = read_envi(task.source.paths[0], memmap=True)
+        data = np.asarray(cube.data, dtype=np.float32)
+        bad = ~np.isfinite(data)
+        nonfinite = bad.any(axis=2)
+        if bad.any():
+            data = np.where(bad, np.float32(0), data)
+        cube = cube.with_data(data)
+    mask = np.where(nonfinite | ~(data > 0).any(axis=2), np.uint8(4), np.uint8(0))
+    quality = _quality({}, mask)
+    quality["exposure_ratios"] = None
+    quality["saturated_fraction"] = None
+    quality["ghost_fraction"] = None
+    _finish_scene(task, cube, mask, tmp, run, quality)
+    return quality, {"source_bands": int(cube.bands)}
+
+
+def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: dict) -> None:
+    """Resample to 31 bands, make the RGB pair and preview, write everything into ``tmp``."""
+    import numpy as np
+
+    from mehs.io.envi import write_envi
+    from mehs.io.exr import write_exr_rgb
+    from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb
+
+    sid = task.source.scene_id
+    p = task.params
+    report_stage(sid, "resample")
+    with _timed(run, "resample"):
+        hs = to_31_bands(cube, method=p.resample, fwhm=p.fwhm)
+        data = np.ascontiguousarray(hs.data, dtype=np.float32)
+        if not np.isfinite(data).all():
+            raise MehsError("resampled cube holds NaN/Inf values", task.source.paths[0])
+    report_stage(sid, "rgb")
+    with _timed(run, "rgb"):
+        hdr = np.asarray(hdr_rgb(data, WAVELENGTHS_31), dtype=np.float32)
+        ldr, exposure = ldr_rgb(hdr)
+        preview = _preview(hdr)
+    if quality.get("dynamic_range_stops") is None:
+        quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
+    quality["ldr_exposure"] = float(exposure)
+    quality["peak_hdr_rgb"] = float(hdr.max()) if hdr.size else 0.0
+    report_stage(sid, "write")
+    with _timed(run, "write"):
+        hs = hs.with_data(data, units=getattr(cube, "units", None) or "relative radiance",
+                          integration_time_ms=None, source=None, metadata={})
+        write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
+        write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True)
+        _write_png(tmp / "ldr_rgb.png", ldr)
+        _write_png(tmp / "mask.png", mask)
+        _write_png(tmp / "preview.png", preview)
+
+
+def to_31_bands(cube, *, method: str = "gaussian", fwhm: float = 10.0):
+    """The cube on the 31 bands 400..700 nm (unchanged if already on them)."""
+    import numpy as np
+
+    from mehs.rgb import WAVELENGTHS_31
+
+    if cube.bands == 31 and np.allclose(cube.wavelengths, WAVELENGTHS_31, atol=1e-6):
+        return cube
+    from mehs.synthesis.resample import resample_cube
+
+    return resample_cube(cube, WAVELENGTHS_31, method=method, fwhm=fwhm)
+
+
+def dynamic_range_stops(rgb, mask=None) -> float | None:
+    """log2 of the ratio between the 99.9th and 0.1th percentile of positive luminance.
+
+    Percentiles instead of max/min keep single hot or dead pixels from deciding it.
+    """
+    import numpy as np
+
+    from mehs.rgb import linear_sRGB_to_XYZ
+
+    Y = linear_sRGB_to_XYZ(rgb)[..., 1]
+    ok = Y > 0
+    if mask is not None:
+        ok &= np.asarray(mask) == 0
+    vals = Y[ok]
+    if vals.size < 2:
+        return None
+    lo, hi = np.percentile(vals, [0.1, 99.9])
+    return float(np.log2(hi / lo)) if lo > 0 else None
+
+
+def _preview(hdr):
+    try:
+        from mehs.preview import tonemap
+    except ImportError:  # the preview module is optional for building
+        import numpy as np
+
+        x = hdr / (1.0 + hdr)
+        return np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    return tonemap(hdr)
+
+
+def _write_png(path: Path, img) -> None:
+    """Write an 8-bit PNG (RGB order in, gray or RGB) atomically; no metadata, so deterministic."""
+    import cv2
+    import numpy as np
+
+    from mehs.io.atomic import atomic_path
+
+    img = np.ascontiguousarray(img)
+    if img.ndim == 3:
+        img = img[:, :, ::-1]
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise MehsError("OpenCV could not write the PNG", path)
+
+
+# ---------------------------------------------------------------- main side
+
+class _Lock:
+    """An exclusive lock file so that two builds never write one dataset."""
+
+    def __init__(self, dataset: Path):
+        self.path = dataset / LOCK_NAME
+
+    def __enter__(self):
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                if self._stale():
+                    with contextlib.suppress(FileNotFoundError):
+                        self.path.unlink()
+                    continue
+                raise InputError("another 'mehs build' is writing this dataset "
+                                 f"(lock {self.path.name}); wait for it or remove the "
+                                 "lock if it is dead", self.path.parent) from None
+            with os.fdopen(fd, "w") as fh:
+                fh.write(f"{os.getpid()} {os.uname().nodename}\n")
+            return self
+        raise InputError("could not take the build lock", self.path)
+
+    def _stale(self) -> bool:
+        try:
+            pid, host = self.path.read_text().split()[:2]
+            if host != os.uname().nodename:
+                return False
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            return True
+        except (ValueError, OSError):
+            return True
+        return False
+
+    def __exit__(self, *exc):
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+
+
+def _rgb_block() -> dict[str, str]:
+    import mehs.rgb as rgb
+
+    rule = getattr(rgb, "LDR_EXPOSURE_RULE", None) or LDR_EXPOSURE_RULE_FALLBACK
+    return {"xyz_scale": "1/sum(ybar)", "ldr_exposure_rule": str(rule),
+            "matrix": "XYZ->linear sRGB (D65), IEC 61966-2-1 / paper, negatives clipped",
+            "cmfs": rgb.CMFS_NAME}
+
+
+def _outputs_present(dataset: Path, entry: dict) -> bool:
+    files = entry.get("files") or {}
+    return all((dataset / rel).is_file() for rel in files.values())
+
+
+def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *,
+                  workers: int | None = None, force: bool = False,
+                  response: str | Path | None = None, method: str = "poisson",
+                  ghosts: str = "detect", seed: int = 0,
+                  splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
+                  rules: QualityRules | None = None, resample: str = "gaussian",
+                  fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
+                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+    """Build (or resume, or extend) the dataset folder ``out``.
+
+    Parameters
+    ----------
+    scenes
+        Scene folders, folders of scene folders, CSV/TOML scene lists (see
+        :mod:`mehs.dataset.scene_list`) or :class:`SceneSource` objects.
+    out
+        The dataset folder (created if needed). Scenes already in its manifest
+        but not given now are kept.
+    workers
+        Scenes built at once (default: the CPU count); also the bound on the
+        scenes held in memory.
+    force
+        Rebuild scenes even when their key is unchanged.
+    response
+        A response-curve file to use instead of recovering one per scene.
+    method, ghosts, seed, resample, fwhm
+        See :class:`BuildParams`; ``seed`` also seeds the splits.
+    splits
+        Train/val/test fractions over the passing scenes.
+    rules
+        Pass/fail thresholds (:class:`~mehs.dataset.quality.QualityRules`).
+    scheduler
+        A Dask scheduler address or ``distributed.Client`` to run scenes on.
+    progress
+        Show a tqdm bar (scenes done/total, ETA, current stage per scene).
+    on_commit
+        Called with each scene entry right after the manifest holding it was
+        written (progress hooks, tests).
+
+    Returns
+    -------
+    dict
+        The final manifest.
+    """
+    raw = [scenes] if isinstance(scenes, (str, Path)) else list(scenes)
+    paths = [s for s in raw if not isinstance(s, SceneSource)]
+    srcs = [s for s in raw if isinstance(s, SceneSource)] + (collect_scenes(paths) if paths else [])
+    if not srcs:
+        raise InputError("no scenes to build")
+    rules = rules or QualityRules()
+    fractions = parse_fractions(splits)
+    params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,
+                         ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm))
+    response_sha = None
+    if response:
+        if not Path(response).is_file():
+            raise InputError("response curve file not found", response)
+        response_sha = sha256_file(response)
+    return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
+                      fractions=fractions, rules=rules, scheduler=scheduler,
+                      progress=progress, on_commit=on_commit)
+
+
+def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
+                  workers: int | None = None, force: bool = False, seed: int = 0,
+                  splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
+                  rules: QualityRules | None = None, resample: str = "gaussian",
+                  fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
+                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+    """Make a paired set from existing ENVI HS cubes (any band set covering 400..700 nm).
+
+    Each cube (``.hdr`` file, or every ``*.hdr`` of a folder; id = file stem) is
+    resampled to the 31 bands and paired with its pseudo-HDR-RGB and LDR-RGB
+    images exactly as bracket scenes are. There is no bracket, so saturation,
+    ghost and exposure figures are ``None`` and the dynamic-range rule is off
+    unless ``rules`` sets it. See :func:`build_dataset` for the other parameters.
+    """
+    srcs = collect_hs_cubes(list(cubes) if not isinstance(cubes, (str, Path)) else [cubes])
+    rules = rules or QualityRules(min_dynamic_range_stops=0.0)
+    params = BuildParams(seed=int(seed), resample=resample, fwhm=float(fwhm))
+    return _run_build(srcs, Path(out), params, None, workers=workers, force=force,
+                      fractions=parse_fractions(splits), rules=rules, scheduler=scheduler,
+                      progress=progress, on_commit=on_commit)
+
+
+def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fractions,
+               rules, scheduler, progress, on_commit) -> dict[str, Any]:
+    import json
+
+    from mehs.rgb import WAVELENGTHS_31
+
+    dataset.mkdir(parents=True, exist_ok=True)
+    scenes_dir = dataset / "scenes"
+    with _Lock(dataset):
+        scenes_dir.mkdir(exist_ok=True)
+        for d in scenes_dir.iterdir():  # leftovers of an interrupted build
+            if d.name.startswith((TMP_PREFIX, OLD_PREFIX)):
+                shutil.rmtree(d, ignore_errors=True)
+        if (dataset / mf.MANIFEST_NAME).exists():
+            manifest = mf.read_manifest(dataset)
+            if manifest.get("wavelengths") != [float(w) for w in WAVELENGTHS_31]:
+                raise InputError("existing manifest has other wavelengths than 400..700/10",
+                                 dataset / mf.MANIFEST_NAME)
+        else:
+            manifest = mf.new_manifest(software_version=__version__,
+                                       wavelengths=WAVELENGTHS_31, rgb=_rgb_block())
+        before = json.dumps(manifest, sort_keys=True, default=str)
+        manifest["software_version"] = __version__
+        manifest["quality_rules"] = rules.to_dict()
+        entries = mf.scene_map(manifest)
+        for e in entries.values():  # rules may have changed since the last build
+            e["status"], e["reasons"] = judge(e.get("quality") or {}, rules, e.get("error"))
+        tasks = []
+        for s in srcs:
+            old = entries.get(s.scene_id)
+            prev = None
+            if old and not force and old.get("key") and _outputs_present(dataset, old):
+                prev = old["key"]
+            tasks.append((s.scene_id, SceneTask(s, str(dataset), params, prev, response_sha)))
+
+        def commit() -> None:
+            manifest["scenes"] = list(entries.values())
+            passing = sorted(i for i, e in entries.items() if e["status"] == "pass")
+            manifest["splits"] = make_splits(passing, fractions, params.seed)
+            write_split_files(dataset, manifest["splits"])
+            mf.write_manifest(dataset, manifest)
+
+        n_workers = workers or default_workers()
+        stages: dict[str, str] = {}
+        bar = _progress_bar(len(tasks), progress)
+
+        def on_stage(tid: str, stage: str) -> None:
+            stages[tid] = stage
+            bar.set_postfix_str(" ".join(f"{k}:{v}" for k, v in stages.items())[:60],
+                                refresh=False)
+        failures = []
+        try:
+            for res in run_tasks(build_scene, tasks, workers=n_workers,
+                                 scheduler=scheduler, on_stage=on_stage):
+                sid = res["id"]
+                stages.pop(sid, None)
+                if res["outcome"] == "skipped":
+                    bar.update(1)
+                    continue
+                entry = res["entry"]
+                _place(scenes_dir, sid, built=res["outcome"] == "built")
+                entry["status"], entry["reasons"] = judge(entry["quality"], rules,
+                                                          entry.get("error"))
+                entries[sid] = entry
+                commit()
+                if res["outcome"] == "failed":
+                    failures.append(res)
+                if on_commit is not None:
+                    on_commit(entry)
+                bar.update(1)
+        finally:
+            bar.close()
+        manifest["scenes"] = list(entries.values())
+        passing = sorted(i for i, e in entries.items() if e["status"] == "pass")
+        manifest["splits"] = make_splits(passing, fractions, params.seed)
+        if (json.dumps(manifest, sort_keys=True, default=str) != before
+                or not (dataset / "splits").is_dir()):
+            commit()
+    for res in failures:
+        tb = res["entry"]["provenance"]["run"].get("traceback")
+        import sys
+
+        print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)
+        if tb:
+            print(tb, file=sys.stderr)
+    return manifest
+
+
+def _place(scenes_dir: Path, sid: str, *, built: bool) -> None:
+    """Move ``.tmp-<id>`` to ``<id>`` (replacing an older build), or drop stale outputs."""
+    final = scenes_dir / sid
+    tmp = scenes_dir / f"{TMP_PREFIX}{sid}"
+    old = scenes_dir / f"{OLD_PREFIX}{sid}"
+    if final.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(final, old)
+    if built:
+        os.replace(tmp, final)
+    else:
+        shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _progress_bar(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="scene", desc="mehs build", disable=not enabled,
+                dynamic_ncols=True)

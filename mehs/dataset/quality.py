@@ -1,0 +1,73 @@
+"""Pass/fail rules for dataset scenes (excluded by rule, not by hand).
+
+A scene **fails** when any of these holds (thresholds are :class:`QualityRules`
+fields, set from ``mehs build`` options):
+
+==========================  ============================================  =========
+rule                        figure                                        default
+==========================  ============================================  =========
+synthesis failed            reading/fusing raised an error                —
+too few exposures           complete exposures in the bracket             < 2
+ghosts                      ``ghost_fraction`` (pixels flagged moving)    > 0.01
+saturated in every exposure ``saturated_fraction``                        > 0.005
+other invalid pixels        ``invalid_fraction`` (mask bit 4)             > 0.05
+dynamic range too low       ``dynamic_range_stops``                       < 4.0
+==========================  ============================================  =========
+
+Figures that are unknown (``None``, e.g. ghosts for ``--from-hs`` cubes) are
+not judged. Failed scenes stay in the manifest with their reasons; only
+passing scenes enter the splits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class QualityRules:
+    """Thresholds of the pass/fail rules (fractions are of all pixels)."""
+
+    max_ghost_fraction: float = 0.01
+    max_saturated_fraction: float = 0.005
+    max_invalid_fraction: float = 0.05
+    min_dynamic_range_stops: float = 4.0
+    min_exposures: int = 2
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
+          error: str | None = None) -> tuple[str, list[str]]:
+    """``("pass"|"fail", reasons)`` for a scene's quality figures.
+
+    Parameters
+    ----------
+    quality
+        Keys ``ghost_fraction``, ``saturated_fraction``, ``invalid_fraction``,
+        ``dynamic_range_stops``, ``n_exposures`` (any may be missing or None).
+    error
+        The synthesis error message, if the scene could not be built.
+    """
+    reasons: list[str] = []
+    if error:
+        reasons.append(f"synthesis failed: {error}")
+    q = quality or {}
+
+    def over(key: str, limit: float, text: str) -> None:
+        v = q.get(key)
+        if v is not None and v > limit:
+            reasons.append(f"{text} {v:.4g} > {limit:g}")
+
+    n = q.get("n_exposures")
+    if n is not None and n < rules.min_exposures:
+        reasons.append(f"only {n} complete exposure(s) < {rules.min_exposures}")
+    over("ghost_fraction", rules.max_ghost_fraction, "ghost fraction")
+    over("saturated_fraction", rules.max_saturated_fraction, "saturated-in-all fraction")
+    over("invalid_fraction", rules.max_invalid_fraction, "invalid fraction")
+    dr = q.get("dynamic_range_stops")
+    if dr is not None and dr < rules.min_dynamic_range_stops:
+        reasons.append(f"dynamic range {dr:.3g} stops < {rules.min_dynamic_range_stops:g}")
+    return ("fail" if reasons else "pass"), reasons
