@@ -1,0 +1,711 @@
+"""ENVI cubes: validated, memory-mapped reading and atomic, chunked writing.
+
+Header parsing (:func:`spectral.io.envi.read_envi_header`), the ENVI data-type
+table, and header writing
+(:func:`spectral.io.envi.write_envi_header`) come from SPy. The data itself is
+mapped with :class:`numpy.memmap` exactly as SPy's ``open_memmap`` does, but
+after mehs has checked the header and the file size itself — SPy's image
+classes keep an open file handle per image, turn a failed memmap into ``None``
+and require keys (``byte order``) that real files omit, so validating first
+and mapping directly gives clear errors instead of wrong numbers.
+
+Orientation
+    Every cube is returned as ``(lines, samples, bands)`` whatever the file's
+    interleave (``bil``: file order (lines, bands, samples); ``bsq``: (bands,
+    lines, samples); ``bip``: (lines, samples, bands)). For ``bil``/``bsq`` the
+    result is a transposed *view* of the memmap, not a copy.
+
+Header keys understood on reading (keys are case-insensitive)
+    ``samples``, ``lines``, ``bands``, ``data type`` (mandatory);
+    ``interleave`` (mandatory unless ``bands = 1``); ``byte order`` (default
+    0 = little-endian, with a warning for multi-byte types); ``header offset``
+    (default 0, as ENVI); ``wavelength`` / ``fwhm`` with ``wavelength units``
+    (nanometres; micrometres are converted); ``reflectance scale factor``
+    (data are divided by it → float32); Specim keys ``tint`` (integration time,
+    ms), ``acquisition date`` (``DD-MM-YYYY``, ``YYYY-MM-DD``,
+    ``DATE(dd-mm-yyyy): …``, ``DATE(yyyy-mm-dd): …``, ISO; with an optional
+    ``HH:MM:SS``), ``default bands`` (1-based), ``binning``; mehs keys
+    ``data units`` and ``dark subtracted``. Everything else is kept in
+    ``cube.metadata`` and written back.
+
+References
+----------
+- NV5 Geospatial (Harris), *ENVI Header Files* — https://www.nv5geospatialsoftware.com/docs/ENVIHeaderFiles.html
+- Boggs, T. *Spectral Python (SPy)* — https://www.spectralpython.net/
+- Specim IQ user manual, chapter "Data format" (capture folder and header keys).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from dataclasses import dataclass, field
+from datetime import date, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mehs.cube import SpectralCube, validate_wavelengths
+from mehs.errors import FormatError, InputError
+from mehs.io.atomic import atomic_path
+
+__all__ = ["EnviHeader", "read_envi_header", "read_envi", "write_envi",
+           "find_data_file", "find_header_file", "parse_acquisition_date",
+           "format_acquisition_date", "DATA_EXTENSIONS"]
+
+#: Data-file extensions tried after the header's stem (then upper-case), in order.
+DATA_EXTENSIONS = ("", ".raw", ".dat", ".img", ".bil", ".bsq", ".bip", ".bin")
+
+_INTERLEAVES = ("bil", "bip", "bsq")
+#: axes permutation from a file's (interleave) order to (lines, samples, bands)
+_TO_BIP = {"bil": (0, 2, 1), "bsq": (1, 2, 0), "bip": (0, 1, 2)}
+
+#: Keys the reader turns into cube fields and the writer regenerates from them;
+#: they are never copied from ``cube.metadata`` into a written header.
+_MANAGED_KEYS = frozenset({
+    "samples", "lines", "bands", "header offset", "data type", "interleave",
+    "byte order", "file type", "wavelength", "fwhm", "wavelength units", "tint",
+    "acquisition date", "default bands", "binning", "reflectance scale factor",
+    "data units", "dark subtracted",
+})
+_STRUCTURAL_KEYS = frozenset({"samples", "lines", "bands", "header offset",
+                              "data type", "interleave", "byte order", "file type"})
+
+# Write chunk: big enough that per-chunk overhead vanishes, small enough not to
+# duplicate a 100 MB cube in memory.
+_CHUNK_BYTES = 16 << 20
+
+
+def _envi_dtypes() -> dict[str, np.dtype]:
+    from spectral.io.envi import envi_to_dtype
+
+    return {k: np.dtype(v) for k, v in envi_to_dtype.items()}
+
+
+@dataclass(frozen=True)
+class EnviHeader:
+    """A checked ENVI header and the data file it describes.
+
+    ``fields`` holds every header key (lower-cased) with its raw value (a
+    string, or a list of strings for ``{…}`` values). ``dtype`` carries the
+    file's byte order.
+    """
+
+    header_path: Path
+    data_path: Path
+    lines: int
+    samples: int
+    bands: int
+    dtype: np.dtype
+    interleave: str
+    byte_order: int
+    header_offset: int
+    fields: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(lines, samples, bands)``."""
+        return (self.lines, self.samples, self.bands)
+
+    @property
+    def nbytes(self) -> int:
+        return self.lines * self.samples * self.bands * self.dtype.itemsize
+
+    def open_memmap(self) -> np.ndarray:
+        """Read-only memmap view of the data, shape ``(lines, samples, bands)``.
+
+        Values keep the file's byte order (``dtype`` may be non-native); no
+        scale factor is applied. Nothing is read until elements are accessed.
+        """
+        file_shape = {"bil": (self.lines, self.bands, self.samples),
+                      "bsq": (self.bands, self.lines, self.samples),
+                      "bip": (self.lines, self.samples, self.bands)}[self.interleave]
+        if self.nbytes == 0:  # pragma: no cover - excluded by header checks
+            return np.zeros(self.shape, self.dtype)
+        mm = np.memmap(self.data_path, dtype=self.dtype, mode="r",
+                       offset=self.header_offset, shape=file_shape)
+        # (SPy's interleave_transpose returns (1, 1, 1) for "bip"→"bip", so not used.)
+        return mm.transpose(_TO_BIP[self.interleave])
+
+
+# --------------------------------------------------------------------- reading
+
+
+def find_header_file(path: str | Path) -> Path:
+    """The ``.hdr`` belonging to ``path`` (a header or an ENVI data file)."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError("is a folder, not an ENVI file", p)
+    if p.suffix.lower() == ".hdr":
+        if not p.is_file():
+            raise InputError("file does not exist", p)
+        return p
+    if not p.exists():
+        raise InputError("file does not exist", p)
+    # ENVI names the header either <stem>.hdr or <data name>.hdr.
+    for cand in (p.with_suffix(".hdr"), p.with_suffix(".HDR"),
+                 p.with_name(p.name + ".hdr"), p.with_name(p.name + ".HDR")):
+        if cand.is_file():
+            return cand
+    raise FormatError("no ENVI header found (looked for "
+                      f"{p.with_suffix('.hdr').name} and {p.name}.hdr)", p)
+
+
+def find_data_file(header_path: str | Path, interleave: str | None = None) -> Path:
+    """The data file of an ENVI header: same stem with a known extension, or none."""
+    hp = Path(header_path)
+    stem = hp.with_suffix("")
+    exts = list(DATA_EXTENSIONS)
+    if interleave and f".{interleave}" not in exts:
+        exts.append(f".{interleave}")
+    tried = []
+    for ext in exts + [e.upper() for e in exts if e]:
+        cand = stem.with_name(stem.name + ext)
+        tried.append(cand.name)
+        if cand.is_file() and cand != hp:
+            return cand
+    raise FormatError(f"data file not found (tried {', '.join(tried[:8])}, …)", hp)
+
+
+def _parse_raw_header(hp: Path) -> dict[str, Any]:
+    from spectral.io import envi as spy_envi
+
+    try:
+        with warnings.catch_warnings():
+            # SPy warns when it lower-cases capitalised keys; mehs does that on purpose.
+            warnings.simplefilter("ignore")
+            raw = spy_envi.read_envi_header(str(hp))
+    except spy_envi.FileNotAnEnviHeader:
+        raise FormatError("not an ENVI header (first line is not 'ENVI')", hp) from None
+    except (spy_envi.EnviHeaderParsingError, UnicodeDecodeError, IndexError, ValueError):
+        raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
+                          "binary content)", hp) from None
+    except OSError as exc:
+        raise InputError(f"cannot read header ({exc.strerror})", hp) from None
+    return {str(k).strip().lower(): v for k, v in raw.items()}
+
+
+def _int_field(h: dict, key: str, hp: Path, *, default: int | None = None,
+               minimum: int = 1) -> int:
+    if key not in h:
+        if default is None:
+            raise FormatError(f"mandatory header key '{key}' is missing", hp)
+        return default
+    val = h[key]
+    try:
+        if isinstance(val, list):
+            raise ValueError
+        out = int(str(val).strip())
+    except ValueError:
+        raise FormatError(f"header key '{key}' = {val!r} is not an integer", hp) from None
+    if out < minimum:
+        raise FormatError(f"header key '{key}' = {out} must be ≥ {minimum}", hp)
+    return out
+
+
+def read_envi_header(path: str | Path) -> EnviHeader:
+    """Parse and check an ENVI header and locate its data file (no data read).
+
+    Parameters
+    ----------
+    path
+        The ``.hdr`` file or the data file.
+
+    Raises
+    ------
+    InputError
+        The path does not exist or is a folder.
+    FormatError
+        Unparseable header, missing/invalid mandatory key, unknown data type,
+        missing data file, or a data file whose size is not
+        ``header offset + lines·samples·bands·itemsize``.
+    """
+    hp = find_header_file(path)
+    h = _parse_raw_header(hp)
+    samples = _int_field(h, "samples", hp)
+    lines = _int_field(h, "lines", hp)
+    bands = _int_field(h, "bands", hp)
+    if "data type" not in h:
+        raise FormatError("mandatory header key 'data type' is missing", hp)
+    code = str(h["data type"]).strip()
+    table = _envi_dtypes()
+    if code not in table:
+        raise FormatError(f"unknown ENVI data type {code!r} (known: "
+                          f"{', '.join(sorted(table, key=int))})", hp)
+    dtype = table[code]
+    if "interleave" in h:
+        inter = str(h["interleave"]).strip().lower()
+        if inter not in _INTERLEAVES:
+            raise FormatError(f"unknown interleave {h['interleave']!r} "
+                              "(expected bil, bip or bsq)", hp)
+    elif bands == 1:
+        inter = "bsq"  # all interleaves coincide for one band
+    else:
+        raise FormatError("mandatory header key 'interleave' is missing", hp)
+    if "byte order" in h:
+        bo = _int_field(h, "byte order", hp, minimum=0)
+        if bo not in (0, 1):
+            raise FormatError(f"byte order must be 0 or 1, got {bo}", hp)
+    else:
+        bo = 0
+        if dtype.itemsize > 1:
+            warnings.warn(f"{hp}: no 'byte order' key; assuming 0 (little-endian)",
+                          stacklevel=2)
+    offset = _int_field(h, "header offset", hp, default=0, minimum=0)
+    if _has_frame_offsets(h):
+        raise FormatError("ENVI frame offsets are not supported", hp)
+    dtype = dtype.newbyteorder("<" if bo == 0 else ">")
+    data_path = find_data_file(hp, inter)
+    expected = offset + lines * samples * bands * dtype.itemsize
+    actual = data_path.stat().st_size
+    if actual != expected:
+        what = "truncated" if actual < expected else "larger than its header says"
+        raise FormatError(
+            f"data file is {what}: expected {expected} bytes (header offset {offset} + "
+            f"{lines} lines × {samples} samples × {bands} bands × {dtype.itemsize} bytes), "
+            f"found {actual}", data_path)
+    return EnviHeader(hp, data_path, lines, samples, bands, dtype, inter, bo, offset, h)
+
+
+def _has_frame_offsets(h: dict) -> bool:
+    for key in ("major frame offsets", "minor frame offsets"):
+        val = h.get(key)
+        if val is None:
+            continue
+        vals = val if isinstance(val, list) else [val]
+        try:
+            if any(int(v) != 0 for v in vals):
+                return True
+        except ValueError:
+            return True
+    return False
+
+
+def _float_list(val: Any, key: str, n: int, hp: Path) -> np.ndarray:
+    items = val if isinstance(val, list) else [v for v in re.split(r"[,\s]+", str(val)) if v]
+    out = np.empty(len(items))
+    for i, s in enumerate(items):
+        try:
+            out[i] = float(s)
+        except ValueError:
+            raise FormatError(f"'{key}' value {s!r} (band {i + 1}) is not a number",
+                              hp) from None
+    if out.size != n:
+        raise FormatError(f"'{key}' has {out.size} values for {n} bands", hp)
+    return out
+
+
+_UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nm": 1.0, "micrometers": 1e3,
+               "micrometer": 1e3, "microns": 1e3, "micron": 1e3, "um": 1e3, "µm": 1e3,
+               "millimeters": 1e6, "mm": 1e6}
+
+
+_DATE_FORMATS = {"dd-mm-yyyy": "%d-%m-%Y", "yyyy-mm-dd": "%Y-%m-%d",
+                 "mm-dd-yyyy": "%m-%d-%Y", "dd.mm.yyyy": "%d.%m.%Y",
+                 "dd/mm/yyyy": "%d/%m/%Y", "yyyy/mm/dd": "%Y/%m/%d"}
+_TIME_RE = re.compile(r"^(\d{1,2}):(\d{2})(?::(\d{2})(?:\.(\d{1,6}))?)?$")
+
+
+def parse_acquisition_date(text: str) -> str | None:
+    """ISO-8601 form of an ENVI/Specim ``acquisition date`` value, or ``None``.
+
+    Accepts ``DD-MM-YYYY``, ``YYYY-MM-DD``, ``DATE(dd-mm-yyyy): DD-MM-YYYY``,
+    ``DATE(yyyy-mm-dd): YYYY-MM-DD`` and ISO date-times, each optionally
+    followed by ``HH:MM[:SS[.ffffff]]``. Returns ``YYYY-MM-DD`` or
+    ``YYYY-MM-DDTHH:MM:SS[.ffffff]``.
+    """
+    s = str(text).strip()
+    fmts: list[str]
+    m = re.match(r"^DATE\s*\(\s*([A-Za-z./-]+)\s*\)\s*:?\s*(.*)$", s, re.IGNORECASE)
+    if m:
+        key = m.group(1).lower()
+        if key not in _DATE_FORMATS:
+            return None
+        fmts, s = [_DATE_FORMATS[key]], m.group(2).strip()
+    else:
+        fmts = ["%d-%m-%Y", "%Y-%m-%d", "%d.%m.%Y", "%Y/%m/%d"]
+    if not m:
+        try:
+            return datetime.fromisoformat(s).isoformat() if "T" in s \
+                else date.fromisoformat(s).isoformat()
+        except ValueError:
+            pass
+    parts = s.replace("T", " ").split()
+    if not parts or len(parts) > 2:
+        return None
+    day = None
+    for f in fmts:
+        try:
+            day = datetime.strptime(parts[0], f).date()
+            break
+        except ValueError:
+            continue
+    if day is None:
+        return None
+    if len(parts) == 1:
+        return day.isoformat()
+    t = _TIME_RE.match(parts[1])
+    if not t:
+        return None
+    hh, mm, ss = int(t.group(1)), int(t.group(2)), int(t.group(3) or 0)
+    us = int((t.group(4) or "0").ljust(6, "0"))
+    try:
+        return datetime(day.year, day.month, day.day, hh, mm, ss, us).isoformat()
+    except ValueError:
+        return None
+
+
+def format_acquisition_date(iso: str) -> str:
+    """Specim-style header value for an ISO date: ``DATE(dd-mm-yyyy): DD-MM-YYYY[ HH:MM:SS]``.
+
+    A value that is not ISO is returned unchanged.
+    """
+    try:
+        dt = datetime.fromisoformat(iso)
+    except (TypeError, ValueError):
+        return str(iso)
+    out = f"DATE(dd-mm-yyyy): {dt:%d-%m-%Y}"
+    if "T" in iso or " " in iso.strip():
+        out += f" {dt:%H:%M:%S}" + (f".{dt.microsecond:06d}" if dt.microsecond else "")
+    return out
+
+
+def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
+    """SpectralCube keyword arguments from the header's optional keys."""
+    h, hp, nb = hdr.fields, hdr.header_path, hdr.bands
+    if "wavelength" not in h:
+        raise FormatError("header has no 'wavelength' list; mehs needs band centres", hp)
+    wl = _float_list(h["wavelength"], "wavelength", nb, hp)
+    unit = str(h.get("wavelength units", "nanometers")).strip().lower()
+    scale = _UNIT_SCALE.get(unit)
+    if scale is None:
+        if unit in ("unknown", "index", ""):
+            scale = 1.0
+            warnings.warn(f"{hp}: wavelength units {h['wavelength units']!r}; "
+                          "assuming nanometres", stacklevel=3)
+        else:
+            raise FormatError(f"wavelength units {h['wavelength units']!r} are not "
+                              "a length (nanometers/micrometers)", hp)
+    try:
+        wl = validate_wavelengths(wl * scale, nb, hp)
+    except InputError as exc:
+        raise FormatError(f"'wavelength': {exc.problem}", hp) from None
+    kw: dict[str, Any] = {"wavelengths": wl}
+    if "fwhm" in h:
+        fw = _float_list(h["fwhm"], "fwhm", nb, hp) * scale
+        if not np.all(np.isfinite(fw) & (fw > 0)):
+            raise FormatError("'fwhm' values must be finite and positive", hp)
+        kw["fwhm"] = fw
+    if "tint" in h:
+        try:
+            t = float(str(h["tint"]).strip())
+        except ValueError:
+            raise FormatError(f"'tint' = {h['tint']!r} is not a number (ms)", hp) from None
+        if not (np.isfinite(t) and t > 0):
+            raise FormatError(f"'tint' = {t} ms must be positive", hp)
+        kw["integration_time_ms"] = t
+    if "acquisition date" in h:
+        raw = h["acquisition date"]
+        raw = ", ".join(raw) if isinstance(raw, list) else str(raw)
+        iso = parse_acquisition_date(raw)
+        if iso is None:
+            warnings.warn(f"{hp}: acquisition date {raw!r} not understood; kept as text",
+                          stacklevel=3)
+            kw["acquisition_date"] = raw
+        else:
+            kw["acquisition_date"] = iso
+    if "default bands" in h:
+        try:
+            db = [int(float(v)) - 1 for v in
+                  (h["default bands"] if isinstance(h["default bands"], list)
+                   else [h["default bands"]])]
+        except ValueError:
+            db = []
+        if len(db) == 3 and all(0 <= b < nb for b in db):
+            kw["default_bands"] = tuple(db)
+        elif len(db) != 1:  # a single grey band is legal ENVI but not an RGB triple
+            warnings.warn(f"{hp}: default bands {h['default bands']!r} ignored "
+                          f"(need three 1-based indices in 1..{nb})", stacklevel=3)
+    if "binning" in h:
+        vals = h["binning"] if isinstance(h["binning"], list) else [h["binning"]]
+        try:
+            b = tuple(int(float(v)) for v in vals)
+            if len(b) == 2 and min(b) >= 1:
+                kw["binning"] = b
+        except ValueError:
+            pass
+        if "binning" not in kw:
+            warnings.warn(f"{hp}: binning {h['binning']!r} ignored", stacklevel=3)
+    if "dark subtracted" in h:
+        kw["dark_subtracted"] = str(h["dark subtracted"]).strip().lower() in (
+            "1", "true", "yes")
+    return kw
+
+
+def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
+    """Read an ENVI cube as a :class:`SpectralCube` ``(lines, samples, bands)``.
+
+    Parameters
+    ----------
+    path
+        The ``.hdr`` file or the data file next to it.
+    memmap
+        If true (default) ``data`` is a read-only memmap view (no data read
+        yet) — except when the file is big-endian or has a ``reflectance scale
+        factor``: then the values are converted (native byte order, float32
+        divided by the factor) into an in-memory array. If false, ``data`` is
+        always an in-memory C-contiguous array.
+
+    Returns
+    -------
+    SpectralCube
+        ``data`` has the file's data type (native byte order), or float32 when
+        a reflectance scale factor was applied (recorded in
+        ``metadata["reflectance scale factor"]``, ``units="reflectance"``).
+        Unsorted wavelengths are sorted together with the bands (a warning;
+        the data is then copied).
+
+    Raises
+    ------
+    InputError, FormatError
+        See :func:`read_envi_header`; also a missing/invalid ``wavelength``
+        list, FWHM count, non-numeric ``tint``.
+    """
+    hdr = read_envi_header(path)
+    kw = _cube_fields(hdr)
+    h, hp = hdr.fields, hdr.header_path
+    data = hdr.open_memmap()
+    sf = None
+    if "reflectance scale factor" in h:
+        try:
+            sf = float(str(h["reflectance scale factor"]).strip())
+        except ValueError:
+            sf = float("nan")
+        if not (np.isfinite(sf) and sf != 0):
+            raise FormatError(f"reflectance scale factor {h['reflectance scale factor']!r} "
+                              "must be a non-zero number", hp)
+    if sf is not None and sf != 1.0:
+        out = np.empty(hdr.shape, np.float32)
+        np.divide(data, np.float32(sf), out=out, casting="unsafe")
+        data = out
+    elif not data.dtype.isnative:
+        data = data.astype(data.dtype.newbyteorder("="), order="C")
+    elif not memmap:
+        data = np.array(data, order="C")
+    if sf is not None:
+        kw["units"] = "reflectance"
+    if "data units" in h:
+        kw["units"] = str(h["data units"]).strip()
+    elif sf is None:
+        kw["units"] = "DN" if data.dtype.kind in "iu" else "unknown"
+    meta = {k: v for k, v in h.items() if k not in _MANAGED_KEYS}
+    if sf is not None:
+        meta["reflectance scale factor"] = sf
+    return SpectralCube(data=data, source=hp, metadata=meta, **kw)
+
+
+# --------------------------------------------------------------------- writing
+
+
+def _target_dtype(cube_dtype: np.dtype, dtype: Any) -> np.dtype:
+    from spectral.io.envi import dtype_to_envi
+
+    dt = np.dtype(cube_dtype if dtype is None else dtype).newbyteorder("=")
+    if dt.char not in dtype_to_envi:
+        names = sorted({np.dtype(c).name for c in dtype_to_envi})
+        raise InputError(f"data type {dt.name} cannot be stored in ENVI "
+                         f"(supported: {', '.join(names)})")
+    return dt
+
+
+def _header_value(key: str, val: Any) -> Any:
+    if isinstance(val, np.ndarray):
+        val = val.tolist()
+    if isinstance(val, (list, tuple)):
+        items = [_header_value(key, v) for v in val]
+        for it in items:
+            if isinstance(it, (list, tuple)) or "," in str(it):
+                raise InputError(f"header value of {key!r} cannot hold nested lists "
+                                 "or commas inside items")
+        return items
+    if isinstance(val, (dict, set)):
+        raise InputError(f"header value of {key!r} must be text, a number or a list")
+    if isinstance(val, (float, np.floating)):
+        return repr(float(val))
+    if isinstance(val, (bool, np.bool_)):
+        return "1" if val else "0"
+    s = str(val)
+    if any(c in s for c in "{}") or ("\n" in s and key != "description"):
+        raise InputError(f"header value of {key!r} may not contain braces or line breaks")
+    return s
+
+
+def _build_header(cube: SpectralCube, dt: np.dtype, interleave: str,
+                  extra_header: dict | None) -> dict[str, Any]:
+    from spectral.io.envi import dtype_to_envi
+
+    from mehs import __version__
+
+    L, S, B = cube.shape
+    h: dict[str, Any] = {
+        "description": f"written by mehs {__version__}",
+        "samples": S, "lines": L, "bands": B, "header offset": 0,
+        "file type": "ENVI Standard", "data type": dtype_to_envi[dt.char],
+        "interleave": interleave, "byte order": 0,
+        "wavelength units": "Nanometers",
+        "wavelength": [repr(float(w)) for w in cube.wavelengths],
+    }
+    if cube.fwhm is not None:
+        h["fwhm"] = [repr(float(w)) for w in cube.fwhm]
+    if cube.integration_time_ms is not None:
+        h["tint"] = repr(float(cube.integration_time_ms))
+    if cube.acquisition_date:
+        h["acquisition date"] = format_acquisition_date(cube.acquisition_date)
+    if cube.default_bands is not None:
+        h["default bands"] = [str(b + 1) for b in cube.default_bands]
+    if cube.binning is not None:
+        h["binning"] = [str(int(b)) for b in cube.binning]
+    h["data units"] = cube.units
+    if cube.dark_subtracted:
+        h["dark subtracted"] = "1"
+    for k, v in (cube.metadata or {}).items():
+        key = str(k).strip().lower()
+        if key in _MANAGED_KEYS or key.startswith("_"):
+            continue
+        h[key] = v
+    for k, v in (extra_header or {}).items():
+        key = str(k).strip().lower()
+        if key in _STRUCTURAL_KEYS:
+            raise InputError(f"extra_header may not set {key!r} (it describes the data layout)")
+        h[key] = v
+    out = {}
+    for k, v in h.items():
+        if not k or "=" in k or "\n" in k or k.startswith(";"):
+            raise InputError(f"invalid ENVI header key {k!r}")
+        out[k] = v if k in _STRUCTURAL_KEYS else _header_value(k, v)
+    return out
+
+
+def _check_cast(chunk: np.ndarray, dt: np.dtype) -> None:
+    """Refuse casts that would wrap around or turn NaN into an integer."""
+    if dt.kind not in "iu" or chunk.size == 0:
+        return
+    if chunk.dtype.kind == "f":
+        if not np.all(np.isfinite(chunk)):
+            raise InputError(f"cannot store NaN/Inf as {dt.name}")
+    elif chunk.dtype.kind not in "iub":
+        raise InputError(f"cannot store {chunk.dtype.name} data as {dt.name}")
+    info = np.iinfo(dt)
+    lo, hi = chunk.min(), chunk.max()
+    if lo < info.min or hi > info.max:
+        raise InputError(f"values {lo}..{hi} do not fit in {dt.name} "
+                         f"({info.min}..{info.max})")
+
+
+def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
+    file_dt = dt.newbyteorder("<")
+    L, S, B = data.shape
+    itemsize = max(dt.itemsize, data.dtype.itemsize)
+    round_ = dt.kind in "iu" and data.dtype.kind == "f"
+    if interleave == "bsq":
+        # file order (bands, lines, samples): whole bands at a time
+        step = max(1, _CHUNK_BYTES // max(1, L * S * itemsize))
+        ranges = [(b, min(B, b + step)) for b in range(0, B, step)]
+        take = lambda a, b: data[:, :, a:b].transpose(2, 0, 1)  # noqa: E731
+    else:
+        step = max(1, _CHUNK_BYTES // max(1, S * B * itemsize))
+        ranges = [(i, min(L, i + step)) for i in range(0, L, step)]
+        if interleave == "bil":
+            take = lambda a, b: data[a:b].transpose(0, 2, 1)  # noqa: E731
+        else:
+            take = lambda a, b: data[a:b]  # noqa: E731
+    for a, b in ranges:
+        chunk = np.asarray(take(a, b))
+        _check_cast(chunk, dt)
+        if round_:
+            chunk = np.rint(chunk)
+        chunk.astype(file_dt, order="C", copy=False).tofile(fh)
+
+
+def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
+               interleave: str = "bil", data_ext: str = ".raw", overwrite: bool = True,
+               extra_header: dict | None = None) -> Path:
+    """Write ``cube`` as an ENVI header + data file, atomically; return the header path.
+
+    The data file (``<stem><data_ext>``) is written chunk by chunk to a
+    temporary name and renamed; the header is written last the same way, so
+    a header's presence means the pair is complete (when overwriting, the old
+    header is removed first). Byte order is always 0 (little-endian), header
+    offset 0.
+
+    Parameters
+    ----------
+    hdr_path
+        Destination header, must end in ``.hdr``.
+    cube
+        The cube; ``data`` (lines, samples, bands) may be a memmap.
+    dtype
+        Stored data type (default: the cube's). Float → integer casts round to
+        nearest and must fit the type (no NaN, no wrap-around) or
+        :class:`InputError` is raised.
+    interleave
+        ``"bil"`` (default, Specim), ``"bip"`` or ``"bsq"``.
+    data_ext
+        Data-file extension: ``".raw"`` for raw cubes, ``".dat"`` for float
+        results (Specim layout), or ``""``.
+    overwrite
+        If false, refuse (InputError) when the header or data file exists —
+        used for raw captures.
+    extra_header
+        Additional header keys (override ``cube.metadata``; layout keys such as
+        ``samples`` are refused). ``reflectance scale factor`` from a read cube is
+        *not* written back (its data are already scaled); pass it here only
+        with data that are scaled accordingly.
+
+    Writes ``wavelength``, ``fwhm``, ``wavelength units = Nanometers``,
+    ``tint`` (ms), ``acquisition date`` (Specim form), ``default bands``
+    (1-based), ``binning``, ``data units``, ``dark subtracted`` and the
+    cube's other metadata keys.
+    """
+    hp = Path(hdr_path)
+    if hp.suffix.lower() != ".hdr":
+        raise InputError("an ENVI header path must end in .hdr", hp)
+    if not isinstance(cube, SpectralCube):
+        raise InputError(f"write_envi needs a SpectralCube, got {type(cube).__name__}", hp)
+    inter = str(interleave).lower()
+    if inter not in _INTERLEAVES:
+        raise InputError(f"interleave must be bil, bip or bsq, got {interleave!r}", hp)
+    if data_ext and not data_ext.startswith("."):
+        data_ext = "." + data_ext
+    if data_ext.lower() == ".hdr":
+        raise InputError("data_ext may not be .hdr", hp)
+    dp = hp.with_name(hp.stem + data_ext)
+    try:
+        dt = _target_dtype(cube.data.dtype, dtype)
+        header = _build_header(cube, dt, inter, extra_header)
+    except InputError as exc:
+        raise InputError(exc.problem, hp) from None
+    if not overwrite:
+        for p in (hp, dp):
+            if p.exists():
+                raise InputError("refusing to overwrite an existing file", p)
+    from spectral.io.envi import write_envi_header
+
+    try:
+        with atomic_path(dp, overwrite=overwrite) as tmp:
+            with open(tmp, "wb") as fh:
+                _write_data(fh, cube.data, dt, inter)
+                fh.flush()
+                os.fsync(fh.fileno())
+            if hp.exists():
+                hp.unlink()  # old header must not describe the new data, even briefly
+    except InputError as exc:
+        raise InputError(exc.problem, exc.path or dp) from None
+    with atomic_path(hp, overwrite=overwrite) as tmp:
+        write_envi_header(str(tmp), header)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+    return hp
+
