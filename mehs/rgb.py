@@ -5,6 +5,10 @@ centres, so a flat spectrum of value 1 has ``Y = 1`` whatever the band set.
 :func:`spectra_to_XYZ` is the one XYZ function of the toolkit: the pseudo-RGB
 images and the SSR luminance restoration both use it, so their ``X+Y+Z`` agree.
 
+The RGB pair of a scene: :func:`hdr_rgb` (pseudo-HDR-RGB, linear, unclipped
+above, stored as half-float EXR) and :func:`ldr_rgb` (exposed so the 99th
+percentile of luminance maps to 1, clipped, sRGB-encoded, 8-bit).
+
 References
 ----------
 - CIE 015:2018 Colorimetry, 4th edition (CIE 1931 2° standard observer).
@@ -21,10 +25,19 @@ from mehs.errors import InputError
 
 CMFS_NAME = "CIE 1931 2 Degree Standard Observer"
 
-#: XYZ → linear sRGB (D65), the matrix printed in the paper and IEC 61966-2-1.
+#: XYZ → linear sRGB (D65): IEC 61966-2-1 (the matrix colour-science uses for sRGB).
+#: The paper (and design.md §4) print the last entry as 1.0507, a transposition
+#: of the standard's 1.0570: with 1.0507 a D65 white renders with B = 0.993·Y
+#: and no longer agrees with colour-science. See docs/science.md "RGB pairs".
 XYZ_TO_SRGB = np.array([[3.2406, -1.5372, -0.4986],
                         [-0.9689, 1.8758, 0.0415],
-                        [0.0557, -0.2040, 1.0507]])
+                        [0.0557, -0.2040, 1.0570]])
+
+#: The matrix exactly as printed in the paper (last entry 1.0507), kept for
+#: reproducing numbers computed with it; not used by mehs.
+XYZ_TO_SRGB_AS_PRINTED = np.array([[3.2406, -1.5372, -0.4986],
+                                   [-0.9689, 1.8758, 0.0415],
+                                   [0.0557, -0.2040, 1.0507]])
 
 #: The 31 target bands of the ME HS set: 400, 410, …, 700 nm.
 WAVELENGTHS_31 = np.arange(400.0, 701.0, 10.0)
@@ -103,3 +116,141 @@ def linear_sRGB_to_XYZ(rgb: np.ndarray) -> np.ndarray:
     rgb = np.asarray(rgb)
     dtype = np.float32 if rgb.dtype == np.float32 else np.float64
     return rgb @ np.linalg.inv(XYZ_TO_SRGB).T.astype(dtype)
+
+
+# --------------------------------------------------------------------------- RGB pairs
+
+#: Default LDR exposure rule: this percentile of luminance Y maps to 1.0.
+LDR_PERCENTILE = 99.0
+
+#: Lines of a cube converted per chunk in :func:`hdr_rgb` (bounds float32 temporaries).
+_RGB_CHUNK_PIXELS = 1 << 20
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """CIE Y of linear sRGB ``(..., 3)`` → ``(...)``, the Y row of ``inv(XYZ_TO_SRGB)``."""
+    rgb = np.asarray(rgb)
+    dtype = np.float32 if rgb.dtype == np.float32 else np.float64
+    return rgb @ np.linalg.inv(XYZ_TO_SRGB)[1].astype(dtype)
+
+
+def hdr_rgb(spectra, wavelengths=None) -> np.ndarray:
+    """Pseudo-HDR-RGB of a hyperspectral image (paper §3.1, four steps).
+
+    (1) XYZ with the CIE 1931 2° CMFs sampled at the band centres and
+    ``k = 1/Σȳ`` (:func:`spectra_to_XYZ`); (2) linear sRGB with
+    :data:`XYZ_TO_SRGB`; (3) negatives clipped to 0; (4) is the caller's:
+    store as half-float EXR (:func:`mehs.io.exr.write_exr_rgb`). No
+    normalisation, no quantisation: values above 1 are kept.
+
+    Parameters
+    ----------
+    spectra
+        ``(H, W, B)`` array/memmap of radiance, or a
+        :class:`~mehs.cube.SpectralCube` (then ``wavelengths`` may be omitted).
+    wavelengths
+        Band centres in nm, ``(B,)``, inside the CMF table (360–830 nm).
+
+    Returns
+    -------
+    ndarray
+        float32 ``(H, W, 3)`` linear sRGB.
+
+    Raises
+    ------
+    InputError
+        Band/wavelength mismatch, bands outside the CMF table, NaN/Inf input.
+    """
+    from mehs.cube import SpectralCube
+
+    source = None
+    if isinstance(spectra, SpectralCube):
+        source = spectra.source
+        if wavelengths is None:
+            wavelengths = spectra.wavelengths
+        spectra = spectra.data
+    if wavelengths is None:
+        raise InputError("hdr_rgb needs the wavelengths of the bands")
+    if np.ndim(spectra) != 3:
+        raise InputError(f"hdr_rgb expects (H, W, bands), got shape {np.shape(spectra)}", source)
+    wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
+    h, w, b = spectra.shape
+    if b != wl.size:
+        raise InputError(f"spectra have {b} bands but {wl.size} wavelengths were given", source)
+    m = (cmfs_matrix(wl) @ XYZ_TO_SRGB.T).astype(np.float32)  # (B, 3): steps 1+2 fused
+    out = np.empty((h, w, 3), dtype=np.float32)
+    step = max(1, _RGB_CHUNK_PIXELS // max(1, w))
+    for r0 in range(0, h, step):
+        block = np.asarray(spectra[r0:r0 + step])
+        if block.dtype != np.float32:
+            block = block.astype(np.float32)
+        np.matmul(block, m, out=out[r0:r0 + step])
+    if not np.isfinite(out).all():
+        raise InputError("the spectra hold NaN/Inf values", source)
+    np.maximum(out, 0, out=out)
+    return out
+
+
+def ldr_exposure(hdr: np.ndarray, percentile: float = LDR_PERCENTILE) -> float:
+    """The automatic LDR exposure: ``1 / P(Y)``, the ``percentile`` of luminance.
+
+    Pixels with ``Y ≤ 0`` are left out of the percentile; an image with no
+    positive luminance gets exposure 1.0.
+    """
+    y = luminance(np.asarray(hdr, dtype=np.float32)).ravel()
+    y = y[y > 0]
+    if y.size == 0:
+        return 1.0
+    p = float(np.percentile(y, percentile))
+    return 1.0 / p if p > 0 else 1.0
+
+
+def srgb_encode_uint8(linear: np.ndarray) -> np.ndarray:
+    """Clip linear values to [0, 1], apply the sRGB OETF (IEC 61966-2-1) and round to uint8."""
+    import colour
+
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    v = colour.cctf_encoding(x, function="sRGB")
+    return np.rint(np.asarray(v) * 255.0).astype(np.uint8)
+
+
+def ldr_rgb(hdr: np.ndarray, *, exposure: float | None = None,
+            percentile: float = LDR_PERCENTILE) -> tuple[np.ndarray, float]:
+    """LDR-RGB of a pseudo-HDR-RGB image: expose, clip, sRGB-encode, quantise.
+
+    Exposure rule: ``exposure`` when given, else ``1 / P99(Y)`` — the 99th
+    percentile of the luminance ``Y`` of the positive pixels maps to 1.0, so
+    about 1 % of the pixels (the highlights and light sources) clip, like a
+    well-exposed 8-bit photograph. Then ``clip(exposure · hdr, 0, 1)``, the
+    sRGB OETF (``colour.cctf_encoding(…, "sRGB")``) and ``rint(255 · v)``.
+
+    Parameters
+    ----------
+    hdr
+        Linear sRGB ``(H, W, 3)``, e.g. from :func:`hdr_rgb`.
+    exposure
+        Multiplier applied before clipping; ``None`` for the automatic rule.
+    percentile
+        Luminance percentile mapped to 1.0 by the automatic rule.
+
+    Returns
+    -------
+    (ndarray, float)
+        uint8 ``(H, W, 3)`` sRGB-encoded image and the exposure used.
+
+    Raises
+    ------
+    InputError
+        Wrong shape, NaN/Inf, or a non-positive/non-finite exposure.
+    """
+    hdr = np.asarray(hdr)
+    if hdr.ndim != 3 or hdr.shape[2] != 3:
+        raise InputError(f"ldr_rgb expects (H, W, 3), got shape {hdr.shape}")
+    if not np.isfinite(hdr).all():
+        raise InputError("the HDR image holds NaN/Inf values")
+    if exposure is None:
+        exposure = ldr_exposure(hdr, percentile)
+    exposure = float(exposure)
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise InputError(f"exposure must be a positive number, got {exposure}")
+    return srgb_encode_uint8(hdr.astype(np.float32) * np.float32(exposure)), exposure

@@ -1,0 +1,102 @@
+"""Exports of HDR-HS cubes for spectral rendering / image-based lighting (paper §3.5).
+
+Two layouts, both 32-bit float OpenEXR, unnormalised radiance:
+
+Per-wavelength sequence (:func:`export_per_wavelength`)
+    ``<out>/<prefix>_000.exr … <prefix>_<N-1>.exr``: one single-channel
+    (``Y``) image per band in ascending wavelength order, numbered from 0 and
+    zero-padded to 3 digits (printf pattern ``<prefix>_%03d.exr``, the
+    numbered-sequence form renderers and image tools load as a stack; 31 files
+    for 400–700 nm). Each file also carries its band in the header
+    (``wavelength`` in nm, ``bandIndex``, ``wavelengths`` of the whole set).
+    ``<out>/<prefix>_wavelengths.txt`` lists one line per file:
+    ``<index> <wavelength_nm> <file name>`` after a ``#`` header line, and
+    ``<out>/<prefix>_wavelengths.json`` holds the same as JSON together with
+    the units and FWHMs.
+
+Single spectral file (:func:`export_spectral_exr`)
+    One multi-channel EXR in the Fichet et al. 2021 layout
+    (:func:`mehs.io.exr.write_exr_spectral`: channels ``S0.<λ>nm``,
+    wavelengths in the header).
+
+References
+----------
+- Fichet, A., Pacanowski, R., & Wilkie, A. (2021). An OpenEXR Layout for
+  Spectral Images. JCGT 10(3).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from mehs.cube import SpectralCube
+from mehs.errors import InputError
+from mehs.io.atomic import write_json_atomic, write_text_atomic
+from mehs.io.exr import write_exr_gray, write_exr_spectral
+
+_PREFIX_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+def _check_cube(cube) -> SpectralCube:
+    if not isinstance(cube, SpectralCube):
+        raise InputError(f"expected a SpectralCube, got {type(cube).__name__}")
+    return cube
+
+
+def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: str = "band",
+                          half: bool = False) -> list[Path]:
+    """Write one grayscale EXR per band plus the wavelength list files.
+
+    Parameters
+    ----------
+    cube
+        ``(lines, samples, bands)`` cube; lines become image rows.
+    out_dir
+        Folder to write into (created if needed).
+    prefix
+        File-name prefix (letters, digits, ``_.-``).
+    half
+        Store half floats (default 32-bit float).
+
+    Returns
+    -------
+    list[Path]
+        The ``bands`` EXR paths in wavelength order.
+    """
+    cube = _check_cube(cube)
+    if not _PREFIX_RE.match(prefix):
+        raise InputError(f"prefix {prefix!r} must be letters, digits, '_', '.', '-'")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("output exists and is not a folder", out)
+    out.mkdir(parents=True, exist_ok=True)
+    wl = cube.wavelengths
+    width = max(3, len(str(wl.size - 1)))
+    names = [f"{prefix}_{i:0{width}d}.exr" for i in range(wl.size)]
+    all_wl = [float(w) for w in wl]
+    paths = []
+    for i, name in enumerate(names):
+        plane = np.asarray(cube.data[:, :, i], dtype=np.float32)
+        paths.append(write_exr_gray(out / name, plane, half=half, header={
+            "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
+            "mehsUnits": str(cube.units)}))
+    lines = ["# index wavelength_nm file"] + [f"{i} {repr(float(w))} {n}"
+                                              for i, (w, n) in enumerate(zip(wl, names))]
+    write_text_atomic(out / f"{prefix}_wavelengths.txt", "\n".join(lines) + "\n")
+    write_json_atomic(out / f"{prefix}_wavelengths.json", {
+        "format": "mehs-per-wavelength-exr/1",
+        "pattern": f"{prefix}_%0{width}d.exr",
+        "units": str(cube.units),
+        "wavelengths_nm": all_wl,
+        "fwhm_nm": None if cube.fwhm is None else [float(f) for f in cube.fwhm],
+        "files": names,
+    })
+    return paths
+
+
+def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:
+    """Write the cube as one multi-channel spectral EXR (Fichet 2021 layout)."""
+    return write_exr_spectral(path, _check_cube(cube), half=half)

@@ -1,0 +1,297 @@
+"""Spectral resampling of cubes to a target band set (default 400–700 nm, 10 nm, 31 bands).
+
+Every method builds one matrix ``M`` of shape ``(n_dst, n_src)`` whose rows
+sum to 1 (so a flat spectrum stays flat); a cube is resampled as
+``cube @ M.T`` in float32, chunked over lines so memory-mapped cubes are
+streamed, using only the source bands that some target band sees.
+
+Methods (:data:`RESAMPLING_METHODS`)
+    ``gaussian`` (default)
+        The construction of SPy's ``spectral.BandResampler``: each source band
+        is taken as constant over ``centre ± FWHM/2``; each target band has a
+        Gaussian response of the given FWHM, considered over its own
+        ``centre ± FWHM/2`` window. The weight of source band *j* in target
+        band *i* is the Gaussian's integral over the overlap of the two
+        windows, then rows are normalised. Source FWHMs default (as in SPy) to
+        half the distance between a band's two neighbours.
+    ``linear``
+        Linear interpolation between the two source bands around each target
+        centre (exact for spectra linear in wavelength). Needs the target
+        inside the source range.
+    ``box``
+        Average of the source bands weighted by the length of their overlap
+        (``centre ± FWHM/2`` each) with a rectangular window of width FWHM
+        around the target centre.
+
+A target band that no source band reaches raises :class:`InputError` naming
+the band; a target band whose Gaussian window is less than half covered gets a
+:class:`PartialCoverageWarning`. Source bands outside every target window
+get zero weight and are never read.
+
+References
+----------
+- Boggs, T. et al. Spectral Python (SPy), ``spectral.algorithms.resampling.
+  BandResampler`` / ``create_resampling_matrix``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Callable
+
+import numpy as np
+
+from mehs.cube import SpectralCube, validate_wavelengths
+from mehs.errors import InputError
+from mehs.rgb import WAVELENGTHS_31
+
+#: FWHM = SIGMA_PER_FWHM · σ for a Gaussian.
+SIGMA_PER_FWHM = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+#: Target bytes of float32 input per processing chunk (lines are grouped to this size).
+CHUNK_BYTES = 32 << 20
+
+
+class PartialCoverageWarning(UserWarning):
+    """A target band's window is only partly covered by source bands."""
+
+
+def default_fwhm(centres: np.ndarray) -> np.ndarray:
+    """SPy's default band widths: half the distance between each band's neighbours.
+
+    ``centres`` must be sorted ascending; shape ``(n,)`` → ``(n,)``.
+    """
+    c = np.asarray(centres, dtype=np.float64)
+    if c.size == 1:
+        raise InputError("one band without a FWHM: its width is unknown; give src_fwhm")
+    f = np.empty_like(c)
+    f[0] = c[1] - c[0]
+    f[-1] = c[-1] - c[-2]
+    f[1:-1] = (c[2:] - c[:-2]) / 2.0
+    return f
+
+
+def _per_band(value, n: int, what: str) -> np.ndarray:
+    v = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)) if np.ndim(value) == 0 \
+        else np.asarray(value, dtype=np.float64).reshape(-1)
+    if v.size != n:
+        raise InputError(f"{v.size} {what} values for {n} bands")
+    if not np.all(np.isfinite(v) & (v > 0)):
+        raise InputError(f"{what} values must be finite and positive")
+    return np.array(v, dtype=np.float64)
+
+
+def _overlap(src_c, src_f, dst_c, dst_f):
+    """Lower/upper bounds ``(n_dst, n_src)`` of the overlap of the two window sets."""
+    lo = np.maximum((src_c - src_f / 2)[None, :], (dst_c - dst_f / 2)[:, None])
+    hi = np.minimum((src_c + src_f / 2)[None, :], (dst_c + dst_f / 2)[:, None])
+    return lo, hi
+
+
+def _matrix_gaussian(src_c, src_f, dst_c, dst_f):
+    from scipy.special import ndtr
+
+    lo, hi = _overlap(src_c, src_f, dst_c, dst_f)
+    sigma = (dst_f / SIGMA_PER_FWHM)[:, None]
+    w = np.where(hi > lo, ndtr((hi - dst_c[:, None]) / sigma) - ndtr((lo - dst_c[:, None]) / sigma),
+                 0.0)
+    full = ndtr(SIGMA_PER_FWHM / 2) - ndtr(-SIGMA_PER_FWHM / 2)
+    return w, w.sum(axis=1) / full
+
+
+def _matrix_box(src_c, src_f, dst_c, dst_f):
+    lo, hi = _overlap(src_c, src_f, dst_c, dst_f)
+    w = np.clip(hi - lo, 0.0, None)
+    return w, w.sum(axis=1) / dst_f
+
+
+def _matrix_linear(src_c, src_f, dst_c, dst_f):
+    n_dst, n_src = dst_c.size, src_c.size
+    w = np.zeros((n_dst, n_src))
+    inside = (dst_c >= src_c[0]) & (dst_c <= src_c[-1])
+    if n_src == 1:
+        w[inside, 0] = 1.0
+        return w, inside.astype(float)
+    j = np.clip(np.searchsorted(src_c, dst_c, side="right") - 1, 0, n_src - 2)
+    t = (dst_c - src_c[j]) / (src_c[j + 1] - src_c[j])
+    rows = np.flatnonzero(inside)
+    w[rows, j[rows]] = 1.0 - t[rows]
+    w[rows, j[rows] + 1] += t[rows]
+    return w, inside.astype(float)
+
+
+#: method name → builder ``(src_c, src_f, dst_c, dst_f) -> (weights, coverage)`` on sorted sources.
+RESAMPLING_METHODS: dict[str, Callable] = {
+    "gaussian": _matrix_gaussian,
+    "linear": _matrix_linear,
+    "box": _matrix_box,
+}
+
+
+def resampling_matrix(src_wl, dst_wl=WAVELENGTHS_31, *, method: str = "gaussian",
+                      src_fwhm=None, dst_fwhm=10.0) -> np.ndarray:
+    """Resampling matrix ``M`` so that ``dst = M @ src`` for one spectrum.
+
+    Parameters
+    ----------
+    src_wl
+        Source band centres in nm, ``(n_src,)``, any order (columns of ``M``
+        follow this order).
+    dst_wl
+        Target band centres in nm, ``(n_dst,)``; rows of ``M`` follow it.
+    method
+        A key of :data:`RESAMPLING_METHODS`.
+    src_fwhm
+        Source FWHMs in nm (scalar or ``(n_src,)``); default: SPy's rule.
+    dst_fwhm
+        Target FWHM in nm (scalar or ``(n_dst,)``); unused by ``linear``.
+
+    Returns
+    -------
+    ndarray
+        float64 ``(n_dst, n_src)``, every row summing to 1.
+
+    Raises
+    ------
+    InputError
+        Unknown method, bad wavelengths/FWHMs, or a target band with no
+        source coverage (the message names it).
+    """
+    if method not in RESAMPLING_METHODS:
+        raise InputError(f"unknown resampling method {method!r}; "
+                         f"choose one of {sorted(RESAMPLING_METHODS)}")
+    src = validate_wavelengths(src_wl)
+    dst = validate_wavelengths(dst_wl)
+    order = np.argsort(src, kind="stable")
+    src_c = src[order]
+    if src_fwhm is None:
+        src_f = default_fwhm(src_c)
+    else:
+        src_f = _per_band(src_fwhm, src.size, "source FWHM")[order]
+    dst_f = _per_band(dst_fwhm, dst.size, "target FWHM")
+
+    w, coverage = RESAMPLING_METHODS[method](src_c, src_f, dst, dst_f)
+    sums = w.sum(axis=1)
+    empty = np.flatnonzero(sums <= 0)
+    if empty.size:
+        names = ", ".join(f"{dst[i]:g} nm" for i in empty[:6])
+        raise InputError(
+            f"target band(s) {names} have no source coverage (source bands span "
+            f"{src_c[0]:g}..{src_c[-1]:g} nm, method {method!r})")
+    partial = np.flatnonzero(coverage < 0.5)
+    if partial.size and method != "linear":
+        warnings.warn(
+            "target band(s) " + ", ".join(f"{dst[i]:g} nm" for i in partial[:6])
+            + " are less than half covered by source bands", PartialCoverageWarning, stacklevel=2)
+    m_sorted = w / sums[:, None]
+    m = np.empty_like(m_sorted)
+    m[:, order] = m_sorted
+    return m
+
+
+def parse_bands(spec: str) -> np.ndarray:
+    """Target wavelengths from ``"start:stop:step"`` (stop included) or ``"w1,w2,…"`` (nm)."""
+    text = str(spec).strip()
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+                raise ValueError
+            start, stop, step = parts
+            n = int(np.floor((stop - start) / step + 1e-9)) + 1
+            return start + step * np.arange(n)
+        return np.asarray([float(p) for p in text.split(",") if p.strip()], dtype=np.float64)
+    except ValueError:
+        raise InputError(f"cannot parse bands {spec!r}; use start:stop:step "
+                         "(e.g. 400:700:10) or a comma-separated list") from None
+
+
+def apply_matrix(data: np.ndarray, matrix: np.ndarray, *, chunk_lines: int | None = None,
+                 source=None) -> np.ndarray:
+    """``data @ matrix.T`` in float32, chunked over lines.
+
+    Parameters
+    ----------
+    data
+        ``(lines, samples, n_src)`` array or memmap, any real dtype.
+    matrix
+        ``(n_dst, n_src)``.
+    chunk_lines
+        Lines per chunk; default: about :data:`CHUNK_BYTES` of float32 input.
+
+    Returns
+    -------
+    ndarray
+        float32 ``(lines, samples, n_dst)``.
+
+    Raises
+    ------
+    InputError
+        When the result holds NaN/Inf (non-finite input in a used band).
+    """
+    lines, samples, n_src = data.shape
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.shape[1] != n_src:
+        raise InputError(f"matrix expects {matrix.shape[1]} bands, data has {n_src}", source)
+    used = np.flatnonzero(np.any(matrix != 0, axis=0))
+    # A contiguous band range is read as a strided view; anything else is gathered.
+    if used.size and used[-1] - used[0] + 1 == used.size:
+        sel = slice(int(used[0]), int(used[-1]) + 1)
+    else:
+        sel = used
+    mt = np.ascontiguousarray(matrix[:, used].T, dtype=np.float32)
+    n_dst = matrix.shape[0]
+    out = np.empty((lines, samples, n_dst), dtype=np.float32)
+    if chunk_lines is None:
+        chunk_lines = max(1, CHUNK_BYTES // max(1, samples * used.size * 4))
+    for l0 in range(0, lines, chunk_lines):
+        l1 = min(lines, l0 + chunk_lines)
+        block = np.asarray(data[l0:l1, :, sel])
+        if block.dtype != np.float32:
+            block = block.astype(np.float32)
+        np.matmul(block, mt, out=out[l0:l1])
+    if not np.isfinite(out).all():
+        bad = np.unique(np.argwhere(~np.isfinite(out))[:, 0])
+        raise InputError(f"the cube holds NaN/Inf values in the bands used (lines "
+                         f"{bad[:5].tolist()}{'…' if bad.size > 5 else ''})", source)
+    return out
+
+
+def resample_cube(cube: SpectralCube, target=WAVELENGTHS_31, *, method: str = "gaussian",
+                  fwhm=10.0, chunk_lines: int | None = None) -> SpectralCube:
+    """Resample a cube to ``target`` band centres.
+
+    Parameters
+    ----------
+    cube
+        Source cube ``(lines, samples, n_src)``; its ``fwhm`` is used when set.
+    target
+        Target centres in nm, default :data:`mehs.rgb.WAVELENGTHS_31`.
+    method
+        ``"gaussian"``, ``"linear"`` or ``"box"`` (:data:`RESAMPLING_METHODS`).
+    fwhm
+        Target FWHM in nm (scalar or per band).
+
+    Returns
+    -------
+    SpectralCube
+        float32 ``(lines, samples, n_dst)`` with the source's metadata, the
+        target wavelengths, ``fwhm`` set to the target FWHM (``None`` for
+        ``linear``), ``default_bands`` moved to the nearest target bands, and
+        ``metadata["resampling"] = {"method", "fwhm_nm"}``.
+    """
+    m = resampling_matrix(cube.wavelengths, target, method=method, src_fwhm=cube.fwhm,
+                          dst_fwhm=fwhm)
+    dst = validate_wavelengths(target)
+    data = apply_matrix(cube.data, m, chunk_lines=chunk_lines, source=cube.source)
+    default = None
+    if cube.default_bands is not None:
+        default = tuple(int(np.argmin(np.abs(dst - cube.wavelengths[b])))
+                        for b in cube.default_bands)
+    dst_f = None if method == "linear" else _per_band(fwhm, dst.size, "target FWHM")
+    meta = dict(cube.metadata)
+    meta["resampling"] = {"method": method,
+                          "fwhm_nm": None if dst_f is None else float(dst_f[0])
+                          if np.all(dst_f == dst_f[0]) else dst_f.tolist()}
+    return cube.with_data(data, wavelengths=dst, fwhm=dst_f, default_bands=default,
+                          metadata=meta)
