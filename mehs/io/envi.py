@@ -574,6 +574,13 @@ def _build_header(cube: SpectralCube, dt: np.dtype, interleave: str,
         key = str(k).strip().lower()
         if key in _MANAGED_KEYS or key.startswith("_"):
             continue
+        try:
+            _header_value(key, v)
+        except InputError as exc:
+            # metadata from other formats (e.g. EXR channel names with commas)
+            # must not block writing the cube itself
+            warnings.warn(f"metadata key {key!r} not written: {exc.problem}", stacklevel=4)
+            continue
         h[key] = v
     for k, v in (extra_header or {}).items():
         key = str(k).strip().lower()
