@@ -1,0 +1,353 @@
+"""Baseline SSR models: Smits 1999, Mallett & Yuksel 2019, root-polynomial regression.
+
+All work on whole images ``(H, W, 3)`` at once and return ``(H, W, 31)`` on
+400:700:10 nm (:data:`mehs.rgb.WAVELENGTHS_31`).
+
+Smits 1999
+    colour-science's per-pixel :func:`colour.recovery.RGB_to_sd_Smits1999`
+    combines seven basis spectra (white, cyan, magenta, yellow, red, green,
+    blue) given at 10 bins from 380 to 720 nm (37.8 nm apart). The result is a
+    :class:`colour.SpectralDistribution` with a *linear* interpolator, so we
+    resample each basis spectrum to 400:700:10 by that same interpolator
+    (``sd[WAVELENGTHS_31]``, identical to
+    ``sd.copy().align(SpectralShape(400, 700, 10))`` for this non-uniform
+    grid). Because the method is linear in the basis given the ordering of
+    R, G, B, the vectorised form is: ``min·white + (mid − min)·secondary(argmin)
+    + (max − mid)·primary(argmax)`` where the secondary is cyan/magenta/yellow
+    for min = R/G/B. Ties give zero weights, so which branch colour takes on a
+    tie does not matter. colour neither clamps nor normalises its input: values
+    above 1 (HDR) scale the spectrum linearly and negatives go through the same
+    branches; we do the same, so the result is exposure-equivariant
+    (``f(k·rgb) = k·f(rgb)`` for k > 0). Input is the linear sRGB of the
+    dataset, used as colour's Smits RGB (sRGB primaries, E white) as in the paper.
+Mallett & Yuksel 2019
+    ``spectrum = rgb @ B`` with colour's
+    :data:`colour.recovery.MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019` (tabulated at
+    5 nm, so read exactly at 400:700:10). Linear, hence exposure-equivariant.
+Root-polynomial regression (Lin & Finlayson)
+    ``spectrum = φ(rgb) @ M`` with root-polynomial terms of degree d (d = 2:
+    r, g, b, √(rg), √(gb), √(rb); d = 3 adds the 7 cube-root terms). Every term
+    is homogeneous of degree 1, so the model is exposure-invariant in shape and
+    equivariant in scale. ``M`` is fitted by ridge-regularised least squares on
+    pixels sampled from a dataset's training split; each training pair is
+    divided by its ``r + g + b`` first so that bright HDR pixels do not dominate
+    the fit (the fit targets relative error, as MRAE does). Negative RGB is
+    clipped to 0 before the roots.
+
+References
+----------
+- Smits, B. (1999). An RGB-to-Spectrum Conversion for Reflectances. Journal of
+  Graphics Tools 4(4), 11–22.
+- Mallett, I., Yuksel, C. (2019). Spectral Primary Decomposition for Rendering
+  with sRGB Reflectance. EGSR (DL-only/industry track).
+- Lin, Y.-T., Finlayson, G. D. (2019). Exposure invariance in spectral
+  reconstruction from RGB images. Color and Imaging Conference 27, 284–289.
+- Lin, Y.-T., Finlayson, G. D. (2020). Physically plausible spectral
+  reconstruction. Sensors 20(21), 6399.
+- Finlayson, G. D., Mackiewicz, M., Hurlbert, A. (2015). Color correction using
+  root-polynomial regression. IEEE TIP 24(5), 1460–1470.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from mehs.errors import FormatError, InputError
+from mehs.rgb import WAVELENGTHS_31
+from mehs.ssr.models import SSRModel, check_rgb, register_model
+
+SMITS_BASIS_ORDER = ("white", "cyan", "magenta", "yellow", "red", "green", "blue")
+
+
+@lru_cache(maxsize=8)
+def _smits_basis(wl_key: tuple[float, ...]) -> np.ndarray:
+    from colour.recovery import SDS_SMITS1999
+
+    wl = np.asarray(wl_key)
+    basis = np.stack([np.asarray(SDS_SMITS1999[k][wl], dtype=np.float64)
+                      for k in SMITS_BASIS_ORDER])
+    basis.setflags(write=False)
+    return basis
+
+
+def smits_basis(wavelengths: np.ndarray = WAVELENGTHS_31) -> np.ndarray:
+    """The 7 Smits basis spectra (white, cyan, magenta, yellow, red, green, blue), ``(7, B)``."""
+    return _smits_basis(tuple(np.asarray(wavelengths, dtype=np.float64).tolist()))
+
+
+def smits_coefficients(rgb: np.ndarray) -> np.ndarray:
+    """Weights of the 7 Smits basis spectra per pixel: ``(..., 3) → (..., 7)`` float32/64."""
+    rgb = np.asarray(rgb)
+    dtype = np.float32 if rgb.dtype == np.float32 else np.float64
+    flat = rgb.reshape(-1, 3).astype(dtype, copy=False)
+    n = flat.shape[0]
+    srt = np.sort(flat, axis=1)
+    lo, mid, hi = srt[:, 0], srt[:, 1], srt[:, 2]
+    coef = np.zeros((n, 7), dtype=dtype)
+    coef[:, 0] = lo
+    rows = np.arange(n)
+    # min channel R/G/B → secondary cyan/magenta/yellow (1..3); max → red/green/blue (4..6).
+    coef[rows, 1 + np.argmin(flat, axis=1)] = mid - lo
+    coef[rows, 4 + np.argmax(flat, axis=1)] += hi - mid
+    return coef.reshape(*rgb.shape[:-1], 7)
+
+
+def RGB_to_spectra_Smits1999(rgb: np.ndarray,
+                             wavelengths: np.ndarray = WAVELENGTHS_31) -> np.ndarray:
+    """Smits (1999) spectra of linear RGB, vectorised: ``(..., 3) → (..., B)``.
+
+    Agrees with ``colour.recovery.RGB_to_sd_Smits1999(rgb)[wavelengths]`` per
+    pixel (see the module notes). float32 in → float32 out.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.shape[-1] != 3:
+        raise InputError(f"Smits 1999 needs (..., 3) RGB, got shape {rgb.shape}")
+    coef = smits_coefficients(rgb)
+    return coef @ smits_basis(wavelengths).astype(coef.dtype)
+
+
+@lru_cache(maxsize=8)
+def _mallett_basis(wl_key: tuple[float, ...]) -> np.ndarray:
+    from colour.recovery import MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019 as msds
+
+    wl = np.asarray(wl_key)
+    basis = np.asarray(msds[wl], dtype=np.float64).T  # (3, B)
+    basis.setflags(write=False)
+    return basis
+
+
+def mallett_basis(wavelengths: np.ndarray = WAVELENGTHS_31) -> np.ndarray:
+    """Mallett & Yuksel (2019) sRGB basis (red, green, blue) at ``wavelengths``, ``(3, B)``."""
+    return _mallett_basis(tuple(np.asarray(wavelengths, dtype=np.float64).tolist()))
+
+
+def RGB_to_spectra_Mallett2019(rgb: np.ndarray,
+                               wavelengths: np.ndarray = WAVELENGTHS_31) -> np.ndarray:
+    """Mallett & Yuksel (2019) spectra of linear sRGB: one matrix product ``(..., 3) → (..., B)``."""
+    rgb = np.asarray(rgb)
+    if rgb.shape[-1] != 3:
+        raise InputError(f"Mallett 2019 needs (..., 3) RGB, got shape {rgb.shape}")
+    dtype = np.float32 if rgb.dtype == np.float32 else np.float64
+    return rgb.astype(dtype, copy=False) @ mallett_basis(wavelengths).astype(dtype)
+
+
+def root_polynomial_features(rgb: np.ndarray, degree: int = 2) -> np.ndarray:
+    """Root-polynomial terms of linear RGB: ``(..., 3) → (..., F)``, F = 3, 6 or 13 for degree 1, 2, 3.
+
+    Order: r, g, b; √(rg), √(gb), √(rb); ∛(rg²), ∛(gb²), ∛(rb²), ∛(gr²), ∛(bg²), ∛(br²), ∛(rgb).
+    """
+    rgb = np.asarray(rgb)
+    dtype = np.float32 if rgb.dtype == np.float32 else np.float64
+    x = np.maximum(rgb.astype(dtype, copy=False), 0)
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    terms = [r, g, b]
+    if degree >= 2:
+        terms += [np.sqrt(r * g), np.sqrt(g * b), np.sqrt(r * b)]
+    if degree >= 3:
+        terms += [np.cbrt(r * g * g), np.cbrt(g * b * b), np.cbrt(r * b * b),
+                  np.cbrt(g * r * r), np.cbrt(b * g * g), np.cbrt(b * r * r),
+                  np.cbrt(r * g * b)]
+    if degree not in (1, 2, 3):
+        raise InputError(f"root-polynomial degree must be 1, 2 or 3, got {degree}")
+    return np.stack(terms, axis=-1)
+
+
+class Smits1999(SSRModel):
+    """Smits (1999) RGB → spectrum, vectorised (matches colour-science per pixel)."""
+
+    name = "smits"
+    description = "Smits 1999, 7 basis spectra (colour-science tables), vectorised"
+
+    def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
+        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        return RGB_to_spectra_Smits1999(rgb, self.wavelengths)
+
+
+class Mallett2019(SSRModel):
+    """Mallett & Yuksel (2019) sRGB basis, one matrix product."""
+
+    name = "mallett"
+    description = "Mallett & Yuksel 2019 sRGB basis (colour-science), one matrix product"
+
+    def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
+        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        return RGB_to_spectra_Mallett2019(rgb, self.wavelengths)
+
+
+class RegressionModel(SSRModel):
+    """Exposure-invariant root-polynomial regression ``spectrum = φ(rgb) @ M``.
+
+    Attributes
+    ----------
+    matrix
+        ``(F, B)`` float64 regression matrix.
+    degree
+        Root-polynomial degree (1, 2 or 3).
+    wavelengths
+        Output band centres, ``(B,)``.
+    info
+        Provenance of the fit (dataset, split, samples, ridge, seed, …).
+    """
+
+    FORMAT = "mehs-ssr-regression/1"
+    description = "root-polynomial regression (Lin & Finlayson), exposure-invariant"
+
+    def __init__(self, matrix: np.ndarray, *, degree: int = 2,
+                 wavelengths: np.ndarray = WAVELENGTHS_31, name: str = "regression",
+                 info: dict[str, Any] | None = None):
+        self.matrix = np.asarray(matrix, dtype=np.float64)
+        self.degree = int(degree)
+        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
+        nf = root_polynomial_features(np.ones((1, 3)), self.degree).shape[-1]
+        if self.matrix.shape != (nf, self.wavelengths.size):
+            raise InputError(f"regression matrix shape {self.matrix.shape} does not fit degree "
+                             f"{self.degree} ({nf} terms) and {self.wavelengths.size} bands")
+        self.name = name
+        self.info = dict(info or {})
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        phi = root_polynomial_features(rgb, self.degree)
+        return phi @ self.matrix.astype(phi.dtype)
+
+    @classmethod
+    def fit(cls, rgb: np.ndarray, spectra: np.ndarray, *, degree: int = 2,
+            wavelengths: np.ndarray = WAVELENGTHS_31, ridge: float = 1e-6,
+            info: dict[str, Any] | None = None) -> "RegressionModel":
+        """Least-squares fit on pairs ``rgb (N, 3)``, ``spectra (N, B)``.
+
+        Pairs are normalised by their ``r + g + b`` (pairs with a non-positive or
+        non-finite sum are dropped); ``ridge`` is relative to the mean diagonal
+        of ``ΦᵀΦ``.
+        """
+        rgb = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
+        spectra = np.asarray(spectra, dtype=np.float64)
+        spectra = spectra.reshape(-1, spectra.shape[-1])
+        if rgb.shape[0] != spectra.shape[0]:
+            raise InputError(f"{rgb.shape[0]} RGB samples for {spectra.shape[0]} spectra")
+        s = np.maximum(rgb, 0).sum(1)
+        ok = np.isfinite(s) & (s > 0) & np.all(np.isfinite(spectra), axis=1)
+        if np.count_nonzero(ok) < 50:
+            raise InputError(f"only {np.count_nonzero(ok)} usable training pixels (need ≥ 50)")
+        x = rgb[ok] / s[ok, None]
+        y = spectra[ok] / s[ok, None]
+        phi = root_polynomial_features(x, degree)
+        ata = phi.T @ phi
+        lam = ridge * np.trace(ata) / ata.shape[0]
+        matrix = np.linalg.solve(ata + lam * np.eye(ata.shape[0]), phi.T @ y)
+        meta = {"n_samples": int(np.count_nonzero(ok)), "ridge": ridge, **(info or {})}
+        return cls(matrix, degree=degree, wavelengths=wavelengths, info=meta)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model as ``.npz`` (arrays + JSON metadata) or ``.json``, atomically."""
+        from mehs.io.atomic import atomic_path, write_json_atomic
+
+        path = Path(path)
+        meta = {"format": self.FORMAT, "name": self.name, "degree": self.degree,
+                "info": self.info}
+        if path.suffix.lower() == ".json":
+            return write_json_atomic(path, {**meta, "wavelengths": self.wavelengths.tolist(),
+                                            "matrix": self.matrix.tolist()})
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, matrix=self.matrix, wavelengths=self.wavelengths,
+                         meta=np.array(json.dumps(meta, default=str)))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "RegressionModel":
+        """Read a model written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("no such regression model file", path)
+        try:
+            if path.suffix.lower() == ".json":
+                d = json.loads(path.read_text())
+                meta, matrix, wl = d, d["matrix"], d["wavelengths"]
+            else:
+                with np.load(path, allow_pickle=False) as z:
+                    matrix, wl = z["matrix"], z["wavelengths"]
+                    meta = json.loads(str(z["meta"]))
+        except (OSError, ValueError, KeyError) as exc:
+            raise FormatError(f"not a regression model file ({exc})", path) from None
+        if meta.get("format") != cls.FORMAT:
+            raise FormatError(f"format is {meta.get('format')!r}, expected {cls.FORMAT!r}", path)
+        try:
+            return cls(matrix, degree=meta["degree"], wavelengths=wl,
+                       name=meta.get("name", "regression"), info=meta.get("info"))
+        except InputError as exc:
+            raise FormatError(exc.problem, path) from None
+
+
+def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int = 200_000,
+                            input: str = "hdr", ridge: float = 1e-6, seed: int = 0,
+                            progress: bool = False) -> RegressionModel:
+    """Fit :class:`RegressionModel` on pixels sampled from paired scenes.
+
+    Parameters
+    ----------
+    pairs
+        :class:`mehs.ssr.data.Pair` objects (e.g. ``load_pairs(ds, split="train")``).
+    n_samples
+        Total pixels to sample, spread evenly over the scenes (valid pixels only).
+    input
+        ``"hdr"`` or ``"ldr"``: which RGB the baseline learns from.
+    """
+    pairs = list(pairs)
+    if not pairs:
+        raise InputError("no training scenes to fit the regression baseline on")
+    rng = np.random.default_rng(seed)
+    per = max(1, int(n_samples) // len(pairs))
+    xs, ys = [], []
+    wl = None
+    it = pairs
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(pairs, desc="sampling", unit="scene")
+    for pair in it:
+        cube = pair.hs()
+        if wl is None:
+            wl = cube.wavelengths
+        elif wl.shape != cube.wavelengths.shape or not np.allclose(wl, cube.wavelengths):
+            raise InputError("training scenes have different band sets", pair.hs_path)
+        rgb = pair.rgb(input)
+        valid = pair.valid()
+        idx = np.flatnonzero(valid.reshape(-1))
+        if idx.size == 0:
+            continue
+        take = rng.choice(idx, size=min(per, idx.size), replace=False)
+        xs.append(rgb.reshape(-1, 3)[take])
+        ys.append(np.asarray(cube.data).reshape(-1, cube.bands)[take])
+    if not xs:
+        raise InputError("no valid training pixels in the given scenes")
+    info = {"input": input, "seed": seed, "scenes": [p.id for p in pairs]}
+    return RegressionModel.fit(np.concatenate(xs), np.concatenate(ys), degree=degree,
+                               wavelengths=wl, ridge=ridge, info=info)
+
+
+def _regression_factory(path: str | Path | None = None, **_: Any) -> RegressionModel:
+    if path is None:
+        raise InputError("the regression baseline needs a fitted model: run "
+                         "'mehs train-baseline DATASET --out model.npz' and pass model.npz "
+                         "(mehs evaluate fits it on the dataset's train split by itself)")
+    return RegressionModel.load(path)
+
+
+#: Dispatcher of the RGB → spectra baseline functions (vectorised).
+RECOVERY_METHODS = {
+    "Smits 1999": RGB_to_spectra_Smits1999,
+    "Mallett 2019": RGB_to_spectra_Mallett2019,
+}
+
+register_model("smits", Smits1999, description=Smits1999.description, overwrite=True)
+register_model("mallett", Mallett2019, description=Mallett2019.description, overwrite=True)
+register_model("regression", _regression_factory, description=RegressionModel.description,
+               overwrite=True)

@@ -1,0 +1,296 @@
+"""Paired HS/RGB sets for SSR evaluation, loaded lazily scene by scene.
+
+Two layouts are accepted by :func:`load_pairs`:
+
+1. A **dataset folder** (format 3 of the working agreement): ``manifest.json``
+   lists scenes with ``files`` ``hs`` (ENVI), ``hdr_rgb`` (EXR), ``ldr_rgb``
+   (PNG), ``mask`` (PNG) and ``splits``. Only scenes with ``status == "pass"``
+   are used unless ``include_failed=True``.
+2. A **plain folder of pairs**: ``<stem>.hdr`` (ENVI HS cube) with
+   ``<stem>.exr`` (HDR-RGB) and/or ``<stem>.png`` (LDR-RGB) and an optional
+   ``<stem>_mask.png``. There are no splits.
+
+LDR-RGB is linearised with the sRGB EOTF (IEC 61966-2-1) and divided by the
+exposure that made it (``ldr = encode(clip(exposure · hdr))``) so it is on the
+HDR-RGB's scale. The exposure is read from the manifest scene entry
+(``rgb.ldr_exposure``, or ``ldr_exposure`` at the top of the entry); if it is not
+recorded and an HDR-RGB exists it is estimated as the ratio of the two over
+well-exposed pixels (linear LDR in 0.02..0.9); otherwise it is taken as 1.
+
+Masks: 8-bit, 0 = valid; bits 1 (saturated in every exposure), 2 (ghost) and
+4 (other invalid) exclude a pixel from every metric.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mehs.errors import FormatError, InputError
+
+DATASET_FORMAT = "mehs-dataset/1"
+RGB_INPUTS = ("hdr", "ldr")
+
+
+@lru_cache(maxsize=1)
+def _srgb_eotf_lut() -> np.ndarray:
+    v = np.arange(256) / 255.0
+    lut = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return lut.astype(np.float32)
+
+
+def srgb_decode_8bit(img: np.ndarray) -> np.ndarray:
+    """8-bit sRGB-encoded values → linear float32 in [0, 1] (sRGB EOTF, IEC 61966-2-1)."""
+    img = np.asarray(img)
+    if img.dtype != np.uint8:
+        raise InputError(f"expected an 8-bit image, got {img.dtype}")
+    return _srgb_eotf_lut()[img]
+
+
+def read_png(path: Path, *, gray: bool = False) -> np.ndarray:
+    """Read a PNG as uint8 ``(H, W, 3)`` RGB (or ``(H, W)`` if ``gray``)."""
+    import cv2
+
+    if not Path(path).is_file():
+        raise InputError("no such image file", path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FormatError("not a readable PNG image", path)
+    if img.dtype != np.uint8:
+        raise FormatError(f"expected 8 bits per channel, got {img.dtype}", path)
+    if gray:
+        if img.ndim == 3:
+            if img.shape[2] == 1 or np.all(img[..., :3] == img[..., :1]):
+                return np.ascontiguousarray(img[..., 0])
+            raise FormatError("mask must be single channel", path)
+        return img
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    elif img.shape[2] == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img[..., ::-1])  # OpenCV reads BGR
+
+
+def read_rgb_exr(path: Path) -> np.ndarray:
+    """Read an HDR-RGB OpenEXR as float32 ``(H, W, 3)`` (channels R, G, B)."""
+    from mehs.io.exr import read_exr
+
+    img = read_exr(path)
+    chans = [c.upper() for c in img.channels]
+    try:
+        idx = [chans.index(c) for c in ("R", "G", "B")]
+    except ValueError:
+        raise FormatError(f"HDR-RGB needs channels R, G, B; found {img.channels}", path) from None
+    return np.ascontiguousarray(np.asarray(img.data, dtype=np.float32)[..., idx])
+
+
+@dataclass
+class Pair:
+    """One scene: ground-truth HS cube and its RGB renderings, loaded on demand."""
+
+    id: str
+    hs_path: Path
+    hdr_path: Path | None = None
+    ldr_path: Path | None = None
+    mask_path: Path | None = None
+    ldr_exposure: float | None = None
+    split: str | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def hs(self):
+        """The ground truth as a :class:`~mehs.cube.SpectralCube` (memory-mapped when possible)."""
+        from mehs.io.envi import read_envi
+
+        cube = read_envi(self.hs_path)
+        return cube
+
+    def hs_array(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(data float32 (H, W, B), wavelengths (B,))``, checked finite."""
+        cube = self.hs()
+        data = np.asarray(cube.data, dtype=np.float32)
+        if not np.all(np.isfinite(data)):
+            raise InputError("ground-truth cube contains NaN or inf", self.hs_path)
+        return data, cube.wavelengths
+
+    def hdr_rgb(self) -> np.ndarray:
+        """Linear HDR-RGB float32 ``(H, W, 3)``."""
+        if self.hdr_path is None:
+            raise InputError(f"scene {self.id!r} has no HDR-RGB file", self.hs_path.parent)
+        rgb = read_rgb_exr(self.hdr_path)
+        if not np.all(np.isfinite(rgb)):
+            raise InputError("HDR-RGB contains NaN or inf", self.hdr_path)
+        return rgb
+
+    def ldr_rgb(self) -> np.ndarray:
+        """LDR-RGB linearised and brought to the HDR scale, float32 ``(H, W, 3)``."""
+        if self.ldr_path is None:
+            raise InputError(f"scene {self.id!r} has no LDR-RGB file", self.hs_path.parent)
+        lin = srgb_decode_8bit(read_png(self.ldr_path))
+        exposure = self.ldr_exposure
+        if exposure is None and self.hdr_path is not None:
+            exposure = self._estimate_exposure(lin)
+        if exposure is None or not (np.isfinite(exposure) and exposure > 0):
+            exposure = 1.0
+        self.info["ldr_exposure_used"] = float(exposure)
+        return lin / np.float32(exposure)
+
+    def _estimate_exposure(self, lin: np.ndarray) -> float | None:
+        hdr = self.hdr_rgb()
+        if hdr.shape != lin.shape:
+            return None
+        ok = (lin > 0.02) & (lin < 0.9) & (hdr > 0)
+        if np.count_nonzero(ok) < 10:
+            return None
+        return float(lin[ok].sum() / hdr[ok].sum())
+
+    def rgb(self, kind: str) -> np.ndarray:
+        """``kind`` = ``"hdr"`` or ``"ldr"`` → linear float32 ``(H, W, 3)``."""
+        if kind == "hdr":
+            return self.hdr_rgb()
+        if kind == "ldr":
+            return self.ldr_rgb()
+        raise InputError(f"unknown RGB input {kind!r}; use one of {RGB_INPUTS}")
+
+    def has(self, kind: str) -> bool:
+        return (self.hdr_path if kind == "hdr" else self.ldr_path) is not None
+
+    def mask(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Dataset mask uint8 ``(H, W)`` (0 = valid); zeros when the scene has none."""
+        if self.mask_path is None:
+            if shape is None:
+                shape = self.hs().shape[:2]
+            return np.zeros(shape, dtype=np.uint8)
+        m = read_png(self.mask_path, gray=True)
+        if shape is not None and m.shape != tuple(shape):
+            raise FormatError(f"mask is {m.shape}, the cube is {tuple(shape)}", self.mask_path)
+        return m
+
+    def valid(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Boolean ``(H, W)``: True where the mask is 0."""
+        return self.mask(shape) == 0
+
+
+class PairSet(list):
+    """A list of :class:`Pair` with the folder's ``root``, ``manifest`` (or None) and ``splits``."""
+
+    def __init__(self, pairs, *, root: Path, manifest: dict | None = None,
+                 splits: dict[str, list[str]] | None = None):
+        super().__init__(pairs)
+        self.root = root
+        self.manifest = manifest
+        self.splits = splits or {}
+
+    @property
+    def kind(self) -> str:
+        return "dataset" if self.manifest is not None else "pairs"
+
+
+def _inside(root: Path, rel: str | None, what: str, scene: str) -> Path | None:
+    if not rel:
+        return None
+    p = (root / rel).resolve()
+    if root.resolve() not in p.parents:
+        raise FormatError(f"scene {scene!r}: {what} path {rel!r} leaves the dataset folder",
+                          root / "manifest.json")
+    return p
+
+
+def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> PairSet:
+    mpath = root / "manifest.json"
+    try:
+        manifest = json.loads(mpath.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FormatError(f"cannot read the manifest ({exc})", mpath) from None
+    if not isinstance(manifest, dict) or not str(manifest.get("format", "")).startswith("mehs-dataset/"):
+        raise FormatError(f"not a mehs dataset manifest (format {manifest.get('format') if isinstance(manifest, dict) else None!r})", mpath)
+    splits = manifest.get("splits") or {}
+    split_of = {sid: name for name, ids in splits.items() for sid in ids}
+    if split is not None and split not in splits:
+        raise InputError(f"no split {split!r} in the manifest (has {sorted(splits)})", mpath)
+    wanted = None if split is None else set(splits[split])
+    pairs = []
+    for sc in manifest.get("scenes", []):
+        sid = str(sc.get("id"))
+        if wanted is not None and sid not in wanted:
+            continue
+        if sc.get("status", "pass") != "pass" and not include_failed:
+            continue
+        files = sc.get("files") or {}
+        hs = _inside(root, files.get("hs"), "hs", sid)
+        if hs is None:
+            raise FormatError(f"scene {sid!r} has no 'hs' file", mpath)
+        rgb_info = sc.get("rgb") or {}
+        exposure = rgb_info.get("ldr_exposure", sc.get("ldr_exposure"))
+        pairs.append(Pair(
+            id=sid, hs_path=hs,
+            hdr_path=_inside(root, files.get("hdr_rgb"), "hdr_rgb", sid),
+            ldr_path=_inside(root, files.get("ldr_rgb"), "ldr_rgb", sid),
+            mask_path=_inside(root, files.get("mask"), "mask", sid),
+            ldr_exposure=None if exposure is None else float(exposure),
+            split=split_of.get(sid)))
+    return PairSet(pairs, root=root, manifest=manifest, splits=splits)
+
+
+def _load_plain(root: Path) -> PairSet:
+    pairs = []
+    for hdr in sorted(root.glob("*.hdr")):
+        stem = hdr.stem
+        exr = root / f"{stem}.exr"
+        png = root / f"{stem}.png"
+        mask = root / f"{stem}_mask.png"
+        if not exr.is_file() and not png.is_file():
+            continue
+        pairs.append(Pair(id=stem, hs_path=hdr,
+                          hdr_path=exr if exr.is_file() else None,
+                          ldr_path=png if png.is_file() else None,
+                          mask_path=mask if mask.is_file() else None))
+    return PairSet(pairs, root=root)
+
+
+def load_pairs(path: str | Path, *, split: str | None = None,
+               include_failed: bool = False) -> PairSet:
+    """List the paired scenes of a dataset folder or a plain folder of pairs.
+
+    Nothing is read but the manifest: each :class:`Pair` loads its files when
+    asked. ``split`` (``"train"``, ``"val"``, ``"test"``) needs a manifest.
+
+    Raises
+    ------
+    InputError
+        The folder does not exist, holds no pairs, or lacks the split.
+    FormatError
+        The manifest is unreadable or points outside the folder.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError("no such dataset folder", root)
+    if (root / "manifest.json").is_file():
+        pairs = _load_manifest(root, split=split, include_failed=include_failed)
+    else:
+        if split is not None:
+            raise InputError(f"a plain folder of pairs has no split {split!r} (no manifest.json)", root)
+        pairs = _load_plain(root)
+    if not pairs:
+        raise InputError("no paired scenes found (need manifest.json, or <stem>.hdr with "
+                         "<stem>.exr and/or <stem>.png)" + (f" in split {split!r}" if split else ""), root)
+    return pairs
+
+
+def write_index_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Write ``rows`` (dicts with the same keys) as CSV, atomically."""
+    import io
+
+    from mehs.io.atomic import write_text_atomic
+
+    buf = io.StringIO()
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    write_text_atomic(path, buf.getvalue())

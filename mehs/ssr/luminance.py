@@ -1,0 +1,74 @@
+"""Luminance restoration (paper §3.3): give a predicted spectral shape the input's brightness.
+
+An SSR model predicts a spectral *shape* ``S``; the HDR cube is
+
+``HS = (X_rgb + Y_rgb + Z_rgb) / (X_S + Y_S + Z_S) · S``
+
+where ``XYZ_rgb`` comes from the input linear sRGB (inverse of the paper's
+matrix, :func:`mehs.rgb.linear_sRGB_to_XYZ`) and ``XYZ_S`` from the spectra with
+the toolkit's one XYZ function :func:`mehs.rgb.spectra_to_XYZ` (k = 1/Σȳ), the
+same that made the pseudo-HDR-RGB — so restoring the ground truth's own shape
+gives back the ground truth.
+
+Guard (no NaN, no inf): where ``X_S + Y_S + Z_S`` is not a positive finite number
+(a zero, negative or non-finite predicted shape) ``S`` is replaced by a flat
+spectrum, so the pixel still gets the input's ``X+Y+Z``. Where the rescaled
+spectrum would overflow float32 the same flat fallback is used.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.rgb import cmfs_matrix, linear_sRGB_to_XYZ, spectra_to_XYZ
+
+
+def xyz_sum(spectra: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+    """``X + Y + Z`` of spectra ``(..., B)`` → ``(...)`` float64."""
+    return spectra_to_XYZ(np.asarray(spectra, dtype=np.float64), wavelengths).sum(-1)
+
+
+def rgb_xyz_sum(rgb: np.ndarray) -> np.ndarray:
+    """``X + Y + Z`` of linear sRGB ``(..., 3)`` → ``(...)`` float64."""
+    return linear_sRGB_to_XYZ(np.asarray(rgb, dtype=np.float64)).sum(-1)
+
+
+def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+    """Scale predicted spectra so each pixel has the input RGB's ``X+Y+Z``.
+
+    Parameters
+    ----------
+    S
+        Predicted spectra, shape ``(..., B)``.
+    rgb
+        The *unprocessed* linear sRGB input, shape ``(..., 3)`` (same leading shape).
+    wavelengths
+        Band centres of ``S`` in nm, shape ``(B,)``.
+
+    Returns
+    -------
+    ndarray
+        Shape ``(..., B)``, float32 for float32 ``S`` (float64 otherwise); always finite.
+    """
+    S = np.asarray(S)
+    rgb = np.asarray(rgb)
+    if S.shape[:-1] != rgb.shape[:-1] or rgb.shape[-1] != 3:
+        raise InputError(
+            f"spectra of shape {S.shape} do not match RGB of shape {rgb.shape}")
+    out_dtype = np.float32 if S.dtype == np.float32 else np.float64
+    target = rgb_xyz_sum(rgb)
+    S64 = S.astype(np.float64)
+    with np.errstate(all="ignore"):
+        have = xyz_sum(S64, wavelengths)
+        good = np.isfinite(have) & (have > 0) & np.isfinite(target)
+        factor = np.where(good, target / np.where(good, have, 1.0), 0.0)
+        out = S64 * factor[..., None]
+        # A spectrum with mixed signs can have a tiny X+Y+Z and so a huge factor.
+        lim = np.finfo(out_dtype).max / 4
+        good &= np.all(np.isfinite(out) & (np.abs(out) < lim), axis=-1)
+    if not np.all(good):
+        flat_sum = cmfs_matrix(np.asarray(wavelengths, dtype=np.float64)).sum()
+        fill = np.where(np.isfinite(target), target, 0.0) / flat_sum
+        out = np.where(good[..., None], out, fill[..., None])
+    return out.astype(out_dtype, copy=False)

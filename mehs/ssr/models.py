@@ -1,0 +1,317 @@
+"""The SSR model contract, the model registry and :func:`load_model`.
+
+Contract
+--------
+An SSR model is any object with
+
+- ``name: str``
+- ``wavelengths: ndarray (B,)`` — the band centres (nm) of its output
+- ``__call__(rgb: float32 (H, W, 3) linear) -> float32 (H, W, B)``
+
+:class:`SSRModel` is a convenience base class; duck typing is enough.
+
+Ways to name a model (``load_model(spec, **kwargs)``)
+-----------------------------------------------------
+- a registered name: ``smits``, ``mallett``, ``regression`` (needs ``path=`` to a
+  fitted model, see :mod:`mehs.ssr.baselines`), plus anything registered with
+  :func:`register_model` (the network engineer registers ``hdrssr`` and
+  ``fcdensenet`` from :mod:`mehs.ssr.net.register` when torch imports);
+- ``package.module:function`` or ``path/to/file.py:function``. The object found is
+  used as follows: an object with a ``wavelengths`` attribute that is callable
+  is a model already; a class, or a callable that needs no positional argument,
+  is a *factory* called with ``**kwargs`` and must return a model (or a plain
+  function); any other callable is a function ``rgb → spectra``. **Output band
+  set:** the ``wavelengths`` attribute of the object (or the ``wavelengths=``
+  keyword), default 400:700:10 (:data:`mehs.rgb.WAVELENGTHS_31`);
+- a ``.onnx`` file, run with onnxruntime (optional extra ``mehs[onnx]``). The
+  layout is read from the model's input shape: ``(N, 3, H, W)`` is NCHW,
+  ``(N, H, W, 3)`` NHWC; the output must be ``(N, B, H, W)`` or ``(N, H, W, B)``.
+  Bands: the ``wavelengths=`` keyword, else a metadata property
+  ``wavelengths`` (comma-separated nm), else 400:700:10 when B = 31;
+- a fitted regression baseline file (``.npz``, from ``mehs train-baseline``);
+- a torch checkpoint (``.pt``/``.pth``) via :func:`mehs.ssr.net.export.load_torch_model`
+  (torch extra).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import inspect
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+from mehs.errors import FormatError, InputError
+from mehs.rgb import WAVELENGTHS_31
+
+
+@runtime_checkable
+class SSRModelProtocol(Protocol):
+    name: str
+    wavelengths: np.ndarray
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray: ...
+
+
+class SSRModel:
+    """Base class of SSR models: subclasses implement :meth:`predict`.
+
+    ``__call__`` checks the input ``(H, W, 3)``, casts it to float32, calls
+    :meth:`predict` and checks the output ``(H, W, B)`` is finite.
+    """
+
+    name: str = "model"
+    wavelengths: np.ndarray = WAVELENGTHS_31
+    description: str = ""
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        rgb = check_rgb(rgb, self.name)
+        out = np.asarray(self.predict(rgb))
+        return check_output(out, rgb.shape, self.wavelengths, self.name)
+
+    def __repr__(self) -> str:
+        wl = np.asarray(self.wavelengths)
+        return f"{type(self).__name__}(name={self.name!r}, bands={wl.size} {wl[0]:g}..{wl[-1]:g} nm)"
+
+
+def check_rgb(rgb: np.ndarray, name: str = "model") -> np.ndarray:
+    """Return ``rgb`` as a float32 ``(H, W, 3)`` array or raise :class:`InputError`."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise InputError(f"{name}: input must be (H, W, 3) RGB, got shape {rgb.shape}")
+    return rgb.astype(np.float32, copy=False)
+
+
+def check_output(out: np.ndarray, in_shape: tuple, wavelengths: np.ndarray,
+                 name: str = "model") -> np.ndarray:
+    """Check a model output against the contract; return it as float32."""
+    nb = np.asarray(wavelengths).size
+    want = (*in_shape[:2], nb)
+    if tuple(out.shape) != want:
+        raise InputError(f"{name}: output shape {tuple(out.shape)} breaks the contract, "
+                         f"expected {want} (H, W, bands)")
+    out = out.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(out)):
+        n = int(np.count_nonzero(~np.isfinite(out)))
+        raise InputError(f"{name}: output has {n} NaN/inf values")
+    return out
+
+
+class FunctionModel(SSRModel):
+    """Wrap a plain function ``rgb (H, W, 3) → spectra (H, W, B)`` as a model."""
+
+    def __init__(self, fn: Callable[[np.ndarray], np.ndarray], *, name: str,
+                 wavelengths: np.ndarray | None = None, description: str = ""):
+        self.fn = fn
+        self.name = name
+        wl = getattr(fn, "wavelengths", None) if wavelengths is None else wavelengths
+        self.wavelengths = np.asarray(WAVELENGTHS_31 if wl is None else wl, dtype=np.float64)
+        self.description = description or (inspect.getdoc(fn) or "").split("\n")[0]
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        return self.fn(rgb)
+
+
+@dataclass
+class ModelEntry:
+    """A registry entry: ``factory(**kwargs)`` returns a model."""
+
+    name: str
+    factory: Callable[..., Any]
+    description: str = ""
+
+
+#: Registered models by name (see :func:`register_model`).
+MODELS: dict[str, ModelEntry] = {}
+_PLUGINS_LOADED = False
+
+
+def register_model(name: str, factory: Callable[..., Any], *, description: str = "",
+                   overwrite: bool = False) -> None:
+    """Register ``factory`` (called with ``**kwargs``, returns a model) under ``name``."""
+    key = name.strip().lower()
+    if not key or any(c in key for c in ",:/\\ "):
+        raise InputError(f"invalid model name {name!r}")
+    if key in MODELS and not overwrite:
+        raise InputError(f"a model named {key!r} is already registered")
+    MODELS[key] = ModelEntry(key, factory, description)
+
+
+def _load_plugins() -> None:
+    """Import the optional registrations (the torch networks) once, quietly."""
+    global _PLUGINS_LOADED
+    if _PLUGINS_LOADED:
+        return
+    _PLUGINS_LOADED = True
+    import mehs.ssr.baselines  # noqa: F401  (registers the built-ins)
+    try:
+        importlib.import_module("mehs.ssr.net.register")
+    except ImportError:
+        pass  # torch (or the network module) absent: the networks stay unlisted
+
+
+def list_models() -> dict[str, str]:
+    """Registered model names → one-line descriptions."""
+    _load_plugins()
+    return {k: v.description for k, v in sorted(MODELS.items())}
+
+
+def _as_model(obj: Any, name: str, wavelengths=None) -> Any:
+    if callable(obj) and hasattr(obj, "wavelengths") and hasattr(obj, "name") and wavelengths is None:
+        return obj
+    if callable(obj):
+        return FunctionModel(obj, name=getattr(obj, "name", None) or name,
+                             wavelengths=wavelengths)
+    raise InputError(f"{name}: the factory returned {type(obj).__name__}, not a model")
+
+
+def _import_object(spec: str) -> Any:
+    mod_name, _, attr = spec.rpartition(":")
+    if not mod_name or not attr:
+        raise InputError(f"model {spec!r}: expected 'package.module:function'")
+    try:
+        if mod_name.endswith(".py"):
+            path = Path(mod_name)
+            if not path.is_file():
+                raise InputError("no such Python file", path)
+            mspec = importlib.util.spec_from_file_location(f"_mehs_user_{path.stem}", path)
+            module = importlib.util.module_from_spec(mspec)
+            mspec.loader.exec_module(module)  # type: ignore[union-attr]
+        else:
+            module = importlib.import_module(mod_name)
+    except ImportError as exc:
+        raise InputError(f"model {spec!r}: cannot import {mod_name!r} ({exc})") from None
+    obj = module
+    for part in attr.split("."):
+        try:
+            obj = getattr(obj, part)
+        except AttributeError:
+            raise InputError(f"model {spec!r}: {mod_name!r} has no attribute {attr!r}") from None
+    return obj
+
+
+def _needs_positional(fn: Callable) -> bool:
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return True
+    return any(p.default is p.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+               for p in sig.parameters.values())
+
+
+def load_model(spec: Any, **kwargs: Any) -> Any:
+    """Return a model for ``spec`` (see the module notes for the accepted forms).
+
+    ``spec`` may also be a model object already (returned unchanged) or a plain
+    callable (wrapped). ``kwargs`` go to the factory; ``wavelengths=`` declares
+    the output bands of plain functions and ONNX models.
+    """
+    if not isinstance(spec, (str, Path)):
+        if callable(spec):
+            return _as_model(spec, getattr(spec, "__name__", "model"), kwargs.get("wavelengths"))
+        raise InputError(f"cannot make a model from {type(spec).__name__}")
+    text = str(spec).strip()
+    low = text.lower()
+    if low.endswith(".onnx"):
+        return OnnxModel(text, **kwargs)
+    if low.endswith(".pt") or low.endswith(".pth"):
+        try:
+            from mehs.ssr.net.export import load_torch_model
+        except ImportError as exc:
+            raise InputError(f"a torch checkpoint needs the torch extra: pip install "
+                             f"'mehs[torch]' ({exc})", text) from None
+        return load_torch_model(text, **kwargs)
+    if low.endswith(".npz") or low.endswith(".json"):
+        from mehs.ssr.baselines import RegressionModel
+
+        return RegressionModel.load(text)
+    if ":" in text and not (len(text) > 1 and text[1] == ":" and "\\" in text):
+        obj = _import_object(text)
+        name = kwargs.pop("name", None) or text.rpartition(":")[2]
+        wl = kwargs.pop("wavelengths", None)
+        if callable(obj) and hasattr(obj, "wavelengths") and not inspect.isclass(obj):
+            return _as_model(obj, name, wl)
+        if inspect.isclass(obj) or (callable(obj) and not _needs_positional(obj)):
+            return _as_model(obj(**kwargs), name, wl)
+        if callable(obj):
+            return FunctionModel(obj, name=name, wavelengths=wl)
+        raise InputError(f"model {text!r} is a {type(obj).__name__}, not callable")
+    _load_plugins()
+    entry = MODELS.get(low)
+    if entry is None:
+        raise InputError(f"unknown model {text!r}; known: {', '.join(sorted(MODELS))} "
+                         "(or give package.module:function, a .onnx or a .npz file)")
+    return _as_model(entry.factory(**kwargs), entry.name)
+
+
+class OnnxModel(SSRModel):
+    """An ONNX SSR model run with onnxruntime on the CPU (see module notes for layouts)."""
+
+    def __init__(self, path: str | Path, *, name: str | None = None,
+                 wavelengths: np.ndarray | None = None, providers: list[str] | None = None):
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("no such ONNX model file", path)
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise InputError("onnxruntime is not installed: pip install 'mehs[onnx]'",
+                             path) from None
+        try:
+            self.session = ort.InferenceSession(
+                str(path), providers=providers or ["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise FormatError(f"onnxruntime cannot load the model ({exc})", path) from None
+        self.path = path
+        self.name = name or path.stem
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise FormatError(f"the model has {len(inputs)} inputs; SSR models take one", path)
+        self.input_name = inputs[0].name
+        shape = list(inputs[0].shape)
+        if len(shape) != 4:
+            raise FormatError(f"input shape {shape} is not 4-D (NCHW or NHWC)", path)
+        if shape[1] == 3 and shape[3] != 3:
+            self.layout = "NCHW"
+        elif shape[3] == 3:
+            self.layout = "NHWC"
+        else:
+            raise FormatError(f"cannot tell NCHW from NHWC in input shape {shape}", path)
+        self.input_type = inputs[0].type
+        if wavelengths is None:
+            meta = self.session.get_modelmeta().custom_metadata_map or {}
+            if "wavelengths" in meta:
+                try:
+                    wavelengths = [float(v) for v in meta["wavelengths"].replace(";", ",").split(",")]
+                except ValueError:
+                    raise FormatError("metadata 'wavelengths' is not a list of numbers", path) from None
+        self._declared = None if wavelengths is None else np.asarray(wavelengths, dtype=np.float64)
+        self.wavelengths = WAVELENGTHS_31 if self._declared is None else self._declared
+        self.description = f"ONNX model {path.name} ({self.layout})"
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        x = rgb[None]
+        if self.layout == "NCHW":
+            x = x.transpose(0, 3, 1, 2)
+        dtype = np.float16 if "float16" in self.input_type else np.float32
+        x = np.ascontiguousarray(x, dtype=dtype)
+        y = np.asarray(self.session.run(None, {self.input_name: x})[0])
+        h, w = rgb.shape[:2]
+        if y.ndim != 4 or y.shape[0] != 1:
+            raise InputError(f"{self.name}: output shape {y.shape} is not (1, B, H, W) or (1, H, W, B)")
+        if y.shape[2:] == (h, w) and (y.shape[1:3] != (h, w) or self.layout == "NCHW"):
+            y = y[0].transpose(1, 2, 0)
+        elif y.shape[1:3] == (h, w):
+            y = y[0]
+        else:
+            raise InputError(f"{self.name}: output shape {y.shape} does not match input {h}×{w}")
+        if self._declared is None and y.shape[-1] != 31:
+            raise InputError(f"{self.name}: the model gives {y.shape[-1]} bands; declare them "
+                             "with wavelengths= or a 'wavelengths' metadata property", self.path)
+        return y.astype(np.float32, copy=False)
