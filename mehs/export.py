@@ -46,6 +46,13 @@ def _check_cube(cube) -> SpectralCube:
     return cube
 
 
+def valid_prefix(prefix: str) -> str:
+    """Return ``prefix`` if it is a plain file-name stem (letters, digits, ``_.-``), else raise."""
+    if not _PREFIX_RE.match(str(prefix)):
+        raise InputError(f"prefix {prefix!r} must be letters, digits, '_', '.', '-'")
+    return str(prefix)
+
+
 def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: str = "band",
                           half: bool = False) -> list[Path]:
     """Write one grayscale EXR per band plus the wavelength list files.
@@ -67,8 +74,7 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         The ``bands`` EXR paths in wavelength order.
     """
     cube = _check_cube(cube)
-    if not _PREFIX_RE.match(prefix):
-        raise InputError(f"prefix {prefix!r} must be letters, digits, '_', '.', '-'")
+    valid_prefix(prefix)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError("output exists and is not a folder", out)

@@ -129,7 +129,8 @@ def test_resample_cube_chunking_and_metadata():
     np.testing.assert_array_equal(out.wavelengths, WAVELENGTHS_31)
     np.testing.assert_array_equal(out.fwhm, 10.0)
     assert [out.wavelengths[b] for b in out.default_bands] == [600.0, 550.0, 450.0]
-    assert out.metadata["resampling"] == {"method": "gaussian", "fwhm_nm": 10.0}
+    assert out.metadata["resampling method"] == "gaussian"
+    assert out.metadata["resampling fwhm"] == 10.0
     assert resample_cube(cube, method="linear").fwhm is None
 
 

@@ -1,11 +1,50 @@
-"""`mehs export` — placeholder until its issue lands (replace this module)."""
+"""`mehs export HS --out DIR` — export an HS cube for spectral rendering.
 
-from mehs.errors import MehsError
+``per-wavelength``: ``DIR/<prefix>_000.exr …`` one grayscale float EXR per band
+plus ``<prefix>_wavelengths.txt/.json``; ``spectral``: ``DIR/<prefix>.exr``,
+one multi-channel EXR (Fichet 2021 layout); ``both`` (default).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 
-def configure(parser):
-    pass
+def configure(parser) -> None:
+    parser.add_argument("hs", metavar="HS",
+                        help="HS cube: ENVI .hdr, Specim IQ capture folder or spectral .exr")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--format", default="both",
+                        choices=["per-wavelength", "spectral", "both"],
+                        help="one EXR per wavelength, one spectral EXR, or both (default)")
+    parser.add_argument("--prefix", default="band",
+                        help="file-name prefix (default 'band': band_000.exr …, band.exr)")
+    parser.add_argument("--bands", default=None, metavar="SPEC",
+                        help="resample first (Gaussian, 10 nm FWHM) to these centres, "
+                             "e.g. 400:700:10 (default: keep the cube's bands)")
+    parser.add_argument("--half", action="store_true", help="store half floats")
 
 
-def run(args):
-    raise MehsError("'mehs export' is not implemented yet")
+def run(args) -> int:
+    from mehs.errors import InputError
+    from mehs.export import export_per_wavelength, export_spectral_exr
+    from mehs.io import load_cube
+
+    from mehs.export import valid_prefix
+
+    out = Path(args.out)
+    valid_prefix(args.prefix)
+    if out.exists() and not out.is_dir():
+        raise InputError("--out exists and is not a folder", out)
+    cube = load_cube(args.hs)
+    if args.bands:
+        from mehs.synthesis.resample import parse_bands, resample_cube
+        cube = resample_cube(cube, parse_bands(args.bands))
+    written = []
+    if args.format in ("per-wavelength", "both"):
+        written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
+    if args.format in ("spectral", "both"):
+        written.append(export_spectral_exr(cube, out / f"{args.prefix}.exr", half=args.half))
+    wl = cube.wavelengths
+    print(f"{out}: {len(written)} EXR file(s), {cube.bands} bands {wl[0]:g}..{wl[-1]:g} nm")
+    return 0

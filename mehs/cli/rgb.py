@@ -1,11 +1,72 @@
-"""`mehs rgb` — placeholder until its issue lands (replace this module)."""
+"""`mehs rgb HS --out DIR` — pseudo-HDR-RGB (EXR), LDR-RGB (PNG) and a preview of an HS cube.
 
-from mehs.errors import MehsError
+Writes ``DIR/hdr_rgb.exr`` (half-float linear sRGB, unnormalised),
+``DIR/ldr_rgb.png`` (exposed, clipped, sRGB-encoded 8-bit), ``DIR/preview.png``
+(Reinhard 2002 global tone mapping) and ``DIR/rgb.json`` (exposure used and
+the rules). A cube not on the 31 bands 400:700:10 is first resampled to them
+(Gaussian, 10 nm FWHM) unless ``--no-resample``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 
-def configure(parser):
-    pass
+def configure(parser) -> None:
+    parser.add_argument("hs", metavar="HS",
+                        help="HS cube: ENVI .hdr, Specim IQ capture folder or spectral .exr")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--ldr-exposure", type=float, default=None, metavar="X",
+                        help="multiply the HDR image by X before clipping (default: the 99th "
+                             "percentile of luminance maps to 1)")
+    parser.add_argument("--no-resample", action="store_true",
+                        help="use the cube's own bands (inside 360-830 nm) instead of "
+                             "resampling to 400:700:10")
+    parser.add_argument("--key", type=float, default=0.18,
+                        help="Reinhard key for preview.png (default 0.18)")
+    parser.add_argument("--float", dest="half", action="store_false",
+                        help="store hdr_rgb.exr as 32-bit float instead of half")
 
 
-def run(args):
-    raise MehsError("'mehs rgb' is not implemented yet")
+def run(args) -> int:
+    import numpy as np
+
+    from mehs.io import load_cube
+    from mehs.io.atomic import write_json_atomic
+    from mehs.io.exr import write_exr_rgb
+    from mehs.preview import tonemap, write_png
+    from mehs.rgb import LDR_PERCENTILE, WAVELENGTHS_31, hdr_rgb, ldr_rgb
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        from mehs.errors import InputError
+        raise InputError("--out exists and is not a folder", out)
+    cube = load_cube(args.hs)
+    resampled = False
+    if not args.no_resample and not (cube.bands == WAVELENGTHS_31.size
+                                     and np.allclose(cube.wavelengths, WAVELENGTHS_31)):
+        from mehs.synthesis.resample import resample_cube
+        cube = resample_cube(cube, WAVELENGTHS_31, method="gaussian", fwhm=10.0)
+        resampled = True
+    hdr = hdr_rgb(cube)
+    ldr, exposure = ldr_rgb(hdr, exposure=args.ldr_exposure)
+    out.mkdir(parents=True, exist_ok=True)
+    write_exr_rgb(out / "hdr_rgb.exr", hdr, half=args.half)
+    write_png(out / "ldr_rgb.png", ldr)
+    write_png(out / "preview.png", tonemap(hdr, "reinhard", key=args.key))
+    write_json_atomic(out / "rgb.json", {
+        "source": str(args.hs),
+        "resampled_to_31_bands": resampled,
+        "wavelengths": cube.wavelengths.tolist(),
+        "xyz_scale": "1/sum(ybar)",
+        "hdr_rgb": {"file": "hdr_rgb.exr", "encoding": "linear sRGB (IEC 61966-2-1), "
+                    "negatives clipped, unnormalised", "half": bool(args.half)},
+        "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure,
+                    "rule": "given by --ldr-exposure" if args.ldr_exposure is not None else
+                    f"exposure = 1 / P{LDR_PERCENTILE:g}(Y) over pixels with Y > 0",
+                    "encoding": "clip [0,1], sRGB OETF, rint(255 v)"},
+        "preview": {"file": "preview.png", "tonemap": "Reinhard2002 global", "key": args.key},
+    })
+    print(f"{out}: hdr_rgb.exr, ldr_rgb.png (exposure {exposure:.6g}), preview.png"
+          f"{' (resampled to 31 bands)' if resampled else ''}")
+    return 0

@@ -278,7 +278,7 @@ def resample_cube(cube: SpectralCube, target=WAVELENGTHS_31, *, method: str = "g
         float32 ``(lines, samples, n_dst)`` with the source's metadata, the
         target wavelengths, ``fwhm`` set to the target FWHM (``None`` for
         ``linear``), ``default_bands`` moved to the nearest target bands, and
-        ``metadata["resampling"] = {"method", "fwhm_nm"}``.
+        ``metadata["resampling method"]`` and ``["resampling fwhm"]`` (nm).
     """
     m = resampling_matrix(cube.wavelengths, target, method=method, src_fwhm=cube.fwhm,
                           dst_fwhm=fwhm)
@@ -290,8 +290,10 @@ def resample_cube(cube: SpectralCube, target=WAVELENGTHS_31, *, method: str = "g
                         for b in cube.default_bands)
     dst_f = None if method == "linear" else _per_band(fwhm, dst.size, "target FWHM")
     meta = dict(cube.metadata)
-    meta["resampling"] = {"method": method,
-                          "fwhm_nm": None if dst_f is None else float(dst_f[0])
-                          if np.all(dst_f == dst_f[0]) else dst_f.tolist()}
+    # Flat text/number keys so ENVI headers can carry them.
+    meta["resampling method"] = method
+    meta.pop("resampling fwhm", None)
+    if dst_f is not None:
+        meta["resampling fwhm"] = float(dst_f[0]) if np.all(dst_f == dst_f[0]) else dst_f.tolist()
     return cube.with_data(data, wavelengths=dst, fwhm=dst_f, default_bands=default,
                           metadata=meta)
