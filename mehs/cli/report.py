@@ -1,11 +1,20 @@
-"""`mehs report` — placeholder until its issue lands (replace this module)."""
+"""`mehs report` — HTML report of a dataset folder or of an evaluation results folder."""
 
-from mehs.errors import MehsError
+from __future__ import annotations
 
 
 def configure(parser):
-    pass
+    parser.add_argument("folder", metavar="FOLDER",
+                        help="a dataset folder (manifest.json, from 'mehs build') or an "
+                             "evaluation results folder (from 'mehs evaluate --out')")
+    parser.add_argument("--out", "-o", metavar="HTML", default=None,
+                        help="HTML file to write (default FOLDER/report.html; images go to "
+                             "<name>_files/ beside it)")
 
 
 def run(args):
-    raise MehsError("'mehs report' is not implemented yet")
+    from mehs.dataset.report import write_report
+
+    out = write_report(args.folder, args.out)
+    print(out)
+    return 0

@@ -52,8 +52,9 @@ TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
 
 #: How the LDR-RGB image is exposed (recorded in the manifest's ``rgb`` block).
-LDR_EXPOSURE_RULE_FALLBACK = ("mehs.rgb.ldr_rgb default: exposure chosen per image, "
-                              "recorded per scene as quality.ldr_exposure")
+LDR_EXPOSURE_RULE = ("mehs.rgb.ldr_rgb: exposure = 1/P{p}(Y) over pixels with Y > 0 "
+                     "(that luminance percentile maps to 1), clip to [0,1], sRGB OETF, "
+                     "rint(255 v); the exposure of each scene is quality.ldr_exposure")
 
 
 @dataclass(frozen=True)
@@ -360,6 +361,7 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
 
     from mehs.io.envi import write_envi
     from mehs.io.exr import write_exr_rgb
+    from mehs.preview import tonemap, write_png
     from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb
 
     sid = task.source.scene_id
@@ -374,7 +376,7 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     with _timed(run, "rgb"):
         hdr = np.asarray(hdr_rgb(data, WAVELENGTHS_31), dtype=np.float32)
         ldr, exposure = ldr_rgb(hdr)
-        preview = _preview(hdr)
+        preview = tonemap(hdr)
     if quality.get("dynamic_range_stops") is None:
         quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
     quality["ldr_exposure"] = float(exposure)
@@ -385,9 +387,9 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
                           integration_time_ms=None, source=None, metadata={})
         write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
         write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True)
-        _write_png(tmp / "ldr_rgb.png", ldr)
-        _write_png(tmp / "mask.png", mask)
-        _write_png(tmp / "preview.png", preview)
+        write_png(tmp / "ldr_rgb.png", ldr)
+        write_png(tmp / "mask.png", mask)
+        write_png(tmp / "preview.png", preview)
 
 
 def to_31_bands(cube, *, method: str = "gaussian", fwhm: float = 10.0):
@@ -410,9 +412,9 @@ def dynamic_range_stops(rgb, mask=None) -> float | None:
     """
     import numpy as np
 
-    from mehs.rgb import linear_sRGB_to_XYZ
+    from mehs.rgb import luminance
 
-    Y = linear_sRGB_to_XYZ(rgb)[..., 1]
+    Y = luminance(rgb)
     ok = Y > 0
     if mask is not None:
         ok &= np.asarray(mask) == 0
@@ -421,32 +423,6 @@ def dynamic_range_stops(rgb, mask=None) -> float | None:
         return None
     lo, hi = np.percentile(vals, [0.1, 99.9])
     return float(np.log2(hi / lo)) if lo > 0 else None
-
-
-def _preview(hdr):
-    try:
-        from mehs.preview import tonemap
-    except ImportError:  # the preview module is optional for building
-        import numpy as np
-
-        x = hdr / (1.0 + hdr)
-        return np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
-    return tonemap(hdr)
-
-
-def _write_png(path: Path, img) -> None:
-    """Write an 8-bit PNG (RGB order in, gray or RGB) atomically; no metadata, so deterministic."""
-    import cv2
-    import numpy as np
-
-    from mehs.io.atomic import atomic_path
-
-    img = np.ascontiguousarray(img)
-    if img.ndim == 3:
-        img = img[:, :, ::-1]
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img):
-            raise MehsError("OpenCV could not write the PNG", path)
 
 
 # ---------------------------------------------------------------- main side
@@ -494,8 +470,8 @@ class _Lock:
 def _rgb_block() -> dict[str, str]:
     import mehs.rgb as rgb
 
-    rule = getattr(rgb, "LDR_EXPOSURE_RULE", None) or LDR_EXPOSURE_RULE_FALLBACK
-    return {"xyz_scale": "1/sum(ybar)", "ldr_exposure_rule": str(rule),
+    rule = LDR_EXPOSURE_RULE.format(p=f"{getattr(rgb, 'LDR_PERCENTILE', 99.0):g}")
+    return {"xyz_scale": "1/sum(ybar)", "ldr_exposure_rule": rule,
             "matrix": "XYZ->linear sRGB (D65), IEC 61966-2-1 / paper, negatives clipped",
             "cmfs": rgb.CMFS_NAME}
 

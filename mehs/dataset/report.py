@@ -1,0 +1,351 @@
+"""Static HTML report of a dataset folder (opens offline, no server).
+
+``write_dataset_report(DATASET)`` writes ``DATASET/report.html`` and its images
+in ``DATASET/report_files/`` (relative links, so the pair can be moved or
+zipped together):
+
+- a summary (scene counts, pass/fail, splits, the pass/fail rules used) and a
+  dataset figure (dynamic range per scene, ghost vs saturated fractions);
+- a thumbnail grid of the tone-mapped previews, failed scenes marked;
+- a table with one row per scene (status, reasons, quality figures, split);
+- per scene a figure: preview, response curves, histogram of log2 luminance
+  (the dynamic range), saturation and ghost maps (mask bits 1 and 2), and
+  example spectra at five pixels spread over the luminance range.
+
+Figures are drawn with matplotlib's Agg backend.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from mehs.dataset.manifest import read_manifest
+from mehs.errors import InputError, MehsError
+
+THUMB_MAX = 256
+
+
+def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None) -> Path:
+    """Write the HTML report of ``dataset``; return the HTML path.
+
+    Parameters
+    ----------
+    dataset
+        A dataset folder written by ``mehs build`` (with ``manifest.json``).
+    out_html
+        Where to write the page (default ``DATASET/report.html``); images go to
+        the folder ``<stem>_files`` beside it.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    from mehs.io.atomic import write_text_atomic
+
+    dataset = Path(dataset)
+    manifest = read_manifest(dataset)
+    out_html = Path(out_html) if out_html else dataset / "report.html"
+    files_dir = out_html.parent / f"{out_html.stem}_files"
+    tmp_dir = files_dir.with_name(files_dir.name + ".part")
+    shutil.rmtree(tmp_dir, ignore_errors=True)
+    tmp_dir.mkdir(parents=True)
+    rel = files_dir.name
+    scenes = manifest["scenes"]
+    split_of = {s: k for k, ids in manifest.get("splits", {}).items() for s in ids}
+
+    cards, rows, details = [], [], []
+    for s in scenes:
+        sid = s["id"]
+        files = s.get("files") or {}
+        thumb = None
+        if files.get("preview") and (dataset / files["preview"]).is_file():
+            thumb = f"{sid}_thumb.png"
+            _thumbnail(dataset / files["preview"], tmp_dir / thumb)
+        fig = None
+        if files.get("hs"):
+            fig = f"{sid}_figure.png"
+            try:
+                _scene_figure(dataset, s, tmp_dir / fig)
+            except (MehsError, OSError, ValueError) as exc:
+                fig = None
+                s = {**s, "reasons": s.get("reasons", []) + [f"report: {exc}"]}
+        cards.append(_card(s, thumb and f"{rel}/{thumb}"))
+        rows.append(_row(s, split_of.get(sid, "")))
+        details.append(_detail(s, fig and f"{rel}/{fig}"))
+    overview = "overview.png"
+    _overview_figure(scenes, tmp_dir / overview)
+
+    n_pass = sum(s["status"] == "pass" for s in scenes)
+    page = _PAGE.format(
+        title=html.escape(f"mehs dataset {dataset.name}"),
+        n=len(scenes), n_pass=n_pass, n_fail=len(scenes) - n_pass,
+        version=html.escape(str(manifest.get("software_version", ""))),
+        splits=html.escape(", ".join(f"{k}: {len(v)}" for k, v in manifest.get("splits", {}).items())),
+        rules=html.escape(json.dumps(manifest.get("quality_rules", {}), sort_keys=True)),
+        ldr=html.escape(str(manifest.get("rgb", {}).get("ldr_exposure_rule", ""))),
+        overview=f"{rel}/{overview}",
+        cards="\n".join(cards), rows="\n".join(rows), details="\n".join(details))
+    # swap the image folder in first, then the page, so the page never points at missing images
+    old = files_dir.with_name(files_dir.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if files_dir.exists():
+        files_dir.rename(old)
+    tmp_dir.rename(files_dir)
+    shutil.rmtree(old, ignore_errors=True)
+    write_text_atomic(out_html, page)
+    return out_html
+
+
+def write_report(path: str | Path, out_html: str | Path | None = None) -> Path:
+    """Report of a dataset folder, or of an SSR evaluation results folder.
+
+    A folder with a ``mehs-dataset/1`` ``manifest.json`` gets the dataset
+    report; any other folder is handed to
+    :func:`mehs.ssr.report.write_evaluation_report` (written by ``mehs evaluate --out``).
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("not a folder (expected a dataset or evaluation results folder)", path)
+    if (path / "manifest.json").is_file():
+        return write_dataset_report(path, out_html)
+    try:
+        from mehs.ssr.report import write_evaluation_report
+    except ImportError:
+        raise InputError("no dataset manifest.json here, and the evaluation report "
+                         "(mehs.ssr.report) is not available", path) from None
+    out = Path(out_html) if out_html else path / "report.html"
+    result = write_evaluation_report(path, out)
+    return Path(result) if result else out
+
+
+# ------------------------------------------------------------------ figures
+
+def _thumbnail(src: Path, dst: Path) -> None:
+    import cv2
+
+    from mehs.preview import read_png, write_png
+
+    img = read_png(src)
+    h, w = img.shape[:2]
+    f = THUMB_MAX / max(h, w)
+    if f < 1:
+        img = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))),
+                         interpolation=cv2.INTER_AREA)
+    write_png(dst, img)
+
+
+def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from mehs.io.envi import read_envi
+    from mehs.io.exr import read_exr
+    from mehs.preview import read_png
+    from mehs.rgb import luminance
+
+    files = scene["files"]
+    cube = read_envi(dataset / files["hs"], memmap=True)
+    rgb = read_exr(dataset / files["hdr_rgb"]).data[:, :, :3]
+    mask = read_png(dataset / files["mask"]) if files.get("mask") else np.zeros(rgb.shape[:2], np.uint8)
+    Y = luminance(rgb)
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7.5), layout="constrained")
+    ax = axes[0, 0]
+    if files.get("preview"):
+        ax.imshow(read_png(dataset / files["preview"]))
+    ax.set_title("tone-mapped preview")
+    ax.axis("off")
+
+    ax = axes[0, 1]
+    _plot_response(ax, dataset / files["response"] if files.get("response") else None)
+
+    ax = axes[0, 2]
+    valid = (Y > 0) & (mask == 0)
+    if valid.any():
+        ax.hist(np.log2(Y[valid]), bins=60, color="0.3")
+    dr = (scene.get("quality") or {}).get("dynamic_range_stops")
+    ax.set_title("log2 luminance" + (f" — DR {dr:.1f} stops" if dr is not None else ""))
+    ax.set_xlabel("log2 Y (relative)")
+    ax.set_ylabel("pixels")
+
+    for ax, bit, name, cmap in ((axes[1, 0], 1, "saturated in every exposure", "Reds"),
+                                (axes[1, 1], 2, "ghost (moved between exposures)", "Blues")):
+        m = (mask & bit) > 0
+        ax.imshow(m, cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"{name}: {m.mean() * 100:.2f} %")
+        ax.axis("off")
+
+    ax = axes[1, 2]
+    ok = np.flatnonzero(valid.ravel())
+    if ok.size:
+        order = ok[np.argsort(Y.ravel()[ok], kind="stable")]
+        picks = order[np.linspace(0, order.size - 1, 5).round().astype(int)]
+        w = cube.samples
+        for p in picks:
+            r, c = divmod(int(p), w)
+            ax.semilogy(cube.wavelengths, np.maximum(np.asarray(cube.data[r, c, :]), 1e-12),
+                        label=f"({r},{c})")
+        ax.legend(fontsize=7)
+    ax.set_title("example spectra (luminance 0–100 %)")
+    ax.set_xlabel("wavelength (nm)")
+    fig.suptitle(f"scene {scene['id']} — {scene['status']}")
+    _save(fig, out)
+
+
+def _plot_response(ax, path: Path | None) -> None:
+    import numpy as np
+
+    ax.set_title("response curve g(Z) = ln(E·Δt)")
+    g = None
+    if path is not None and path.is_file():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+            g = _find_curve(data)
+        except (OSError, ValueError):
+            g = None
+    if g is None:
+        ax.text(0.5, 0.5, "no response curve\n(HS cube input or linear)", ha="center",
+                va="center", transform=ax.transAxes)
+        return
+    g = np.atleast_2d(np.asarray(g, dtype=np.float64))
+    if g.shape[0] > g.shape[1]:
+        g = g.T  # (curves, levels)
+    z = np.arange(g.shape[1])
+    idx = np.unique(np.linspace(0, g.shape[0] - 1, min(6, g.shape[0])).round().astype(int))
+    for i in idx:
+        ax.plot(z, g[i], lw=1, label=f"curve {i}" if g.shape[0] > 1 else None)
+    if g.shape[0] > 1:
+        ax.legend(fontsize=7)
+    ax.set_xlabel("Z (DN)")
+    ax.set_ylabel("g")
+
+
+def _find_curve(data: Any):
+    """The largest numeric list-of-lists/list in a response JSON (``g``, ``curve``, …)."""
+    if isinstance(data, dict):
+        for key in ("g", "log_response", "curve", "curves", "response"):
+            if key in data:
+                found = _find_curve(data[key])
+                if found is not None:
+                    return found
+        return None
+    if isinstance(data, list) and data and all(isinstance(v, (int, float)) for v in data):
+        return data if len(data) > 2 else None
+    if isinstance(data, list) and data and all(isinstance(v, list) for v in data):
+        return data
+    return None
+
+
+def _overview_figure(scenes: list[dict], out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.6), layout="constrained")
+    q = [(s["id"], s["status"], s.get("quality") or {}) for s in scenes]
+    ids = [i for i, _, _ in q]
+    drs = [x.get("dynamic_range_stops") or 0 for _, _, x in q]
+    colors = ["tab:green" if st == "pass" else "tab:red" for _, st, _ in q]
+    a.bar(range(len(ids)), drs, color=colors)
+    a.set_xticks(range(len(ids)), ids, rotation=60, fontsize=7)
+    a.set_ylabel("dynamic range (stops)")
+    a.set_title("dynamic range per scene (green pass, red fail)")
+    b.scatter([x.get("saturated_fraction") or 0 for _, _, x in q],
+              [x.get("ghost_fraction") or 0 for _, _, x in q], c=colors)
+    b.set_xlabel("saturated-in-all fraction")
+    b.set_ylabel("ghost fraction")
+    b.set_title("saturation vs ghosts")
+    _save(fig, out)
+
+
+def _save(fig, out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from mehs.io.atomic import atomic_path
+
+    with atomic_path(out) as tmp:
+        # no timestamp/software text chunks: the same data gives the same bytes
+        fig.savefig(tmp, format="png", dpi=80, metadata={"Software": None})
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------ html
+
+def _fmt(v: Any, pct: bool = False) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, list):
+        return " ".join(_fmt(x) for x in v)
+    if isinstance(v, float):
+        return f"{v * 100:.2f} %" if pct else f"{v:.3g}"
+    return html.escape(str(v))
+
+
+def _card(s: dict, thumb: str | None) -> str:
+    sid = html.escape(s["id"])
+    img = (f'<img src="{html.escape(thumb)}" alt="preview of {sid}">' if thumb
+           else '<div class="noimg">no preview</div>')
+    return (f'<a class="card {s["status"]}" href="#scene-{sid}">{img}'
+            f'<span>{sid} — {s["status"]}</span></a>')
+
+
+def _row(s: dict, split: str) -> str:
+    q = s.get("quality") or {}
+    return ("<tr class='{st}'><td><a href='#scene-{id}'>{id}</a></td><td>{st}</td><td>{split}</td>"
+            "<td>{dr}</td><td>{sat}</td><td>{gh}</td><td>{inv}</td><td>{ratios}</td>"
+            "<td>{reasons}</td></tr>").format(
+        id=html.escape(s["id"]), st=s["status"], split=html.escape(split),
+        dr=_fmt(q.get("dynamic_range_stops")), sat=_fmt(q.get("saturated_fraction"), True),
+        gh=_fmt(q.get("ghost_fraction"), True), inv=_fmt(q.get("invalid_fraction"), True),
+        ratios=_fmt(q.get("exposure_ratios")),
+        reasons=html.escape("; ".join(s.get("reasons", []))))
+
+
+def _detail(s: dict, fig: str | None) -> str:
+    sid = html.escape(s["id"])
+    body = (f'<img src="{html.escape(fig)}" alt="figures of {sid}">' if fig
+            else "<p>No figures (scene not built).</p>")
+    reasons = "".join(f"<li>{html.escape(r)}</li>" for r in s.get("reasons", []))
+    inputs = html.escape(", ".join(s.get("provenance", {}).get("inputs", [])))
+    return (f'<section id="scene-{sid}"><h3>{sid} — {s["status"]}</h3>'
+            f'<ul>{reasons}</ul><p class="small">inputs: {inputs}</p>{body}</section>')
+
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em; color: #222; }}
+.grid {{ display: flex; flex-wrap: wrap; gap: 10px; }}
+.card {{ display: flex; flex-direction: column; width: 180px; text-decoration: none;
+        color: inherit; border: 3px solid #4a4; padding: 3px; font-size: 0.85em; }}
+.card.fail {{ border-color: #c33; }}
+.card img {{ width: 100%; height: auto; image-rendering: pixelated; }}
+.noimg {{ height: 120px; background: #eee; display: flex; align-items: center;
+          justify-content: center; }}
+table {{ border-collapse: collapse; font-size: 0.85em; }}
+td, th {{ border: 1px solid #ccc; padding: 2px 6px; text-align: right; }}
+td:first-child, td:last-child, th:last-child {{ text-align: left; }}
+tr.fail {{ background: #fdd; }}
+section img {{ max-width: 100%; }}
+.small {{ font-size: 0.8em; color: #555; }}
+</style></head><body>
+<h1>{title}</h1>
+<p>{n} scenes: {n_pass} pass, {n_fail} fail. Splits (passing scenes only): {splits}.
+mehs {version}.</p>
+<p class="small">Pass/fail rules: {rules}<br>LDR exposure rule: {ldr}</p>
+<img src="{overview}" alt="dataset overview">
+<h2>Previews</h2>
+<div class="grid">
+{cards}
+</div>
+<h2>Scenes</h2>
+<table><thead><tr><th>scene</th><th>status</th><th>split</th><th>DR (stops)</th>
+<th>saturated</th><th>ghost</th><th>invalid</th><th>exposure ratios</th><th>reasons</th></tr></thead>
+<tbody>
+{rows}
+</tbody></table>
+<h2>Per-scene figures</h2>
+{details}
+</body></html>
+"""

@@ -1,0 +1,79 @@
+"""`mehs report` on a dataset: static HTML with images beside it, all loading in Chromium."""
+
+import importlib.util
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mehs.dataset.build import build_from_hs
+from mehs.dataset.report import write_dataset_report, write_report
+from mehs.errors import InputError
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from mehs.cube import SpectralCube
+    from mehs.io.envi import write_envi
+    from mehs.rgb import WAVELENGTHS_31
+
+    root = tmp_path_factory.mktemp("rep")
+    rng = np.random.default_rng(1)
+    for i in range(2):
+        cube = rng.random((12, 10, 31), dtype=np.float32) * (10.0 ** rng.uniform(-2, 2, (12, 10, 1)))
+        write_envi(root / "cubes" / f"c{i}.hdr", SpectralCube(cube.astype(np.float32), WAVELENGTHS_31))
+    # a scene that fails the rules, so the report shows a failure with its reasons
+    write_envi(root / "cubes" / "dark.hdr",
+               SpectralCube(np.zeros((12, 10, 31), np.float32), WAVELENGTHS_31))
+    ds = root / "ds"
+    build_from_hs([root / "cubes"], ds, workers=1, progress=False)
+    return ds
+
+
+def test_report_writes_page_and_images(dataset, tmp_path):
+    out = write_report(dataset)
+    assert out == dataset / "report.html"
+    page = out.read_text()
+    for sid in ("c0", "c1", "dark"):
+        assert f'id="scene-{sid}"' in page
+    assert "invalid fraction" in page  # the failing scene's reason is shown
+    srcs = re.findall(r'<img src="([^"]+)"', page)
+    assert len(srcs) >= 1 + 3 + 2  # overview + thumbnails + figures of the built scenes
+    for s in srcs:
+        assert not s.startswith(("/", "http")) and (out.parent / s).stat().st_size > 0
+    # elsewhere, with --out: images beside the page
+    other = write_dataset_report(dataset, tmp_path / "r" / "page.html")
+    assert (tmp_path / "r" / "page_files" / "overview.png").is_file() and other.is_file()
+
+
+def test_report_refuses_unknown_folder(tmp_path):
+    if importlib.util.find_spec("mehs.ssr.report") is not None:
+        pytest.skip("the SSR report decides what an evaluation folder is")
+    with pytest.raises(InputError, match="no dataset manifest"):
+        write_report(tmp_path)
+
+
+def test_report_renders_in_headless_chromium(dataset):
+    sys.path.insert(0, str(TOOLS))
+    try:
+        import check_report_chromium as chk
+    finally:
+        sys.path.pop(0)
+    if chk.find_chromium() is None:
+        pytest.skip("chromium is not installed")
+    out = write_report(dataset)
+    res = chk.check_report(out)
+    assert res["images"] >= 6 and res["broken"] == []
+    # and the check can fail: break one image
+    victim = out.parent / "report_files" / "overview.png"
+    saved = victim.read_bytes()
+    try:
+        victim.write_bytes(b"not a png")
+        assert chk.check_report(out)["broken"] == ["report_files/overview.png"]
+    finally:
+        victim.write_bytes(saved)
