@@ -597,7 +597,7 @@ def _build_header(cube: SpectralCube, dt: np.dtype, interleave: str,
 
 def _check_cast(chunk: np.ndarray, dt: np.dtype) -> None:
     """Refuse casts that would wrap around or turn NaN into an integer."""
-    if dt.kind not in "iu" or chunk.size == 0:
+    if dt.kind not in "iu" or chunk.size == 0 or np.can_cast(chunk.dtype, dt, "safe"):
         return
     if chunk.dtype.kind == "f":
         if not np.all(np.isfinite(chunk)):
