@@ -99,10 +99,13 @@ def _resolve_models(models, pairs: PairSet, *, seed: int = 0) -> list[tuple[Any,
 
 
 def _preview(rgb: np.ndarray) -> np.ndarray:
-    """uint8 sRGB preview of linear RGB, exposed so the 99th percentile of luminance is 1."""
+    """uint8 sRGB preview of linear HDR RGB: median luminance → 0.18, Reinhard on luminance."""
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-    p = float(np.percentile(lum, 99)) if lum.size else 1.0
-    x = np.clip(rgb / (p if p > 0 else 1.0), 0, 1)
+    pos = lum[lum > 0]
+    key = float(np.median(pos)) if pos.size else 1.0
+    L = lum * np.float32(0.18 / key)
+    scale = np.where(L > 0, 1 / (1 + L), 0).astype(np.float32) * np.float32(0.18 / key)
+    x = np.clip(rgb * scale[..., None], 0, 1)
     enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return np.round(enc * 255).astype(np.uint8)
 
@@ -327,7 +330,7 @@ def time_models(models: Sequence, *, shape: tuple[int, int] = (1024, 2048), repe
         full = time.perf_counter() - t0
         out.append({"model": name, "shape": [h, w], "seconds": best, "pipeline_seconds": full,
                     "megapixels_per_second": h * w / 1e6 / best,
-                    "paper_seconds": PAPER_SECONDS.get(name)})
+                    "paper_seconds": PAPER_SECONDS.get(name) if (h, w) == (1024, 2048) else None})
     return out
 
 
@@ -356,18 +359,16 @@ def _render(title: str, header: list[str], body: list[list[str]], bold: list[lis
     return "\n".join(lines) + "\n"
 
 
-def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None = None, *,
-                  fmt: str = "markdown", metrics: Sequence[str] = ("sam", "mrae"),
-                  timing: list[dict[str, Any]] | None = None) -> str:
-    """Paper-style tables (Tables 2–4): one per input × restoration setting.
+def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sam", "mrae"),
+                 timing: list[dict[str, Any]] | None = None) -> list[tuple]:
+    """The paper-style tables as ``(title, header, body, bold)`` blocks (any renderer).
 
-    Rows are models; columns are (pre-processing off / on) × ``metrics``. The
-    best value of each column is bold (Markdown) or marked ``*`` (``fmt="text"``).
-    With ``timing``, a Table-5-like conversion-time table is appended.
+    One table per input × restoration setting: rows are models, columns are
+    (pre-processing off / on) × ``metrics``; ``bold[i][j]`` marks the best
+    value of column j (ties included). With ``timing`` a Table-5-like
+    conversion-time table is appended.
     """
-    if fmt not in ("markdown", "text"):
-        raise InputError(f"table format must be 'markdown' or 'text', got {fmt!r}")
-    parts = []
+    blocks = []
     combos = list(dict.fromkeys((s["input"], s["restore"]) for s in summary))
     for inp, rs in combos:
         sub = [s for s in summary if s["input"] == inp and s["restore"] == rs]
@@ -388,8 +389,8 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
                  _FMT[cols[j][1]].format(v) == _FMT[cols[j][1]].format(best[j])
                  for j, v in enumerate(row)] for row in vals]
         title = (f"{inp.upper()}-RGB input, luminance restoration {'on' if rs else 'off'}"
-                 f" ({sub[0]['n_images']} images)")
-        parts.append(_render(title, header, body, bold, fmt))
+                 f" ({max(s['n_images'] for s in sub)} images)")
+        blocks.append((title, header, body, bold))
     if timing:
         h, w = timing[0]["shape"]
         header = ["Method", "model (s)", "with restoration (s)", "Mpixel/s", "paper i9-11900 (s)"]
@@ -399,8 +400,22 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
                 for t in timing]
         secs = [t["seconds"] for t in timing]
         bold = [[t["seconds"] == min(secs), False, False, False] for t in timing]
-        parts.append(_render(f"Conversion time on a {w}×{h} image", header, body, bold, fmt))
-    return "\n".join(parts)
+        blocks.append((f"Conversion time on a {w}×{h} image", header, body, bold))
+    return blocks
+
+
+def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None = None, *,
+                  fmt: str = "markdown", metrics: Sequence[str] = ("sam", "mrae"),
+                  timing: list[dict[str, Any]] | None = None) -> str:
+    """Paper-style tables (Tables 2–4, and 5 with ``timing``) as Markdown or plain text.
+
+    The best value of each column is **bold** (Markdown) or marked ``*`` (``fmt="text"``).
+    See :func:`table_blocks` for the layout.
+    """
+    if fmt not in ("markdown", "text"):
+        raise InputError(f"table format must be 'markdown' or 'text', got {fmt!r}")
+    return "\n".join(_render(*b, fmt) for b in table_blocks(summary, metrics=metrics,
+                                                             timing=timing))
 
 
 def write_results(res: EvaluationResult, out: str | Path, *, dataset: str | None = None) -> Path:

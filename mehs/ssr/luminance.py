@@ -21,17 +21,28 @@ from __future__ import annotations
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.rgb import cmfs_matrix, linear_sRGB_to_XYZ, spectra_to_XYZ
+from mehs.rgb import XYZ_TO_SRGB, cmfs_matrix
+
+
+def _xyz_sum_vector(wavelengths: np.ndarray) -> np.ndarray:
+    """``w`` with ``X+Y+Z = S @ w`` (the row sums of the scaled CMF matrix), ``(B,)`` float64."""
+    return cmfs_matrix(np.asarray(wavelengths, dtype=np.float64)).sum(1)
 
 
 def xyz_sum(spectra: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
-    """``X + Y + Z`` of spectra ``(..., B)`` → ``(...)`` float64."""
-    return spectra_to_XYZ(np.asarray(spectra, dtype=np.float64), wavelengths).sum(-1)
+    """``X + Y + Z`` of spectra ``(..., B)`` → ``(...)`` (float32 for float32 input)."""
+    spectra = np.asarray(spectra)
+    if spectra.shape[-1] != np.asarray(wavelengths).size:
+        raise InputError(f"spectra have {spectra.shape[-1]} bands but "
+                         f"{np.asarray(wavelengths).size} wavelengths were given")
+    dtype = np.float32 if spectra.dtype == np.float32 else np.float64
+    return spectra.astype(dtype, copy=False) @ _xyz_sum_vector(wavelengths).astype(dtype)
 
 
 def rgb_xyz_sum(rgb: np.ndarray) -> np.ndarray:
     """``X + Y + Z`` of linear sRGB ``(..., 3)`` → ``(...)`` float64."""
-    return linear_sRGB_to_XYZ(np.asarray(rgb, dtype=np.float64)).sum(-1)
+    w = np.linalg.inv(XYZ_TO_SRGB).sum(0)
+    return np.asarray(rgb, dtype=np.float64) @ w
 
 
 def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
@@ -56,19 +67,20 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -
     if S.shape[:-1] != rgb.shape[:-1] or rgb.shape[-1] != 3:
         raise InputError(
             f"spectra of shape {S.shape} do not match RGB of shape {rgb.shape}")
-    out_dtype = np.float32 if S.dtype == np.float32 else np.float64
+    dtype = np.float32 if S.dtype == np.float32 else np.float64
+    S = S.astype(dtype, copy=False)
     target = rgb_xyz_sum(rgb)
-    S64 = S.astype(np.float64)
     with np.errstate(all="ignore"):
-        have = xyz_sum(S64, wavelengths)
+        have = xyz_sum(S, wavelengths).astype(np.float64)
         good = np.isfinite(have) & (have > 0) & np.isfinite(target)
         factor = np.where(good, target / np.where(good, have, 1.0), 0.0)
-        out = S64 * factor[..., None]
-        # A spectrum with mixed signs can have a tiny X+Y+Z and so a huge factor.
-        lim = np.finfo(out_dtype).max / 4
-        good &= np.all(np.isfinite(out) & (np.abs(out) < lim), axis=-1)
-    if not np.all(good):
-        flat_sum = cmfs_matrix(np.asarray(wavelengths, dtype=np.float64)).sum()
-        fill = np.where(np.isfinite(target), target, 0.0) / flat_sum
+        out = S * factor.astype(dtype)[..., None]
+        finite = np.isfinite(out)
+        if not finite.all():
+            # A spectrum with mixed signs can have a tiny X+Y+Z and so a huge factor.
+            good &= finite.all(-1)
+    if not good.all():
+        flat_sum = _xyz_sum_vector(wavelengths).sum()
+        fill = (np.where(np.isfinite(target), target, 0.0) / flat_sum).astype(dtype)
         out = np.where(good[..., None], out, fill[..., None])
-    return out.astype(out_dtype, copy=False)
+    return out
