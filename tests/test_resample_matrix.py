@@ -165,3 +165,17 @@ def test_parse_bands_and_default_fwhm():
         with pytest.raises(InputError, match="cannot parse bands"):
             parse_bands(bad)
     np.testing.assert_allclose(default_fwhm([400, 402, 406, 407]), [2, 3, 2.5, 1])
+
+
+@pytest.mark.parametrize("layout", ["bil", "bsq"])
+def test_band_major_views_give_the_same_result(layout):
+    # ENVI bil/bsq memmaps arrive as transposed views (samples axis fastest).
+    data = (RNG.random((6, 9, 204)) * 4095).astype(">u2")  # big-endian, as some files are
+    stored = (np.ascontiguousarray(data.transpose(0, 2, 1)) if layout == "bil"
+              else np.ascontiguousarray(data.transpose(2, 0, 1)))
+    view = stored.transpose(0, 2, 1) if layout == "bil" else stored.transpose(1, 2, 0)
+    assert view.strides[2] > view.strides[1]
+    m = resampling_matrix(SPECIM_WL)
+    want = data.astype(np.float64) @ m.T
+    for chunk in (None, 4):
+        np.testing.assert_allclose(apply_matrix(view, m, chunk_lines=chunk), want, rtol=1e-5)
