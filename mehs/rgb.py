@@ -180,11 +180,19 @@ def hdr_rgb(spectra, wavelengths=None) -> np.ndarray:
     m = (cmfs_matrix(wl) @ XYZ_TO_SRGB.T).astype(np.float32)  # (B, 3): steps 1+2 fused
     out = np.empty((h, w, 3), dtype=np.float32)
     step = max(1, _RGB_CHUNK_PIXELS // max(1, w))
+    # ENVI bil/bsq memmaps are transposed views (samples fastest): multiply
+    # band-major there so BLAS runs on them without a copy.
+    band_major = w > 1 and spectra.strides[2] > spectra.strides[1]
     for r0 in range(0, h, step):
         block = np.asarray(spectra[r0:r0 + step])
+        if band_major:
+            block = block.transpose(0, 2, 1)
         if block.dtype != np.float32:
             block = block.astype(np.float32)
-        np.matmul(block, m, out=out[r0:r0 + step])
+        if band_major:
+            out[r0:r0 + step] = np.matmul(m.T, block).transpose(0, 2, 1)
+        else:
+            np.matmul(block, m, out=out[r0:r0 + step])
     if not np.isfinite(out).all():
         raise InputError("the spectra hold NaN/Inf values", source)
     np.maximum(out, 0, out=out)

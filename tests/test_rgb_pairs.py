@@ -127,3 +127,11 @@ def test_ldr_given_exposure_and_edge_cases():
         ldr_rgb(hdr, exposure=0)
     with pytest.raises(InputError, match="NaN"):
         ldr_rgb(np.full((1, 1, 3), np.nan))
+
+
+def test_hdr_rgb_on_band_major_views_matches():
+    rng = np.random.default_rng(3)
+    data = rng.random((5, 7, 31)) * 10
+    want = hdr_rgb(data, WAVELENGTHS_31)
+    bil = np.ascontiguousarray(data.transpose(0, 2, 1).astype(">f4")).transpose(0, 2, 1)
+    np.testing.assert_allclose(hdr_rgb(bil, WAVELENGTHS_31), want, rtol=1e-5)
