@@ -235,11 +235,46 @@ def test_unsorted_wavelengths_two_spectrometers(tmp_path):
     ("DATE(dd-mm-yyyy): 22-11-2018 13:05:09", "2018-11-22T13:05:09"),
     ("DATE(yyyy-mm-dd): 2018-11-22 13:05", "2018-11-22T13:05:00"),
     ("2018-11-22T13:05:09.25", "2018-11-22T13:05:09.250000"),
+    ("DATE(dd-mm-yyyy): 22-11-2018 13:05:09+00:00", "2018-11-22T13:05:09+00:00"),
+    ("2018-11-22 13:05:09-0130", "2018-11-22T13:05:09-01:30"),
     ("DATE(dd-mm-yyyy): 32-11-2018", None),
     ("yesterday", None),
 ])
 def test_acquisition_date_forms(text, iso):
     assert parse_acquisition_date(text) == iso
+
+
+@pytest.mark.parametrize("iso", ["2018-11-22", "2018-11-22T13:05:09",
+                                 "2026-11-24T06:17:00+00:00", "2018-11-22T13:05:09.125000"])
+def test_acquisition_date_round_trip(tmp_path, iso):
+    cube = SpectralCube(np.zeros((1, 1, 2), np.uint16), [400, 500], acquisition_date=iso)
+    hp = write_envi(tmp_path / "d.hdr", cube)
+    assert "DATE(dd-mm-yyyy): " in hp.read_text()
+    assert read_envi(hp).acquisition_date == iso
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "int16", "int32", "float32", "float64",
+                                   "complex64", "complex128", "uint16", "uint32", "int64",
+                                   "uint64"])
+def test_every_envi_data_type_round_trips(tmp_path, dtype):
+    rng = np.random.default_rng(5)
+    data = (rng.random((3, 4, 5)) * 200).astype(dtype)
+    hp = write_envi(tmp_path / "t.hdr", SpectralCube(data, [400, 450, 500, 550, 600]),
+                    interleave="bsq")
+    back = read_envi(hp)
+    assert back.data.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(back.data, data)
+
+
+def test_failed_overwrite_keeps_old_pair(tmp_path):
+    cube = SpectralCube(np.ones((2, 2, 3), np.float32), [400, 500, 600])
+    hp = write_envi(tmp_path / "c.hdr", cube, dtype=np.uint16)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    bad = cube.data.copy()
+    bad[1, 1, 1] = np.inf
+    with pytest.raises(InputError, match="NaN/Inf"):
+        write_envi(hp, cube.with_data(bad), dtype=np.uint16)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
 def test_unparseable_date_kept_with_warning(tmp_path):

@@ -208,3 +208,22 @@ def test_load_cube_exr(tmp_path):
     back = load_cube(p)
     np.testing.assert_array_equal(back.data, cube.data)
     np.testing.assert_array_equal(back.wavelengths, cube.wavelengths)
+
+
+def test_manifest_path_outside_folder_refused(tmp_path):
+    out = write_specim_folder(tmp_path / "444", make_capture(reflectance=False))
+    mf = out / "manifest.xml"
+    mf.write_text(mf.read_text().replace(">capture/444.hdr<", ">../../etc/444.hdr<"))
+    with pytest.raises(FormatError, match="points outside the capture folder"):
+        read_specim_folder(out)
+
+
+def test_scene_exposure_style_id(tmp_path):
+    # the capture engineer names exposure captures after their folder, e.g. 0_12.5ms
+    out = write_specim_folder(tmp_path / "exposures" / "0_12.5ms",
+                              make_capture("0_12.5ms", reflectance=False))
+    assert (out / "capture" / "0_12.5ms.raw").is_file()
+    back = read_specim_folder(out)
+    assert back.capture_id == "0_12.5ms"
+    (out / "manifest.xml").unlink()  # ".5ms" must not be taken for a file extension
+    assert read_specim_folder(out).capture_id == "0_12.5ms"

@@ -176,10 +176,11 @@ def _describe_specim(path: Path, max_lines: int, saturation: float | None) -> di
             continue
         entry: dict[str, Any] = {"file": str(c.source), "shape": list(c.shape),
                                  "dtype": c.data.dtype.name}
-        if kind != "reflectance":  # refs are a line or two: read them whole
-            d = np.asarray(c.data)
+        if kind != "reflectance":  # references are usually one line; sample if not
+            idx, sampled = _sample_lines(c.lines, max_lines)
+            d = np.asarray(c.data[idx])
             entry.update(min=d.min().item(), max=d.max().item(),
-                         mean=float(d.mean(dtype=np.float64)))
+                         mean=float(d.mean(dtype=np.float64)), sampled=sampled)
         refs[kind] = entry
     info["references"] = refs
     info["missing"] = [k for k in ("darkref", "whiteref") if refs[k] is None]

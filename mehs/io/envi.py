@@ -41,7 +41,7 @@ import os
 import re
 import warnings
 from dataclasses import dataclass, field
-from datetime import date, datetime
+from datetime import date, datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -305,7 +305,8 @@ _UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nm": 1.0, "micrometers": 1e
 _DATE_FORMATS = {"dd-mm-yyyy": "%d-%m-%Y", "yyyy-mm-dd": "%Y-%m-%d",
                  "mm-dd-yyyy": "%m-%d-%Y", "dd.mm.yyyy": "%d.%m.%Y",
                  "dd/mm/yyyy": "%d/%m/%Y", "yyyy/mm/dd": "%Y/%m/%d"}
-_TIME_RE = re.compile(r"^(\d{1,2}):(\d{2})(?::(\d{2})(?:\.(\d{1,6}))?)?$")
+_TIME_RE = re.compile(r"^(\d{1,2}):(\d{2})(?::(\d{2})(?:\.(\d{1,6}))?)?"
+                      r"(Z|[+-]\d{2}:?\d{2})?$")
 
 
 def parse_acquisition_date(text: str) -> str | None:
@@ -313,7 +314,7 @@ def parse_acquisition_date(text: str) -> str | None:
 
     Accepts ``DD-MM-YYYY``, ``YYYY-MM-DD``, ``DATE(dd-mm-yyyy): DD-MM-YYYY``,
     ``DATE(yyyy-mm-dd): YYYY-MM-DD`` and ISO date-times, each optionally
-    followed by ``HH:MM[:SS[.ffffff]]``. Returns ``YYYY-MM-DD`` or
+    followed by ``HH:MM[:SS[.ffffff]][Z|±HH:MM]``. Returns ``YYYY-MM-DD`` or
     ``YYYY-MM-DDTHH:MM:SS[.ffffff]``.
     """
     s = str(text).strip()
@@ -351,8 +352,13 @@ def parse_acquisition_date(text: str) -> str | None:
         return None
     hh, mm, ss = int(t.group(1)), int(t.group(2)), int(t.group(3) or 0)
     us = int((t.group(4) or "0").ljust(6, "0"))
+    tz = None
+    if t.group(5):
+        z = t.group(5).replace(":", "")
+        off = 0 if z == "Z" else (int(z[1:3]) * 60 + int(z[3:5])) * (1 if z[0] == "+" else -1)
+        tz = timezone(timedelta(minutes=off))
     try:
-        return datetime(day.year, day.month, day.day, hh, mm, ss, us).isoformat()
+        return datetime(day.year, day.month, day.day, hh, mm, ss, us, tzinfo=tz).isoformat()
     except ValueError:
         return None
 
@@ -369,6 +375,8 @@ def format_acquisition_date(iso: str) -> str:
     out = f"DATE(dd-mm-yyyy): {dt:%d-%m-%Y}"
     if "T" in iso or " " in iso.strip():
         out += f" {dt:%H:%M:%S}" + (f".{dt.microsecond:06d}" if dt.microsecond else "")
+        if dt.utcoffset() is not None:
+            out += dt.isoformat()[-6:]  # "+HH:MM"; Specim has none, mehs keeps it
     return out
 
 

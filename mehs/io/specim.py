@@ -146,8 +146,17 @@ def _locate(root: Path, manifest, kind: str, default: str) -> Path:
     """Path of the ``kind`` header: the manifest's entry, else the conventional name."""
     for typ, ext, rel in manifest:
         if typ == kind and rel.lower().endswith(".hdr"):
-            return root / rel
+            return _inside(root, rel)
     return root / default
+
+
+def _inside(root: Path, rel: str) -> Path:
+    """``root / rel``, refusing manifest paths that leave the capture folder."""
+    p = root / rel
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise FormatError(f"manifest path {rel!r} points outside the capture folder",
+                          root / "manifest.xml")
+    return p
 
 
 def is_specim_folder(path: str | Path) -> bool:
@@ -199,7 +208,7 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
     meta_path = None
     for typ, ext, rel in manifest:
         if typ == "metadata":
-            meta_path = root / rel
+            meta_path = _inside(root, rel)
     meta_path = meta_path or root / "metadata" / f"{cid}.xml"
     metadata = _read_metadata_xml(meta_path) if meta_path.is_file() else {}
     if raw.integration_time_ms is None:
@@ -235,7 +244,7 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
     prev_path = None
     for typ, ext, rel in manifest:
         if typ == "preview":
-            prev_path = root / rel
+            prev_path = _inside(root, rel)
     prev_path = prev_path or root / f"{cid}.png"
     if prev_path.is_file():
         preview = _read_png(prev_path)
