@@ -176,18 +176,17 @@ def test_cli_specim_missing_raw(tmp_path, capsys):
     assert _snapshot(tmp_path) == before
 
 
-def test_cli_specim_missing_dark_is_reported_not_fatal(tmp_path, capsys):
-    # info describes what is there; the library read is the one that refuses
-    from mehs.errors import FormatError
-    from mehs.io import read_specim_folder
-
+def test_cli_specim_missing_dark(tmp_path, capsys):
     out = _capture_folder(tmp_path)
     for ext in ("hdr", "raw"):
         (out / "capture" / f"DARKREF_444.{ext}").unlink()
-    info = _info_json(capsys, str(out))
+    before = _snapshot(tmp_path)
+    _assert_clean_error(capsys, ["info", str(out)],
+                        "444: dark reference missing: capture/DARKREF_444.hdr not found")
+    assert _snapshot(tmp_path) == before
+    # on request info describes what is there and lists what is missing
+    info = _info_json(capsys, str(out), "--allow-missing-dark")
     assert info["references"]["darkref"] is None and "darkref" in info["missing"]
-    with pytest.raises(FormatError, match="dark reference missing"):
-        read_specim_folder(out)
 
 
 def test_cli_path_does_not_exist(tmp_path, capsys):

@@ -22,13 +22,17 @@ def configure(parser) -> None:
     parser.add_argument("--lines", type=int, default=64, metavar="N",
                         help="sample at most N evenly spaced lines for the value "
                              "statistics (default 64; 0 = all lines)")
+    parser.add_argument("--allow-missing-dark", action="store_true",
+                        help="describe a Specim IQ folder that has no dark reference "
+                             "(by default that is an error, as for every other command)")
     parser.add_argument("--saturation", type=float, default=None, metavar="DN",
                         help="saturation level for integer data (default: 4095 when the "
                              "sampled values fit 12 bits, else the type's maximum)")
 
 
 def run(args) -> int:
-    info = describe(args.path, max_lines=args.lines, saturation=args.saturation)
+    info = describe(args.path, max_lines=args.lines, saturation=args.saturation,
+                    require_dark=not args.allow_missing_dark)
     if args.json:
         print(json.dumps(info, indent=2, default=_json_default))
     else:
@@ -49,9 +53,11 @@ def _json_default(obj: Any) -> Any:
 # ------------------------------------------------------------------ describing
 
 
-def describe(path: str | Path, *, max_lines: int = 64,
-             saturation: float | None = None) -> dict[str, Any]:
+def describe(path: str | Path, *, max_lines: int = 64, saturation: float | None = None,
+             require_dark: bool = True) -> dict[str, Any]:
     """Summary dict of an ENVI file, a Specim IQ folder or an EXR (see module doc).
+
+    ``require_dark`` is passed to :func:`mehs.io.specim.read_specim_folder`.
 
     Raises
     ------
@@ -68,7 +74,7 @@ def describe(path: str | Path, *, max_lines: int = 64,
         raise InputError(f"--lines must be ≥ 0, got {max_lines}")
     if p.is_dir():
         if is_specim_folder(p):
-            return _describe_specim(p, max_lines, saturation)
+            return _describe_specim(p, max_lines, saturation, require_dark)
         raise InputError("folder is not a Specim IQ capture (no manifest.xml or "
                          "capture/<id>.hdr)", p)
     if p.suffix.lower() == ".exr":
@@ -159,12 +165,13 @@ def _describe_envi(path: Path, max_lines: int, saturation: float | None) -> dict
     return info
 
 
-def _describe_specim(path: Path, max_lines: int, saturation: float | None) -> dict[str, Any]:
+def _describe_specim(path: Path, max_lines: int, saturation: float | None,
+                     require_dark: bool) -> dict[str, Any]:
     import numpy as np
 
     from mehs.io.specim import read_specim_folder
 
-    cap = read_specim_folder(path, require_dark=False)
+    cap = read_specim_folder(path, require_dark=require_dark)
     info: dict[str, Any] = {"format": "Specim IQ capture folder", "path": str(path),
                             "capture_id": cap.capture_id,
                             "manifest": (path / "manifest.xml").is_file()}
