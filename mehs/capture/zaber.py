@@ -1,0 +1,378 @@
+"""Zaber ASCII protocol: message format and a stage driver over any pyserial-like port.
+
+Command (host → device)::
+
+    /<device> <axis> [<msg id>] <command> [<args>][:<CC>]\\n
+
+Reply (device → host)::
+
+    @<DD> <A> [<ID>] <OK|RJ> <IDLE|BUSY> <flag> <data>[:<CC>]\\r\\n
+
+``#`` lines are info messages, ``!`` lines alerts. ``CC`` is the optional
+longitudinal redundancy check: the two's complement of the byte sum (mod 256)
+of everything between the leading ``/`` or ``@`` and the ``:``, as two
+upper-case hex digits. The flag field is the most urgent warning: ``--`` none,
+``F*`` faults (e.g. ``FS`` stalled), ``W*`` warnings (``WR`` = not homed:
+``home`` first), ``N*`` notices (``NI`` = move interrupted). ``RJ`` replies carry
+the reason (``BADDATA``, ``BADCOMMAND``, ``BADAXIS``, ``AGAIN``, …) as data.
+
+Reliability policy of :class:`ZaberStage`:
+
+- Queries (``get pos``, ``warnings``, the empty poll) are idempotent and are
+  retried up to ``retries`` times after a timeout, a partial or garbled reply.
+- ``RJ AGAIN`` (device busy handling another packet) is retried after a delay.
+- A motion command is **never repeated blindly**: after a lost reply or a
+  disconnect the driver reconnects if needed, re-reads status, position and
+  warnings, and re-issues the absolute move only if the stage is idle away
+  from the target. Relative moves are not re-issued at all.
+- Faults (``F*`` flags) and rejections other than AGAIN raise
+  :class:`~mehs.errors.DeviceError` at once.
+
+References
+----------
+- Zaber Technologies, "ASCII Protocol Manual" (message format, reply flags,
+  warning flags, checksums), https://www.zaber.com/protocol-manual
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from mehs.capture.transport import Channel, PartialReply, open_port
+from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+
+_REPLY_RE = re.compile(
+    r"^@(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{2}) )?(?P<reply>OK|RJ) "
+    r"(?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2}) (?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
+_INFO_RE = re.compile(r"^#(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{2}) )?(?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
+_ALERT_RE = re.compile(r"^!(?P<dev>\d{2}) (?P<axis>\d+) (?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2})"
+                       r"(?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
+
+
+def lrc(body: bytes) -> int:
+    """Zaber checksum of ``body`` (the bytes between ``/``/``@`` and ``:``)."""
+    return (-sum(body)) & 0xFF
+
+
+def format_command(device: int, axis: int, command: str, *, checksum: bool = False,
+                   msg_id: int | None = None) -> bytes:
+    """Bytes of one command, e.g. ``format_command(1, 1, "move abs 1000") == b"/1 1 move abs 1000\\n"``."""
+    parts = [str(int(device)), str(int(axis))]
+    if msg_id is not None:
+        parts.append(f"{int(msg_id) % 100:02d}")
+    if command:
+        parts.append(command)
+    body = " ".join(parts).encode("ascii")
+    if checksum:
+        body += b":" + f"{lrc(body):02X}".encode("ascii")
+    return b"/" + body + b"\n"
+
+
+def format_reply(device: int, axis: int, ok: bool, busy: bool, flag: str, data: str, *,
+                 checksum: bool = False, msg_id: int | None = None) -> bytes:
+    """Bytes of one reply (used by the simulator and by tests)."""
+    parts = [f"{int(device):02d}", str(int(axis))]
+    if msg_id is not None:
+        parts.append(f"{int(msg_id) % 100:02d}")
+    parts += ["OK" if ok else "RJ", "BUSY" if busy else "IDLE", flag, data]
+    body = " ".join(parts).encode("ascii")
+    if checksum:
+        body += b":" + f"{lrc(body):02X}".encode("ascii")
+    return b"@" + body + b"\r\n"
+
+
+class ZaberProtocolError(DeviceError):
+    """A reply that does not follow the protocol (garbled, wrong device, bad checksum)."""
+
+
+class StageRejected(DeviceError):
+    """The stage answered ``RJ`` (the reason is in :attr:`reason`)."""
+
+    def __init__(self, message: str, path=None, reason: str = ""):
+        super().__init__(message, path)
+        self.reason = reason
+
+
+class StageFault(DeviceError):
+    """The stage reports a fault flag (``F*``) or stopped away from its target."""
+
+
+@dataclass(frozen=True)
+class ZaberReply:
+    """A parsed ``@`` reply."""
+
+    device: int
+    axis: int
+    msg_id: int | None
+    ok: bool
+    busy: bool
+    flag: str
+    data: str
+
+    @property
+    def status(self) -> str:
+        return "BUSY" if self.busy else "IDLE"
+
+
+def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberReply:
+    """Parse one ``@`` reply line (terminator optional).
+
+    Raises
+    ------
+    ZaberProtocolError
+        On anything that is not a well-formed reply (or a bad checksum).
+    """
+    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
+    text = text.rstrip("\r\n")
+    m = _REPLY_RE.match(text)
+    if not m:
+        raise ZaberProtocolError(f"garbled reply {text!r}")
+    if m["cc"] is not None and verify_checksum:
+        body = text[1:text.rindex(":")].encode("ascii")
+        if lrc(body) != int(m["cc"], 16):
+            raise ZaberProtocolError(f"reply checksum mismatch in {text!r}")
+    return ZaberReply(device=int(m["dev"]), axis=int(m["axis"]),
+                      msg_id=None if m["id"] is None else int(m["id"]), ok=m["reply"] == "OK",
+                      busy=m["status"] == "BUSY", flag=m["flag"], data=m["data"])
+
+
+class ZaberStage:
+    """Driver for one axis of a Zaber stage speaking the ASCII protocol.
+
+    Parameters
+    ----------
+    port
+        An open pyserial-like port (see :func:`mehs.capture.transport.open_port`).
+    device, axis
+        Device address (1 = first in the chain) and axis number (1-based).
+    checksum
+        Append ``:CC`` to commands and require it to be valid on replies.
+    opener
+        Callable re-opening the port after a disconnect.
+    retries
+        Re-tries of an idempotent query after a timeout/garbled reply, and
+        informed re-issues of an absolute move.
+    reconnects
+        Reconnection attempts after a disconnect before giving up.
+    poll_interval_s, move_timeout_s
+        Polling period while BUSY, and the longest a move may take.
+    """
+
+    def __init__(self, port: Any, *, device: int = 1, axis: int = 1, checksum: bool = False,
+                 opener: Callable[[], Any] | None = None, name: str | None = None,
+                 retries: int = 3, reconnects: int = 3, again_retries: int = 10,
+                 poll_interval_s: float = 0.002, move_timeout_s: float = 120.0,
+                 retry_delay_s: float = 0.02):
+        self.channel = Channel(port, opener=opener, name=name)
+        self.device, self.axis, self.checksum = int(device), int(axis), bool(checksum)
+        self.retries, self.reconnects, self.again_retries = int(retries), int(reconnects), int(again_retries)
+        self.poll_interval_s, self.move_timeout_s = float(poll_interval_s), float(move_timeout_s)
+        self.retry_delay_s = float(retry_delay_s)
+        self.last_reply: ZaberReply | None = None
+        self.info: list[str] = []
+        self.alerts: list[str] = []
+        self.events: list[str] = []   # recoveries, for the capture log
+
+    @classmethod
+    def open(cls, url: str, *, timeout: float = 1.0, **kwargs: Any) -> "ZaberStage":
+        """Open ``url`` (``/dev/ttyUSB0``, ``socket://host:port``) and return a driver that can reconnect."""
+        opener = lambda: open_port(url, timeout=timeout)  # noqa: E731
+        return cls(opener(), opener=opener, name=url, **kwargs)
+
+    @property
+    def name(self) -> str:
+        return self.channel.name
+
+    def close(self) -> None:
+        self.channel.close()
+
+    # ------------------------------------------------------------ low level
+    def _read_reply(self) -> ZaberReply:
+        for _ in range(64):  # info/alert lines may precede the reply
+            raw = self.channel.read_line(b"\n", what="stage reply")
+            text = raw.decode("ascii", "replace").rstrip("\r\n")
+            if text.startswith("#"):
+                self.info.append(text)
+                continue
+            if text.startswith("!"):
+                self.alerts.append(text)
+                continue
+            try:
+                reply = parse_reply(text, verify_checksum=True)
+            except ZaberProtocolError as exc:
+                raise ZaberProtocolError(exc.problem, self.name) from None
+            if self.checksum and not re.search(r":[0-9A-F]{2}$", text):
+                raise ZaberProtocolError(f"reply without checksum {text!r}", self.name)
+            if reply.device != self.device or reply.axis not in (self.axis, 0):
+                raise ZaberProtocolError(
+                    f"reply from device {reply.device} axis {reply.axis}, expected "
+                    f"{self.device} {self.axis}: {text!r}", self.name)
+            return reply
+        raise ZaberProtocolError("too many info/alert lines without a reply", self.name)
+
+    def _send_once(self, command: str) -> ZaberReply:
+        """One command, one reply; RJ AGAIN is re-sent (the device did not act on it)."""
+        for attempt in range(self.again_retries + 1):
+            self.channel.write(format_command(self.device, self.axis, command, checksum=self.checksum))
+            reply = self._read_reply()
+            self.last_reply = reply
+            if reply.ok:
+                return reply
+            reason = reply.data.strip()
+            if reason == "AGAIN" and attempt < self.again_retries:
+                time.sleep(self.retry_delay_s)
+                continue
+            raise StageRejected(f"stage rejected {command!r}: {reason} (flag {reply.flag})",
+                                self.name, reason=reason)
+        raise AssertionError("unreachable")
+
+    def _recover(self, exc: DeviceError) -> None:
+        """Make the link usable again after ``exc``: reconnect after a disconnect, else drop stale bytes."""
+        if isinstance(exc, DeviceDisconnected):
+            self.reconnect()
+        else:
+            time.sleep(self.retry_delay_s)
+            self.channel.discard_input()
+
+    def query(self, command: str) -> ZaberReply:
+        """Send an idempotent command; retried after timeouts, garbled replies and disconnects."""
+        last: DeviceError | None = None
+        for attempt in range(self.retries + 1):
+            try:
+                return self._send_once(command)
+            except (DeviceTimeout, ZaberProtocolError, DeviceDisconnected) as exc:
+                last = exc
+                self.events.append(f"stage: {type(exc).__name__} on {command!r}: {exc.problem}")
+                if attempt < self.retries:
+                    self._recover(exc)
+        raise type(last)(f"{last.problem} (after {self.retries + 1} attempts of {command!r})",
+                         self.name)
+
+    # ------------------------------------------------------------ queries
+    def poll(self) -> ZaberReply:
+        """The empty command: status (IDLE/BUSY) and flag."""
+        return self.query("")
+
+    def position(self) -> int:
+        """Current position (microsteps)."""
+        r = self.query("get pos")
+        try:
+            return int(r.data.split()[0])
+        except (ValueError, IndexError):
+            raise ZaberProtocolError(f"position reply {r.data!r} is not an integer", self.name) from None
+
+    def warnings(self) -> list[str]:
+        """Active warning/fault/notice flags (``warnings`` command)."""
+        return _parse_warnings(self.query("warnings").data, self.name)
+
+    def clear_warnings(self) -> list[str]:
+        """Clear the clearable flags; returns the flags that were active."""
+        return _parse_warnings(self.query("warnings clear").data, self.name)
+
+    def is_homed(self) -> bool:
+        return "WR" not in self.warnings()
+
+    def state(self) -> dict[str, Any]:
+        """Status, position and warnings, re-read from the device."""
+        r = self.poll()
+        return {"status": r.status, "position": self.position(), "warnings": self.warnings()}
+
+    def reconnect(self) -> dict[str, Any]:
+        """Re-open the port, then re-read status, position and warnings (no motion)."""
+        last: DeviceError | None = None
+        for attempt in range(self.reconnects):
+            try:
+                self.channel.reopen()
+                st = self.state()
+                self.events.append(f"stage: reconnected, {st}")
+                return st
+            except DeviceError as exc:
+                last = exc
+                time.sleep(min(0.05 * 2 ** attempt, 1.0))
+        raise DeviceDisconnected(f"could not reconnect after {self.reconnects} attempts "
+                                 f"({last.problem if last else 'no attempt'})", self.name)
+
+    # ------------------------------------------------------------ motion
+    def wait_idle(self, *, target: int | None = None) -> ZaberReply:
+        """Poll until IDLE; raise on a fault flag, an interrupted move or a timeout."""
+        deadline = time.monotonic() + self.move_timeout_s
+        while True:
+            r = self.poll()
+            if r.flag.startswith("F"):
+                raise StageFault(f"stage fault {r.flag}; warnings {self.warnings()}", self.name)
+            if not r.busy:
+                break
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(f"stage still BUSY after {self.move_timeout_s} s", self.name)
+            time.sleep(self.poll_interval_s)
+        if r.flag == "NI":
+            raise StageFault(f"move interrupted (NI); warnings {self.warnings()}", self.name)
+        if target is not None:
+            pos = self.position()
+            if pos != target:
+                raise StageFault(f"stage stopped at {pos} instead of {target} (flag {r.flag})", self.name)
+        return r
+
+    def _motion(self, command: str, target: int | None, wait: bool) -> None:
+        issues = 0
+        while True:
+            try:
+                r = self._send_once(command)
+                break
+            except (DeviceTimeout, ZaberProtocolError, DeviceDisconnected) as exc:
+                self.events.append(f"stage: {type(exc).__name__} on {command!r}: {exc.problem}")
+                self._recover(exc)
+                # Never repeat a motion blindly: look at what the stage did.
+                st = self.state()
+                if any(w.startswith("F") for w in st["warnings"]):
+                    raise StageFault(f"stage fault {st['warnings']} after {command!r}", self.name) from None
+                if st["status"] == "BUSY":
+                    r = self.last_reply
+                    break  # it received the command and is moving; wait for it below
+                if target is not None and st["position"] == target:
+                    return self._finish(target, wait, moved=False)
+                if target is None or issues >= self.retries:
+                    raise DeviceError(f"{command!r} may not have been executed and cannot be "
+                                      f"safely repeated; stage state {st}", self.name) from None
+                issues += 1
+                self.events.append(f"stage: re-issuing {command!r} from position {st['position']}")
+        if r is not None and r.flag.startswith("F"):
+            raise StageFault(f"stage fault {r.flag} on {command!r}", self.name)
+        self._finish(target, wait, moved=True)
+
+    def _finish(self, target: int | None, wait: bool, moved: bool) -> None:
+        if wait:
+            self.wait_idle(target=target)
+
+    def home(self, *, wait: bool = True) -> None:
+        """Home the axis (clears ``WR``)."""
+        self._motion("home", 0, wait)
+
+    def move_abs(self, position: int, *, wait: bool = True) -> None:
+        """Move to ``position`` (microsteps); waits until IDLE there when ``wait``."""
+        position = int(position)
+        self._motion(f"move abs {position}", position, wait)
+
+    def move_rel(self, delta: int, *, wait: bool = True) -> None:
+        """Move by ``delta`` microsteps (never re-issued after a lost reply)."""
+        self._motion(f"move rel {int(delta)}", None, wait)
+
+    def stop(self) -> None:
+        self._send_once("stop")
+
+
+def _parse_warnings(data: str, name: str) -> list[str]:
+    parts = data.split()
+    if not parts:
+        raise ZaberProtocolError("empty warnings reply", name)
+    try:
+        n = int(parts[0])
+    except ValueError:
+        raise ZaberProtocolError(f"bad warnings reply {data!r}", name) from None
+    flags = parts[1:]
+    if n != len(flags):
+        raise ZaberProtocolError(f"warnings reply counts {n} flags but lists {len(flags)}", name)
+    return flags
