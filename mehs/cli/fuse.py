@@ -1,11 +1,55 @@
-"""`mehs fuse` — placeholder until its issue lands (replace this module)."""
+"""`mehs fuse` — recover the response curve and merge a bracket into an HDR cube."""
 
-from mehs.errors import MehsError
+from __future__ import annotations
 
 
 def configure(parser):
-    pass
+    parser.add_argument("scene", nargs="+",
+                        help="a scene folder (scene.json), or two or more Specim IQ folders")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--method", default="poisson",
+                        choices=["poisson", "inverse-variance", "robertson", "debevec"],
+                        help="merge estimator (default: poisson, Hanji et al. 2020)")
+    parser.add_argument("--response", default="auto",
+                        help="auto | linear | debevec | path of a saved curve (response.json)")
+    parser.add_argument("--lambda", dest="smoothness", type=float, default=100.0,
+                        help="Debevec smoothness λ (bit-depth independent; default 100)")
+    parser.add_argument("--samples", type=int, default=None,
+                        help="pixels sampled per curve (default 2·levels/(exposures−1))")
+    parser.add_argument("--per-band", action="store_true",
+                        help="one response curve per band instead of one shared curve")
+    parser.add_argument("--ghosts", default="detect", choices=["detect", "off", "deghost"],
+                        help="flag moving pixels (detect), also take them from one exposure "
+                             "(deghost), or skip the test (off)")
+    parser.add_argument("--reference", default="auto",
+                        help="exposure index used for ghost pixels with --ghosts deghost")
+    parser.add_argument("--calibration", type=float, default=None,
+                        help="radiometric factor from DN/ms to absolute radiance")
+    parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
+    parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
+                        help="check scene files against scene.json (default sha256)")
 
 
-def run(args):
-    raise MehsError("'mehs fuse' is not implemented yet")
+def run(args) -> int:
+    import json
+
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket, write_fusion
+
+    paths = args.scene if len(args.scene) > 1 else args.scene[0]
+    bracket = load_bracket(paths, verify=args.verify)
+    ref = args.reference if args.reference == "auto" else int(args.reference)
+    res = fuse_bracket(bracket, method=args.method, response=args.response, ghosts=args.ghosts,
+                       smoothness=args.smoothness, samples=args.samples, seed=args.seed,
+                       shared_response=not args.per_band, calibration=args.calibration,
+                       reference=ref)
+    files = write_fusion(res, args.out)
+    s = res.summary
+    dr = s["dynamic_range_stops"]
+    print(f"{files['radiance']}: {' × '.join(map(str, s['shape']))} float32, "
+          f"{s['method']} merge, response {s['response']['method']}, "
+          f"DR {'n/a' if dr is None else f'{dr:.1f}'} stops, "
+          f"saturated {100 * s['saturated_fraction']:.2f} %, ghosts "
+          f"{100 * s['ghost_fraction']:.2f} %")
+    print(json.dumps({k: str(v) for k, v in files.items()}))
+    return 0

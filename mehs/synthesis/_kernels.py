@@ -1,0 +1,453 @@
+"""Compiled (numba) inner loops of the synthesis stage.
+
+Kept apart from the public modules so that importing :mod:`mehs.synthesis`
+stays cheap; numba compiles these on first use and caches the machine code
+(``cache=True``). ``fastmath`` stays off: the merge must give the same numbers
+as the reference formulas, and NaN/inf checks must not be optimised away.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# Merge method codes shared with mehs.synthesis.merge.
+DEBEVEC, ROBERTSON, POISSON, INVVAR = 0, 1, 2, 3
+
+
+# ---------------------------------------------------------------- response solve
+@njit(cache=True)
+def _penta_factor(c, wsm, lam, mid, d, l1, l2):
+    """LDLᵀ of ``M = diag(c) + λ D2ᵀ diag(wsm²) D2`` with row/column ``mid`` fixed.
+
+    ``d`` (diagonal), ``l1``/``l2`` (first/second sub-diagonal of L) are written
+    in place. M is pentadiagonal, so the factorisation costs O(levels).
+    """
+    n = c.shape[0]
+    d0 = c.copy()
+    d1 = np.zeros(n)
+    d2 = np.zeros(n)
+    for k in range(1, n - 1):
+        s = lam * wsm[k] * wsm[k]
+        d0[k - 1] += s
+        d0[k] += 4.0 * s
+        d0[k + 1] += s
+        d1[k - 1] -= 2.0 * s
+        d1[k] -= 2.0 * s
+        d2[k - 1] += s
+    # The gauge level is known: its row and column become the identity.
+    d0[mid] = 1.0
+    d1[mid] = 0.0
+    d2[mid] = 0.0
+    if mid >= 1:
+        d1[mid - 1] = 0.0
+    if mid >= 2:
+        d2[mid - 2] = 0.0
+    for i in range(n):
+        di = d0[i]
+        if i >= 1:
+            di -= l1[i - 1] * l1[i - 1] * d[i - 1]
+        if i >= 2:
+            di -= l2[i - 2] * l2[i - 2] * d[i - 2]
+        if di <= 0.0:
+            di = 1e-300
+        d[i] = di
+        v = d1[i]
+        if i >= 1:
+            v -= l2[i - 1] * d[i - 1] * l1[i - 1]
+        l1[i] = v / di
+        l2[i] = d2[i] / di
+
+
+@njit(cache=True)
+def _penta_solve(d, l1, l2, r, out):
+    n = d.shape[0]
+    for i in range(n):
+        v = r[i]
+        if i >= 1:
+            v -= l1[i - 1] * out[i - 1]
+        if i >= 2:
+            v -= l2[i - 2] * out[i - 2]
+        out[i] = v
+    for i in range(n):
+        out[i] /= d[i]
+    for i in range(n - 1, -1, -1):
+        v = out[i]
+        if i + 1 < n:
+            v -= l1[i] * out[i + 1]
+        if i + 2 < n:
+            v -= l2[i] * out[i + 2]
+        out[i] = v
+
+
+@njit(cache=True)
+def _schur_matvec(x, c, wsm, lam, Z, w2, Winv, mid, y):
+    """``y = S x``: the Debevec normal equations with every ln E_i eliminated."""
+    n = c.shape[0]
+    for i in range(n):
+        y[i] = c[i] * x[i]
+    for k in range(1, n - 1):
+        s = lam * wsm[k] * wsm[k] * (x[k - 1] - 2.0 * x[k] + x[k + 1])
+        y[k - 1] += s
+        y[k] -= 2.0 * s
+        y[k + 1] += s
+    npix, P = Z.shape
+    for i in range(npix):
+        if Winv[i] == 0.0:
+            continue
+        dot = 0.0
+        for j in range(P):
+            dot += w2[i, j] * x[Z[i, j]]
+        dot *= Winv[i]
+        for j in range(P):
+            y[Z[i, j]] -= w2[i, j] * dot
+    y[mid] = 0.0
+
+
+@njit(parallel=True, cache=True)
+def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
+    """Solve the Debevec–Malik system of each channel by preconditioned CG.
+
+    Parameters
+    ----------
+    Z : int32 (C, N, P)
+        Sampled levels per channel, pixel and exposure.
+    wz : float64 (C, N, P)
+        Data weights ``w(Z)`` (0 for saturated / unusable samples).
+    logt : float64 (P,)
+        ln of the exposure times.
+    wsm : float64 (L,)
+        Weights of the smoothness rows.
+    lam : float64 (C,)
+        Effective smoothness per channel.
+    mid : int
+        Gauge level (its g is fixed to 0 here; the caller shifts it).
+
+    Returns
+    -------
+    g : float64 (C, L); iterations : int64 (C,); relative residual : float64 (C,)
+
+    The ln E unknowns are eliminated exactly (one per pixel, block-diagonal),
+    leaving the L×L Schur complement ``S``; it is solved by CG preconditioned
+    with its pentadiagonal part (data diagonal + smoothness), factorised in O(L).
+    """
+    C, N, P = Z.shape
+    L = wsm.shape[0]
+    g = np.zeros((C, L))
+    iters = np.zeros(C, dtype=np.int64)
+    relres = np.zeros(C)
+    for ch in prange(C):
+        Zc = Z[ch]
+        w2 = wz[ch] * wz[ch]
+        Winv = np.zeros(N)
+        c = np.zeros(L)
+        b = np.zeros(L)
+        for i in range(N):
+            W = 0.0
+            m = 0.0
+            for j in range(P):
+                W += w2[i, j]
+                m += w2[i, j] * logt[j]
+            if W > 0.0:
+                Winv[i] = 1.0 / W
+                m /= W
+                for j in range(P):
+                    c[Zc[i, j]] += w2[i, j]
+                    b[Zc[i, j]] += w2[i, j] * (logt[j] - m)
+        b[mid] = 0.0
+        d = np.zeros(L)
+        l1 = np.zeros(L)
+        l2 = np.zeros(L)
+        _penta_factor(c, wsm, lam[ch], mid, d, l1, l2)
+        x = np.zeros(L)
+        r = b.copy()
+        zv = np.zeros(L)
+        _penta_solve(d, l1, l2, r, zv)
+        zv[mid] = 0.0
+        p = zv.copy()
+        q = np.zeros(L)
+        rz = 0.0
+        bn = 0.0
+        for i in range(L):
+            rz += r[i] * zv[i]
+            bn += b[i] * b[i]
+        bn = np.sqrt(bn)
+        it = 0
+        rn = bn
+        if bn > 0.0:
+            while it < maxiter:
+                _schur_matvec(p, c, wsm, lam[ch], Zc, w2, Winv, mid, q)
+                pq = 0.0
+                for i in range(L):
+                    pq += p[i] * q[i]
+                if pq <= 0.0:
+                    break
+                alpha = rz / pq
+                rn = 0.0
+                for i in range(L):
+                    x[i] += alpha * p[i]
+                    r[i] -= alpha * q[i]
+                    rn += r[i] * r[i]
+                rn = np.sqrt(rn)
+                it += 1
+                if rn <= tol * bn:
+                    break
+                _penta_solve(d, l1, l2, r, zv)
+                zv[mid] = 0.0
+                rz_new = 0.0
+                for i in range(L):
+                    rz_new += r[i] * zv[i]
+                beta = rz_new / rz
+                rz = rz_new
+                for i in range(L):
+                    p[i] = zv[i] + beta * p[i]
+        for i in range(L):
+            g[ch, i] = x[i]
+        iters[ch] = it
+        relres[ch] = rn / bn if bn > 0.0 else 0.0
+    return g, iters, relres
+
+
+@njit(parallel=True, cache=True)
+def stratified_pick(levels, order, n, strata, L):
+    """Pick up to ``n`` pixels per channel, stratified over exposures × intensity.
+
+    ``levels`` int32 (P, M, C) holds candidate levels (L-1 marks saturated);
+    pixels are visited in the random ``order`` and kept while any of their
+    exposures falls in an under-filled (exposure, stratum) cell. Only pixels
+    with at least two usable exposures (0 < level < L-1) are eligible, since a
+    pixel seen once carries no information about g. Returns int64 (C, n)
+    candidate indices, −1 where fewer eligible pixels exist.
+    """
+    P, M, C = levels.shape
+    quota = (n + P * strata - 1) // (P * strata)
+    out = -np.ones((C, n), dtype=np.int64)
+    for ch in prange(C):
+        count = np.zeros((P, strata), dtype=np.int64)
+        taken = 0
+        for pass_ in range(2):
+            if taken >= n:
+                break
+            for k in range(M):
+                if taken >= n:
+                    break
+                i = order[k]
+                usable = 0
+                want = False
+                for j in range(P):
+                    z = levels[j, i, ch]
+                    if z > 0 and z < L - 1:
+                        usable += 1
+                        s = z * strata // L
+                        if count[j, s] < quota:
+                            want = True
+                if usable < 2:
+                    continue
+                if pass_ == 0 and not want:
+                    continue
+                if pass_ == 1:
+                    # second pass fills the remainder with any eligible pixel
+                    dup = False
+                    for q in range(taken):
+                        if out[ch, q] == i:
+                            dup = True
+                            break
+                    if dup:
+                        continue
+                out[ch, taken] = i
+                taken += 1
+                for j in range(P):
+                    z = levels[j, i, ch]
+                    if z > 0 and z < L - 1:
+                        count[j, z * strata // L] += 1
+    return out
+
+
+# ------------------------------------------------------------------------ merge
+@njit(parallel=True, cache=True)
+def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut, wlut,
+                floor, gain, read_var, rel_var, cal, method,
+                out, chi2, dof, snr, nsat, nvalid):
+    """Merge one chunk of lines of a bracket.
+
+    Parameters
+    ----------
+    zs : tuple of P arrays (lines, A, B)
+        Raw DN of each exposure (shortest first); the last axis is the one
+        contiguous in memory. ``band_last`` says whether B (True) or A is the
+        band axis.
+    darks : float32 (P, A, B)
+        Dark level per exposure, sample and band.
+    sat : float32 (A, B)
+        Raw DN at or above which a sample counts as saturated.
+    times : float64 (P,)
+        Exposure times (ms).
+    linear : bool
+        ``True``: linear sensor, ``y = raw − dark``; otherwise
+        ``y = exp(g(round(raw − dark)))`` from ``elut``.
+    dark_after : bool
+        (non-linear only) ``y = exp(g(raw)) − darks`` instead: the curve is on raw
+        levels and ``darks`` holds the already linearised dark level.
+    glut, elut : float32 (C_lut, L)
+        g and exp(g) per band (C_lut = 1 for a shared curve).
+    wlut : float32 (L,)
+        Level weights (Debevec / Robertson).
+    floor : float64 (P,)
+        Noise floor: samples with y ≤ floor get zero weight.
+    gain, read_var, rel_var : float
+        Noise model of y: var = gain·y + read_var, plus (rel·X)² systematic.
+    cal : float32 (bands,)
+        Radiometric calibration factor per band.
+    method : int
+        DEBEVEC, ROBERTSON, POISSON or INVVAR.
+
+    Outputs (written in place): ``out`` float32 (lines, A, B) radiance;
+    per pixel (lines, pixels): ``chi2`` float32 consistency statistic,
+    ``dof`` int32 its degrees of freedom, ``snr`` float32 summed SNR over
+    bands, ``nsat`` int32 bands saturated in every exposure, ``nvalid`` int32
+    bands with at least one usable sample.
+    """
+    P = len(zs)
+    nl, A, B = out.shape
+    L = wlut.shape[0]
+    shared = glut.shape[0] == 1
+    for l in prange(nl):
+        y = np.empty(P)
+        valid = np.empty(P, dtype=np.bool_)
+        issat = np.empty(P, dtype=np.bool_)
+        lev = np.empty(P, dtype=np.int64)
+        om = np.empty(P)
+        for a in range(A):
+            for bb in range(B):
+                if band_last:
+                    band = bb
+                    pix = a
+                else:
+                    band = a
+                    pix = bb
+                cb = 0 if shared else band
+                nv = 0
+                ns = 0
+                sy = 0.0
+                st = 0.0
+                for j in range(P):
+                    raw = np.float64(zs[j][l, a, bb])
+                    dk = raw - darks[j, a, bb]
+                    issat[j] = raw >= sat[a, bb]
+                    if linear:
+                        yj = dk
+                        zi = int(np.rint(dk))
+                    elif dark_after:
+                        zi = int(raw)
+                        if zi > L - 1:
+                            zi = L - 1
+                        yj = elut[cb, zi] - darks[j, a, bb]
+                    else:
+                        zi = int(np.rint(dk))
+                        if zi < 0:
+                            zi = 0
+                        elif zi > L - 1:
+                            zi = L - 1
+                        yj = elut[cb, zi]
+                    if zi < 0:
+                        zi = 0
+                    elif zi > L - 1:
+                        zi = L - 1
+                    lev[j] = zi
+                    y[j] = yj
+                    v = (not issat[j]) and yj > floor[j] and np.isfinite(yj)
+                    valid[j] = v
+                    if issat[j]:
+                        ns += 1
+                    if v:
+                        nv += 1
+                        sy += yj
+                        st += times[j]
+                X = 0.0
+                if nv > 0:
+                    X0 = sy / st
+                    if method == POISSON:
+                        X = X0
+                        for j in range(P):
+                            om[j] = times[j] if valid[j] else 0.0
+                    elif method == INVVAR:
+                        num = 0.0
+                        den = 0.0
+                        for j in range(P):
+                            if valid[j]:
+                                # variance predicted from the pooled estimate, not
+                                # from y_j itself (that would bias low values up-weighted)
+                                vy = gain * max(X0 * times[j], 0.0) + read_var
+                                wj = times[j] * times[j] / vy
+                                om[j] = wj
+                                num += wj * y[j] / times[j]
+                                den += wj
+                            else:
+                                om[j] = 0.0
+                        X = num / den
+                    elif method == ROBERTSON:
+                        num = 0.0
+                        den = 0.0
+                        for j in range(P):
+                            wj = wlut[lev[j]] * times[j] * times[j] if valid[j] else 0.0
+                            om[j] = wj
+                            num += wj * y[j] / times[j]
+                            den += wj
+                        X = num / den if den > 0.0 else X0
+                        if den <= 0.0:
+                            for j in range(P):
+                                om[j] = times[j] if valid[j] else 0.0
+                    else:
+                        num = 0.0
+                        den = 0.0
+                        for j in range(P):
+                            wj = wlut[lev[j]] if valid[j] else 0.0
+                            om[j] = wj
+                            if wj > 0.0:
+                                gj = np.log(y[j]) if (linear or dark_after) else glut[cb, lev[j]]
+                                num += wj * (gj - np.log(times[j]))
+                                den += wj
+                        if den > 0.0:
+                            X = np.exp(num / den)
+                        else:
+                            X = X0
+                            for j in range(P):
+                                om[j] = times[j] if valid[j] else 0.0
+                    nvalid[l, pix] += 1
+                elif ns == P:
+                    # saturated everywhere: a lower bound from the shortest exposure
+                    X = y[0] / times[0]
+                    nsat[l, pix] += 1
+                    for j in range(P):
+                        om[j] = 0.0
+                else:
+                    # no usable sample: the unbiased mean of the unsaturated ones
+                    sy = 0.0
+                    st = 0.0
+                    for j in range(P):
+                        if not issat[j]:
+                            sy += y[j]
+                            st += times[j]
+                    X = sy / st
+                    for j in range(P):
+                        om[j] = 0.0
+                if X < 0.0 or not np.isfinite(X):
+                    X = 0.0
+                if nv > 0:
+                    so = 0.0
+                    sv = 0.0
+                    c2 = 0.0
+                    for j in range(P):
+                        if valid[j]:
+                            tj = times[j]
+                            vj = (gain * X * tj + read_var) / (tj * tj) + rel_var * X * X
+                            so += om[j]
+                            sv += om[j] * om[j] * vj
+                            rj = y[j] / tj - X
+                            c2 += rj * rj / vj
+                    if so > 0.0 and sv > 0.0:
+                        snr[l, pix] += X / np.sqrt(sv / (so * so))
+                    if nv >= 2:
+                        chi2[l, pix] += c2
+                        dof[l, pix] += nv - 1
+                out[l, a, bb] = X * cal[band]

@@ -1,0 +1,233 @@
+"""A bracket of exposures of one scene, loaded from a scene folder or Specim IQ folders.
+
+The raw cubes stay memory-mapped; only the one-line dark/white references are
+read into memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from mehs.cube import SpectralCube
+from mehs.errors import FormatError, InputError
+
+
+@dataclass
+class Bracket:
+    """Exposures of one scene, shortest first.
+
+    Attributes
+    ----------
+    exposures
+        Raw DN cubes ``(lines, samples, bands)`` (usually uint16 memmaps).
+    darks, white
+        Per exposure float32 ``(samples, bands)`` dark / white reference (mean of
+        the reference lines), or None.
+    times_ms
+        float64 ``(P,)`` integration times, ascending.
+    wavelengths
+        float64 ``(bands,)`` nm.
+    bit_depth
+        ADC bits (12 for a Specim IQ).
+    source
+        The scene folder (or the first Specim folder).
+    truth
+        Ground-truth radiance of a simulated scene, or None.
+    metadata
+        ``scene.json`` (scene folder) or per-exposure Specim metadata.
+    """
+
+    exposures: list[SpectralCube]
+    darks: list[np.ndarray | None]
+    white: list[np.ndarray | None]
+    times_ms: np.ndarray
+    wavelengths: np.ndarray
+    bit_depth: int = 12
+    source: Path | None = None
+    truth: SpectralCube | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        validate_bracket(self)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.exposures[0].shape
+
+    @property
+    def sensor(self) -> dict[str, Any]:
+        """Sensor parameters recorded in ``scene.json`` (``device.sensor``), if any."""
+        dev = self.metadata.get("device") or {}
+        s = dev.get("sensor") if isinstance(dev, dict) else None
+        return s if isinstance(s, dict) else {}
+
+
+def validate_bracket(b: Bracket) -> None:
+    """Check a bracket; sort it by time. Raises :class:`InputError` naming ``b.source``."""
+    src = b.source
+    P = len(b.exposures)
+    if P < 2:
+        raise InputError(f"a bracket needs at least 2 exposures, got {P}", src)
+    t = np.asarray(b.times_ms, dtype=np.float64).reshape(-1)
+    if t.size != P:
+        raise InputError(f"{t.size} exposure times for {P} exposures", src)
+    if not np.all(np.isfinite(t) & (t > 0)):
+        raise InputError(f"exposure times must be positive, got {t.tolist()} ms", src)
+    if np.unique(t).size != P:
+        raise InputError(f"exposure times must be distinct, got {t.tolist()} ms", src)
+    shape = b.exposures[0].shape
+    wl = b.exposures[0].wavelengths
+    for k, e in enumerate(b.exposures):
+        where = e.source or src
+        if e.shape != shape:
+            raise InputError(f"exposure shapes differ: {e.shape} vs {shape}", where)
+        if e.wavelengths.shape != wl.shape or not np.allclose(e.wavelengths, wl, rtol=0, atol=1e-3):
+            raise InputError("exposure wavelengths differ from the first exposure's", where)
+        if np.issubdtype(e.data.dtype, np.floating):
+            # cheap, chunked check: a NaN in a raw cube is a broken file
+            for l0 in range(0, e.lines, 64):
+                if not np.all(np.isfinite(e.data[l0:l0 + 64])):
+                    raise InputError("raw cube contains NaN or inf", where)
+    for name, refs in (("dark", b.darks), ("white", b.white)):
+        if len(refs) != P:
+            raise InputError(f"{len(refs)} {name} references for {P} exposures", src)
+        for r in refs:
+            if r is not None and (r.shape != shape[1:] or not np.all(np.isfinite(r))):
+                raise InputError(f"{name} reference must be finite with shape {shape[1:]}, "
+                                 f"got {r.shape}", src)
+    order = np.argsort(t, kind="stable")
+    b.exposures = [b.exposures[i] for i in order]
+    b.darks = [b.darks[i] for i in order]
+    b.white = [b.white[i] for i in order]
+    b.times_ms = t[order]
+    b.wavelengths = np.asarray(wl, dtype=np.float64)
+    if not 8 <= int(b.bit_depth) <= 16:
+        raise InputError(f"bit depth must be 8..16, got {b.bit_depth}", src)
+
+
+def _ref_mean(ref: SpectralCube | None) -> np.ndarray | None:
+    if ref is None:
+        return None
+    return np.asarray(ref.data, dtype=np.float64).mean(axis=0).astype(np.float32)
+
+
+def _guess_bit_depth(cube: SpectralCube, meta: dict) -> int:
+    for key in ("bit_depth", "bit depth", "data_bits"):
+        v = meta.get(key) or cube.metadata.get(key)
+        if v is not None:
+            try:
+                return int(v)
+            except (TypeError, ValueError):
+                pass
+    if cube.data.dtype == np.uint8:
+        return 8
+    return 12 if np.issubdtype(cube.data.dtype, np.integer) and cube.data.dtype.itemsize == 2 \
+        and int(np.max(cube.data[:: max(1, cube.lines // 16)])) <= 4095 else 16
+
+
+def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: str = "sha256",
+                 bit_depth: int | None = None) -> Bracket:
+    """Load a bracket from a scene folder (``scene.json``) or a list of Specim IQ folders.
+
+    Parameters
+    ----------
+    path_or_paths
+        A scene folder (format ``mehs-scene/1``; only exposures with status
+        ``"complete"`` are used), or two or more Specim IQ capture folders
+        (times from each raw header's ``tint``).
+    verify
+        Scene folders: ``"sha256"`` re-hashes the files listed in
+        ``scene.json`` (catches a truncated or altered capture), ``"size"``
+        only checks they exist and are non-empty, ``"none"`` skips this.
+    bit_depth
+        Override the ADC bit depth (default: ``scene.json`` device sensor, else
+        12 for 12-bit-range uint16 data).
+
+    Raises
+    ------
+    InputError / FormatError
+        Naming the folder: fewer than 2 exposures, times not positive or not
+        distinct, shapes or wavelengths that differ, a file that fails verification.
+    """
+    from mehs.io.specim import read_specim_folder
+
+    if isinstance(path_or_paths, (str, Path)):
+        paths = [Path(path_or_paths)]
+    else:
+        paths = [Path(p) for p in path_or_paths]
+    if not paths:
+        raise InputError("no bracket given")
+    if len(paths) == 1 and (paths[0] / "scene.json").is_file():
+        return _load_scene(paths[0], verify=verify, bit_depth=bit_depth)
+    if len(paths) == 1:
+        if not paths[0].exists():
+            raise InputError("does not exist", paths[0])
+        raise InputError("not a scene folder (no scene.json); give two or more Specim IQ "
+                         "folders for a bracket", paths[0])
+    caps = [read_specim_folder(p) for p in paths]
+    times = []
+    for p, c in zip(paths, caps):
+        if c.raw.integration_time_ms is None:
+            raise FormatError("raw cube has no integration time (tint)", p)
+        times.append(c.raw.integration_time_ms)
+    meta = {"captures": [str(p) for p in paths],
+            "metadata": [c.metadata for c in caps]}
+    bd = bit_depth or _guess_bit_depth(caps[0].raw, caps[0].metadata)
+    return Bracket([c.raw for c in caps], [_ref_mean(c.darkref) for c in caps],
+                   [_ref_mean(c.whiteref) for c in caps], np.asarray(times), caps[0].raw.wavelengths,
+                   bit_depth=bd, source=paths[0], metadata=meta)
+
+
+def _load_scene(root: Path, *, verify: str, bit_depth: int | None) -> Bracket:
+    import json
+
+    from mehs.io.atomic import sha256_file
+    from mehs.io.envi import read_envi
+    from mehs.io.specim import read_specim_folder
+
+    sj = root / "scene.json"
+    try:
+        doc = json.loads(sj.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FormatError(f"unreadable scene.json ({exc})", sj) from None
+    if not isinstance(doc, dict) or doc.get("format") != "mehs-scene/1":
+        raise FormatError("not a mehs-scene/1 file", sj)
+    recs = [e for e in doc.get("exposures", []) if isinstance(e, dict)
+            and e.get("status") == "complete"]
+    if len(recs) < 2:
+        raise InputError(f"only {len(recs)} complete exposure(s) in scene.json; a bracket "
+                         "needs at least 2", root)
+    if verify not in ("sha256", "size", "none"):
+        raise InputError(f"verify must be 'sha256', 'size' or 'none', got {verify!r}")
+    exps, darks, whites, times = [], [], [], []
+    for e in recs:
+        folder = root / str(e.get("folder", ""))
+        for rel, digest in (e.get("files") or {}).items():
+            f = root / rel
+            if verify != "none" and (not f.is_file() or f.stat().st_size == 0):
+                raise FormatError("file listed in scene.json is missing or empty", f)
+            if verify == "sha256" and sha256_file(f) != digest:
+                raise FormatError("SHA-256 does not match scene.json (file altered or truncated)", f)
+        cap = read_specim_folder(folder)
+        t = e.get("integration_time_ms") or cap.raw.integration_time_ms
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise FormatError(f"exposure has no usable integration time ({t!r})", folder) from None
+        exps.append(cap.raw)
+        darks.append(_ref_mean(cap.darkref))
+        whites.append(_ref_mean(cap.whiteref))
+        times.append(t)
+    truth = None
+    if doc.get("truth"):
+        tp = root / doc["truth"]
+        if tp.is_file():
+            truth = read_envi(tp)
+    sensor = (doc.get("device") or {}).get("sensor") or {}
+    bd = bit_depth or sensor.get("bit_depth") or _guess_bit_depth(exps[0], {})
+    return Bracket(exps, darks, whites, np.asarray(times), exps[0].wavelengths,
+                   bit_depth=int(bd), source=root, truth=truth, metadata=doc)

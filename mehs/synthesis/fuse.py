@@ -1,0 +1,357 @@
+"""Bracket → HDR radiance cube: response recovery, merge, ghost handling, outputs.
+
+:func:`fuse_bracket` is the library form of ``mehs fuse``; :func:`write_fusion`
+writes its result (ENVI float32 radiance with wavelengths, mask and
+confidence, the response curve and a JSON summary).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mehs.cube import SpectralCube
+from mehs.errors import InputError
+from mehs.synthesis.bracket import Bracket
+from mehs.synthesis.merge import (MASK_GHOST, MERGE_METHODS, NoiseModel, merge_bracket)
+from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
+                                     sample_pixels, to_levels)
+
+#: below this deviation from ``ln z`` (over the well-exposed levels) "auto" uses the linear curve
+LINEARITY_TOLERANCE = 0.02
+
+
+@dataclass
+class FusionResult:
+    """Output of :func:`fuse_bracket`.
+
+    Attributes
+    ----------
+    radiance
+        float32 cube ``(lines, samples, bands)``, units ``"DN/ms"`` (relative) or
+        ``"radiance"`` after calibration.
+    confidence
+        float32 ``(lines, samples)``: expected SNR of the merged value, mean over bands.
+    mask
+        uint8 ``(lines, samples)``: bit 1 saturated in every exposure (some band),
+        bit 2 ghost, bit 4 no usable signal.
+    response
+        The curve used.
+    summary
+        JSON-able figures: dynamic range (stops), saturated / ghost / invalid
+        fractions, exposure times and ratios, method, noise model, timings.
+    ghost_score
+        float32 ``(lines, samples)`` normalised χ²/dof, or None with ``ghosts="off"``.
+    """
+
+    radiance: SpectralCube
+    confidence: np.ndarray
+    mask: np.ndarray
+    response: ResponseCurve
+    summary: dict[str, Any]
+    ghost_score: np.ndarray | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def noise_from_bracket(bracket: Bracket) -> NoiseModel:
+    """The noise model of the recorded sensor (``scene.json`` device.sensor), else the default."""
+    s = bracket.sensor
+    try:
+        gain = float(s["gain_dn_per_e"])
+        read = float(s.get("read_noise_e", 0.0)) * gain
+        return NoiseModel(gain=gain, read_noise=max(read, 0.5))
+    except (KeyError, TypeError, ValueError):
+        return NoiseModel()
+
+
+def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation: np.ndarray,
+                      subtract_dark: bool) -> np.ndarray:
+    """int32 (P, M, bands) levels of M random pixels (memmaps read only there)."""
+    nl, ns, nb = bracket.shape
+    rng = np.random.default_rng(seed)
+    m = min(nl * ns, n_candidates)
+    flat = np.sort(rng.choice(nl * ns, size=m, replace=False))
+    rows, cols = np.divmod(flat, ns)
+    out = np.empty((len(bracket.exposures), m, nb), dtype=np.int32)
+    for j, e in enumerate(bracket.exposures):
+        raw = np.asarray(e.data[rows, cols], dtype=np.float32)
+        dark = bracket.darks[j][cols] if (subtract_dark and bracket.darks[j] is not None) else None
+        out[j] = to_levels(raw, dark, bracket.bit_depth, saturation[None, :])
+    return out
+
+
+def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
+                     seed: int = 0, shared: bool = False, levels: str = "raw",
+                     saturation: np.ndarray | None = None,
+                     weighting: str = "hat") -> ResponseCurve:
+    """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
+
+    ``levels="raw"`` fits the curve to raw DN (the black level then passes
+    through the non-linearity, as on most sensors; the merge subtracts the
+    *linearised* dark); ``"dark-subtracted"`` fits it to ``raw − dark``.
+    """
+    L = 1 << bracket.bit_depth
+    P = len(bracket.exposures)
+    nb = bracket.shape[2]
+    sat = np.full(nb, 0.98 * (L - 1)) if saturation is None else np.broadcast_to(saturation, (nb,))
+    n = samples or int(np.ceil(2.0 * L / (P - 1)))
+    npix = bracket.shape[0] * bracket.shape[1]
+    if shared:
+        n_per = max(64, int(np.ceil(n / nb)) + 1)
+    else:
+        n_per = n
+    cand = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw")
+    if shared:
+        Z = _sample_shared(cand, n_per, seed, bracket.bit_depth)
+    else:
+        if npix < n:
+            raise InputError(f"{npix} pixels are too few for a per-band {bracket.bit_depth}-bit "
+                             f"curve from {P} exposures ({n} needed); use a shared curve",
+                             bracket.source)
+        Z = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth)
+    curve = recover_response_Debevec1997(
+        Z, np.log(bracket.times_ms), bit_depth=bracket.bit_depth, smoothness=smoothness,
+        weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
+        parameters={"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()})
+    return curve
+
+
+def _sample_shared(cand: np.ndarray, n_per: int, seed: int, bit_depth: int) -> np.ndarray:
+    from mehs.synthesis._kernels import stratified_pick
+
+    P, M, C = cand.shape
+    L = 1 << bit_depth
+    order = np.random.default_rng(seed).permutation(M).astype(np.int64)
+    idx = stratified_pick(np.ascontiguousarray(cand), order, n_per, 64, L)   # (C, n_per)
+    Z = np.take_along_axis(cand.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None], axis=1)
+    Z[idx < 0] = L - 1    # unfilled slots: weight 0
+    return np.ascontiguousarray(Z.transpose(1, 2, 0))
+
+
+def linearity_deviation(curve: ResponseCurve) -> float:
+    """Max |g(z) − ln z − c| over the well-exposed levels L/16 … 0.9·L (c: median offset per band)."""
+    L = curve.levels
+    z = np.arange(L // 16, int(0.9 * L))
+    g = curve.table()[:, z] - np.log(z)[None, :]
+    g -= np.median(g, axis=1, keepdims=True)
+    return float(np.abs(g).max())
+
+
+def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
+                 ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
+                 seed: int = 0, shared_response: bool = True,
+                 noise: NoiseModel | tuple[float, float] | None = None,
+                 saturation: float | np.ndarray | None = None,
+                 calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
+                 reference: int | str = "auto", chunk_lines: int = 16) -> FusionResult:
+    """Fuse a bracket into an HDR radiance cube.
+
+    Parameters
+    ----------
+    method
+        Merge estimator, a key of :data:`mehs.synthesis.merge.MERGE_METHODS`.
+    response
+        ``"auto"`` (recover a Debevec curve on dark-subtracted levels; use the
+        linear curve when it deviates from ``ln z`` by < 2 % over the
+        well-exposed levels, else a curve recovered on raw levels), ``"linear"``,
+        ``"debevec"`` (always recover), a :class:`ResponseCurve`, or the path of
+        a saved curve (JSON).
+    ghosts
+        ``"detect"`` (flag, mask bit 2), ``"deghost"`` (flag and take ghost pixels
+        from one reference exposure), or ``"off"``.
+    noise
+        Noise model; default from the scene's recorded sensor, else :class:`NoiseModel`.
+    calibration
+        Radiometric factor (scalar or per band) from DN/ms to absolute radiance.
+    """
+    if method not in MERGE_METHODS:
+        raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
+    if ghosts not in ("detect", "deghost", "off"):
+        raise InputError(f"ghosts must be 'detect', 'deghost' or 'off', got {ghosts!r}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    nl, ns, nb = bracket.shape
+    L = 1 << bracket.bit_depth
+    sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
+    sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
+    auto_info: dict[str, Any] = {}
+    if isinstance(response, ResponseCurve):
+        curve = response
+    elif isinstance(response, (str, Path)) and str(response) in ("auto", "linear", "debevec"):
+        kind = str(response)
+        if kind == "linear":
+            curve = ResponseCurve.linear(bracket.bit_depth)
+        else:
+            curve = None
+            if kind == "auto":
+                try:
+                    probe = recover_response(bracket, smoothness=smoothness, samples=samples,
+                                             seed=seed, shared=True, levels="dark-subtracted",
+                                             saturation=sat)
+                    dev = linearity_deviation(probe)
+                    auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE}
+                    if dev < LINEARITY_TOLERANCE:
+                        curve = ResponseCurve.linear(bracket.bit_depth)
+                except InputError as exc:
+                    # too few usable pixels to tell: the linear curve is the safe choice
+                    auto_info = {"linearity_check": f"skipped ({exc.problem})"}
+                    curve = ResponseCurve.linear(bracket.bit_depth)
+            if curve is None:
+                curve = recover_response(bracket, smoothness=smoothness, samples=samples,
+                                         seed=seed, shared=shared_response, levels="raw",
+                                         saturation=sat)
+    else:
+        curve = ResponseCurve.load(response)
+    if curve.bit_depth != bracket.bit_depth:
+        raise InputError(f"response curve is {curve.bit_depth}-bit, the bracket "
+                         f"{bracket.bit_depth}-bit", bracket.source)
+    timings["response_s"] = time.perf_counter() - t0
+
+    if noise is None:
+        noise = noise_from_bracket(bracket)
+    elif not isinstance(noise, NoiseModel):
+        noise = NoiseModel(*noise)
+    cal = 1.0 if calibration is None else calibration
+    t1 = time.perf_counter()
+    mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
+                       response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
+                       saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
+                       source=bracket.source)
+    timings["merge_s"] = time.perf_counter() - t1
+    mask = mr.mask
+    radiance = mr.radiance
+    ghost_score = None
+    ghost_fraction = 0.0
+    ref_used = None
+    gres = None
+    if ghosts != "off":
+        from mehs.synthesis.ghost import deghost_from_reference, detect_ghosts
+
+        t2 = time.perf_counter()
+        gres = detect_ghosts(mr.chi2, mr.dof, alpha=ghost_alpha)
+        ghost_score = gres.score
+        ghost_fraction = gres.fraction
+        mask[gres.mask] |= MASK_GHOST
+        if ghosts == "deghost" and gres.mask.any():
+            lin = _lineariser(curve, mr.info["dark_mode"], bracket.bit_depth)
+            ref_used = deghost_from_reference(
+                radiance, gres.mask, [e.data for e in bracket.exposures], bracket.darks,
+                bracket.times_ms, linearise=lin, saturation=sat, floor=mr.info["noise"]["floor"],
+                calibration=np.broadcast_to(np.asarray(cal, dtype=np.float64), (nb,)),
+                reference=reference)
+        timings["ghosts_s"] = time.perf_counter() - t2
+
+    units = "DN/ms" if calibration is None else "radiance"
+    e0 = bracket.exposures[0]
+    cube = SpectralCube(radiance, bracket.wavelengths, fwhm=e0.fwhm, units=units,
+                        integration_time_ms=None, acquisition_date=e0.acquisition_date,
+                        binning=e0.binning, dark_subtracted=True, source=bracket.source,
+                        default_bands=e0.default_bands,
+                        metadata={"mehs merge method": method,
+                                  "mehs response": curve.method,
+                                  "mehs exposure times ms": [float(t) for t in bracket.times_ms]})
+    summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
+                       calibration, ref_used, auto_info)
+    timings["total_s"] = time.perf_counter() - t0
+    summary["timings"] = timings
+    return FusionResult(cube, mr.confidence, mask, curve, summary, ghost_score,
+                        extras={"chi2": mr.chi2, "dof": mr.dof})
+
+
+def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int):
+    """The merge's own raw → dark-subtracted linear DN mapping, for numpy arrays (n, bands)."""
+    L = 1 << bit_depth
+    if curve.is_linear:
+        return lambda raw, dark, j: raw - dark
+    e = np.exp(curve.table())
+
+    def lut(z):
+        zi = np.clip(z, 0, L - 1).astype(np.intp)
+        return e[0][zi] if curve.shared else e[np.arange(zi.shape[-1]), zi]
+
+    def interp(zf):
+        zf = np.clip(zf, 0, L - 1)
+        z0 = np.floor(zf).astype(np.intp)
+        z1 = np.minimum(z0 + 1, L - 1)
+        fr = zf - z0
+        return (1 - fr) * lut(z0) + fr * lut(z1)
+
+    if dark_mode == "linear":
+        return lambda raw, dark, j: lut(raw) - interp(np.broadcast_to(dark, raw.shape))
+    return lambda raw, dark, j: lut(np.rint(raw - dark))
+
+
+def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
+             calibration, ref_used, auto_info) -> dict[str, Any]:
+    m = mr.mean_radiance
+    good = (mask == 0) & (m > 0)
+    dr = dr_max = None
+    if good.sum() >= 2:
+        v = m[good]
+        lo, hi = np.percentile(v, [0.1, 99.9])
+        dr = float(np.log2(hi / lo)) if lo > 0 else None
+        dr_max = float(np.log2(v.max() / v.min()))
+    t = bracket.times_ms
+    return {
+        "format": "mehs-fusion/1",
+        "source": None if bracket.source is None else str(bracket.source),
+        "shape": list(bracket.shape),
+        "wavelength_range_nm": [float(bracket.wavelengths[0]), float(bracket.wavelengths[-1])],
+        "method": method,
+        "response": {"method": curve.method, "shared": curve.shared,
+                     "smoothness": curve.smoothness, "dark_mode": mr.info["dark_mode"],
+                     **auto_info},
+        "times_ms": t.tolist(),
+        "exposure_ratios": (t / t[0]).tolist(),
+        "dynamic_range_stops": dr,
+        "dynamic_range_stops_max": dr_max,
+        "saturated_fraction": float(np.mean(mask & 1 > 0)),
+        "ghost_fraction": float(ghost_fraction),
+        "invalid_fraction": float(np.mean(mask & 4 > 0)),
+        "valid_fraction": float(np.mean(mask == 0)),
+        "ghosts": ghosts,
+        "ghost_chi2_scale": None if gres is None else gres.scale,
+        "ghost_reference_exposure": ref_used,
+        "noise": {"gain_dn_per_e": noise.gain, "read_noise_dn": noise.read_noise,
+                  "relative": noise.relative},
+        "calibration": None if calibration is None else np.asarray(calibration).tolist(),
+        "units": "DN/ms" if calibration is None else "radiance",
+        "mean_confidence": float(mr.confidence.mean()),
+        "bit_depth": bracket.bit_depth,
+    }
+
+
+def write_fusion(result: FusionResult, out_dir: str | Path) -> dict[str, Path]:
+    """Write a fusion result into ``out_dir``.
+
+    Files: ``radiance.hdr`` + ``radiance.dat`` (ENVI float32, BIL, with
+    wavelengths), ``mask.png`` (uint8, dataset mask bits), ``confidence.exr``
+    (float32 single channel ``Y``), ``response.json`` (the curve, reloadable
+    with ``--response``), ``summary.json``. Every file is written atomically.
+    """
+    from mehs.io.atomic import atomic_path, write_json_atomic
+    from mehs.io.envi import write_envi
+    from mehs.io.exr import write_exr_gray
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    paths["radiance"] = write_envi(out / "radiance.hdr", result.radiance, dtype=np.float32,
+                                   interleave="bil", data_ext=".dat", overwrite=True)
+    import cv2
+
+    with atomic_path(out / "mask.png") as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(result.mask)):
+            raise InputError("could not write PNG", out / "mask.png")
+    paths["mask"] = out / "mask.png"
+    paths["confidence"] = write_exr_gray(out / "confidence.exr",
+                                         np.ascontiguousarray(result.confidence), half=False)
+    paths["response"] = result.response.save(out / "response.json")
+    summary = dict(result.summary)
+    summary["files"] = {k: p.name for k, p in paths.items()}
+    paths["summary"] = write_json_atomic(out / "summary.json", summary)
+    return paths

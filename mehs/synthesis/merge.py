@@ -1,0 +1,337 @@
+"""Merging a bracket of exposures into one float32 radiance cube.
+
+Every method works sample by sample on the dark-subtracted values
+``y_j = raw_j − dark_j`` (linear sensor) or ``y_j = exp(g(round(raw_j − dark_j)))``
+(a recovered response curve), with exposure times ``t_j`` in ms:
+
+- ``debevec``  (:func:`merge_Debevec1997`): ``ln X = Σ w(z_j)(g(z_j) − ln t_j) / Σ w(z_j)``;
+- ``robertson`` (:func:`merge_Robertson2003`): ``X = Σ w(z_j) t_j y_j / Σ w(z_j) t_j²``;
+- ``poisson``  (:func:`merge_Hanji2020`): ``X = Σ y_j / Σ t_j`` over the usable samples —
+  the maximum-likelihood estimate for Poisson (photon) noise;
+- ``inverse-variance`` (:func:`merge_inverse_variance`): ``X = Σ ω_j y_j/t_j / Σ ω_j`` with
+  ``ω_j = t_j² / (gain·X₀t_j + σ_read²)``, the variance predicted from the pooled
+  (Poisson) estimate ``X₀`` rather than from the noisy ``y_j`` itself, which would
+  bias the result low.
+
+A sample is *usable* when its raw DN is below the saturation level (per band)
+and ``y_j`` is above the noise floor. A band saturated in every exposure gets
+the lower bound ``y_0/t_0`` of the shortest exposure and the pixel is flagged
+(mask bit 1), never extrapolated; a pixel with no usable sample in any band is
+flagged "no signal" (bit 4). Output radiance is in DN/ms (relative units), or
+absolute after multiplying by a radiometric calibration factor (scalar or per band).
+Negative estimates (dark noise) are clipped to 0.
+
+The compiled kernel (:func:`mehs.synthesis._kernels.merge_chunk`) processes a
+chunk of lines at a time straight from the (memory-mapped) inputs, in their
+native memory order, and also accumulates the per-pixel consistency
+statistic used by :mod:`mehs.synthesis.ghost`.
+
+References
+----------
+- Debevec, P. E. and Malik, J. (1997). Recovering high dynamic range radiance
+  maps from photographs. SIGGRAPH 97.
+- Robertson, M. A., Borman, S. and Stevenson, R. L. (2003). Estimation-theoretic
+  approach to dynamic range enhancement using multiple exposures. J. Electronic
+  Imaging 12(2), 219–228.
+- Hanji, P., Zhong, F., Mantiuk, R. K. and Mantiuk, R. (2020). Noise-aware
+  merging of high dynamic range image stacks without camera calibration.
+  ECCV 2020 Workshops.
+- Granados, M., Ajdin, B., Wand, M., Theobalt, C., Seidel, H.-P. and Lensch,
+  H. P. A. (2010). Optimal HDR reconstruction with linear digital cameras. CVPR.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.synthesis.response import ResponseCurve, weighting_table
+
+#: mask bits shared with the dataset format
+MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise of a dark-subtracted sample ``y`` (DN): ``var = gain·y + read_noise² + (relative·y)²``.
+
+    ``gain`` is in DN per electron (shot noise), ``read_noise`` in DN (one
+    sigma, after dark subtraction), ``relative`` a systematic relative error
+    (flat-field, response-curve error) that keeps bright pixels from looking
+    inconsistent in the ghost test.
+    """
+
+    gain: float = 1.0
+    read_noise: float = 2.0
+    relative: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("gain", "read_noise", "relative"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"noise model {name} must be finite and ≥ 0, got {v}")
+        if self.gain == 0 and self.read_noise == 0:
+            raise InputError("noise model needs gain > 0 or read_noise > 0")
+
+
+@dataclass
+class MergeResult:
+    """What :func:`merge_bracket` returns.
+
+    Attributes
+    ----------
+    radiance
+        float32 ``(lines, samples, bands)`` (possibly a transposed view of a
+        band-interleaved buffer).
+    confidence
+        float32 ``(lines, samples)``: expected signal-to-noise ratio of the
+        merged radiance (noise model), averaged over bands; 0 where no sample was usable.
+    mask
+        uint8 ``(lines, samples)``: bit 1 some band saturated in every exposure,
+        bit 4 no usable sample in any band.
+    chi2, dof
+        float32 / int32 ``(lines, samples)``: Σ over bands and usable exposures of
+        the squared normalised residuals ``(y_j/t_j − X)²/var_j`` and its degrees
+        of freedom (Σ (usable − 1)); input of :func:`mehs.synthesis.ghost.detect_ghosts`.
+    mean_radiance
+        float32 ``(lines, samples)``: mean over bands of the radiance.
+    """
+
+    radiance: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    mean_radiance: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+_CODES = {"debevec": 0, "robertson": 1, "poisson": 2, "inverse-variance": 3}
+
+
+def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
+                  method: str = "poisson", response: ResponseCurve | None = None,
+                  darks: Sequence[np.ndarray | None] | None = None, bit_depth: int = 12,
+                  saturation: float | np.ndarray | None = None,
+                  noise: NoiseModel | tuple[float, float] | None = None,
+                  noise_floor: float | None = None, weighting: str = "hat",
+                  calibration: float | np.ndarray = 1.0, chunk_lines: int = 16,
+                  dark_mode: str = "auto",
+                  source: Any = None) -> MergeResult:
+    """Merge P exposures (shortest first or not) into a radiance cube.
+
+    Parameters
+    ----------
+    stack
+        P arrays ``(lines, samples, bands)`` of raw DN (any integer or float
+        dtype; memory maps are read chunk by chunk, never whole).
+    times_ms
+        Exposure times in ms, positive and distinct, one per exposure.
+    method
+        A key of :data:`MERGE_METHODS`.
+    response
+        A :class:`ResponseCurve`; None or a linear curve means a linear sensor.
+    darks
+        Per exposure ``(samples, bands)`` dark levels (or None = 0).
+    saturation
+        Raw DN at or above which a sample is saturated: scalar or per band
+        ``(bands,)``; default ``0.98·(2**bit_depth − 1)``.
+    noise
+        :class:`NoiseModel` or ``(gain, read_noise)``; default ``NoiseModel()``.
+    noise_floor
+        Samples with ``y ≤ noise_floor`` (DN) get zero weight; default the read noise.
+    calibration
+        Factor (scalar or per band) turning DN/ms into absolute radiance.
+    dark_mode
+        Non-linear curves only: ``"raw"`` subtracts the dark in DN before the
+        curve (the curve was recovered on dark-subtracted levels);
+        ``"linear"`` applies the curve to raw levels and subtracts the
+        linearised dark, right when the black level is added before the
+        non-linearity; ``"auto"`` follows ``response.parameters["levels"]``
+        (``"raw"`` levels → ``"linear"``).
+    chunk_lines
+        Lines per chunk: peak extra memory is about one chunk of float work per core.
+    """
+    from mehs.synthesis._kernels import merge_chunk
+
+    if method not in _CODES:
+        raise InputError(f"unknown merge method {method!r}; use one of {sorted(_CODES)}")
+    arrays = [np.asarray(s.data if hasattr(s, "data") and hasattr(s, "wavelengths") else s)
+              if not isinstance(s, np.memmap) else s for s in stack]
+    P = len(arrays)
+    if P < 2:
+        raise InputError(f"a bracket needs at least 2 exposures, got {P}", source)
+    shape = arrays[0].shape
+    if len(shape) != 3:
+        raise InputError(f"exposures must be (lines, samples, bands), got {shape}", source)
+    for k, a in enumerate(arrays):
+        if a.shape != shape:
+            raise InputError(f"exposure {k} has shape {a.shape}, exposure 0 has {shape}", source)
+    nl, ns, nb = shape
+    t = np.asarray(times_ms, dtype=np.float64).reshape(-1)
+    if t.size != P:
+        raise InputError(f"{t.size} exposure times for {P} exposures", source)
+    if not np.all(np.isfinite(t) & (t > 0)):
+        raise InputError(f"exposure times must be positive, got {t.tolist()} ms", source)
+    if np.unique(t).size != P:
+        raise InputError(f"exposure times must be distinct, got {t.tolist()} ms", source)
+    order = np.argsort(t, kind="stable")
+    arrays = [arrays[i] for i in order]
+    t = t[order]
+    L = 1 << int(bit_depth)
+    if response is None:
+        response = ResponseCurve.linear(bit_depth)
+    if response.bit_depth != bit_depth:
+        bit_depth = response.bit_depth
+        L = response.levels
+    linear = response.is_linear
+    glut = response.table(None if response.shared else nb).astype(np.float32)
+    if not response.shared and glut.shape[0] != nb:
+        raise InputError(f"response curve has {glut.shape[0]} bands, data has {nb}", source)
+    elut = np.exp(glut.astype(np.float64)).astype(np.float32)
+    wlut = weighting_table(weighting, L).astype(np.float32)
+
+    if noise is None:
+        noise = NoiseModel()
+    elif not isinstance(noise, NoiseModel):
+        noise = NoiseModel(*noise)
+    floor = noise.read_noise if noise_floor is None else float(noise_floor)
+    if method == "debevec" and linear:
+        floor = max(floor, 0.5)   # ln y needs y > 0
+    floors = np.full(P, floor, dtype=np.float64)
+
+    sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float32)
+    if sat.ndim == 0:
+        sat = np.full(nb, sat, dtype=np.float32)
+    if sat.shape != (nb,):
+        raise InputError(f"saturation must be a scalar or one value per band ({nb}), "
+                         f"got shape {sat.shape}", source)
+    cal = np.asarray(calibration, dtype=np.float32)
+    if cal.ndim == 0:
+        cal = np.full(nb, cal, dtype=np.float32)
+    if cal.shape != (nb,) or not np.all(np.isfinite(cal) & (cal > 0)):
+        raise InputError("calibration must be a positive scalar or one positive value per band",
+                         source)
+
+    dk = np.zeros((P, ns, nb), dtype=np.float32)
+    if darks is not None:
+        darks = [darks[i] for i in order] if len(darks) == P else None
+        if darks is None:
+            raise InputError("one dark reference per exposure is needed", source)
+        for j, d in enumerate(darks):
+            if d is None:
+                continue
+            d = np.asarray(d, dtype=np.float32)
+            if d.ndim == 3 and d.shape[0] >= 1:
+                d = d.mean(axis=0)
+            if d.shape != (ns, nb):
+                raise InputError(f"dark reference {j} has shape {d.shape}, expected ({ns}, {nb})",
+                                 source)
+            if not np.all(np.isfinite(d)):
+                raise InputError(f"dark reference {j} contains NaN or inf", source)
+            dk[j] = d
+
+    if dark_mode == "auto":
+        dark_mode = "linear" if response.parameters.get("levels") == "raw" else "raw"
+    if dark_mode not in ("raw", "linear"):
+        raise InputError(f"dark_mode must be 'auto', 'raw' or 'linear', got {dark_mode!r}")
+    dark_after = (not linear) and dark_mode == "linear"
+    if dark_after:
+        # linearise the (fractional) dark levels through the curve, per band
+        e = elut.astype(np.float64)
+        zl = np.clip(dk, 0, L - 1)
+        z0 = np.floor(zl).astype(np.intp)
+        z1 = np.minimum(z0 + 1, L - 1)
+        fr = zl - z0
+        bidx = 0 if response.shared else np.arange(nb)[None, None, :]
+        dk = ((1 - fr) * e[bidx, z0] + fr * e[bidx, z1]).astype(np.float32)
+
+    # Work in each array's own memory order: bands contiguous (BIP / C order)
+    # or samples contiguous (BIL memmaps seen as (lines, samples, bands)).
+    st = arrays[0].strides
+    band_last = abs(st[2]) <= abs(st[1])
+    if band_last:
+        views = arrays
+        dk_k = dk
+        sat_k = np.ascontiguousarray(np.broadcast_to(sat[None, :], (ns, nb)))
+        A, B = ns, nb
+    else:
+        views = [a.transpose(0, 2, 1) for a in arrays]
+        dk_k = np.ascontiguousarray(dk.transpose(0, 2, 1))
+        sat_k = np.ascontiguousarray(np.broadcast_to(sat[:, None], (nb, ns)))
+        A, B = nb, ns
+    out = np.empty((nl, A, B), dtype=np.float32)
+    chi2 = np.zeros((nl, ns), dtype=np.float32)
+    dof = np.zeros((nl, ns), dtype=np.int32)
+    snr = np.zeros((nl, ns), dtype=np.float32)
+    nsat = np.zeros((nl, ns), dtype=np.int32)
+    nvalid = np.zeros((nl, ns), dtype=np.int32)
+    msum = np.zeros((nl, ns), dtype=np.float32)
+    is_float = np.issubdtype(arrays[0].dtype, np.floating)
+    chunk_lines = max(1, int(chunk_lines))
+    code = _CODES[method]
+    for l0 in range(0, nl, chunk_lines):
+        l1 = min(nl, l0 + chunk_lines)
+        parts = tuple(np.asarray(v[l0:l1]) for v in views)
+        if is_float:
+            for j, part in enumerate(parts):
+                if not np.all(np.isfinite(part)):
+                    raise InputError(f"exposure {j} contains NaN or inf near lines {l0}..{l1 - 1}",
+                                     source)
+        if len({(p.dtype, p.flags.c_contiguous, p.flags.f_contiguous) for p in parts}) > 1:
+            parts = tuple(np.ascontiguousarray(p) for p in parts)
+        merge_chunk(parts, dk_k, sat_k, t, band_last, linear, dark_after, glut, elut, wlut,
+                    floors, float(noise.gain), float(noise.read_noise) ** 2,
+                    float(noise.relative) ** 2, cal, code,
+                    out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
+                    nvalid[l0:l1])
+    radiance = out if band_last else out.transpose(0, 2, 1)
+    mask = np.zeros((nl, ns), dtype=np.uint8)
+    mask[nsat > 0] |= MASK_SATURATED
+    mask[nvalid == 0] |= MASK_INVALID
+    if not np.any(nvalid > 0):
+        what = ("saturated in every exposure" if np.all(nsat == nb)
+                else "saturated or below the noise floor in every exposure")
+        raise InputError(f"no usable sample in the bracket: every pixel is {what}", source)
+    # mean over bands, from the output (a cheap pass over a float32 cube per chunk)
+    for l0 in range(0, nl, 64):
+        msum[l0:l0 + 64] = radiance[l0:l0 + 64].mean(axis=2, dtype=np.float32)
+    info = {"method": method, "times_ms": t.tolist(), "order": order.tolist(),
+            "bit_depth": int(bit_depth), "response": response.method,
+            "dark_mode": "linear" if dark_after else "raw",
+            "noise": {"gain": noise.gain, "read_noise": noise.read_noise,
+                      "relative": noise.relative, "floor": floor},
+            "saturation_dn": sat.tolist() if np.unique(sat).size > 1 else float(sat[0]),
+            "bands_saturated_in_all": int(nsat.sum()), "nvalid": nvalid}
+    return MergeResult(radiance, (snr / nb).astype(np.float32), mask, chi2, dof, msum, info)
+
+
+def merge_Debevec1997(stack, times_ms, **kwargs) -> MergeResult:
+    """Debevec & Malik's weighted log-domain mean (see module docstring)."""
+    return merge_bracket(stack, times_ms, method="debevec", **kwargs)
+
+
+def merge_Robertson2003(stack, times_ms, **kwargs) -> MergeResult:
+    """Robertson et al.'s ``w·t²``-weighted linear mean."""
+    return merge_bracket(stack, times_ms, method="robertson", **kwargs)
+
+
+def merge_Hanji2020(stack, times_ms, **kwargs) -> MergeResult:
+    """Hanji et al.'s Poisson (photon-noise ML) estimator ``Σ y / Σ t``."""
+    return merge_bracket(stack, times_ms, method="poisson", **kwargs)
+
+
+def merge_inverse_variance(stack, times_ms, **kwargs) -> MergeResult:
+    """Inverse-variance weights from a gain / read-noise model (Granados et al. 2010)."""
+    return merge_bracket(stack, times_ms, method="inverse-variance", **kwargs)
+
+
+MERGE_METHODS = {
+    "debevec": merge_Debevec1997,
+    "robertson": merge_Robertson2003,
+    "poisson": merge_Hanji2020,
+    "inverse-variance": merge_inverse_variance,
+}

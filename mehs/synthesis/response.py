@@ -1,0 +1,485 @@
+"""Camera response curves: Debevec–Malik recovery, a linear fallback, save/load.
+
+A response curve maps a (dark-subtracted) sensor level ``z`` to the log
+exposure ``g(z) = ln(E·Δt)``. It is one curve shared by all bands (one
+sensor, one ADC) or one curve per band.
+
+Gauge
+-----
+Debevec & Malik fix the free constant by ``g(Z_mid) = 0``. mehs fixes
+``g(Z_mid) = ln(Z_mid)`` instead — the same solution shifted by the constant
+``ln Z_mid`` for every band — so that a linear sensor's recovered curve is
+``ln z`` and merged radiance comes out in DN per ms whichever merge method or
+curve is used. The constant is the same for every band, so spectral shapes are
+preserved by per-band curves when the sensor non-linearity is common to all
+bands.
+
+Smoothness
+----------
+``smoothness`` (λ) is made independent of the bit depth and the sample count:
+the penalty is ``λ·ρ·((L−1)/255)⁴·Σ_z [w(z) g''(z)]²`` with ``ρ = N·P/L``
+samples per level, so λ = 10 at 8 bits with ρ ≈ 1 is Debevec's λ = 10. The default λ = 100
+was chosen on simulated 12-bit brackets (about half the curve error of λ = 10
+at 4096 samples per band).
+
+References
+----------
+- Debevec, P. E. and Malik, J. (1997). Recovering high dynamic range radiance
+  maps from photographs. SIGGRAPH 97, 369–378.
+- Robertson, M. A., Borman, S. and Stevenson, R. L. (2003). Estimation-theoretic
+  approach to dynamic range enhancement using multiple exposures. JEI 12(2).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from mehs.errors import FormatError, InputError
+
+FORMAT = "mehs-response/1"
+
+
+# ------------------------------------------------------------------ weighting
+def weight_hat(levels: int) -> np.ndarray:
+    """Debevec's hat ``w(z) = min(z, L−1−z)``, normalised to a peak of 1. Shape (L,)."""
+    z = np.arange(levels, dtype=np.float64)
+    return np.minimum(z, levels - 1 - z) / ((levels - 1) / 2.0)
+
+
+def weight_gaussian(levels: int) -> np.ndarray:
+    """Robertson et al.'s Gaussian-like ``exp(−4 (z−mid)²/mid²)``, ends set to 0. Shape (L,)."""
+    z = np.arange(levels, dtype=np.float64)
+    mid = (levels - 1) / 2.0
+    w = np.exp(-4.0 * (z - mid) ** 2 / mid ** 2)
+    w[[0, -1]] = 0.0
+    return w
+
+
+def weight_uniform(levels: int) -> np.ndarray:
+    """Equal weights except the two clipped end levels. Shape (L,)."""
+    w = np.ones(levels)
+    w[[0, -1]] = 0.0
+    return w
+
+
+WEIGHTINGS: dict[str, Callable[[int], np.ndarray]] = {
+    "hat": weight_hat, "gaussian": weight_gaussian, "uniform": weight_uniform}
+
+
+def weighting_table(weighting: str | Callable, levels: int) -> np.ndarray:
+    """Weights of every level, float64 (L,), for a named or callable weighting.
+
+    A callable gets the level vector ``arange(L)`` and returns non-negative
+    weights. The end levels 0 and L−1 are always given weight 0: they hold
+    clipped samples (below black after dark subtraction, or saturated).
+    """
+    if callable(weighting):
+        w = np.asarray(weighting(np.arange(levels)), dtype=np.float64).reshape(-1)
+        if w.shape != (levels,):
+            raise InputError(f"weighting callable returned {w.shape}, expected ({levels},)")
+    elif weighting in WEIGHTINGS:
+        w = WEIGHTINGS[weighting](levels)
+    else:
+        raise InputError(f"unknown weighting {weighting!r}; use one of {sorted(WEIGHTINGS)} "
+                         "or a callable")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise InputError("weights must be finite and non-negative")
+    w = w.copy()
+    w[[0, -1]] = 0.0
+    if not np.any(w > 0):
+        raise InputError("the weighting gives zero weight to every level")
+    return w
+
+
+# ---------------------------------------------------------------- curve type
+@dataclass
+class ResponseCurve:
+    """A camera response curve ``g(z) = ln(E·Δt)``.
+
+    Attributes
+    ----------
+    g
+        float64 ``(L,)`` (one curve for all bands) or ``(bands, L)``; ``L = 2**bit_depth``.
+    bit_depth
+        Sensor bit depth, 8–16.
+    method
+        ``"debevec1997"`` (recovered) or ``"linear"`` (``g = ln z``).
+    smoothness
+        λ used for the recovery (None for linear).
+    weighting
+        Name of the weighting used (``"custom"`` for a callable).
+    wavelengths
+        Band centres (nm) the per-band curves belong to, or None.
+    parameters
+        Anything else worth keeping (samples, seed, exposure times, solver stats).
+    """
+
+    g: np.ndarray
+    bit_depth: int
+    method: str = "debevec1997"
+    smoothness: float | None = None
+    weighting: str = "hat"
+    wavelengths: np.ndarray | None = None
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.bit_depth = _check_bit_depth(self.bit_depth)
+        g = np.asarray(self.g, dtype=np.float64)
+        if g.ndim not in (1, 2) or g.shape[-1] != self.levels:
+            raise InputError(f"response curve must have shape (levels,) or (bands, levels) "
+                             f"with levels = {self.levels}, got {g.shape}")
+        if not np.all(np.isfinite(g)):
+            raise InputError("response curve contains non-finite values")
+        self.g = g
+        if self.wavelengths is not None:
+            self.wavelengths = np.asarray(self.wavelengths, dtype=np.float64).reshape(-1)
+            if not self.shared and self.wavelengths.size != g.shape[0]:
+                raise InputError(f"{self.wavelengths.size} wavelengths for {g.shape[0]} curves")
+
+    @property
+    def levels(self) -> int:
+        return 1 << self.bit_depth
+
+    @property
+    def shared(self) -> bool:
+        """True when one curve serves every band."""
+        return self.g.ndim == 1
+
+    @property
+    def is_linear(self) -> bool:
+        return self.method == "linear"
+
+    @property
+    def bands(self) -> int | None:
+        return None if self.shared else self.g.shape[0]
+
+    def table(self, bands: int | None = None) -> np.ndarray:
+        """g as float64 (C, L): C = 1 for a shared curve, else one row per band.
+
+        ``bands`` (when given) is checked against a per-band curve.
+        """
+        if self.shared:
+            return self.g[None, :]
+        if bands is not None and bands != self.g.shape[0]:
+            raise InputError(f"response curve has {self.g.shape[0]} bands, data has {bands}")
+        return self.g
+
+    def log_exposure(self, z: np.ndarray) -> np.ndarray:
+        """``g(z)`` for integer levels ``z`` of shape (..., bands) (or any shape if shared).
+
+        Levels are clipped to 0..L−1. Returns float64 of ``z``'s shape.
+        """
+        z = np.clip(np.asarray(z), 0, self.levels - 1).astype(np.intp)
+        if self.shared:
+            return self.g[z]
+        nb = self.g.shape[0]
+        if z.shape[-1] != nb:
+            raise InputError(f"last axis of z has {z.shape[-1]} bands, curve has {nb}")
+        return self.g[np.arange(nb), z]
+
+    def exposure(self, z: np.ndarray) -> np.ndarray:
+        """``exp(g(z))``: the linearised sensor value (linear-equivalent DN)."""
+        return np.exp(self.log_exposure(z))
+
+    # --------------------------------------------------------- construction
+    @classmethod
+    def linear(cls, bit_depth: int = 12, *, bands: int | None = None,
+               wavelengths: np.ndarray | None = None) -> "ResponseCurve":
+        """The linear-sensor curve ``g(z) = ln z`` (dark already subtracted).
+
+        Level 0 (at or below black) is given ``ln 0.5``: half a DN is the
+        smallest positive value a rounded level can stand for.
+        """
+        L = 1 << _check_bit_depth(bit_depth)
+        g = np.log(np.maximum(np.arange(L, dtype=np.float64), 0.5))
+        if bands is not None:
+            g = np.repeat(g[None], bands, axis=0)
+        return cls(g, bit_depth, method="linear", smoothness=None, weighting="hat",
+                   wavelengths=wavelengths)
+
+    # --------------------------------------------------------------- storage
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT, "method": self.method, "bit_depth": self.bit_depth,
+                "levels": self.levels, "shared": self.shared,
+                "smoothness": self.smoothness, "weighting": self.weighting,
+                "gauge": "g(Z_mid) = ln(Z_mid)",
+                "wavelengths": None if self.wavelengths is None else self.wavelengths.tolist(),
+                "parameters": self.parameters,
+                "g": self.g.tolist()}
+
+    def save(self, path: str | Path) -> Path:
+        """Write the curve and its parameters as JSON (atomically)."""
+        from mehs.io.atomic import write_text_atomic
+
+        # repr-precision floats: a saved curve reloads bit-identically
+        text = json.dumps(self.to_dict(), default=_json_default, indent=1)
+        return write_text_atomic(path, text + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ResponseCurve":
+        """Read a curve written by :meth:`save`."""
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError("response curve file not found", path) from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise FormatError(f"not a readable JSON response curve ({exc})", path) from None
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise FormatError(f"not a {FORMAT} file (format = {d.get('format') if isinstance(d, dict) else None!r})", path)
+        try:
+            return cls(np.asarray(d["g"], dtype=np.float64), int(d["bit_depth"]),
+                       method=str(d.get("method", "debevec1997")),
+                       smoothness=d.get("smoothness"), weighting=str(d.get("weighting", "hat")),
+                       wavelengths=d.get("wavelengths"), parameters=d.get("parameters") or {})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FormatError(f"bad response curve ({exc})", path) from None
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _check_bit_depth(bit_depth: Any) -> int:
+    try:
+        b = int(bit_depth)
+    except (TypeError, ValueError):
+        raise InputError(f"bit depth must be an integer, got {bit_depth!r}") from None
+    if b != bit_depth or not 8 <= b <= 16:
+        raise InputError(f"bit depth must be 8..16, got {bit_depth!r}")
+    return b
+
+
+# ------------------------------------------------------------------ sampling
+def to_levels(raw: np.ndarray, dark: np.ndarray | float | None, bit_depth: int,
+              saturation: float | np.ndarray | None = None) -> np.ndarray:
+    """Dark-subtracted integer levels for the response solve, int32.
+
+    ``raw − dark`` rounded and clipped to 0..L−2; samples with ``raw ≥
+    saturation`` (raw DN; default L−1) become level L−1, which every weighting
+    gives zero weight.
+    """
+    L = 1 << bit_depth
+    raw = np.asarray(raw)
+    sat = L - 1 if saturation is None else saturation
+    x = raw.astype(np.float32)
+    if dark is not None:
+        x = x - np.asarray(dark, dtype=np.float32)
+    z = np.clip(np.rint(x), 0, L - 2).astype(np.int32)
+    z[raw >= sat] = L - 1
+    return z
+
+
+def sample_pixels(stack: np.ndarray, n: int | None = None, *, seed: int | None = 0,
+                  bit_depth: int = 12, strata: int = 64,
+                  max_candidates: int | None = None) -> np.ndarray:
+    """Stratified sample of pixel levels for the Debevec–Malik solve.
+
+    Parameters
+    ----------
+    stack
+        Integer levels of shape ``(P, pixels)`` or ``(P, pixels, C)`` — or
+        ``(P, lines, samples[, C])`` when ``C`` is given as a 4-D array —
+        dark-subtracted, with saturated samples at L−1 (see :func:`to_levels`).
+    n
+        Pixels per channel; default ``⌈2·L/(P−1)⌉``.
+    seed
+        Seed of the random visiting order (deterministic sampling).
+    strata
+        Intensity strata per exposure: pixels are kept while one of their
+        exposures falls in an under-filled (exposure, stratum) cell, so every
+        part of the range and every exposure is represented.
+
+    Returns
+    -------
+    int32 ``(n, P, C)`` (or ``(n, P)`` for a 2-D ``stack``): the sampled levels.
+
+    Raises
+    ------
+    InputError
+        When ``n·(P−1) ≤ L`` (the system would be underdetermined) or when
+        fewer than ``n`` pixels have two usable exposures in some channel.
+    """
+    from mehs.synthesis._kernels import stratified_pick
+
+    st = np.asarray(stack)
+    squeeze = False
+    if st.ndim == 2:
+        st = st[:, :, None]
+        squeeze = True
+    elif st.ndim == 4:
+        st = st.reshape(st.shape[0], -1, st.shape[3])
+    elif st.ndim != 3:
+        raise InputError(f"stack must be (P, pixels[, C]), got shape {st.shape}")
+    P, M, C = st.shape
+    if P < 2:
+        raise InputError(f"response recovery needs at least 2 exposures, got {P}")
+    L = 1 << _check_bit_depth(bit_depth)
+    if n is None:
+        n = int(np.ceil(2.0 * L / (P - 1)))
+    n = int(n)
+    if n * (P - 1) <= L:
+        raise InputError(f"{n} pixels × ({P}−1) exposures = {n * (P - 1)} equations do not "
+                         f"exceed the {L} levels of a {bit_depth}-bit curve; sample more pixels "
+                         "(or share one curve across bands)")
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(M)
+    if max_candidates is not None and M > max_candidates:
+        order = order[:max_candidates]
+    idx = stratified_pick(np.ascontiguousarray(st, dtype=np.int32), order.astype(np.int64),
+                          n, int(strata), L)
+    short = np.flatnonzero(idx[:, -1] < 0)
+    if short.size:
+        got = int((idx[short[0]] >= 0).sum())
+        raise InputError(f"only {got} pixels with two or more usable exposures in channel "
+                         f"{int(short[0])}; {n} needed for a {bit_depth}-bit curve "
+                         f"with {P} exposures")
+    # (C, n) indices → (n, P, C) levels
+    Z = np.take_along_axis(st.transpose(2, 1, 0), idx[:, :, None], axis=1)  # (C, n, P)
+    Z = np.ascontiguousarray(Z.transpose(1, 2, 0))
+    return Z[:, :, 0] if squeeze else Z
+
+
+# ---------------------------------------------------------------- recovery
+def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
+                                 bit_depth: int = 12, smoothness: float = 100.0,
+                                 weighting: str | Callable = "hat", shared: bool = False,
+                                 solver: str = "pcg", tol: float = 1e-10,
+                                 maxiter: int = 5000, wavelengths: np.ndarray | None = None,
+                                 parameters: dict | None = None) -> ResponseCurve:
+    """Recover ``g`` by Debevec & Malik's weighted, smoothed least squares.
+
+    Minimises ``Σ_i Σ_j {w(Z_ij)[g(Z_ij) − ln E_i − ln Δt_j]}² + λ' Σ_z [w(z) g''(z)]²``
+    with the gauge ``g(Z_mid) = ln Z_mid`` (module docstring).
+
+    Parameters
+    ----------
+    samples
+        Integer levels ``(N, P)`` (one channel) or ``(N, P, C)``; level L−1
+        marks a saturated sample (weight 0).
+    log_times
+        ``ln Δt_j``, shape ``(P,)``.
+    smoothness
+        λ, normalised as described in the module docstring.
+    weighting
+        ``"hat"`` (Debevec), ``"gaussian"``, ``"uniform"`` or a callable of the levels.
+    shared
+        One curve for all C channels (their samples are pooled) instead of one each.
+    solver
+        ``"pcg"``: ln E eliminated exactly (Schur complement), the L×L system
+        solved by CG preconditioned with its pentadiagonal part (numba, parallel
+        over channels); ``"direct"``: the same Schur complement built with
+        scipy.sparse and factorised by SuperLU (reference; slower).
+
+    Returns
+    -------
+    ResponseCurve
+        ``g`` float64 ``(L,)`` if ``shared`` or one channel, else ``(C, L)``.
+    """
+    L = 1 << _check_bit_depth(bit_depth)
+    Z = np.asarray(samples)
+    if Z.ndim == 2:
+        Z = Z[:, :, None]
+    if Z.ndim != 3:
+        raise InputError(f"samples must be (N, P) or (N, P, C), got shape {Z.shape}")
+    if not np.issubdtype(Z.dtype, np.integer):
+        raise InputError(f"samples must be integer levels, got dtype {Z.dtype}")
+    N, P, C = Z.shape
+    lt = np.asarray(log_times, dtype=np.float64).reshape(-1)
+    if P < 2:
+        raise InputError(f"response recovery needs at least 2 exposures, got {P}")
+    if lt.size != P:
+        raise InputError(f"{lt.size} log exposure times for {P} exposures")
+    if not np.all(np.isfinite(lt)):
+        raise InputError("log exposure times must be finite")
+    if np.unique(lt).size != P:
+        raise InputError("exposure times must be distinct")
+    if Z.min() < 0 or Z.max() > L - 1:
+        raise InputError(f"levels must lie in 0..{L - 1} for {bit_depth} bits "
+                         f"(got {Z.min()}..{Z.max()})")
+    if not (np.isfinite(smoothness) and smoothness >= 0):
+        raise InputError(f"smoothness must be finite and ≥ 0, got {smoothness}")
+    w = weighting_table(weighting, L)
+    if shared and C > 1:
+        Zc = Z.transpose(1, 0, 2).reshape(P, N * C).T[None]      # (1, N·C, P)
+    else:
+        Zc = Z.transpose(2, 0, 1)                                # (C, N, P)
+    Zc = np.ascontiguousarray(Zc, dtype=np.int32)
+    n_eff = Zc.shape[1]
+    if n_eff * (P - 1) <= L:
+        raise InputError(f"{n_eff} pixels × ({P}−1) exposures do not exceed the {L} levels")
+    wz = w[Zc]
+    mid = L // 2
+    rho = n_eff * P / L
+    lam_eff = smoothness * rho * ((L - 1) / 255.0) ** 4
+    lam = np.full(Zc.shape[0], lam_eff)
+    # A floor on the smoothness weights keeps the end levels tied to the curve.
+    wsm = np.maximum(w, 1e-3)
+    if solver == "pcg":
+        from mehs.synthesis._kernels import debevec_pcg
+
+        g, iters, relres = debevec_pcg(Zc, wz, lt, wsm, lam, mid, float(tol), int(maxiter))
+        bad = np.flatnonzero(relres > max(tol * 1e3, 1e-6))
+        for ch in bad:   # rare: fall back to the direct factorisation for that channel
+            g[ch] = _solve_direct(Zc[ch], wz[ch], lt, wsm, lam_eff, mid)
+        stats = {"solver": "pcg", "iterations_max": int(iters.max()),
+                 "iterations_mean": float(iters.mean()), "direct_fallbacks": int(bad.size)}
+    elif solver == "direct":
+        g = np.stack([_solve_direct(Zc[ch], wz[ch], lt, wsm, lam_eff, mid)
+                      for ch in range(Zc.shape[0])])
+        stats = {"solver": "direct"}
+    else:
+        raise InputError(f"unknown solver {solver!r}; use 'pcg' or 'direct'")
+    g = g + np.log(mid)
+    g = g[0] if g.shape[0] == 1 else g
+    params = {"samples": int(N), "exposures": int(P), "log_times": lt.tolist(),
+              "gauge_level": mid, "smoothness_effective": lam_eff, **stats,
+              **(parameters or {})}
+    return ResponseCurve(g, bit_depth, method="debevec1997", smoothness=float(smoothness),
+                         weighting=weighting if isinstance(weighting, str) else "custom",
+                         wavelengths=None if g.ndim == 1 else wavelengths, parameters=params)
+
+
+def _solve_direct(Z: np.ndarray, wz: np.ndarray, lt: np.ndarray, wsm: np.ndarray,
+                  lam: float, mid: int) -> np.ndarray:
+    """The Schur-complement system of one channel, sparse LU (SuperLU). Returns g (L,), g[mid] = 0."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    L = wsm.size
+    N, P = Z.shape
+    w2 = wz * wz
+    W = w2.sum(1)
+    ok = W > 0
+    Winv = np.where(ok, 1.0 / np.where(ok, W, 1.0), 0.0)
+    rows = np.repeat(np.arange(N), P)
+    U = sp.csr_matrix((w2.ravel(), (rows, Z.ravel())), shape=(N, L))
+    c = np.asarray(U.sum(0)).ravel()
+    D2 = sp.diags([np.ones(L - 2), -2 * np.ones(L - 2), np.ones(L - 2)], [0, 1, 2],
+                  shape=(L - 2, L))
+    S = sp.diags(c) + lam * (D2.T @ sp.diags(wsm[1:-1] ** 2) @ D2) - U.T @ sp.diags(Winv) @ U
+    m = (w2 * lt).sum(1) * Winv
+    b = np.bincount(Z.ravel(), weights=(w2 * (lt[None, :] - m[:, None])).ravel(), minlength=L)
+    keep = np.arange(L) != mid
+    S = S.tocsr()[keep][:, keep].tocsc()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        x = spla.spsolve(S, b[keep])
+    g = np.zeros(L)
+    g[keep] = x
+    if not np.all(np.isfinite(g)):
+        raise InputError("the response system is singular: the samples do not tie the "
+                         "levels together (too few overlapping exposures?)")
+    return g
