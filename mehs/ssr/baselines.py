@@ -80,20 +80,36 @@ def smits_basis(wavelengths: np.ndarray = WAVELENGTHS_31) -> np.ndarray:
     return _smits_basis(tuple(np.asarray(wavelengths, dtype=np.float64).tolist()))
 
 
+#: Pixels per block in the vectorised Smits (keeps the temporaries in cache).
+_SMITS_CHUNK = 1 << 15
+
+
+def _smits_coefficients_into(x: np.ndarray, coef: np.ndarray) -> None:
+    """Fill ``coef (n, 7)`` with the Smits basis weights of ``x (n, 3)``.
+
+    ``min·white + (mid − min)·secondary(argmin) + (max − mid)·primary(argmax)``.
+    A tie sets two indicator columns, but then its weight (mid − min or
+    max − mid) is 0, so the sum is the same whichever branch colour takes.
+    """
+    r, g, b = x[:, 0], x[:, 1], x[:, 2]
+    lo = np.minimum(np.minimum(r, g), b)
+    hi = np.maximum(np.maximum(r, g), b)
+    mid = np.maximum(np.minimum(r, g), np.minimum(np.maximum(r, g), b))  # exact median
+    d1 = mid - lo
+    d2 = hi - mid
+    coef[:, 0] = lo
+    for j, ch in enumerate((r, g, b)):
+        np.multiply(d1, ch == lo, out=coef[:, 1 + j])   # cyan, magenta, yellow
+        np.multiply(d2, ch == hi, out=coef[:, 4 + j])   # red, green, blue
+
+
 def smits_coefficients(rgb: np.ndarray) -> np.ndarray:
     """Weights of the 7 Smits basis spectra per pixel: ``(..., 3) → (..., 7)`` float32/64."""
     rgb = np.asarray(rgb)
     dtype = np.float32 if rgb.dtype == np.float32 else np.float64
     flat = rgb.reshape(-1, 3).astype(dtype, copy=False)
-    n = flat.shape[0]
-    srt = np.sort(flat, axis=1)
-    lo, mid, hi = srt[:, 0], srt[:, 1], srt[:, 2]
-    coef = np.zeros((n, 7), dtype=dtype)
-    coef[:, 0] = lo
-    rows = np.arange(n)
-    # min channel R/G/B → secondary cyan/magenta/yellow (1..3); max → red/green/blue (4..6).
-    coef[rows, 1 + np.argmin(flat, axis=1)] = mid - lo
-    coef[rows, 4 + np.argmax(flat, axis=1)] += hi - mid
+    coef = np.empty((flat.shape[0], 7), dtype=dtype)
+    _smits_coefficients_into(flat, coef)
     return coef.reshape(*rgb.shape[:-1], 7)
 
 
@@ -102,13 +118,24 @@ def RGB_to_spectra_Smits1999(rgb: np.ndarray,
     """Smits (1999) spectra of linear RGB, vectorised: ``(..., 3) → (..., B)``.
 
     Agrees with ``colour.recovery.RGB_to_sd_Smits1999(rgb)[wavelengths]`` per
-    pixel (see the module notes). float32 in → float32 out.
+    pixel (see the module notes). float32 in → float32 out. Processed in blocks
+    of :data:`_SMITS_CHUNK` pixels written straight into the output.
     """
     rgb = np.asarray(rgb)
     if rgb.shape[-1] != 3:
         raise InputError(f"Smits 1999 needs (..., 3) RGB, got shape {rgb.shape}")
-    coef = smits_coefficients(rgb)
-    return coef @ smits_basis(wavelengths).astype(coef.dtype)
+    dtype = np.float32 if rgb.dtype == np.float32 else np.float64
+    flat = rgb.reshape(-1, 3).astype(dtype, copy=False)
+    basis = smits_basis(wavelengths).astype(dtype)
+    n = flat.shape[0]
+    out = np.empty((n, basis.shape[1]), dtype=dtype)
+    coef = np.empty((min(n, _SMITS_CHUNK), 7), dtype=dtype)
+    for s in range(0, n, _SMITS_CHUNK):
+        x = flat[s:s + _SMITS_CHUNK]
+        c = coef[:x.shape[0]]
+        _smits_coefficients_into(x, c)
+        np.matmul(c, basis, out=out[s:s + x.shape[0]])
+    return out.reshape(*rgb.shape[:-1], basis.shape[1])
 
 
 @lru_cache(maxsize=8)
