@@ -45,6 +45,7 @@ def test_synthetic_set_layout(dataset):
 
 def test_ldr_is_linearised_onto_the_hdr_scale(dataset):
     p = load_pairs(dataset)[1]
+    assert p.ldr_exposure is not None            # read from quality.ldr_exposure
     hdr, ldr = p.hdr_rgb(), p.ldr_rgb()
     ok = (ldr > 0.05) & (ldr < 0.5 * ldr.max())
     assert np.median(ldr[ok] / hdr[ok]) == pytest.approx(1.0, abs=0.03)

@@ -13,7 +13,8 @@ Two layouts are accepted by :func:`load_pairs`:
 LDR-RGB is linearised with the sRGB EOTF (IEC 61966-2-1) and divided by the
 exposure that made it (``ldr = encode(clip(exposure · hdr))``) so it is on the
 HDR-RGB's scale. The exposure is read from the manifest scene entry
-(``rgb.ldr_exposure``, or ``ldr_exposure`` at the top of the entry); if it is not
+(``quality.ldr_exposure`` as ``mehs build`` writes it, else ``rgb.ldr_exposure`` or
+``ldr_exposure``); if it is not
 recorded and an HDR-RGB exists it is estimated as the ratio of the two over
 well-exposed pixels (linear LDR in 0.02..0.9); otherwise it is taken as 1.
 
@@ -225,8 +226,8 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> Pa
         hs = _inside(root, files.get("hs"), "hs", sid)
         if hs is None:
             raise FormatError(f"scene {sid!r} has no 'hs' file", mpath)
-        rgb_info = sc.get("rgb") or {}
-        exposure = rgb_info.get("ldr_exposure", sc.get("ldr_exposure"))
+        exposure = next((d["ldr_exposure"] for d in (sc.get("quality"), sc.get("rgb"), sc)
+                         if isinstance(d, dict) and d.get("ldr_exposure") is not None), None)
         pairs.append(Pair(
             id=sid, hs_path=hs,
             hdr_path=_inside(root, files.get("hdr_rgb"), "hdr_rgb", sid),

@@ -175,8 +175,9 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
                  "ldr_rgb": f"scenes/{sid}/ldr_rgb.png", "mask": f"scenes/{sid}/mask.png"}
         split = next(k for k, v in split_ids.items() if sid in v)
         scenes.append({"id": sid, "status": "pass", "reasons": [], "files": files,
-                       "sha256": {}, "rgb": {"ldr_exposure": float(exposure)},
-                       "quality": {"invalid_fraction": float(np.mean(mask != 0))},
+                       "sha256": {},
+                       "quality": {"invalid_fraction": float(np.mean(mask != 0)),
+                                   "ldr_exposure": float(exposure)},
                        "provenance": {"generator": "mehs.ssr.synthetic", "seed": seed,
                                       **info}})
         rows.append({"id": sid, "status": "pass", "split": split, **{k: files[k] for k in
@@ -185,7 +186,7 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
                 "wavelengths": WAVELENGTHS_31.tolist(),
                 "rgb": {"xyz_scale": "1/sum(ybar)",
                         "ldr_exposure_rule": "mehs.rgb.ldr_rgb default (recorded per scene "
-                                             "as rgb.ldr_exposure)"},
+                                             "as quality.ldr_exposure)"},
                 "scenes": scenes, "splits": split_ids}
     write_index_csv(out / "index.csv", rows)
     write_json_atomic(out / "manifest.json", manifest)
