@@ -272,7 +272,7 @@ def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut
 
     Parameters
     ----------
-    zs : tuple of P arrays (lines, A, B)
+    zs : array (P, lines, A, B)
         Raw DN of each exposure (shortest first); the last axis is the one
         contiguous in memory. ``band_last`` says whether B (True) or A is the
         band axis.
@@ -307,7 +307,7 @@ def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut
     bands, ``nsat`` int32 bands saturated in every exposure, ``nvalid`` int32
     bands with at least one usable sample.
     """
-    P = len(zs)
+    P = zs.shape[0]
     nl, A, B = out.shape
     L = wlut.shape[0]
     shared = glut.shape[0] == 1
@@ -331,7 +331,7 @@ def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut
                 sy = 0.0
                 st = 0.0
                 for j in range(P):
-                    raw = np.float64(zs[j][l, a, bb])
+                    raw = np.float64(zs[j, l, a, bb])
                     dk = raw - darks[j, a, bb]
                     issat[j] = raw >= sat[a, bb]
                     if linear:

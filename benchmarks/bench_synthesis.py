@@ -1,0 +1,203 @@
+"""Synthesis benchmarks, side by side in one run (design.md §7).
+
+1. Response recovery, 204 bands × 4096 levels × 3 exposures (mehs PCG solver)
+   vs colour-hdri's dense ``g_solve`` (Debevec 1997) on ONE band at n = 4096.
+2. Merge of a 512×512×204×3 uint16 bracket (memory-mapped ENVI-like files)
+   vs OpenCV ``MergeDebevec`` in 68 three-band calls and vs one plain read pass;
+   peak Python-heap memory (tracemalloc) against the stack size.
+3. Merge accuracy against simulator truth (non-linear "gamma" sensor):
+   mehs vs OpenCV MergeDebevec on the same stack (given the same Debevec curve).
+
+Usage: ``python benchmarks/bench_synthesis.py [--quick]`` (``--quick`` skips the
+~50 s colour-hdri solve and uses a 256×256 merge).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def best(fn, repeat=3):
+    times = []
+    out = None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def bench_response(quick: bool) -> list[tuple[str, float, str]]:
+    from mehs.synthesis.response import recover_response_Debevec1997, sample_pixels, to_levels
+
+    rng = np.random.default_rng(0)
+    P, C, M = 3, 204, 16384
+    t = np.array([1.0, 4.0, 16.0])
+    E = np.exp(rng.uniform(np.log(0.5), np.log(4000), (M, C)))
+    raw = np.stack([4095 * (np.clip(E * tt, 0, 4095) / 4095) ** 0.8
+                    + rng.normal(0, 2, (M, C)) for tt in t])
+    lev = to_levels(np.clip(np.rint(raw), 0, 4095), None, 12, 4095)
+    t_s, Z = best(lambda: sample_pixels(lev, 4096, seed=0, bit_depth=12), 1)
+    recover_response_Debevec1997(Z[:, :, :2], np.log(t))          # compile / warm
+    t_r, curve = best(lambda: recover_response_Debevec1997(Z, np.log(t), bit_depth=12), 2)
+    rows = [("sample 4096 px × 204 bands (stratified)", t_s, ""),
+            ("recover 204 bands × 4096 levels × 3 exp (mehs PCG)", t_r,
+             f"target ≤ 2 s; CG iterations ≤ {curve.parameters['iterations_max']}")]
+    t_one, _ = best(lambda: recover_response_Debevec1997(Z[:, :, :1], np.log(t), bit_depth=12,
+                                                          solver="direct"), 1)
+    rows.append(("  1 band, scipy sparse direct (mehs 'direct')", t_one, ""))
+    if not quick:
+        from colour_hdri import g_solve
+
+        w = lambda z: np.minimum(z, 4095 - z) / 2047.5
+        t0 = time.perf_counter()
+        g_solve(Z[:, :, 0], np.log(t), 30, w, 4096)
+        t_c = time.perf_counter() - t0
+        rows.append(("  1 band, colour-hdri g_solve (dense), n=4096", t_c,
+                     f"mehs 204 bands is {t_c / t_r:.1f}× faster than colour-hdri 1 band; "
+                     f"{t_c * 204 / t_r:.0f}× per band"))
+    return rows
+
+
+def bench_merge(quick: bool) -> list[tuple[str, float, str]]:
+    import cv2
+
+    from mehs.synthesis.merge import merge_bracket
+
+    nl = ns = 256 if quick else 512
+    nb, P = 204, 3
+    t = np.array([2.0, 8.0, 32.0])
+    rng = np.random.default_rng(1)
+    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_"))
+    E = (np.exp(rng.uniform(np.log(0.5), np.log(1500), (nl, ns, 1)))
+         * rng.uniform(0.3, 1.0, (1, 1, nb))).astype(np.float32)
+    dark = np.full((ns, nb), 64.0, np.float32)
+    paths = []
+    for j, tt in enumerate(t):
+        p = tmp / f"exp{j}.raw"
+        mm = np.memmap(p, dtype=np.uint16, mode="w+", shape=(nl, nb, ns))   # BIL on disk
+        for l0 in range(0, nl, 64):
+            x = E[l0:l0 + 64] * tt + 64 + rng.normal(0, 3, (min(64, nl - l0), ns, nb)).astype(np.float32)
+            mm[l0:l0 + 64] = np.clip(np.rint(x), 0, 4095).astype(np.uint16).transpose(0, 2, 1)
+        mm.flush()
+        del mm
+        paths.append(p)
+    del E
+    stack = [np.memmap(p, dtype=np.uint16, mode="r", shape=(nl, nb, ns)).transpose(0, 2, 1)
+             for p in paths]
+    nbytes = sum(s.nbytes for s in stack)
+
+    def read_pass():
+        acc = 0
+        for s in stack:
+            for l0 in range(0, nl, 32):
+                acc += int(np.asarray(s[l0:l0 + 32]).sum(dtype=np.uint64))
+        return acc
+
+    t_read, _ = best(read_pass, 2)
+    merge_bracket(stack, t, darks=[dark] * P)                    # compile / warm
+    rows = [(f"one read pass over the stack ({nbytes / 2**20:.0f} MiB)", t_read, "reference")]
+    for method in ("poisson", "debevec"):
+        t_m, _ = best(lambda: merge_bracket(stack, t, method=method, darks=[dark] * P), 2)
+        rows.append((f"mehs merge {method} {nl}×{ns}×{nb}×{P}", t_m,
+                     f"{t_m / t_read:.2f}× read pass (target ≤ 4×)"))
+    tracemalloc.start()
+    merge_bracket(stack, t, darks=[dark] * P)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    rows.append(("  peak traced memory of the merge", 0.0,
+                 f"{peak / 2**20:.0f} MiB = {peak / nbytes:.2f}× the stack (target ≤ 2×)"))
+    merge = cv2.createMergeDebevec()
+
+    def opencv():
+        out = np.empty((nl, ns, nb), np.float32)
+        for b0 in range(0, nb, 3):
+            imgs = [np.ascontiguousarray(s[:, :, b0:b0 + 3]) for s in stack]
+            out[:, :, b0:b0 + 3] = merge.process(imgs, t.astype(np.float32))
+        return out
+
+    t_cv, _ = best(opencv, 1)
+    rows.append((f"OpenCV MergeDebevec, {nb // 3} three-band calls", t_cv, "reference"))
+    t_m = rows[1][1]
+    rows.append(("  mehs poisson speed-up over OpenCV", 0.0, f"{t_cv / t_m:.1f}× (target ≥ 5×)"))
+    for p in paths:
+        os.unlink(p)
+    os.rmdir(tmp)
+    return rows
+
+
+def bench_accuracy() -> list[tuple[str, float, str]]:
+    import cv2
+
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import fuse_bracket, recover_response
+    from mehs.synthesis.response import to_levels
+
+    sc = make_scene("colorchecker", lines=96, samples=96, source_ratio=300, seed=1)
+    sen = SensorModel(response="gamma", seed=2, radiance_to_e_per_ms=1600.0)
+    sim = simulate_bracket(sc, sen, [8.0, 32.0, 128.0], seed=3)
+    br = Bracket([SpectralCube(e, sc.wavelengths) for e in sim.exposures], list(sim.darks),
+                 [None] * 3, sim.times_ms, sc.wavelengths, bit_depth=12,
+                 metadata={"device": {"sensor": {"gain_dn_per_e": sen.gain_dn_per_e,
+                                                 "read_noise_e": sen.read_noise_e}}})
+    truth = sim.truth * sim.truth_dn_per_ms
+    ok = (sim.exposures[0] < 0.98 * 4095).all(axis=2)
+
+    def scores(rad, valid):
+        s = np.median((rad / truth)[valid])
+        rel = np.abs(rad / s - truth) / truth
+        cos = np.einsum("ijk,ijk->ij", rad, truth) / (np.linalg.norm(rad, axis=2)
+                                                      * np.linalg.norm(truth, axis=2))
+        sam = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+        return np.median(rel[valid]), np.percentile(rel[valid], 99), np.median(sam[valid])
+
+    rows = []
+    for method in ("inverse-variance", "poisson", "debevec"):
+        res = fuse_bracket(br, method=method, ghosts="off")
+        m, p, a = scores(res.radiance.data, ok)
+        rows.append((f"accuracy mehs {method} (auto curve)", 0.0,
+                     f"median rel {m:.4f}  p99 {p:.3f}  SAM {a:.3f}°"))
+    curve = recover_response(br, levels="dark-subtracted", shared=True)
+    levs = [to_levels(e.data, d, 12, 0.98 * 4095) for e, d in zip(br.exposures, br.darks)]
+    lut = np.ones((65536, 1, 3), np.float32)
+    lut[:4096, 0, :] = np.exp(curve.g)[:, None]
+    merge = cv2.createMergeDebevec()
+    nb = truth.shape[2]
+    cv = np.zeros(truth.shape, np.float32)
+    for b0 in range(0, nb, 3):
+        idx = [min(b, nb - 1) for b in range(b0, b0 + 3)]
+        r = merge.process([np.ascontiguousarray(lv[:, :, idx]).astype(np.uint16) for lv in levs],
+                          br.times_ms.astype(np.float32), lut)
+        cv[:, :, idx] = r
+    m, p, a = scores(cv, ok & np.all(cv > 0, axis=2))
+    rows.append(("accuracy OpenCV MergeDebevec (same curve)", 0.0,
+                 f"median rel {m:.4f}  p99 {p:.3f}  SAM {a:.3f}°"))
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    rows = bench_response(args.quick) + bench_merge(args.quick) + bench_accuracy()
+    print(f"{'what':58s} {'seconds':>9s}  notes")
+    for name, sec, note in rows:
+        print(f"{name:58s} {sec:9.3f}  {note}" if sec else f"{name:58s} {'':>9s}  {note}")
+
+
+if __name__ == "__main__":
+    main()
