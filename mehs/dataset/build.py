@@ -251,6 +251,10 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, di
         result = fuse_bracket(bracket, **_fuse_kwargs(fuse_bracket, p, response))
     del bracket
     summary = dict(result.summary or {})
+    # wall-clock figures belong to the volatile provenance, never to a data file
+    for name, sec in (summary.pop("timings", None) or {}).items():
+        if name != "total_s":
+            run["stage_seconds"][f"fuse.{name.removesuffix('_s')}"] = round(float(sec), 4)
     mask = np.asarray(result.mask, dtype=np.uint8)
     quality = _quality(summary, mask)
     quality["n_exposures"] = int(summary.get("n_exposures", len(summary.get("exposure_ratios") or []) or 0)) or None
@@ -375,21 +379,46 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     report_stage(sid, "rgb")
     with _timed(run, "rgb"):
         hdr = np.asarray(hdr_rgb(data, WAVELENGTHS_31), dtype=np.float32)
+        scale = half_float_scale(float(hdr.max()) if hdr.size else 0.0)
+        if scale != 1.0:
+            # a power of two commutes exactly with float rounding: HS and RGB stay paired
+            data = data * np.float32(scale)
+            hdr = hdr * np.float32(scale)
         ldr, exposure = ldr_rgb(hdr)
         preview = tonemap(hdr)
     if quality.get("dynamic_range_stops") is None:
         quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
     quality["ldr_exposure"] = float(exposure)
     quality["peak_hdr_rgb"] = float(hdr.max()) if hdr.size else 0.0
+    quality["radiance_scale"] = scale
     report_stage(sid, "write")
     with _timed(run, "write"):
         hs = hs.with_data(data, units=getattr(cube, "units", None) or "relative radiance",
-                          integration_time_ms=None, source=None, metadata={})
+                          integration_time_ms=None, source=None,
+                          metadata={"mehs radiance scale": repr(scale)})
         write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
-        write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True)
+        write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True,
+                      header={"mehsRadianceScale": scale})
         write_png(tmp / "ldr_rgb.png", ldr)
         write_png(tmp / "mask.png", mask)
         write_png(tmp / "preview.png", preview)
+
+
+def half_float_scale(peak: float) -> float:
+    """``2**-k`` (k ≥ 0 smallest) so that ``peak · 2**-k`` fits half floats (≤ 65504).
+
+    Fused radiance is in DN/ms and light sources exceed the half-float range of
+    the pseudo-HDR-RGB EXR; the HS cube and its RGB images are then stored
+    scaled by the same power of two (exact in floating point), recorded as
+    ``quality.radiance_scale`` and in both file headers.
+    """
+    import math
+
+    from mehs.io.exr import HALF_MAX
+
+    if not (peak > HALF_MAX) or not math.isfinite(peak):
+        return 1.0
+    return 2.0 ** -math.ceil(math.log2(peak / HALF_MAX))
 
 
 def to_31_bands(cube, *, method: str = "gaussian", fwhm: float = 10.0):
