@@ -142,6 +142,21 @@ class Channel:
     # -- connection -----------------------------------------------------
     def close(self) -> None:
         if self.port is not None:
+            sock = getattr(self.port, "_socket", None)
+            if sock is not None:
+                # pyserial's socket:// close() sleeps 0.3 s "for quick reconnects";
+                # our servers need no grace period, so close the socket directly.
+                import socket
+
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                sock.close()
+                self.port._socket = None
+                self.port.is_open = False
+                self.port = None
+                return
             try:
                 self.port.close()
             except Exception:  # noqa: BLE001 - closing a dead port may fail in many ways

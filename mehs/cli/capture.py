@@ -1,11 +1,85 @@
-"""`mehs capture` — placeholder until its issue lands (replace this module)."""
+"""`mehs capture` — capture a bracketed scene (dark/white references + exposures) into a scene folder."""
 
-from mehs.errors import MehsError
+from __future__ import annotations
 
 
 def configure(parser):
-    pass
+    from mehs.cli.sim_device import add_scene_arguments
+
+    parser.add_argument("--stage", help="stage port: /dev/ttyUSB0, socket://host:port, …")
+    parser.add_argument("--camera", help="camera port: /dev/ttyUSB1, socket://host:port, …")
+    parser.add_argument("--out", required=True, help="scene folder to create (or to finish with --resume)")
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("--times", help="integration times in ms, ascending, e.g. 5,20,80")
+    g.add_argument("--auto", action="store_true", help="choose three times by auto-exposure (default)")
+    parser.add_argument("--resume", action="store_true",
+                        help="finish an interrupted scene without redoing completed exposures")
+    parser.add_argument("--scene-id", help="scene id (default: the folder name)")
+    parser.add_argument("--lines", type=int, default=None,
+                        help="lines to scan (default 512, or the simulated scene's)")
+    parser.add_argument("--pitch", type=int, default=64, help="stage microsteps per line (default 64)")
+    parser.add_argument("--start-position", type=int, default=0, help="stage position of line 0")
+    parser.add_argument("--dark-lines", type=int, default=16, help="lines averaged per dark reference")
+    parser.add_argument("--white-lines", type=int, default=16,
+                        help="lines averaged per white reference (0 = none)")
+    parser.add_argument("--white-line", type=int, default=None,
+                        help="scan line where the white tile starts (default lines+4)")
+    parser.add_argument("--checksum", action="store_true", help="use Zaber message checksums")
+    parser.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--simulate", action="store_true",
+                        help="start the simulated stage and camera in-process (loopback TCP)")
+    add_scene_arguments(parser, geometry=False)
 
 
 def run(args):
-    raise MehsError("'mehs capture' is not implemented yet")
+    import sys
+
+    from mehs.capture.camera import LineCamera
+    from mehs.capture.session import capture_scene
+    from mehs.capture.zaber import ZaberStage
+    from mehs.errors import InputError
+
+    times = None
+    if args.times:
+        try:
+            times = [float(v) for v in args.times.replace(" ", "").split(",") if v]
+        except ValueError:
+            raise InputError(f"--times must be comma-separated numbers, got {args.times!r}") from None
+    dev = None
+    if args.simulate:
+        from mehs.cli.sim_device import build_devices
+
+        dev = build_devices(args).start()
+        stage_url, camera_url = dev.stage_url, dev.camera_url
+        lines = args.lines or dev.scene_lines
+    else:
+        if not (args.stage and args.camera):
+            raise InputError("give --stage and --camera ports (or --simulate)")
+        stage_url, camera_url = args.stage, args.camera
+        lines = args.lines or 512
+    stage = camera = None
+    try:
+        stage = ZaberStage.open(stage_url, timeout=args.timeout, checksum=args.checksum)
+        camera = LineCamera.open(camera_url, timeout=args.timeout)
+        info = {"simulated": bool(args.simulate)}
+        if args.simulate:
+            info["scene"] = dev.world.scene.info
+        doc = capture_scene(
+            stage, camera, args.out, times_ms=times, auto=times is None and not args.resume,
+            lines=lines, pitch=args.pitch, start_position=args.start_position,
+            dark_lines=args.dark_lines, white_lines=args.white_lines,
+            white_start_line=args.white_line, scene_id=args.scene_id, resume=args.resume,
+            progress=not args.no_progress and sys.stderr.isatty(),
+            seed=args.seed if args.simulate else None, device_info=info,
+            log=lambda m: print(m, file=sys.stderr))
+    finally:
+        for d in (stage, camera):
+            if d is not None:
+                d.close()
+        if dev is not None:
+            dev.close()
+    done = [e for e in doc["exposures"] if e["status"] == "complete"]
+    print(f"{args.out}: {len(done)} of {len(doc['plan']['times_ms'])} exposures complete "
+          f"({', '.join(str(e['integration_time_ms']) for e in done)} ms)")
+    return 0

@@ -1,11 +1,78 @@
-"""`mehs sim-device` — placeholder until its issue lands (replace this module)."""
+"""`mehs sim-device` — serve the simulated stage and camera until killed.
 
-from mehs.errors import MehsError
+Prints one ``name: value`` line per item (machine-readable), e.g.::
+
+    stage: socket://127.0.0.1:40123
+    camera: socket://127.0.0.1:40124
+    lines: 64
+    ready
+"""
+
+from __future__ import annotations
+
+
+def add_scene_arguments(parser, *, geometry: bool = True) -> None:
+    """Scene/sensor options shared by ``sim-device`` and ``capture --simulate``."""
+    parser.add_argument("--scene", default="colorchecker",
+                        help="simulated scene kind: colorchecker, lamp, window, ramp (default colorchecker)")
+    parser.add_argument("--size", type=int, default=64,
+                        help="scene size in lines and samples (default 64; 512 = Specim IQ)")
+    if geometry:
+        parser.add_argument("--lines", dest="scene_lines", type=int, default=None,
+                            help="scene lines (default --size)")
+        parser.add_argument("--samples", dest="scene_samples", type=int, default=None,
+                            help="scene samples (default --size)")
+    parser.add_argument("--seed", type=int, default=0, help="scene texture and sensor noise seed")
+    parser.add_argument("--motion", action="store_true", help="a bright patch drifts between exposures")
+    parser.add_argument("--source-ratio", type=float, default=1000.0,
+                        help="visible light source radiance / diffuse white (default 1000)")
+    parser.add_argument("--response", default="linear", choices=["linear", "gamma", "s-curve"],
+                        help="sensor response curve (default linear)")
+    parser.add_argument("--faults", default="",
+                        help="inject faults, e.g. 'camera:garble@40,stage:disconnect@10x2' "
+                             "(kinds: timeout garble partial disconnect again fault)")
+
+
+def build_devices(args, *, port: int = 0, transport: str = "tcp"):
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simdevice import SimDevices
+
+    lines = getattr(args, "scene_lines", None) or args.size
+    samples = getattr(args, "scene_samples", None) or args.size
+    scene = make_scene(args.scene, lines=lines, samples=samples, source_ratio=args.source_ratio,
+                       motion=args.motion, seed=args.seed)
+    sensor = SensorModel(seed=args.seed, response=args.response)
+    return SimDevices(scene, sensor, faults=args.faults, port=port, transport=transport)
 
 
 def configure(parser):
-    pass
+    parser.add_argument("--port", type=int, default=0,
+                        help="TCP port of the stage (camera on port+1); 0 picks free ports")
+    parser.add_argument("--pty", action="store_true", help="serve on pseudo-terminals instead of TCP")
+    add_scene_arguments(parser)
 
 
 def run(args):
-    raise MehsError("'mehs sim-device' is not implemented yet")
+    import signal
+    import sys
+    import threading
+
+    from mehs.capture.simdevice import parse_faults
+
+    parse_faults(args.faults)  # fail fast on a bad spec
+    dev = build_devices(args, port=args.port, transport="pty" if args.pty else "tcp")
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    with dev:
+        print(f"stage: {dev.stage_url}")
+        print(f"camera: {dev.camera_url}")
+        print(f"lines: {dev.scene_lines}")
+        print("ready", flush=True)
+        sys.stdout.flush()
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
+    return 0
