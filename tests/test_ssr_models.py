@@ -15,6 +15,9 @@ from mehs.ssr.pipeline import predict
 def test_builtins_registered_and_follow_contract():
     names = list_models()
     assert {"smits", "mallett", "regression"} <= set(names)
+    import importlib.util
+    if importlib.util.find_spec("torch") and importlib.util.find_spec("mehs.ssr.net.register"):
+        assert {"hdrssr", "fcdensenet"} <= set(names)     # the network engineer's hook
     rgb = np.random.default_rng(0).uniform(0, 3, (5, 4, 3)).astype(np.float32)
     for n in ("smits", "mallett"):
         m = load_model(n)

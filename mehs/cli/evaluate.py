@@ -69,6 +69,8 @@ def run(args):
     print(res.tables(fmt))
     if any(s.get(f"{k}_undefined") for s in res.summary for k in METRIC_NAMES):
         print("note: some images had no usable pixels for a metric (see summary.csv)")
+    for note in res.config.get("notes", []):
+        print(f"note: {note}")
     for s in res.skipped:
         print(f"skipped {s['scene']} ({s['input']}): {s['reason']}")
     print(f"results: {res.out}")

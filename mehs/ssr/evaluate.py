@@ -253,7 +253,11 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
 
     summary = summarise(rows, band_acc)
     config = {"preprocess": list(pp), "inputs": list(ins), "restore": list(rs), "crop": crop,
-              "split": split, "n_scenes": len(pairs), "seed": seed}
+              "split": split, "n_scenes": len(pairs), "seed": seed, "notes": []}
+    fitted = [n for _, n, d in resolved if d.startswith("fitted on the train split")]
+    if fitted and split not in ("test", "val"):
+        config["notes"].append(f"{', '.join(fitted)} fitted on the train split and scored on "
+                               f"split {split or 'all'}: the scores include training scenes")
     model_info = [{"name": n, "description": d,
                    "wavelengths": np.asarray(m.wavelengths, dtype=float).tolist()}
                   for m, n, d in resolved]

@@ -143,17 +143,25 @@ def register_model(name: str, factory: Callable[..., Any], *, description: str =
     MODELS[key] = ModelEntry(key, factory, description)
 
 
+def _load_builtins() -> None:
+    import mehs.ssr.baselines  # noqa: F401  (registers the built-ins)
+
+
 def _load_plugins() -> None:
-    """Import the optional registrations (the torch networks) once, quietly."""
+    """Import the optional registrations (the torch networks) once, quietly.
+
+    Only done when a name is not a built-in or the list is asked for, because
+    importing torch costs seconds.
+    """
     global _PLUGINS_LOADED
+    _load_builtins()
     if _PLUGINS_LOADED:
         return
     _PLUGINS_LOADED = True
-    import mehs.ssr.baselines  # noqa: F401  (registers the built-ins)
     try:
         importlib.import_module("mehs.ssr.net.register")
-    except ImportError:
-        pass  # torch (or the network module) absent: the networks stay unlisted
+    except (ImportError, OSError):
+        pass  # torch (or the network module) absent or broken: the networks stay unlisted
 
 
 def list_models() -> dict[str, str]:
@@ -242,8 +250,11 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
         if callable(obj):
             return FunctionModel(obj, name=name, wavelengths=wl)
         raise InputError(f"model {text!r} is a {type(obj).__name__}, not callable")
-    _load_plugins()
+    _load_builtins()
     entry = MODELS.get(low)
+    if entry is None:
+        _load_plugins()
+        entry = MODELS.get(low)
     if entry is None:
         raise InputError(f"unknown model {text!r}; known: {', '.join(sorted(MODELS))} "
                          "(or give package.module:function, a .onnx or a .npz file)")

@@ -176,6 +176,8 @@ def write_evaluation_report(results_dir: str | Path, out_html: str | Path | None
     parts.append(f"<p>Dataset: <code>{e(str(doc.get('dataset')))}</code>; split: "
                  f"{e(str(doc.get('split')))}; scenes: {cfg.get('n_scenes')}; border crop: "
                  f"{cfg.get('crop')} px; mehs {e(str(doc.get('software_version')))}.</p>")
+    for note in cfg.get("notes", []):
+        parts.append(f"<p><b>Note:</b> {e(note)}</p>")
     parts.append("<p>SAM in degrees (zero-norm pixels excluded and counted), MRAE over "
                  "elements with ground truth &gt; 0, RMSE in the data's units, PSNR with "
                  "peak = the ground truth's maximum per image; per image, then averaged. "
