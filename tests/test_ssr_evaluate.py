@@ -160,3 +160,29 @@ def test_cli_train_baseline_and_evaluate(dataset, tmp_path, capsys):
     assert (out / "report.html").is_file() and (out / "tables.txt").is_file()
     assert main(["evaluate", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert "mehs: error:" in capsys.readouterr().err
+
+
+def test_self_contained_models_are_scored_only_as_built(dataset):
+    """A model that does its own Reinhard + restoration (like the torch networks)."""
+    from mehs.ssr.baselines import Smits1999
+    from mehs.ssr.luminance import restore_luminance
+    from mehs.ssr.preprocess import reinhard
+
+    class OwnReinhard(Smits1999):
+        name = "own"
+        preprocessing = "reinhard"
+        restores_luminance = True
+
+        def predict(self, rgb):
+            return restore_luminance(super().predict(reinhard(rgb)), rgb, self.wavelengths)
+
+    res = evaluate(dataset, [OwnReinhard(), "smits"], preprocess="both", restore="both",
+                   split="test")
+    own = [r for r in res.rows if r["model"] == "own"]
+    assert own and all(r["preprocess"] == "on" and r["restore"] for r in own)
+    smits_pp = next(s for s in res.summary if s["model"] == "smits" and s["preprocess"] == "on"
+                    and s["restore"])
+    own_s = next(s for s in res.summary if s["model"] == "own")
+    # Reinhard applied once, not twice: identical to Smits with the pipeline's pre-processing.
+    assert own_s["sam"] == pytest.approx(smits_pp["sam"], rel=1e-6)
+    assert any("own applies its own pre-processing" in n for n in res.config["notes"])

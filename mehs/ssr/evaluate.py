@@ -98,6 +98,22 @@ def _resolve_models(models, pairs: PairSet, *, seed: int = 0) -> list[tuple[Any,
     return resolved
 
 
+def native_settings(model) -> tuple[tuple[str, ...], tuple[bool, ...]]:
+    """Pre-processing / restoration settings a model can be scored under.
+
+    A model declaring ``preprocessing`` (``"reinhard"`` or ``None``) applies it
+    itself, so only that setting is meaningful; one declaring
+    ``restores_luminance = True`` is only scored with restoration on.
+    """
+    pp: tuple[str, ...] = PREPROCESS_CHOICES
+    if hasattr(model, "preprocessing"):
+        pp = ("on",) if getattr(model, "preprocessing") else ("off",)
+    rs: tuple[bool, ...] = (True, False)
+    if getattr(model, "restores_luminance", False):
+        rs = (True,)
+    return pp, rs
+
+
 def _preview(rgb: np.ndarray) -> np.ndarray:
     """uint8 sRGB preview of linear HDR RGB: median luminance → 0.18, Reinhard on luminance."""
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -228,8 +244,13 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
             if want_fig and "preview" not in fig:
                 fig["preview"] = _preview(rgb)
             for model, name, _ in resolved:
+                pp_ok, rs_ok = native_settings(model)
                 for p in pp:
+                    if p not in pp_ok:
+                        continue
                     for r in rs:
+                        if r not in rs_ok:
+                            continue
                         t0 = time.perf_counter()
                         pred = predict(model, rgb, preprocess=(p == "on"), restore=r,
                                        wavelengths=wl)
@@ -254,6 +275,14 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     summary = summarise(rows, band_acc)
     config = {"preprocess": list(pp), "inputs": list(ins), "restore": list(rs), "crop": crop,
               "split": split, "n_scenes": len(pairs), "seed": seed, "notes": []}
+    for m, n, _ in resolved:
+        pp_ok, rs_ok = native_settings(m)
+        if set(pp) - set(pp_ok) or set(rs) - set(rs_ok):
+            config["notes"].append(
+                f"{n} applies its own pre-processing ({getattr(m, 'preprocessing', None)}) "
+                f"{'and luminance restoration ' if rs_ok == (True,) else ''}: scored only with "
+                f"pre-processing {'/'.join(pp_ok)}"
+                f"{', restoration on' if rs_ok == (True,) else ''}")
     fitted = [n for _, n, d in resolved if d.startswith("fitted on the train split")]
     if fitted and split not in ("test", "val"):
         config["notes"].append(f"{', '.join(fitted)} fitted on the train split and scored on "

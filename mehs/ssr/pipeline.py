@@ -11,6 +11,13 @@
    operator band by band; with both off, ``HS = S``.
 4. The model's bands are matched to the requested ``wavelengths`` (the
    dataset's): they must be present in the model's band set (within 0.01 nm).
+
+Self-contained models: a model with a ``preprocessing`` attribute (e.g. the
+networks of :mod:`mehs.ssr.net`, ``"reinhard"`` or ``None``) applies its own
+input pre-processing, so step 1 is skipped for it whatever ``preprocess`` says;
+one with ``restores_luminance = True`` has already done step 3 (doing it again
+changes nothing). :func:`mehs.ssr.evaluate.evaluate` scores such models only
+under the settings they were built for.
 """
 
 from __future__ import annotations
@@ -46,12 +53,13 @@ def predict(model, rgb: np.ndarray, *, preprocess: bool = False, restore: bool =
     """
     name = getattr(model, "name", "model")
     rgb = check_rgb(rgb, name)
-    x = reinhard(rgb) if preprocess else rgb
+    own_pp = hasattr(model, "preprocessing")
+    x = reinhard(rgb) if preprocess and not own_pp else rgb
     model_wl = np.asarray(model.wavelengths, dtype=np.float64)
     S = check_output(np.asarray(model(x)), rgb.shape, model_wl, name)
     if restore:
         out = restore_luminance(S, rgb, model_wl)
-    elif preprocess:
+    elif preprocess and not own_pp:
         out = inverse_reinhard(S)
     else:
         out = S
