@@ -1,6 +1,5 @@
 """`mehs report` on a dataset: static HTML with images beside it, all loading in Chromium."""
 
-import importlib.util
 import re
 import shutil
 import sys
@@ -51,11 +50,21 @@ def test_report_writes_page_and_images(dataset, tmp_path):
     assert (tmp_path / "r" / "page_files" / "overview.png").is_file() and other.is_file()
 
 
-def test_report_refuses_unknown_folder(tmp_path):
-    if importlib.util.find_spec("mehs.ssr.report") is not None:
-        pytest.skip("the SSR report decides what an evaluation folder is")
-    with pytest.raises(InputError, match="no dataset manifest"):
-        write_report(tmp_path)
+def test_report_dispatches_evaluation_folders(dataset, tmp_path, monkeypatch):
+    import mehs.ssr.report as ssr_report
+    from mehs.cli import main
+
+    calls = []
+    monkeypatch.setattr(ssr_report, "write_evaluation_report",
+                        lambda d, out=None: calls.append((Path(d), Path(out))) or Path(out))
+    results = tmp_path / "results"
+    results.mkdir()
+    assert main(["report", str(results)]) == 0
+    assert calls == [(results, results / "report.html")]
+    assert main(["report", str(dataset), "--out", str(tmp_path / "d.html")]) == 0
+    assert len(calls) == 1 and (tmp_path / "d.html").is_file()
+    with pytest.raises(InputError, match="not a folder"):
+        write_report(tmp_path / "nothing")
 
 
 def test_report_renders_in_headless_chromium(dataset):

@@ -115,7 +115,7 @@ def input_files(source: SceneSource) -> dict[str, Path]:
         meta = json.loads((root / "scene.json").read_text(encoding="utf-8"))
         out["scene.json"] = root / "scene.json"
         for exp in meta.get("exposures", []):
-            if exp.get("status", "complete") != "complete":
+            if exp.get("status") != "complete":
                 continue
             folder = root / exp["folder"]
             if not folder.is_dir():
@@ -164,6 +164,7 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
     run: dict[str, Any] = {"started": _now(), "stage_seconds": {}}
     t_all = time.perf_counter()
     key = None
+    hashes: dict[str, str] = {}
     try:
         report_stage(sid, "hash")
         with _timed(run, "hash"):
@@ -178,17 +179,19 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         if task.source.kind == "hs":
             quality, extra_prov = _build_from_cube(task, tmp, run)
         else:
-            quality, extra_prov = _build_from_bracket(task, tmp, run)
+            quality, extra_prov = _build_from_bracket(task, tmp, run, hashes)
         report_stage(sid, "hash outputs")
-        out_files = {name: f"scenes/{sid}/{p.name}" for name, p in sorted(_outputs(tmp).items())}
-        out_sha = {name: sha256_file(tmp / Path(rel).name) for name, rel in out_files.items()}
+        with _timed(run, "hash"):
+            outs = _outputs(tmp)
+            out_files = {name: f"scenes/{sid}/{f.name}" for name, f in outs.items()}
+            out_sha = {name: sha256_file(f) for name, f in outs.items()}
         outcome, error, kind = "built", None, None
     except MehsError as exc:
         outcome, error, kind = "failed", str(exc), "input"
-        out_files, out_sha, quality, extra_prov, hashes = {}, {}, {}, {}, locals().get("hashes", {})
+        out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
     except Exception as exc:  # noqa: BLE001 - recorded, reported and retried next run
         outcome, error, kind = "failed", f"{type(exc).__name__}: {exc}", "internal"
-        out_files, out_sha, quality, extra_prov, hashes = {}, {}, {}, {}, locals().get("hashes", {})
+        out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
         run["traceback"] = traceback.format_exc()
     run["finished"] = _now()
     run["seconds"] = round(time.perf_counter() - t_all, 3)
@@ -230,7 +233,24 @@ def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def _build_from_bracket(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]:
+def _check_recorded_hashes(root: Path, hashes: dict[str, str]) -> None:
+    """Compare input hashes with the SHA-256 that ``scene.json`` recorded per file."""
+    import json
+
+    from mehs.errors import FormatError
+
+    doc = json.loads((root / "scene.json").read_text(encoding="utf-8"))
+    for exp in doc.get("exposures", []):
+        if exp.get("status") != "complete":
+            continue
+        for rel, digest in (exp.get("files") or {}).items():
+            if hashes.get(rel) != digest:
+                raise FormatError("SHA-256 does not match scene.json (file altered, "
+                                  "truncated or missing)", root / rel)
+
+
+def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
+                        hashes: dict[str, str]) -> tuple[dict, dict]:
     import json
 
     import numpy as np
@@ -242,7 +262,13 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, di
     p = task.params
     report_stage(sid, "read")
     with _timed(run, "read"):
-        bracket = load_bracket(task.source.load_arg)
+        if task.source.kind == "scene":
+            # the inputs were just hashed for the key: check those hashes against the ones
+            # recorded at capture instead of letting load_bracket hash 300 MB again
+            _check_recorded_hashes(Path(task.source.paths[0]), hashes)
+            bracket = load_bracket(task.source.load_arg, verify="size")
+        else:
+            bracket = load_bracket(task.source.load_arg)
     report_stage(sid, "fuse")
     with _timed(run, "fuse"):
         response: Any = "auto"
