@@ -164,3 +164,18 @@ def test_bad_requests(scene, tmp_path):
         run_capture(scene, tmp_path / "b", times_ms=TIMES, auto=True)
     with pytest.raises(InputError):
         run_capture(scene, tmp_path / "c", resume=True)
+
+
+def test_capture_over_a_pseudo_terminal(scene, reference, tmp_path):
+    pytest.importorskip("termios")
+    with SimDevices(scene, SensorModel(seed=5), transport="pty", faults="camera:garble@25") as dev:
+        assert dev.stage_url.startswith("/dev/")
+        st, cam = open_drivers(dev, timeout=0.5)
+        try:
+            doc = capture_scene(st, cam, tmp_path / "s", times_ms=TIMES, **GEOM)
+        finally:
+            st.close()
+            cam.close()
+        assert dev.world.plan.fired == [("camera", 25, "garble")]
+    for got, want in zip(raw_cubes(tmp_path / "s", doc), reference.exposures):
+        np.testing.assert_array_equal(got, want)

@@ -182,3 +182,15 @@ def test_exact_poisson_when_read_noise_is_small():
     assert z.var() == pytest.approx(lam, rel=0.02)
     # P(0) of a Poisson law (a rounded normal would give ~0.075)
     assert np.mean(z == 0) == pytest.approx(np.exp(-lam), abs=0.003)
+
+
+def test_moving_scene_folder_has_moved_mask(tmp_path):
+    import cv2
+
+    s = make_scene(lines=16, samples=16, motion=True)
+    sim = simulate_bracket(s, SensorModel(), [1.0, 4.0, 16.0], dark_lines=2)
+    out = write_simulated_scene(sim, tmp_path / "m")
+    doc = json.loads((out / "scene.json").read_text())
+    mask = cv2.imread(str(out / doc["truth_moved_mask"]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(mask > 0, s.moved_mask(3))
+    assert doc["moved_mask_pixels"] == int(s.moved_mask(3).sum()) > 0

@@ -168,14 +168,14 @@ def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
     """Write ``sim`` as a scene folder (format ``mehs-scene/1``) including ``truth/radiance.hdr``.
 
     Layout: ``scene.json``, ``exposures/<k>_<t>ms/`` Specim IQ folders (raw,
-    DARKREF and WHITEREF at that time) and the ground truth as ENVI float32.
+    DARKREF and WHITEREF at that time) and the ground truth as ENVI float32;
+    with scene motion also ``truth/moved_mask.png`` (uint8, 255 = the radiance
+    differs between exposures; key ``truth_moved_mask``).
     The truth header carries ``mehs dn per ms per radiance`` (per band, see
     :attr:`SimulatedBracket.truth_dn_per_ms`). Raw captures are never
     overwritten: an existing scene folder raises unless ``overwrite``.
     """
     from mehs.capture import scenefolder as sf
-    from mehs.cube import SpectralCube
-    from mehs.io.envi import write_envi
 
     scene_dir = Path(scene_dir)
     if (scene_dir / sf.SCENE_JSON).exists() and not overwrite:
@@ -199,16 +199,43 @@ def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
             overwrite=overwrite)
         doc["exposures"].append(rec)
         sf.write_scene_json(scene_dir, doc)
-    truth = SpectralCube(np.asarray(sim.truth, dtype=np.float32), sim.wavelengths, fwhm=sim.fwhm,
-                         units="relative radiance")
-    hdr = scene_dir / "truth" / "radiance.hdr"
-    extra = {}
-    if sim.truth_dn_per_ms is not None:
-        extra["mehs dn per ms per radiance"] = [float(f"{v:.6g}") for v in sim.truth_dn_per_ms]
-    write_envi(hdr, truth, dtype=np.float32, overwrite=overwrite, extra_header=extra)
-    doc["truth"] = "truth/radiance.hdr"
-    doc["truth_dn_per_ms_per_radiance"] = [float(v) for v in sim.truth_dn_per_ms]
+    write_truth(scene_dir, doc, sim.truth, sim.wavelengths, fwhm=sim.fwhm,
+                dn_per_ms=sim.truth_dn_per_ms, overwrite=overwrite)
     if sim.scene.moving:
-        doc["moved_mask_pixels"] = int(sim.scene.moved_mask(len(sim.times_ms)).sum())
+        import cv2
+
+        from mehs.io.atomic import atomic_path
+
+        moved = sim.scene.moved_mask(len(sim.times_ms))
+        with atomic_path(scene_dir / "truth" / "moved_mask.png", overwrite=overwrite) as tmp:
+            if not cv2.imwrite(str(tmp), (moved * 255).astype(np.uint8)):
+                raise InputError("could not write the moved-pixel mask", tmp)
+        doc["truth_moved_mask"] = "truth/moved_mask.png"
+        doc["moved_mask_pixels"] = int(moved.sum())
     sf.write_scene_json(scene_dir, doc)
     return scene_dir
+
+
+def write_truth(scene_dir: str | Path, doc: dict, radiance: np.ndarray, wavelengths, *, fwhm=None,
+                dn_per_ms: np.ndarray | None = None, overwrite: bool = False) -> Path:
+    """Write ``truth/radiance.hdr`` (ENVI float32) into a scene folder and record it in ``doc``.
+
+    ``doc`` (the scene.json document) gets ``truth`` and
+    ``truth_dn_per_ms_per_radiance`` and is rewritten atomically.
+    """
+    from mehs.capture import scenefolder as sf
+    from mehs.cube import SpectralCube
+    from mehs.io.envi import write_envi
+
+    scene_dir = Path(scene_dir)
+    truth = SpectralCube(np.asarray(radiance, dtype=np.float32), wavelengths, fwhm=fwhm,
+                         units="relative radiance")
+    extra = {}
+    if dn_per_ms is not None:
+        extra["mehs dn per ms per radiance"] = [float(f"{v:.6g}") for v in dn_per_ms]
+        doc["truth_dn_per_ms_per_radiance"] = [float(v) for v in dn_per_ms]
+    hdr = scene_dir / "truth" / "radiance.hdr"
+    write_envi(hdr, truth, dtype=np.float32, overwrite=overwrite, extra_header=extra)
+    doc["truth"] = "truth/radiance.hdr"
+    sf.write_scene_json(scene_dir, doc)
+    return hdr

@@ -28,7 +28,8 @@ def configure(parser):
     parser.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--simulate", action="store_true",
-                        help="start the simulated stage and camera in-process (loopback TCP)")
+                        help="start the simulated stage and camera in-process (loopback TCP); "
+                             "the scene folder then also gets truth/radiance.hdr")
     add_scene_arguments(parser, geometry=False)
 
 
@@ -73,6 +74,15 @@ def run(args):
             progress=not args.no_progress and sys.stderr.isatty(),
             seed=args.seed if args.simulate else None, device_info=info,
             log=lambda m: print(m, file=sys.stderr))
+        if args.simulate and doc["truth"] is None and all(
+                e["status"] == "complete" for e in doc["exposures"]):
+            from mehs.capture.simulate import motion_phase, write_truth
+
+            scene = dev.world.scene
+            t0 = doc["exposures"][0]["integration_time_ms"]
+            write_truth(args.out, doc, scene.radiance_at(motion_phase(t0) if scene.moving else 0),
+                        scene.wavelengths, fwhm=scene.fwhm,
+                        dn_per_ms=dev.world.sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
     finally:
         for d in (stage, camera):
             if d is not None:
