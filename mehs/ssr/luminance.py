@@ -22,6 +22,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.rgb import XYZ_TO_SRGB, cmfs_matrix
+from mehs.ssr.models import all_finite
 
 
 def _xyz_sum_vector(wavelengths: np.ndarray) -> np.ndarray:
@@ -75,10 +76,9 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -
         good = np.isfinite(have) & (have > 0) & np.isfinite(target)
         factor = np.where(good, target / np.where(good, have, 1.0), 0.0)
         out = S * factor.astype(dtype)[..., None]
-        finite = np.isfinite(out)
-        if not finite.all():
+        if not all_finite(out):
             # A spectrum with mixed signs can have a tiny X+Y+Z and so a huge factor.
-            good &= finite.all(-1)
+            good &= np.isfinite(out).all(-1)
     if not good.all():
         flat_sum = _xyz_sum_vector(wavelengths).sum()
         fill = (np.where(np.isfinite(target), target, 0.0) / flat_sum).astype(dtype)

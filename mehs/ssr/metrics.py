@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.ssr.models import all_finite
 
 #: PSNR ceiling (dB) reached when the MSE is 0.
 PSNR_MAX_DB = 120.0
@@ -74,7 +75,7 @@ def _prepare(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None,
         pred, gt = pred[v], gt[v]
     pred = pred.astype(np.float64, copy=False)
     gt = gt.astype(np.float64, copy=False)
-    if not (np.all(np.isfinite(pred)) and np.all(np.isfinite(gt))):
+    if not (all_finite(pred) and all_finite(gt)):
         raise InputError("prediction or ground truth contains NaN or inf")
     return pred, gt, valid
 

@@ -88,6 +88,22 @@ def check_rgb(rgb: np.ndarray, name: str = "model") -> np.ndarray:
     return rgb.astype(np.float32, copy=False)
 
 
+def all_finite(a: np.ndarray) -> bool:
+    """True if no element of ``a`` is NaN or ±inf, without a full-size boolean temporary.
+
+    A float64 sum is non-finite exactly when some element is (finite float32/64
+    values cannot overflow it: 3.4e38 · 1e9 ≪ 1.8e308 for float32; float64
+    input falls back to ``isfinite`` when the sum overflows).
+    """
+    a = np.asarray(a)
+    if a.dtype.kind not in "fc":
+        return True
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(a.sum(dtype=np.float64)):
+            return True
+    return bool(np.isfinite(a).all())
+
+
 def check_output(out: np.ndarray, in_shape: tuple, wavelengths: np.ndarray,
                  name: str = "model") -> np.ndarray:
     """Check a model output against the contract; return it as float32."""
@@ -97,7 +113,7 @@ def check_output(out: np.ndarray, in_shape: tuple, wavelengths: np.ndarray,
         raise InputError(f"{name}: output shape {tuple(out.shape)} breaks the contract, "
                          f"expected {want} (H, W, bands)")
     out = out.astype(np.float32, copy=False)
-    if not np.all(np.isfinite(out)):
+    if not all_finite(out):
         n = int(np.count_nonzero(~np.isfinite(out)))
         raise InputError(f"{name}: output has {n} NaN/inf values")
     return out
