@@ -179,3 +179,12 @@ def test_capture_over_a_pseudo_terminal(scene, reference, tmp_path):
         assert dev.world.plan.fired == [("camera", 25, "garble")]
     for got, want in zip(raw_cubes(tmp_path / "s", doc), reference.exposures):
         np.testing.assert_array_equal(got, want)
+
+
+def test_resume_refuses_a_different_camera(scene, tmp_path):
+    out = tmp_path / "s"
+    with pytest.raises(DeviceError):
+        run_capture(scene, out, faults="camera:timeout@30x50", times_ms=TIMES)
+    other = make_scene(lines=LINES, samples=SAMPLES + 2, seed=2)
+    with pytest.raises(DeviceError, match="not the one"):
+        run_capture(other, out, resume=True)

@@ -266,6 +266,14 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         fwhm = None
     bit_depth = camera.bit_depth()
     full = (1 << bit_depth) - 1
+    if resume:
+        cam_doc = doc.get("device", {}).get("camera", {})
+        same = (cam_doc.get("samples", samples) == samples and cam_doc.get("bands", bands) == bands
+                and len(doc["wavelengths"]) == bands
+                and np.allclose(doc["wavelengths"], wavelengths, atol=0.01))
+        if not same:
+            raise DeviceError(f"this camera ({samples} samples × {bands} bands) is not the one that "
+                              f"captured {out}; refusing to mix exposures", camera.name)
 
     if not resume:
         auto_info = None
