@@ -186,3 +186,19 @@ def test_self_contained_models_are_scored_only_as_built(dataset):
     # Reinhard applied once, not twice: identical to Smits with the pipeline's pre-processing.
     assert own_s["sam"] == pytest.approx(smits_pp["sam"], rel=1e-6)
     assert any("own applies its own pre-processing" in n for n in res.config["notes"])
+
+
+def test_evaluates_a_dataset_built_by_mehs_build(dataset, tmp_path):
+    """Interop with the dataset engineer's builder (format 3 as `mehs build` writes it)."""
+    build = pytest.importorskip("mehs.dataset.build")
+    src = tmp_path / "src"
+    src.mkdir()
+    for i, p in enumerate(load_pairs(dataset)[:3]):
+        shutil.copy(p.hs_path, src / f"c{i}.hdr")
+        shutil.copy(p.hs_path.with_suffix(".dat"), src / f"c{i}.dat")
+    build.build_from_hs([src], tmp_path / "built", workers=1, progress=False)
+    pairs = load_pairs(tmp_path / "built")
+    assert len(pairs) == 3 and all(p.ldr_exposure for p in pairs)
+    res = evaluate(pairs, ["smits"], preprocess="off", inputs=("hdr", "ldr"))
+    assert {s["input"] for s in res.summary} == {"hdr", "ldr"}
+    assert all(s["sam"] is not None and np.isfinite(s["sam"]) for s in res.summary)
