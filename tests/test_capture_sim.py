@@ -194,3 +194,13 @@ def test_moving_scene_folder_has_moved_mask(tmp_path):
     mask = cv2.imread(str(out / doc["truth_moved_mask"]), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(mask > 0, s.moved_mask(3))
     assert doc["moved_mask_pixels"] == int(s.moved_mask(3).sum()) > 0
+
+
+def test_bracket_seed_changes_noise_only():
+    s = make_scene(lines=6, samples=6)
+    a = simulate_bracket(s, SensorModel(), [1.0], dark_lines=2, white=False)
+    b = simulate_bracket(s, SensorModel(), [1.0], dark_lines=2, white=False, seed=256)
+    c = simulate_bracket(s, SensorModel(), [1.0], dark_lines=2, white=False, seed=256)
+    assert not np.array_equal(a.exposures[0], b.exposures[0])
+    np.testing.assert_array_equal(b.exposures[0], c.exposures[0])
+    assert abs(a.exposures[0].astype(float).mean() - b.exposures[0].astype(float).mean()) < 1.0

@@ -273,8 +273,10 @@ class SensorModel:
         t = self._check(radiance_line, integration_time_ms, 2)
         samples, bands = radiance_line.shape
         qe = self.qe_for(bands, wavelengths)
-        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, int(exposure_seed) & 0xFFFFFFFFFFFF,
-                                     int(line_index) & 0xFFFFFFFF, int(bool(shutter_open))])
+        key = [int(self.seed), int(exposure_seed), int(line_index), int(bool(shutter_open))]
+        if min(key) < 0:
+            raise InputError(f"sensor seed, exposure seed and line index must be >= 0, got {key[:3]}")
+        rng = np.random.default_rng(key)
         lam = self._mean_electrons(radiance_line, t, qe, shutter_open)
         if not np.all(np.isfinite(lam)) or np.any(lam < 0):
             raise InputError("radiance must be finite and >= 0")

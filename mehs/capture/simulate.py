@@ -135,13 +135,15 @@ def simulate_bracket(scene: Scene, sensor: SensorModel, times_ms: Sequence[float
     SimulatedBracket
     """
     t = _check_times(times_ms)
+    if int(seed) < 0:
+        raise InputError(f"seed must be >= 0, got {seed}")
     if dark_lines < 1:
         raise InputError(f"dark_lines must be >= 1, got {dark_lines}")
     lines, samples, bands = scene.radiance.shape
     wl = scene.wavelengths
     exposures, darks, whites, sat = [], [], [], []
     for k, tk in enumerate(t):
-        es = exposure_seed_for(tk) + (int(seed) << 40)
+        es = exposure_seed_for(tk) + (int(seed) << 64)
         rad = scene.radiance_at(k)
         cube = sensor.expose(rad, tk, exposure_seed=es, wavelengths=wl)
         exposures.append(cube)
