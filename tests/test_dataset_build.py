@@ -191,10 +191,10 @@ def test_dask_local_cluster_matches(reference, scenes, curve, tmp_path):
     distributed = pytest.importorskip("distributed")
     ds = tmp_path / "dsd"
     with distributed.LocalCluster(processes=False, n_workers=1, threads_per_worker=2,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        build_dataset(scenes, ds, scheduler=client, seed=5, rules=RULES, progress=False,
-                      response=curve)
+                                  dashboard_address=None) as cluster:
+        # an address, as `mehs build --scheduler ADDRESS` passes it
+        build_dataset(scenes, ds, scheduler=cluster.scheduler_address, seed=5, rules=RULES,
+                      progress=False, response=curve)
     _assert_same(reference[0], ds)
 
 

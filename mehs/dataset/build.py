@@ -665,18 +665,25 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
 
         n_workers = workers or default_workers()
         stages: dict[str, str] = {}
+        finished: set[str] = set()
         bar = _progress_bar(len(tasks), progress)
 
-        def on_stage(tid: str, stage: str) -> None:
-            stages[tid] = stage
+        def show_stages() -> None:
             bar.set_postfix_str(" ".join(f"{k}:{v}" for k, v in stages.items())[:60],
                                 refresh=False)
+
+        def on_stage(tid: str, stage: str) -> None:
+            if tid not in finished:  # stage messages can arrive after the result
+                stages[tid] = stage
+                show_stages()
         failures = []
         try:
             for res in run_tasks(build_scene, tasks, workers=n_workers,
                                  scheduler=scheduler, on_stage=on_stage):
                 sid = res["id"]
+                finished.add(sid)
                 stages.pop(sid, None)
+                show_stages()
                 if res["outcome"] == "skipped":
                     bar.update(1)
                     continue

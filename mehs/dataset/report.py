@@ -156,7 +156,7 @@ def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
     ax = axes[0, 0]
     if files.get("preview"):
         ax.imshow(read_png(dataset / files["preview"]))
-    ax.set_title("tone-mapped preview")
+    ax.set_title(f"{scene['id']} ({scene['status']}): tone-mapped preview")
     ax.axis("off")
 
     ax = axes[0, 1]
@@ -191,7 +191,6 @@ def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
         ax.legend(fontsize=7)
     ax.set_title("example spectra (luminance 0–100 %)")
     ax.set_xlabel("wavelength (nm)")
-    fig.suptitle(f"scene {scene['id']} — {scene['status']}")
     _save(fig, out)
 
 
