@@ -86,7 +86,8 @@ def main() -> int:
     rows.append((f"capture through drivers, {size}×{size}×204 × {len(TIMES)} (total)", t_cap))
 
     n_lines = len(TIMES) * (size + 32)
-    print(f"\nbench_capture: {size}×{size}×204, times {TIMES} ms, {n_lines} line transfers "
+    times_txt = "auto-exposure (reference at " + str(TIMES) + " ms)" if args.auto else f"times {TIMES} ms"
+    print(f"\nbench_capture: {size}×{size}×204, {times_txt}, {n_lines} line transfers "
           f"({n_lines * size * 204 * 2 / 1e6:.0f} MB)")
     print(f"{'stage':<66} {'seconds':>9} {'× simulate_bracket':>19}")
     for name, sec in rows:
