@@ -6,8 +6,8 @@ centres, so a flat spectrum of value 1 has ``Y = 1`` whatever the band set.
 images and the SSR luminance restoration both use it, so their ``X+Y+Z`` agree.
 
 The RGB pair of a scene: :func:`hdr_rgb` (pseudo-HDR-RGB, linear, unclipped
-above, stored as half-float EXR) and :func:`ldr_rgb` (exposed so the 99th
-percentile of luminance maps to 1, clipped, sRGB-encoded, 8-bit).
+above, stored as half-float EXR) and :func:`ldr_rgb` (average-metered so the
+log-average luminance maps to 18 % grey, clipped, sRGB-encoded, 8-bit).
 
 References
 ----------
@@ -120,8 +120,12 @@ def linear_sRGB_to_XYZ(rgb: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- RGB pairs
 
-#: Default LDR exposure rule: this percentile of luminance Y maps to 1.0.
-LDR_PERCENTILE = 99.0
+#: Default LDR exposure rule: the log-average luminance maps to this grey (Reinhard's key).
+LDR_KEY = 0.18
+
+#: The exposure rule in words, recorded in dataset manifests.
+LDR_EXPOSURE_RULE = ("exposure = 0.18 / exp(mean(ln Y)) over pixels with Y > 0 "
+                     "(average metering: the log-average luminance maps to 18 % grey)")
 
 #: Lines of a cube converted per chunk in :func:`hdr_rgb` (bounds float32 temporaries).
 _RGB_CHUNK_PIXELS = 1 << 20
@@ -199,18 +203,28 @@ def hdr_rgb(spectra, wavelengths=None) -> np.ndarray:
     return out
 
 
-def ldr_exposure(hdr: np.ndarray, percentile: float = LDR_PERCENTILE) -> float:
-    """The automatic LDR exposure: ``1 / P(Y)``, the ``percentile`` of luminance.
+def ldr_exposure(hdr: np.ndarray, key: float = LDR_KEY) -> float:
+    """The automatic LDR exposure: ``key / exp(mean(ln Y))`` (average metering).
 
-    Pixels with ``Y ≤ 0`` are left out of the percentile; an image with no
-    positive luminance gets exposure 1.0.
+    The log-average luminance of the positive pixels maps to ``key`` (18 %
+    grey by default), as a camera's average metering or Reinhard's key does.
+    A percentile rule would let a directly visible light source — which is
+    what makes these scenes HDR — set the exposure and turn the rest of the
+    picture black; the log-average barely moves when a small lamp is added,
+    so the diffuse scene is exposed normally and the lamp clips, as in an
+    ordinary photograph. An image with no positive luminance gets exposure 1.0.
+
+    References
+    ----------
+    Reinhard, E., Stark, M., Shirley, P., Ferwerda, J. (2002). Photographic
+    tone reproduction for digital images. ACM TOG 21(3), eq. 1.
     """
     y = luminance(np.asarray(hdr, dtype=np.float32)).ravel()
     y = y[y > 0]
     if y.size == 0:
         return 1.0
-    p = float(np.percentile(y, percentile))
-    return 1.0 / p if p > 0 else 1.0
+    log_avg = float(np.exp(np.mean(np.log(y.astype(np.float64)))))
+    return float(key) / log_avg if log_avg > 0 else 1.0
 
 
 def srgb_encode_uint8(linear: np.ndarray) -> np.ndarray:
@@ -223,13 +237,12 @@ def srgb_encode_uint8(linear: np.ndarray) -> np.ndarray:
 
 
 def ldr_rgb(hdr: np.ndarray, *, exposure: float | None = None,
-            percentile: float = LDR_PERCENTILE) -> tuple[np.ndarray, float]:
+            key: float = LDR_KEY) -> tuple[np.ndarray, float]:
     """LDR-RGB of a pseudo-HDR-RGB image: expose, clip, sRGB-encode, quantise.
 
-    Exposure rule: ``exposure`` when given, else ``1 / P99(Y)`` — the 99th
-    percentile of the luminance ``Y`` of the positive pixels maps to 1.0, so
-    about 1 % of the pixels (the highlights and light sources) clip, like a
-    well-exposed 8-bit photograph. Then ``clip(exposure · hdr, 0, 1)``, the
+    Exposure rule: ``exposure`` when given, else :func:`ldr_exposure` —
+    the log-average luminance maps to ``key`` (18 % grey), so the diffuse
+    scene is exposed like an ordinary photograph and light sources clip. Then ``clip(exposure · hdr, 0, 1)``, the
     sRGB OETF (``colour.cctf_encoding(…, "sRGB")``) and ``rint(255 · v)``.
 
     Parameters
@@ -238,8 +251,8 @@ def ldr_rgb(hdr: np.ndarray, *, exposure: float | None = None,
         Linear sRGB ``(H, W, 3)``, e.g. from :func:`hdr_rgb`.
     exposure
         Multiplier applied before clipping; ``None`` for the automatic rule.
-    percentile
-        Luminance percentile mapped to 1.0 by the automatic rule.
+    key
+        Grey level the log-average luminance maps to under the automatic rule.
 
     Returns
     -------
@@ -257,7 +270,7 @@ def ldr_rgb(hdr: np.ndarray, *, exposure: float | None = None,
     if not np.isfinite(hdr).all():
         raise InputError("the HDR image holds NaN/Inf values")
     if exposure is None:
-        exposure = ldr_exposure(hdr, percentile)
+        exposure = ldr_exposure(hdr, key)
     exposure = float(exposure)
     if not (np.isfinite(exposure) and exposure > 0):
         raise InputError(f"exposure must be a positive number, got {exposure}")

@@ -17,8 +17,8 @@ def configure(parser) -> None:
                         help="HS cube: ENVI .hdr, Specim IQ capture folder or spectral .exr")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--ldr-exposure", type=float, default=None, metavar="X",
-                        help="multiply the HDR image by X before clipping (default: the 99th "
-                             "percentile of luminance maps to 1)")
+                        help="multiply the HDR image by X before clipping (default: average "
+                             "metering, the log-average luminance maps to 18 %% grey)")
     parser.add_argument("--no-resample", action="store_true",
                         help="use the cube's own bands (inside 360-830 nm) instead of "
                              "resampling to 400:700:10")
@@ -35,7 +35,7 @@ def run(args) -> int:
     from mehs.io.atomic import write_json_atomic
     from mehs.io.exr import write_exr_rgb
     from mehs.preview import tonemap, write_png
-    from mehs.rgb import LDR_PERCENTILE, WAVELENGTHS_31, hdr_rgb, ldr_rgb
+    from mehs.rgb import LDR_EXPOSURE_RULE, WAVELENGTHS_31, hdr_rgb, ldr_rgb
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -63,7 +63,7 @@ def run(args) -> int:
                     "negatives clipped, unnormalised", "half": bool(args.half)},
         "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure,
                     "rule": "given by --ldr-exposure" if args.ldr_exposure is not None else
-                    f"exposure = 1 / P{LDR_PERCENTILE:g}(Y) over pixels with Y > 0",
+                    LDR_EXPOSURE_RULE,
                     "encoding": "clip [0,1], sRGB OETF, rint(255 v)"},
         "preview": {"file": "preview.png", "tonemap": "Reinhard2002 global", "key": args.key},
     })
