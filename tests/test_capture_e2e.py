@@ -159,3 +159,20 @@ def test_capture_errors_are_clear(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.startswith("mehs: error: socket://127.0.0.1:1: cannot open port")
+
+
+def test_capture_simulate_shortcut_writes_truth(tmp_path, capsys):
+    from mehs.cli import main
+    from mehs.io.envi import read_envi
+
+    out = tmp_path / "sim"
+    assert main(["capture", "--simulate", "--size", "12", "--out", str(out), "--times", "1,4,16",
+                 "--dark-lines", "2", "--white-lines", "2", "--no-progress", "--seed", "4"]) == 0
+    doc = sf.read_scene_json(out)
+    assert [e["status"] for e in doc["exposures"]] == ["complete"] * 3 and doc["seed"] == 4
+    truth = read_envi(out / doc["truth"])
+    np.testing.assert_array_equal(np.asarray(truth.data),
+                                  make_scene("colorchecker", lines=12, samples=12, seed=4).radiance)
+    assert len(doc["truth_dn_per_ms_per_radiance"]) == 204
+    assert main(["capture", "--simulate", "--size", "12", "--out", str(out), "--times", "1,4"]) == 2
+    assert "--resume" in capsys.readouterr().err
