@@ -265,34 +265,31 @@ def stratified_pick(levels, order, n, strata, L):
 
 # ------------------------------------------------------------------------ merge
 @njit(parallel=True, cache=True)
-def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut, wlut,
-                floor, gain, read_var, rel_var, cal, method,
+def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
+                floor, gain, read_var, rel_var, cal, method, want_chi2,
                 out, chi2, dof, snr, nsat, nvalid):
-    """Merge one chunk of lines of a bracket.
+    """Merge one chunk of lines of a bracket (band-interleaved-by-line layout).
 
     Parameters
     ----------
-    zs : array (P, lines, A, B)
-        Raw DN of each exposure (shortest first); the last axis is the one
-        contiguous in memory. ``band_last`` says whether B (True) or A is the
-        band axis.
-    darks : float32 (P, A, B)
-        Dark level per exposure, sample and band.
-    sat : float32 (A, B)
+    zs : tuple of P arrays (lines, bands, samples)
+        Raw DN of each exposure (shortest first), all of one array type.
+    darks : float32 (P, bands, samples)
+        Dark level per exposure (already linearised when ``dark_after``).
+    sat : float32 (bands,)
         Raw DN at or above which a sample counts as saturated.
-    times : float64 (P,)
+    times : float32 (P,)
         Exposure times (ms).
     linear : bool
-        ``True``: linear sensor, ``y = raw − dark``; otherwise
-        ``y = exp(g(round(raw − dark)))`` from ``elut``.
+        ``True``: linear sensor, ``y = raw − dark``.
     dark_after : bool
-        (non-linear only) ``y = exp(g(raw)) − darks`` instead: the curve is on raw
-        levels and ``darks`` holds the already linearised dark level.
+        Non-linear: ``y = exp(g(raw)) − dark`` (dark linearised); otherwise
+        ``y = exp(g(round(raw − dark)))``.
     glut, elut : float32 (C_lut, L)
         g and exp(g) per band (C_lut = 1 for a shared curve).
     wlut : float32 (L,)
         Level weights (Debevec / Robertson).
-    floor : float64 (P,)
+    floor : float32
         Noise floor: samples with y ≤ floor get zero weight.
     gain, read_var, rel_var : float
         Noise model of y: var = gain·y + read_var, plus (rel·X)² systematic.
@@ -300,154 +297,227 @@ def merge_chunk(zs, darks, sat, times, band_last, linear, dark_after, glut, elut
         Radiometric calibration factor per band.
     method : int
         DEBEVEC, ROBERTSON, POISSON or INVVAR.
+    want_chi2 : bool
+        Accumulate the ghost statistic (one more pass over the row).
 
-    Outputs (written in place): ``out`` float32 (lines, A, B) radiance;
-    per pixel (lines, pixels): ``chi2`` float32 consistency statistic,
-    ``dof`` int32 its degrees of freedom, ``snr`` float32 summed SNR over
-    bands, ``nsat`` int32 bands saturated in every exposure, ``nvalid`` int32
-    bands with at least one usable sample.
+    Outputs (written in place): ``out`` float32 (lines, bands, samples);
+    per pixel (lines, samples): ``chi2`` float32 consistency statistic,
+    ``dof`` int32, ``snr`` float32 (summed over bands), ``nsat`` int32 bands
+    saturated in every exposure, ``nvalid`` int32 bands with a usable sample.
+
+    Every inner loop runs over the contiguous samples axis with no branches
+    (selects only), so LLVM vectorises it; the exposures and bands are the
+    outer loops and per-row scratch lives in L1.
     """
-    P = zs.shape[0]
-    nl, A, B = out.shape
+    P = len(zs)
+    nl, nb, ns = out.shape
     L = wlut.shape[0]
     shared = glut.shape[0] == 1
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    g32 = np.float32(gain)
+    rv32 = np.float32(read_var)
+    rel32 = np.float32(rel_var)
+    fl = np.float32(floor)
     for l in prange(nl):
-        y = np.empty(P)
-        valid = np.empty(P, dtype=np.bool_)
-        issat = np.empty(P, dtype=np.bool_)
-        lev = np.empty(P, dtype=np.int64)
-        om = np.empty(P)
-        for a in range(A):
-            for bb in range(B):
-                if band_last:
-                    band = bb
-                    pix = a
+        y = np.empty((P, ns), dtype=np.float32)
+        ok = np.empty((P, ns), dtype=np.float32)
+        sa = np.empty((P, ns), dtype=np.float32)
+        om = np.empty((P, ns), dtype=np.float32)
+        lev = np.zeros((P, ns), dtype=np.int32)
+        sy = np.empty(ns, dtype=np.float32)
+        st = np.empty(ns, dtype=np.float32)
+        nv = np.empty(ns, dtype=np.float32)
+        nsa = np.empty(ns, dtype=np.float32)
+        st2 = np.empty(ns, dtype=np.float32)
+        X = np.empty(ns, dtype=np.float32)
+        num = np.empty(ns, dtype=np.float32)
+        den = np.empty(ns, dtype=np.float32)
+        for a in range(nb):
+            cb = 0 if shared else a
+            s = sat[a]
+            for i in range(ns):
+                sy[i] = f0
+                st[i] = f0
+                st2[i] = f0
+                nv[i] = f0
+                nsa[i] = f0
+            for j in range(P):
+                zr = zs[j][l, a]
+                dr = darks[j, a]
+                tj = times[j]
+                tj2 = tj * tj
+                yj = y[j]
+                okj = ok[j]
+                saj = sa[j]
+                if linear:
+                    # the common case in one fused, branch-free loop
+                    for i in range(ns):
+                        raw = np.float32(zr[i])
+                        yv = raw - dr[i]
+                        yj[i] = yv
+                        q = f1 if raw >= s else f0
+                        saj[i] = q
+                        o = f1 if (raw < s) & (yv > fl) else f0
+                        okj[i] = o
+                        sy[i] += o * yv
+                        st[i] += o * tj
+                        st2[i] += o * tj2
+                        nv[i] += o
+                        nsa[i] += q
+                    continue
+                lj = lev[j]
+                if dark_after:
+                    for i in range(ns):
+                        zi = min(int(zr[i]), L - 1)
+                        lj[i] = zi
+                        yj[i] = elut[cb, zi] - dr[i]
                 else:
-                    band = a
-                    pix = bb
-                cb = 0 if shared else band
-                nv = 0
-                ns = 0
-                sy = 0.0
-                st = 0.0
+                    for i in range(ns):
+                        zi = min(max(int(np.rint(np.float32(zr[i]) - dr[i])), 0), L - 1)
+                        lj[i] = zi
+                        yj[i] = elut[cb, zi]
+                for i in range(ns):
+                    raw = np.float32(zr[i])
+                    yv = yj[i]
+                    q = f1 if raw >= s else f0
+                    saj[i] = q
+                    o = f1 if (raw < s) & (yv > fl) else f0
+                    okj[i] = o
+                    sy[i] += o * yv
+                    st[i] += o * tj
+                    st2[i] += o * tj2
+                    nv[i] += o
+                    nsa[i] += q
+            # pooled (Poisson) estimate, branch-free; fall-backs in a rare scalar pass
+            nbad = 0
+            for i in range(ns):
+                has = nv[i] > f0
+                X[i] = sy[i] / (st[i] if has else f1)
+                nbad += 0 if has else 1
+            if nbad > 0:
+                t0 = times[0]
+                for i in range(ns):
+                    if nv[i] > f0:
+                        continue
+                    if nsa[i] == np.float32(P):
+                        X[i] = y[0, i] / t0          # saturated everywhere: a lower bound
+                    else:
+                        # no usable sample: the unbiased mean of the unsaturated ones
+                        a1 = f0
+                        a2 = f0
+                        for j in range(P):
+                            u = f1 - sa[j, i]
+                            a1 += u * y[j, i]
+                            a2 += u * times[j]
+                        X[i] = a1 / a2 if a2 > f0 else f0
+            if method == POISSON:
                 for j in range(P):
-                    raw = np.float64(zs[j, l, a, bb])
-                    dk = raw - darks[j, a, bb]
-                    issat[j] = raw >= sat[a, bb]
-                    if linear:
-                        yj = dk
-                        zi = int(np.rint(dk))
-                    elif dark_after:
-                        zi = int(raw)
-                        if zi > L - 1:
-                            zi = L - 1
-                        yj = elut[cb, zi] - darks[j, a, bb]
-                    else:
-                        zi = int(np.rint(dk))
-                        if zi < 0:
-                            zi = 0
-                        elif zi > L - 1:
-                            zi = L - 1
-                        yj = elut[cb, zi]
-                    if zi < 0:
-                        zi = 0
-                    elif zi > L - 1:
-                        zi = L - 1
-                    lev[j] = zi
-                    y[j] = yj
-                    v = (not issat[j]) and yj > floor[j] and np.isfinite(yj)
-                    valid[j] = v
-                    if issat[j]:
-                        ns += 1
-                    if v:
-                        nv += 1
-                        sy += yj
-                        st += times[j]
-                X = 0.0
-                if nv > 0:
-                    X0 = sy / st
-                    if method == POISSON:
-                        X = X0
-                        for j in range(P):
-                            om[j] = times[j] if valid[j] else 0.0
-                    elif method == INVVAR:
-                        num = 0.0
-                        den = 0.0
-                        for j in range(P):
-                            if valid[j]:
-                                # variance predicted from the pooled estimate, not
-                                # from y_j itself (that would bias low values up-weighted)
-                                vy = gain * max(X0 * times[j], 0.0) + read_var
-                                wj = times[j] * times[j] / vy
-                                om[j] = wj
-                                num += wj * y[j] / times[j]
-                                den += wj
-                            else:
-                                om[j] = 0.0
-                        X = num / den
+                    tj = times[j]
+                    for i in range(ns):
+                        om[j, i] = ok[j, i] * tj
+            else:
+                for i in range(ns):
+                    num[i] = f0
+                    den[i] = f0
+                for j in range(P):
+                    tj = times[j]
+                    lt = np.float32(np.log(tj))
+                    okj = ok[j]
+                    yj = y[j]
+                    omj = om[j]
+                    if method == INVVAR:
+                        # variance predicted from the pooled estimate, not from y_j
+                        # itself (which would give low samples more weight: biased)
+                        for i in range(ns):
+                            w = okj[i] * tj * tj / (g32 * max(X[i] * tj, f0) + rv32)
+                            omj[i] = w
+                            num[i] += w * yj[i] / tj
+                            den[i] += w
                     elif method == ROBERTSON:
-                        num = 0.0
-                        den = 0.0
-                        for j in range(P):
-                            wj = wlut[lev[j]] * times[j] * times[j] if valid[j] else 0.0
-                            om[j] = wj
-                            num += wj * y[j] / times[j]
-                            den += wj
-                        X = num / den if den > 0.0 else X0
-                        if den <= 0.0:
-                            for j in range(P):
-                                om[j] = times[j] if valid[j] else 0.0
+                        lj = lev[j]
+                        if linear:
+                            for i in range(ns):
+                                lj[i] = min(max(int(yj[i] + np.float32(0.5)), 0), L - 1)
+                        for i in range(ns):
+                            w = okj[i] * wlut[lj[i]] * tj * tj
+                            omj[i] = w
+                            num[i] += w * yj[i] / tj
+                            den[i] += w
                     else:
-                        num = 0.0
-                        den = 0.0
-                        for j in range(P):
-                            wj = wlut[lev[j]] if valid[j] else 0.0
-                            om[j] = wj
-                            if wj > 0.0:
-                                gj = np.log(y[j]) if (linear or dark_after) else glut[cb, lev[j]]
-                                num += wj * (gj - np.log(times[j]))
-                                den += wj
-                        if den > 0.0:
-                            X = np.exp(num / den)
-                        else:
-                            X = X0
+                        lj = lev[j]
+                        if linear:
+                            for i in range(ns):
+                                lj[i] = min(max(int(yj[i] + np.float32(0.5)), 0), L - 1)
+                        for i in range(ns):
+                            w = okj[i] * wlut[lj[i]]
+                            omj[i] = w
+                            if w > f0:
+                                gj = np.log(yj[i]) if (linear or dark_after) else glut[cb, lj[i]]
+                                num[i] += w * (gj - lt)
+                                den[i] += w
+                for i in range(ns):
+                    if den[i] > f0:
+                        X[i] = np.exp(num[i] / den[i]) if method == DEBEVEC else num[i] / den[i]
+                if method == DEBEVEC or method == ROBERTSON:
+                    for i in range(ns):
+                        if den[i] == f0 and nv[i] > f0:
+                            # usable samples, all with zero level weight: pooled estimate
                             for j in range(P):
-                                om[j] = times[j] if valid[j] else 0.0
-                    nvalid[l, pix] += 1
-                elif ns == P:
-                    # saturated everywhere: a lower bound from the shortest exposure
-                    X = y[0] / times[0]
-                    nsat[l, pix] += 1
-                    for j in range(P):
-                        om[j] = 0.0
-                else:
-                    # no usable sample: the unbiased mean of the unsaturated ones
-                    sy = 0.0
-                    st = 0.0
-                    for j in range(P):
-                        if not issat[j]:
-                            sy += y[j]
-                            st += times[j]
-                    X = sy / st
-                    for j in range(P):
-                        om[j] = 0.0
-                if X < 0.0 or not np.isfinite(X):
-                    X = 0.0
-                if nv > 0:
-                    so = 0.0
-                    sv = 0.0
-                    c2 = 0.0
-                    for j in range(P):
-                        if valid[j]:
-                            tj = times[j]
-                            vj = (gain * X * tj + read_var) / (tj * tj) + rel_var * X * X
-                            so += om[j]
-                            sv += om[j] * om[j] * vj
-                            rj = y[j] / tj - X
-                            c2 += rj * rj / vj
-                    if so > 0.0 and sv > 0.0:
-                        snr[l, pix] += X / np.sqrt(sv / (so * so))
-                    if nv >= 2:
-                        chi2[l, pix] += c2
-                        dof[l, pix] += nv - 1
-                out[l, a, bb] = X * cal[band]
+                                om[j, i] = ok[j, i] * times[j]
+            # noise-model SNR and the consistency statistic
+            inf32 = np.float32(np.inf)
+            for i in range(ns):
+                xi = X[i]
+                X[i] = xi if (xi >= f0) & (xi < inf32) else f0
+            if method == POISSON:
+                # Σω = Σt, Σω²var = gain·X·Σt + n·σ² + rel·X²·Σt²: no per-sample pass
+                for i in range(ns):
+                    num[i] = st[i]
+                    den[i] = g32 * X[i] * st[i] + nv[i] * rv32 + rel32 * X[i] * X[i] * st2[i]
+            else:
+                for i in range(ns):
+                    num[i] = f0
+                    den[i] = f0
+                for j in range(P):
+                    tj = times[j]
+                    okj = ok[j]
+                    omj = om[j]
+                    for i in range(ns):
+                        v = (g32 * X[i] * tj + rv32) / (tj * tj) + rel32 * X[i] * X[i]
+                        num[i] += okj[i] * omj[i]
+                        den[i] += okj[i] * omj[i] * omj[i] * v
+            if want_chi2:
+                for i in range(ns):
+                    sy[i] = f0
+                for j in range(P):
+                    tj = times[j]
+                    itj = f1 / tj
+                    okj = ok[j]
+                    yj = y[j]
+                    for i in range(ns):
+                        v = (g32 * X[i] * tj + rv32) * (itj * itj) + rel32 * X[i] * X[i]
+                        r = yj[i] * itj - X[i]
+                        sy[i] += okj[i] * r * r / v
+            c = cal[a]
+            ol = out[l, a]
+            snr_l = snr[l]
+            nvalid_l = nvalid[l]
+            nsat_l = nsat[l]
+            chi2_l = chi2[l]
+            dof_l = dof[l]
+            fP = np.float32(P)
+            two = np.float32(2.0)
+            for i in range(ns):
+                xi = X[i]
+                ol[i] = xi * c
+                has = nv[i] > f0
+                nvalid_l[i] += 1 if has else 0
+                dn = den[i]
+                snr_l[i] += xi * num[i] / np.sqrt(dn) if has & (dn > f0) else f0
+                nsat_l[i] += 1 if (nv[i] == f0) & (nsa[i] == fP) else 0
+            if want_chi2:
+                for i in range(ns):
+                    m2 = nv[i] >= two
+                    chi2_l[i] += sy[i] if m2 else f0
+                    dof_l[i] += int(nv[i]) - 1 if m2 else 0

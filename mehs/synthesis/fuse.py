@@ -147,7 +147,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                  noise: NoiseModel | tuple[float, float] | None = None,
                  saturation: float | np.ndarray | None = None,
                  calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
-                 reference: int | str = "auto", chunk_lines: int = 16) -> FusionResult:
+                 reference: int | str = "auto", chunk_lines: int = 128) -> FusionResult:
     """Fuse a bracket into an HDR radiance cube.
 
     Parameters
@@ -220,7 +220,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
-                       source=bracket.source)
+                       consistency=ghosts != "off", source=bracket.source)
     timings["merge_s"] = time.perf_counter() - t1
     mask = mr.mask
     radiance = mr.radiance

@@ -118,8 +118,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                   saturation: float | np.ndarray | None = None,
                   noise: NoiseModel | tuple[float, float] | None = None,
                   noise_floor: float | None = None, weighting: str = "hat",
-                  calibration: float | np.ndarray = 1.0, chunk_lines: int = 16,
-                  dark_mode: str = "auto",
+                  calibration: float | np.ndarray = 1.0, chunk_lines: int = 128,
+                  dark_mode: str = "auto", consistency: bool = True,
                   source: Any = None) -> MergeResult:
     """Merge P exposures (shortest first or not) into a radiance cube.
 
@@ -152,8 +152,13 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         linearised dark, right when the black level is added before the
         non-linearity; ``"auto"`` follows ``response.parameters["levels"]``
         (``"raw"`` levels → ``"linear"``).
+    consistency
+        Accumulate the per-pixel χ² consistency statistic (for ghost detection);
+        ``False`` saves one pass over each row and leaves ``chi2`` at 0.
     chunk_lines
-        Lines per chunk: peak extra memory is about one chunk of float work per core.
+        Lines per kernel call. The kernel reads BIL inputs in place and writes
+        straight into the output, so this bounds only the copy made for other
+        layouts (or mixed dtypes); larger chunks mean fewer parallel launches.
     """
     from mehs.synthesis._kernels import merge_chunk
 
@@ -201,7 +206,6 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     floor = noise.read_noise if noise_floor is None else float(noise_floor)
     if method == "debevec" and linear:
         floor = max(floor, 0.5)   # ln y needs y > 0
-    floors = np.full(P, floor, dtype=np.float64)
 
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float32)
     if sat.ndim == 0:
@@ -249,21 +253,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         bidx = 0 if response.shared else np.arange(nb)[None, None, :]
         dk = ((1 - fr) * e[bidx, z0] + fr * e[bidx, z1]).astype(np.float32)
 
-    # Work in each array's own memory order: bands contiguous (BIP / C order)
-    # or samples contiguous (BIL memmaps seen as (lines, samples, bands)).
-    st = arrays[0].strides
-    band_last = abs(st[2]) <= abs(st[1])
-    if band_last:
-        views = arrays
-        dk_k = dk
-        sat_k = np.ascontiguousarray(np.broadcast_to(sat[None, :], (ns, nb)))
-        A, B = ns, nb
-    else:
-        views = [a.transpose(0, 2, 1) for a in arrays]
-        dk_k = np.ascontiguousarray(dk.transpose(0, 2, 1))
-        sat_k = np.ascontiguousarray(np.broadcast_to(sat[:, None], (nb, ns)))
-        A, B = nb, ns
-    out = np.empty((nl, A, B), dtype=np.float32)
+    # The kernel works band-outer / samples-inner (BIL): a BIL memmap is read
+    # as is, other layouts are transposed chunk by chunk.
+    views = [a.transpose(0, 2, 1) for a in arrays]
+    dk_k = np.ascontiguousarray(dk.transpose(0, 2, 1))
+    out = np.empty((nl, nb, ns), dtype=np.float32)
     chi2 = np.zeros((nl, ns), dtype=np.float32)
     dof = np.zeros((nl, ns), dtype=np.int32)
     snr = np.zeros((nl, ns), dtype=np.float32)
@@ -271,25 +265,27 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     nvalid = np.zeros((nl, ns), dtype=np.int32)
     msum = np.zeros((nl, ns), dtype=np.float32)
     is_float = np.issubdtype(arrays[0].dtype, np.floating)
+    same_dtype = len({a.dtype for a in arrays}) == 1
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
+    t32 = t.astype(np.float32)
     for l0 in range(0, nl, chunk_lines):
         l1 = min(nl, l0 + chunk_lines)
-        parts = tuple(np.asarray(v[l0:l1]) for v in views)
+        parts = [np.asarray(v[l0:l1]) for v in views]
         if is_float:
             for j, part in enumerate(parts):
                 if not np.all(np.isfinite(part)):
                     raise InputError(f"exposure {j} contains NaN or inf near lines {l0}..{l1 - 1}",
                                      source)
-        # one small contiguous block per chunk: a plain 4-D array indexes far
-        # faster in the kernel than a tuple of P arrays
-        block = np.stack(parts)
-        merge_chunk(block, dk_k, sat_k, t, band_last, linear, dark_after, glut, elut, wlut,
-                    floors, float(noise.gain), float(noise.read_noise) ** 2,
-                    float(noise.relative) ** 2, cal, code,
+        if not same_dtype:
+            parts = [p.astype(np.float32) for p in parts]
+        parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
+        merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut,
+                    np.float32(floor), float(noise.gain), float(noise.read_noise) ** 2,
+                    float(noise.relative) ** 2, cal, code, bool(consistency),
                     out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                     nvalid[l0:l1])
-    radiance = out if band_last else out.transpose(0, 2, 1)
+    radiance = out.transpose(0, 2, 1)
     mask = np.zeros((nl, ns), dtype=np.uint8)
     mask[nsat > 0] |= MASK_SATURATED
     mask[nvalid == 0] |= MASK_INVALID
@@ -299,7 +295,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         raise InputError(f"no usable sample in the bracket: every pixel is {what}", source)
     # mean over bands, from the output (a cheap pass over a float32 cube per chunk)
     for l0 in range(0, nl, 64):
-        msum[l0:l0 + 64] = radiance[l0:l0 + 64].mean(axis=2, dtype=np.float32)
+        msum[l0:l0 + 64] = out[l0:l0 + 64].mean(axis=1, dtype=np.float32)
     info = {"method": method, "times_ms": t.tolist(), "order": order.tolist(),
             "bit_depth": int(bit_depth), "response": response.method,
             "dark_mode": "linear" if dark_after else "raw",
