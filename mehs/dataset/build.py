@@ -32,9 +32,10 @@ import contextlib
 import datetime as _dt
 import os
 import shutil
+import sys
 import time
 import traceback
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -95,7 +96,6 @@ class SceneTask:
     params: BuildParams
     previous_key: str | None = None
     response_sha256: str | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- worker side
@@ -251,9 +251,9 @@ def _check_recorded_hashes(root: Path, hashes: dict[str, str]) -> None:
 
 def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
                         hashes: dict[str, str]) -> tuple[dict, dict]:
-    import json
-
     import numpy as np
+
+    from mehs.io.atomic import write_json_atomic
 
     from mehs.synthesis.bracket import load_bracket
     from mehs.synthesis.fuse import fuse_bracket
@@ -271,10 +271,8 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
             bracket = load_bracket(task.source.load_arg)
     report_stage(sid, "fuse")
     with _timed(run, "fuse"):
-        response: Any = "auto"
-        if p.response:
-            response = load_response(p.response)
-        result = fuse_bracket(bracket, **_fuse_kwargs(fuse_bracket, p, response))
+        result = fuse_bracket(bracket, method=p.method, response=p.response or "auto",
+                              ghosts=p.ghosts, seed=p.seed)
     del bracket
     summary = dict(result.summary or {})
     # wall-clock figures belong to the volatile provenance, never to a data file
@@ -283,50 +281,14 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
             run["stage_seconds"][f"fuse.{name.removesuffix('_s')}"] = round(float(sec), 4)
     mask = np.asarray(result.mask, dtype=np.uint8)
     quality = _quality(summary, mask)
-    quality["n_exposures"] = int(summary.get("n_exposures", len(summary.get("exposure_ratios") or []) or 0)) or None
+    quality["n_exposures"] = len(summary["exposure_ratios"])
     cube = result.radiance
     with _timed(run, "write"):
-        _save_response(result.response, tmp / "response.json")
-        from mehs.io.atomic import write_json_atomic
-
+        result.response.save(tmp / "response.json")
         write_json_atomic(tmp / "fusion.json", _jsonable(summary))
     del result
     _finish_scene(task, cube, mask, tmp, run, quality)
     return quality, {}
-
-
-def _fuse_kwargs(fuse_bracket, p: BuildParams, response) -> dict[str, Any]:
-    import inspect
-
-    params = inspect.signature(fuse_bracket).parameters
-    kw: dict[str, Any] = {"method": p.method, "response": response, "ghosts": p.ghosts}
-    for name in ("seed", "rng"):
-        if name in params:
-            kw[name] = p.seed
-    return kw
-
-
-def load_response(path: str | Path):
-    """Read a response-curve file written by the synthesis stage."""
-    from mehs.synthesis import response as resp
-
-    for name in ("load_response", "read_response"):
-        if hasattr(resp, name):
-            return getattr(resp, name)(path)
-    return resp.ResponseCurve.load(path)
-
-
-def _save_response(curve, path: Path) -> None:
-    from mehs.io.atomic import write_json_atomic
-
-    if curve is None:
-        return
-    for name in ("save", "write"):
-        if hasattr(curve, name):
-            getattr(curve, name)(path)
-            return
-    to_dict = getattr(curve, "to_dict", None)
-    write_json_atomic(path, _jsonable(to_dict() if to_dict else asdict(curve)))
 
 
 def _jsonable(obj: Any) -> Any:
@@ -656,10 +618,13 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                 prev = old["key"]
             tasks.append((s.scene_id, SceneTask(s, str(dataset), params, prev, response_sha)))
 
-        def commit() -> None:
-            manifest["scenes"] = list(entries.values())
-            passing = sorted(i for i, e in entries.items() if e["status"] == "pass")
+        def refresh() -> None:
+            manifest["scenes"] = sorted(entries.values(), key=lambda e: e["id"])
+            passing = [e["id"] for e in manifest["scenes"] if e["status"] == "pass"]
             manifest["splits"] = make_splits(passing, fractions, params.seed)
+
+        def commit() -> None:
+            refresh()
             write_split_files(dataset, manifest["splits"])
             mf.write_manifest(dataset, manifest)
 
@@ -700,16 +665,12 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                 bar.update(1)
         finally:
             bar.close()
-        manifest["scenes"] = list(entries.values())
-        passing = sorted(i for i, e in entries.items() if e["status"] == "pass")
-        manifest["splits"] = make_splits(passing, fractions, params.seed)
+        refresh()  # rules or splits may have changed even when every scene was skipped
         if (json.dumps(manifest, sort_keys=True, default=str) != before
                 or not (dataset / "splits").is_dir()):
             commit()
     for res in failures:
         tb = res["entry"]["provenance"]["run"].get("traceback")
-        import sys
-
         print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)
         if tb:
             print(tb, file=sys.stderr)
