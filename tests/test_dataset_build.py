@@ -256,3 +256,18 @@ def test_from_hs_pairs_204_and_31_band_cubes(scenes, tmp_path):
     assert read_png(ds / by["arad"]["files"]["mask"])[0, 0] == 4
     assert read_envi(ds / by["wide"]["files"]["hs"]).shape == (SIZE, SIZE, 31)
     assert by["wide"]["quality"]["ghost_fraction"] is None
+
+
+def test_csv_scene_list_of_specim_folders(reference, scenes, curve, tmp_path):
+    exps = sorted((scenes[0] / "exposures").iterdir())
+    lst = tmp_path / "scenes.csv"
+    lst.write_text("scene_id,folder_short,folder_mid,folder_long\n"
+                   "lab_a," + ",".join(str(e) for e in exps) + "\n")
+    m = build_dataset([lst], tmp_path / "dsc", workers=1, seed=5, progress=False,
+                      response=curve)
+    (s,) = m["scenes"]
+    assert s["id"] == "lab_a" and s["provenance"]["kind"] == "specim" and "error" not in s
+    assert any(k.startswith("2/capture/") for k in s["provenance"]["input_sha256"])
+    ref = mf.scene_map(reference[1])["a_still"]
+    # the same raw cubes give the same HS cube, whichever way they are listed
+    assert s["sha256"]["hs_data"] == ref["sha256"]["hs_data"]
