@@ -52,11 +52,6 @@ LOCK_NAME = ".mehs-build.lock"
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
 
-#: How the LDR-RGB image is exposed (recorded in the manifest's ``rgb`` block).
-LDR_EXPOSURE_RULE = ("mehs.rgb.ldr_rgb: exposure = 1/P{p}(Y) over pixels with Y > 0 "
-                     "(that luminance percentile maps to 1), clip to [0,1], sRGB OETF, "
-                     "rint(255 v); the exposure of each scene is quality.ldr_exposure")
-
 
 @dataclass(frozen=True)
 class BuildParams:
@@ -487,7 +482,8 @@ class _Lock:
 def _rgb_block() -> dict[str, str]:
     import mehs.rgb as rgb
 
-    rule = LDR_EXPOSURE_RULE.format(p=f"{getattr(rgb, 'LDR_PERCENTILE', 99.0):g}")
+    rule = (f"mehs.rgb.ldr_rgb: {rgb.LDR_EXPOSURE_RULE}; then clip to [0, 1], sRGB OETF, "
+            "rint(255 v); the exposure of each scene is quality.ldr_exposure")
     return {"xyz_scale": "1/sum(ybar)", "ldr_exposure_rule": rule,
             "matrix": "XYZ->linear sRGB (D65), IEC 61966-2-1 / paper, negatives clipped",
             "cmfs": rgb.CMFS_NAME}
