@@ -1,11 +1,36 @@
-"""`mehs demo` — placeholder until its issue lands (replace this module)."""
+"""`mehs demo` — the whole pipeline on the simulated device: capture, build, train, evaluate, report, export."""
 
-from mehs.errors import MehsError
+from __future__ import annotations
 
 
 def configure(parser):
-    pass
+    parser.add_argument("--out", "-o", default="mehs-demo", metavar="DIR",
+                        help="demo folder (default: %(default)s); re-running reuses its captures "
+                             "and built scenes")
+    parser.add_argument("--scenes", type=int, default=4, metavar="N",
+                        help="scenes to capture (default: %(default)s): a visible sodium lamp "
+                             "(HP1), a moving cloud, then other illuminants")
+    parser.add_argument("--size", default="small", metavar="small|full|N",
+                        help="small = 64×64 pixels, full = 512×512 (Specim IQ), or N×N pixels; "
+                             "always 204 bands (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of scenes, sensor noise, sampling and splits (default: 0)")
+    parser.add_argument("--workers", "-j", type=int, default=None, metavar="N",
+                        help="scenes built at once (default: CPU count)")
+    parser.add_argument("--force", action="store_true",
+                        help="delete this demo folder's earlier captures and outputs and start over")
+    parser.add_argument("--recover-response", action="store_true",
+                        help="recover a Debevec-Malik response curve per scene instead of using "
+                             "the simulated sensor's known linear curve")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args):
-    raise MehsError("'mehs demo' is not implemented yet")
+    from mehs.demo import format_summary, run_demo
+
+    doc = run_demo(args.out, scenes=args.scenes, size=args.size, seed=args.seed,
+                   workers=args.workers, force=args.force,
+                   recover_response=args.recover_response,
+                   progress=False if args.no_progress else None)
+    print(format_summary(doc))
+    return 0
