@@ -3,11 +3,11 @@
 Measured side by side in one run (design.md §7, target ≤ 5 s per scene):
 
 1. **stages run separately** in this process, the same calls the builder makes:
-   read (``load_bracket``, incl. its SHA-256 verification), response + merge +
+   hash (inputs for the scene key, checked against scene.json, and outputs for the
+   manifest), read (``load_bracket``), response + merge +
    ghosts (``fuse_bracket``; its own breakdown), resample to 31 bands, RGB
    (``hdr_rgb``, ``ldr_rgb``, preview tone map), write (ENVI, EXR, PNGs,
-   response and summary JSON), hash (inputs for the scene key, outputs for the
-   manifest);
+   response and summary JSON);
 2. **the build**: ``mehs.dataset.build.build_dataset([scene], out, workers=1)`` in a
    fresh child process (numba kernels warmed on a tiny scene first, as in a
    long build), with its per-stage breakdown from the manifest's provenance
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -87,7 +88,8 @@ def stages_separately(scene: Path, out: Path, response: str) -> dict[str, float]
     t["hash"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    bracket = load_bracket(scene)
+    # as the builder does: the input hashes above are the verification
+    bracket = load_bracket(scene, verify="size")
     t["read"] = time.perf_counter() - t0
     curve = _curve(out.parent, response)
     t0 = time.perf_counter()
@@ -207,6 +209,8 @@ def main() -> int:
           f"held before the build (imports, warm-up): {grow:.0f} MB = "
           f"{grow / stack_mb:.2f}× the raw stack ({stack_mb:.0f} MB)")
     print(f"scene status: {b['status']} {b['reasons']}")
+    print(f"load average during the run: {' '.join(f'{x:.1f}' for x in os.getloadavg())} "
+          f"on {os.cpu_count()} CPUs (timings are only meaningful on a quiet machine)")
     return 0
 
 
