@@ -60,10 +60,10 @@ def test_full_grid_runs_without_nan_and_writes_results(full_eval):
     res = full_eval
     assert len(res.rows) == 10 * 3 * 2 * 2 * 2
     assert len(res.summary) == 3 * 2 * 2 * 2
-    # LDR pixels quantised to 0 give zero-norm predictions: excluded from SAM and counted.
+    # LDR pixels quantised to 0 give zero-norm predictions: excluded from SAM and
+    # counted (average-metered LDR images may have none; the count must still agree).
     ldr_black = sum(int(np.count_nonzero(np.all(p.ldr_rgb() == 0, -1) & p.valid()))
                     for p in load_pairs(res_dataset(res)))
-    assert ldr_black > 0
     for s in res.summary:
         for k in ("sam", "mrae", "rmse", "psnr"):
             assert s[k] is not None and np.isfinite(s[k])
