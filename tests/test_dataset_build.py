@@ -231,6 +231,9 @@ def test_broken_scene_is_recorded_not_dropped(scenes, tmp_path):
     assert s["status"] == "fail" and s["reasons"][0].startswith("synthesis failed")
     assert s["files"] == {} and not (ds / "scenes" / "z_broken").exists()
     assert m["splits"] == {"train": [], "val": [], "test": []}
+    from mehs.cli import main
+
+    assert main(["build", str(broken), "--out", str(tmp_path / "dsb2"), "-q"]) == 1
 
 
 def test_from_hs_pairs_204_and_31_band_cubes(scenes, tmp_path):

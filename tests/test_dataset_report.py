@@ -56,15 +56,16 @@ def test_report_dispatches_evaluation_folders(dataset, tmp_path, monkeypatch):
 
     calls = []
     monkeypatch.setattr(ssr_report, "write_evaluation_report",
-                        lambda d, out=None: calls.append((Path(d), Path(out))) or Path(out))
+                        lambda d, out=None: calls.append((Path(d), out)) or Path(d) / "r.html")
     results = tmp_path / "results"
     results.mkdir()
+    with pytest.raises(InputError, match="neither a dataset"):
+        write_report(results)
+    (results / "evaluation.json").write_text("{}")
     assert main(["report", str(results)]) == 0
-    assert calls == [(results, results / "report.html")]
+    assert calls == [(results, None)]
     assert main(["report", str(dataset), "--out", str(tmp_path / "d.html")]) == 0
     assert len(calls) == 1 and (tmp_path / "d.html").is_file()
-    with pytest.raises(InputError, match="not a folder"):
-        write_report(tmp_path / "nothing")
 
 
 def test_report_renders_in_headless_chromium(dataset):

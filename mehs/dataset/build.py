@@ -49,6 +49,7 @@ from mehs.errors import InputError, MehsError
 from mehs.io.atomic import sha256_file
 
 LOCK_NAME = ".mehs-build.lock"
+GHOST_MODES = ("detect", "deghost", "off")
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
 
@@ -543,6 +544,12 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     srcs = [s for s in raw if isinstance(s, SceneSource)] + (collect_scenes(paths) if paths else [])
     if not srcs:
         raise InputError("no scenes to build")
+    from mehs.synthesis.merge import MERGE_METHODS
+
+    if method not in MERGE_METHODS:  # refuse before any scene is attempted
+        raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
+    if ghosts not in GHOST_MODES:
+        raise InputError(f"ghosts must be one of {list(GHOST_MODES)}, got {ghosts!r}")
     rules = rules or QualityRules()
     fractions = parse_fractions(splits)
     params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,

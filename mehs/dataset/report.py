@@ -102,23 +102,22 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
 def write_report(path: str | Path, out_html: str | Path | None = None) -> Path:
     """Report of a dataset folder, or of an SSR evaluation results folder.
 
-    A folder with a ``mehs-dataset/1`` ``manifest.json`` gets the dataset
-    report; any other folder is handed to
-    :func:`mehs.ssr.report.write_evaluation_report` (written by ``mehs evaluate --out``).
+    A folder with a dataset ``manifest.json`` gets the dataset report; a results
+    folder written by ``mehs evaluate --out`` (see
+    :func:`mehs.ssr.evaluate.is_evaluation_folder`) is handed to
+    :func:`mehs.ssr.report.write_evaluation_report`.
     """
+    from mehs.ssr.evaluate import is_evaluation_folder
+
     path = Path(path)
-    if not path.is_dir():
-        raise InputError("not a folder (expected a dataset or evaluation results folder)", path)
     if (path / "manifest.json").is_file():
         return write_dataset_report(path, out_html)
-    try:
+    if is_evaluation_folder(path):
         from mehs.ssr.report import write_evaluation_report
-    except ImportError:
-        raise InputError("no dataset manifest.json here, and the evaluation report "
-                         "(mehs.ssr.report) is not available", path) from None
-    out = Path(out_html) if out_html else path / "report.html"
-    result = write_evaluation_report(path, out)
-    return Path(result) if result else out
+
+        return Path(write_evaluation_report(path, out_html))
+    raise InputError("neither a dataset folder (no manifest.json) nor an evaluation "
+                     "results folder (no evaluation.json)", path)
 
 
 # ------------------------------------------------------------------ figures
