@@ -335,10 +335,9 @@ def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]
             data = np.where(bad, np.float32(0), data)
         cube = cube.with_data(data)
     mask = np.where(nonfinite | ~(data > 0).any(axis=2), np.uint8(4), np.uint8(0))
-    quality = _quality({}, mask)
-    quality["exposure_ratios"] = None
-    quality["saturated_fraction"] = None
-    quality["ghost_fraction"] = None
+    # no bracket: exposure, saturation and ghost figures are unknown, not zero
+    quality = {**_quality({}, mask), "exposure_ratios": None, "saturated_fraction": None,
+               "ghost_fraction": None}
     _finish_scene(task, cube, mask, tmp, run, quality)
     return quality, {"source_bands": int(cube.bands)}
 
@@ -356,13 +355,11 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     p = task.params
     report_stage(sid, "resample")
     with _timed(run, "resample"):
-        hs = to_31_bands(cube, method=p.resample, fwhm=p.fwhm)
+        hs = to_31_bands(cube, method=p.resample, fwhm=p.fwhm)  # refuses NaN/Inf
         data = np.ascontiguousarray(hs.data, dtype=np.float32)
-        if not np.isfinite(data).all():
-            raise MehsError("resampled cube holds NaN/Inf values", task.source.paths[0])
     report_stage(sid, "rgb")
     with _timed(run, "rgb"):
-        hdr = np.asarray(hdr_rgb(data, WAVELENGTHS_31), dtype=np.float32)
+        hdr = hdr_rgb(data, WAVELENGTHS_31)
         scale = half_float_scale(float(hdr.max()) if hdr.size else 0.0)
         if scale != 1.0:
             # a power of two commutes exactly with float rounding: HS and RGB stay paired
@@ -377,8 +374,7 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     quality["radiance_scale"] = scale
     report_stage(sid, "write")
     with _timed(run, "write"):
-        hs = hs.with_data(data, units=getattr(cube, "units", None) or "relative radiance",
-                          integration_time_ms=None, source=None,
+        hs = hs.with_data(data, units=cube.units, integration_time_ms=None, source=None,
                           metadata={"mehs radiance scale": repr(scale)})
         write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
         write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True,
