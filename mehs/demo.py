@@ -57,6 +57,12 @@ DEMO_MODELS = ("smits", "mallett")
 #: regression must not be scored on the scenes it was fitted on.
 DEMO_SPLITS = (0.5, 0.0, 0.5)
 
+#: Pass/fail rules of the demo: the defaults, except that the ghost rule allows 8 % of pixels.
+#: The χ² ghost test flags 0–5 % of the pixels of *static* simulated scenes captured with
+#: wide auto-exposed brackets (dark patches near the end of the scan: a noise-model
+#: mismatch, reported upstream), while the moving cloud covers 11–15 %.
+DEMO_MAX_GHOST_FRACTION = 0.08
+
 #: Sub-folders the demo owns inside its output folder (``--force`` removes them).
 SUBFOLDERS = ("captures", "dataset", "models", "evaluation", "export")
 
@@ -75,18 +81,18 @@ class DemoScene:
 
 
 _FEATURED = (
-    DemoScene("s01_sodium_lamp", "lamp", "HP1", "HP1", 300.0, False,
-              "ColorChecker under a high-pressure sodium lamp (HP1) that is itself in view"),
+    DemoScene("s01_sodium_lamp", "lamp", "D65", "HP1", 300.0, False,
+              "ColorChecker at dusk (D65) with a high-pressure sodium street lamp (HP1) in view"),
     DemoScene("s02_moving_cloud", "colorchecker", "D65", "D65", 300.0, True,
               "ColorChecker in daylight (D65) with a bright cloud drifting between exposures"),
     DemoScene("s03_window", "window", "A", "D65", 300.0, False,
               "ColorChecker under tungsten light (A) with a daylight window in view"),
-    DemoScene("s04_fluorescent", "colorchecker", "FL2", "LED-B3", 300.0, False,
+    DemoScene("s04_led", "colorchecker", "LED-B3", "A", 300.0, False,
+              "ColorChecker under a white LED (LED-B3) with a tungsten bulb (A) in view"),
+    DemoScene("s05_fluorescent", "colorchecker", "FL2", "LED-B3", 300.0, False,
               "ColorChecker under a fluorescent tube (FL2) with an LED lamp (LED-B3) in view"),
-    DemoScene("s05_led", "colorchecker", "LED-B3", "A", 300.0, False,
-              "ColorChecker under an LED (LED-B3) with a tungsten bulb (A) in view"),
-    DemoScene("s06_tungsten", "colorchecker", "A", "A", 300.0, False,
-              "ColorChecker under tungsten light (A) with the bulb in view"),
+    DemoScene("s06_sodium_lit", "lamp", "HP1", "HP1", 300.0, False,
+              "ColorChecker lit by the high-pressure sodium lamp (HP1) in view"),
 )
 _MORE_ILLUMINANTS = ("D65", "FL11", "LED-B1", "A", "FL2", "D50", "LED-RGB1", "HP1")
 
@@ -304,7 +310,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     timings["capture"] = time.perf_counter() - t0
 
     # 2. build
-    say(f"[2/6] build: the ME HS set in {ds_dir}")
+    say(f"[2/6] build: the ME HS set in {ds_dir} (ghost rule: at most "
+        f"{DEMO_MAX_GHOST_FRACTION:.0%} of pixels)")
     t0 = time.perf_counter()
     from mehs.dataset.build import build_dataset
 
@@ -315,8 +322,12 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         response = model_dir / "linear_response.json"
         if not response.is_file():
             ResponseCurve.linear(12).save(response)
+    from mehs.dataset.quality import QualityRules
+
+    rules = QualityRules(max_ghost_fraction=DEMO_MAX_GHOST_FRACTION)
     manifest = build_dataset([cap_dir / s.scene_id for s in specs], ds_dir, workers=workers,
-                             seed=seed, splits=DEMO_SPLITS, response=response, progress=bars)
+                             seed=seed, splits=DEMO_SPLITS, response=response, rules=rules,
+                             progress=bars)
     timings["build"] = time.perf_counter() - t0
     n_pass = sum(s["status"] == "pass" for s in manifest["scenes"])
     say(f"  {len(manifest['scenes'])} scenes, {n_pass} pass; splits " +
