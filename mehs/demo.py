@@ -135,13 +135,9 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
     error (the demo never overwrites a capture).
     """
     from mehs.capture import scenefolder as sf
-    from mehs.capture.camera import LineCamera
     from mehs.capture.scene import make_scene
     from mehs.capture.sensor import SensorModel
-    from mehs.capture.session import capture_scene
-    from mehs.capture.simdevice import SimDevices
-    from mehs.capture.simulate import motion_phase, write_truth
-    from mehs.capture.zaber import ZaberStage
+    from mehs.errors import DeviceError
 
     s_seed = _scene_seed(seed, index)
     demo_info = {**asdict(spec), "size": size, "seed": s_seed}
@@ -161,6 +157,23 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
                        light_source=spec.light_source, source_ratio=spec.source_ratio,
                        motion=spec.motion, seed=s_seed)
     sensor = SensorModel(seed=s_seed)
+    try:
+        return _capture(spec, folder, scene, sensor, resume=resume, seed=s_seed,
+                        demo_info=demo_info, progress=progress, log=log)
+    except DeviceError as exc:
+        raise DeviceError(f"{exc.problem} — completed exposures are kept; run the same "
+                          f"'mehs demo' again to resume", exc.path) from exc
+
+
+def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed: int,
+             demo_info: dict, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
+    from mehs.capture.camera import LineCamera
+    from mehs.capture.session import capture_scene
+    from mehs.capture.simdevice import SimDevices
+    from mehs.capture.simulate import motion_phase, write_truth
+    from mehs.capture.zaber import ZaberStage
+
+    s_seed = seed
     with SimDevices(scene, sensor) as dev:
         stage = ZaberStage.open(dev.stage_url, timeout=2.0)
         try:
@@ -294,6 +307,10 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
               "response": "recovered" if recover_response else "linear"}
     _check_out(out, params, force)
     out.mkdir(parents=True, exist_ok=True)
+    if not (out / DEMO_JSON).is_file() or force:
+        # Written first, so that an interrupted demo is recognised (and resumed) next time.
+        write_json_atomic(out / DEMO_JSON, {"format": DEMO_FORMAT, "software_version": __version__,
+                                            "params": params, "status": "running"})
     cap_dir, ds_dir, model_dir = out / "captures", out / "dataset", out / "models"
     eval_dir, export_dir = out / "evaluation", out / "export"
     timings: dict[str, float] = {}
@@ -423,7 +440,7 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
                                "psnr", "n_images")} for s in res.summary]
     doc = {
         "format": DEMO_FORMAT, "software_version": __version__, "params": params,
-        "paths": {"captures": str(cap_dir.resolve()), "dataset": str(ds_dir.resolve()),
+        "status": "complete", "paths": {"captures": str(cap_dir.resolve()), "dataset": str(ds_dir.resolve()),
                   "dataset_report": str(Path(ds_report).resolve()),
                   "regression_model": str(reg_path.resolve()) if reg_path.is_file() else None,
                   "evaluation": str(eval_dir.resolve()) if res is not None else None,

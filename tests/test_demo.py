@@ -227,3 +227,28 @@ def test_same_seed_same_numbers_in_a_fresh_folder(demo, tmp_path):
     a, b = runs["first_doc"], doc
     assert [r["times_ms"] for r in a["scenes"]] == [r["times_ms"] for r in b["scenes"]]
     assert a["ssr"] == b["ssr"] and a["scene_table"] == b["scene_table"]
+
+
+def test_an_interrupted_demo_resumes(tmp_path, monkeypatch):
+    """Killed after the captures (here: Ctrl-C in the build): the next run keeps them and finishes."""
+    import mehs.dataset.build as build
+
+    out = tmp_path / "d"
+    args = ["demo", "--out", str(out), "--size", "16", "--scenes", "2", "--no-progress"]
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(build, "build_dataset", interrupted)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            assert main(args) == 130
+    assert json.loads((out / "demo.json").read_text())["status"] == "running"
+    before = _raw_files(out)
+    so = io.StringIO()
+    with contextlib.redirect_stdout(so):
+        assert main(args) == 0
+    assert so.getvalue().count("already captured, kept") == 2
+    assert _raw_files(out) == before
+    doc = json.loads((out / "demo.json").read_text())
+    assert doc["status"] == "complete" and (out / "dataset" / "manifest.json").is_file()
