@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+# tiny nets: a second thread only spins on a shared 2-core machine
+torch.set_num_threads(1)
 
 from mehs.cli import main  # noqa: E402
 

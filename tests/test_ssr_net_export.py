@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+# tiny nets: a second thread only spins on a shared 2-core machine
+torch.set_num_threads(1)
 
 from mehs.errors import InputError  # noqa: E402
 from mehs.rgb import WAVELENGTHS_31  # noqa: E402

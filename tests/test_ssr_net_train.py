@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+# tiny nets: a second thread only spins on a shared 2-core machine
+torch.set_num_threads(1)
 
 from mehs.errors import FormatError, InputError  # noqa: E402
 from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB  # noqa: E402

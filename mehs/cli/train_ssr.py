@@ -50,6 +50,9 @@ def configure(parser):
     parser.add_argument("--t0", type=int, default=20, help="warm-restart period T0 in epochs (default 20)")
     parser.add_argument("--no-onnx", dest="onnx", action="store_false",
                         help="do not export OUT/model.onnx at the end")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch CPU threads (default 0: torch's choice); 1 is often "
+                             "faster on a busy machine")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -100,6 +103,10 @@ def run(args):
     for name in ("epochs", "batch", "patch", "patches_per_image", "n_basis", "t0"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be at least 1")
+    if args.threads < 0:
+        raise InputError("--threads must be 0 (torch's choice) or more")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     train_split, val_split = _splits(args.dataset)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []
@@ -123,7 +130,11 @@ def run(args):
     print(history_summary(res.history))
     best = res.best_checkpoint or res.last_checkpoint
     print(f"checkpoints: {res.last_checkpoint} (last), {best} (best)")
+    if best is not None:
+        print(f"evaluate: mehs evaluate {args.dataset} --models smits,mallett,{best}")
     if args.onnx and best is not None:
         onnx_path = export_onnx(best, Path(args.out) / "model.onnx")
-        print(f"ONNX model: {onnx_path}  (evaluate: mehs evaluate DATASET --models smits,{onnx_path})")
+        # the graph applies its own Reinhard step: the evaluation must not add another
+        print(f"ONNX model: {onnx_path} (self-contained: linear RGB in; score it with "
+              f"--preprocess off)")
     return 0
