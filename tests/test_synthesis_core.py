@@ -322,3 +322,21 @@ def test_load_bracket_errors(tmp_path):
         {"format": "mehs-scene/1", "exposures": [{"status": "incomplete"}]}))
     with pytest.raises(InputError, match="complete exposure"):
         load_bracket(tmp_path / "s")
+
+
+def test_auto_response_picks_linear_for_linear_sensor_and_specim_folder_list(tmp_path):
+    from mehs.capture.simulate import write_simulated_scene
+
+    sim, br, sen = _simulated("linear", lines=64, samples=64, bands=17)
+    res = fuse_bracket(br, response="auto", ghosts="off")
+    assert res.response.is_linear, res.summary["response"]
+    assert res.summary["response"]["linearity_deviation"] < 0.02
+    # the same exposures given as Specim IQ folders (times from each header's tint), unsorted
+    scene = write_simulated_scene(sim, tmp_path / "s")
+    folders = sorted((scene / "exposures").iterdir(), reverse=True)
+    b = load_bracket(folders)
+    np.testing.assert_allclose(b.times_ms, sim.times_ms)
+    r2 = fuse_bracket(b, response="linear", ghosts="off")
+    r1 = fuse_bracket(br, response="linear", ghosts="off")
+    # darks are stored rounded to whole DN in the folders: agreement to that level
+    np.testing.assert_allclose(r2.radiance.data, r1.radiance.data, rtol=0, atol=0.5 / 8 + 1e-4)

@@ -220,15 +220,17 @@ def stratified_pick(levels, order, n, strata, L):
     candidate indices, −1 where fewer eligible pixels exist.
     """
     P, M, C = levels.shape
+    K = order.shape[0]
     quota = (n + P * strata - 1) // (P * strata)
     out = -np.ones((C, n), dtype=np.int64)
     for ch in prange(C):
         count = np.zeros((P, strata), dtype=np.int64)
+        picked = np.zeros(K, dtype=np.bool_)   # the second pass must not repeat a pixel
         taken = 0
         for pass_ in range(2):
             if taken >= n:
                 break
-            for k in range(M):
+            for k in range(K):
                 if taken >= n:
                     break
                 i = order[k]
@@ -245,15 +247,9 @@ def stratified_pick(levels, order, n, strata, L):
                     continue
                 if pass_ == 0 and not want:
                     continue
-                if pass_ == 1:
-                    # second pass fills the remainder with any eligible pixel
-                    dup = False
-                    for q in range(taken):
-                        if out[ch, q] == i:
-                            dup = True
-                            break
-                    if dup:
-                        continue
+                if picked[k]:
+                    continue
+                picked[k] = True
                 out[ch, taken] = i
                 taken += 1
                 for j in range(P):
@@ -267,7 +263,7 @@ def stratified_pick(levels, order, n, strata, L):
 @njit(parallel=True, cache=True)
 def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 floor, gain, read_var, rel_var, cal, method, want_chi2,
-                out, chi2, dof, snr, nsat, nvalid):
+                out, chi2, dof, snr, nsat, nvalid, msum):
     """Merge one chunk of lines of a bracket (band-interleaved-by-line layout).
 
     Parameters
@@ -303,7 +299,8 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     Outputs (written in place): ``out`` float32 (lines, bands, samples);
     per pixel (lines, samples): ``chi2`` float32 consistency statistic,
     ``dof`` int32, ``snr`` float32 (summed over bands), ``nsat`` int32 bands
-    saturated in every exposure, ``nvalid`` int32 bands with a usable sample.
+    saturated in every exposure, ``nvalid`` int32 bands with a usable sample,
+    ``msum`` float32 sum over bands of the output.
 
     Every inner loop runs over the contiguous samples axis with no branches
     (selects only), so LLVM vectorises it; the exposures and bands are the
@@ -322,7 +319,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     for l in prange(nl):
         y = np.empty((P, ns), dtype=np.float32)
         ok = np.empty((P, ns), dtype=np.float32)
-        sa = np.empty((P, ns), dtype=np.float32)
         om = np.empty((P, ns), dtype=np.float32)
         lev = np.zeros((P, ns), dtype=np.int32)
         sy = np.empty(ns, dtype=np.float32)
@@ -349,7 +345,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 tj2 = tj * tj
                 yj = y[j]
                 okj = ok[j]
-                saj = sa[j]
                 if linear:
                     # the common case in one fused, branch-free loop
                     for i in range(ns):
@@ -357,7 +352,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         yv = raw - dr[i]
                         yj[i] = yv
                         q = f1 if raw >= s else f0
-                        saj[i] = q
                         o = f1 if (raw < s) & (yv > fl) else f0
                         okj[i] = o
                         sy[i] += o * yv
@@ -381,7 +375,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     raw = np.float32(zr[i])
                     yv = yj[i]
                     q = f1 if raw >= s else f0
-                    saj[i] = q
                     o = f1 if (raw < s) & (yv > fl) else f0
                     okj[i] = o
                     sy[i] += o * yv
@@ -407,7 +400,9 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         a1 = f0
                         a2 = f0
                         for j in range(P):
-                            u = f1 - sa[j, i]
+                            # the saturation flag is re-derived here (rare) rather
+                            # than stored for every sample in the hot loop
+                            u = f1 if np.float32(zs[j][l, a, i]) < s else f0
                             a1 += u * y[j, i]
                             a2 += u * times[j]
                         X[i] = a1 / a2 if a2 > f0 else f0
@@ -449,12 +444,21 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         if linear:
                             for i in range(ns):
                                 lj[i] = min(max(int(yj[i] + np.float32(0.5)), 0), L - 1)
-                        for i in range(ns):
-                            w = okj[i] * wlut[lj[i]]
-                            omj[i] = w
-                            if w > f0:
-                                gj = np.log(yj[i]) if (linear or dark_after) else glut[cb, lj[i]]
-                                num[i] += w * (gj - lt)
+                        if dark_after:
+                            for i in range(ns):
+                                w = okj[i] * wlut[lj[i]]
+                                omj[i] = w
+                                if w > f0:
+                                    num[i] += w * (np.log(yj[i]) - lt)
+                                    den[i] += w
+                        else:
+                            # Debevec's own form: g of the integer level (ln z for a
+                            # linear sensor), a table look-up, no per-sample log
+                            gl = glut[cb]
+                            for i in range(ns):
+                                w = okj[i] * wlut[lj[i]]
+                                omj[i] = w
+                                num[i] += w * (gl[lj[i]] - lt)
                                 den[i] += w
                 for i in range(ns):
                     if den[i] > f0:
@@ -502,6 +506,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
             c = cal[a]
             ol = out[l, a]
             snr_l = snr[l]
+            msum_l = msum[l]
             nvalid_l = nvalid[l]
             nsat_l = nsat[l]
             chi2_l = chi2[l]
@@ -511,6 +516,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
             for i in range(ns):
                 xi = X[i]
                 ol[i] = xi * c
+                msum_l[i] += xi * c
                 has = nv[i] > f0
                 nvalid_l[i] += 1 if has else 0
                 dn = den[i]

@@ -284,7 +284,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                     np.float32(floor), float(noise.gain), float(noise.read_noise) ** 2,
                     float(noise.relative) ** 2, cal, code, bool(consistency),
                     out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
-                    nvalid[l0:l1])
+                    nvalid[l0:l1], msum[l0:l1])
     radiance = out.transpose(0, 2, 1)
     mask = np.zeros((nl, ns), dtype=np.uint8)
     mask[nsat > 0] |= MASK_SATURATED
@@ -293,9 +293,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         what = ("saturated in every exposure" if np.all(nsat == nb)
                 else "saturated or below the noise floor in every exposure")
         raise InputError(f"no usable sample in the bracket: every pixel is {what}", source)
-    # mean over bands, from the output (a cheap pass over a float32 cube per chunk)
-    for l0 in range(0, nl, 64):
-        msum[l0:l0 + 64] = out[l0:l0 + 64].mean(axis=1, dtype=np.float32)
+    msum /= np.float32(nb)
     info = {"method": method, "times_ms": t.tolist(), "order": order.tolist(),
             "bit_depth": int(bit_depth), "response": response.method,
             "dark_mode": "linear" if dark_after else "raw",
