@@ -126,8 +126,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     Parameters
     ----------
     stack
-        P arrays ``(lines, samples, bands)`` of raw DN (any integer or float
-        dtype; memory maps are read chunk by chunk, never whole).
+        P arrays (or :class:`~mehs.cube.SpectralCube`) ``(lines, samples, bands)``
+        of raw DN (any integer or float dtype; memory maps are read chunk by
+        chunk, never whole).
     times_ms
         Exposure times in ms, positive and distinct, one per exposure.
     method
@@ -164,8 +165,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 
     if method not in _CODES:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(_CODES)}")
-    arrays = [np.asarray(s.data if hasattr(s, "data") and hasattr(s, "wavelengths") else s)
-              if not isinstance(s, np.memmap) else s for s in stack]
+    from mehs.cube import SpectralCube
+
+    # np.asarray keeps memory maps as views (nothing is read here)
+    arrays = [np.asarray(s.data if isinstance(s, SpectralCube) else s) for s in stack]
     P = len(arrays)
     if P < 2:
         raise InputError(f"a bracket needs at least 2 exposures, got {P}", source)
