@@ -38,7 +38,13 @@ def run(args) -> int:
 
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
     bracket = load_bracket(paths, verify=args.verify)
-    ref = args.reference if args.reference == "auto" else int(args.reference)
+    from mehs.errors import InputError
+
+    try:
+        ref = args.reference if args.reference == "auto" else int(args.reference)
+    except ValueError:
+        raise InputError(f"--reference must be 'auto' or an exposure index, "
+                         f"got {args.reference!r}") from None
     res = fuse_bracket(bracket, method=args.method, response=args.response, ghosts=args.ghosts,
                        smoothness=args.smoothness, samples=args.samples, seed=args.seed,
                        shared_response=not args.per_band, calibration=args.calibration,
