@@ -83,6 +83,10 @@ def test_registry_loads_checkpoints_by_name(tmp_path):
     out = model(rgb)
     assert out.shape == (11, 7, 31) and out.dtype == np.float32
     np.testing.assert_allclose(out, load_torch_model(ckpt)(rgb), rtol=1e-6)
+    by_path = load_model(str(ckpt))  # a .pt spec, as `mehs evaluate --models x.pt` gives it
+    np.testing.assert_array_equal(by_path(rgb), out)
+    with pytest.raises(InputError, match="predicts 31 bands"):
+        load_model(str(ckpt), wavelengths=np.arange(400, 701, 5))
     with pytest.raises(InputError, match="needs a trained checkpoint"):
         load_model("hdrssr")
     with pytest.raises(InputError, match="not 'fcdensenet'"):

@@ -75,9 +75,19 @@ class TorchSSRModel(SSRModel):
 
 
 def load_torch_model(checkpoint: str | Path, *, name: str | None = None,
-                     device: str = "cpu") -> TorchSSRModel:
-    """A :class:`TorchSSRModel` from a training checkpoint (``last.pt`` / ``best.pt``)."""
+                     device: str = "cpu", wavelengths=None) -> TorchSSRModel:
+    """A :class:`TorchSSRModel` from a training checkpoint (``last.pt`` / ``best.pt``).
+
+    ``wavelengths``, if given, must be the network's own bands (a network cannot
+    be asked for others); ``mehs.ssr.models.load_model("x.pt", ...)`` lands here.
+    """
     net, _ = load_network(checkpoint, map_location="cpu")
+    if wavelengths is not None:
+        want = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
+        if want.shape != net.wavelengths.shape or not np.allclose(want, net.wavelengths, atol=0.01):
+            raise InputError(f"the network predicts {net.wavelengths.size} bands "
+                             f"{net.wavelengths[0]:g}..{net.wavelengths[-1]:g} nm, not the "
+                             f"{want.size} requested", checkpoint)
     return TorchSSRModel(net, name=name, device=device, source=str(checkpoint))
 
 
