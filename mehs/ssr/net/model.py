@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-import torch.nn.functional as F
 
 from mehs.errors import InputError
 from mehs.rgb import WAVELENGTHS_31, XYZ_TO_SRGB, cmfs_matrix
