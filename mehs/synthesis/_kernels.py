@@ -329,6 +329,9 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
         X = np.empty(ns, dtype=np.float32)
         num = np.empty(ns, dtype=np.float32)
         den = np.empty(ns, dtype=np.float32)
+        for i in range(ns):
+            nsa[i] = f0
+        had_bad = False
         for a in range(nb):
             cb = 0 if shared else a
             s = sat[a]
@@ -337,7 +340,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 st[i] = f0
                 st2[i] = f0
                 nv[i] = f0
-                nsa[i] = f0
             for j in range(P):
                 zr = zs[j][l, a]
                 dr = darks[j, a]
@@ -351,14 +353,12 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         raw = np.float32(zr[i])
                         yv = raw - dr[i]
                         yj[i] = yv
-                        q = f1 if raw >= s else f0
                         o = f1 if (raw < s) & (yv > fl) else f0
                         okj[i] = o
                         sy[i] += o * yv
                         st[i] += o * tj
                         st2[i] += o * tj2
                         nv[i] += o
-                        nsa[i] += q
                     continue
                 lj = lev[j]
                 if dark_after:
@@ -374,25 +374,34 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 for i in range(ns):
                     raw = np.float32(zr[i])
                     yv = yj[i]
-                    q = f1 if raw >= s else f0
                     o = f1 if (raw < s) & (yv > fl) else f0
                     okj[i] = o
                     sy[i] += o * yv
                     st[i] += o * tj
                     st2[i] += o * tj2
                     nv[i] += o
-                    nsa[i] += q
             # pooled (Poisson) estimate, branch-free; fall-backs in a rare scalar pass
             nbad = 0
             for i in range(ns):
                 has = nv[i] > f0
                 X[i] = sy[i] / (st[i] if has else f1)
                 nbad += 0 if has else 1
+            if had_bad:
+                for i in range(ns):
+                    nsa[i] = f0
+                had_bad = False
             if nbad > 0:
+                # rare: no usable sample somewhere in this row; the saturation
+                # flags are re-derived here rather than counted in the hot loop
+                had_bad = True
                 t0 = times[0]
                 for i in range(ns):
                     if nv[i] > f0:
                         continue
+                    ns_i = f0
+                    for j in range(P):
+                        ns_i += f1 if np.float32(zs[j][l, a, i]) >= s else f0
+                    nsa[i] = ns_i
                     if nsa[i] == np.float32(P):
                         X[i] = y[0, i] / t0          # saturated everywhere: a lower bound
                     else:
@@ -521,7 +530,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 nvalid_l[i] += 1 if has else 0
                 dn = den[i]
                 snr_l[i] += xi * num[i] / np.sqrt(dn) if has & (dn > f0) else f0
-                nsat_l[i] += 1 if (nv[i] == f0) & (nsa[i] == fP) else 0
+                nsat_l[i] += 1 if nsa[i] == fP else 0
             if want_chi2:
                 for i in range(ns):
                     m2 = nv[i] >= two
