@@ -40,7 +40,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-
 from mehs.errors import InputError
 
 DEMO_FORMAT = "mehs-demo/1"
