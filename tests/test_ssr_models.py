@@ -103,7 +103,7 @@ def test_module_function_specs(user_module):
         predict(wide, rgb, wavelengths=np.array([402.0, 410.0]))
 
 
-def _onnx_model(path, layout):
+def _onnx_model(path, layout, props=None):
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -122,7 +122,8 @@ def _onnx_model(path, layout):
     graph = helper.make_graph([node], "ssr", [x], [y], initializer=[weight])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
     model.ir_version = 8
-    helper.set_model_props(model, {"wavelengths": ",".join(str(v) for v in WAVELENGTHS_31)})
+    helper.set_model_props(model, {"wavelengths": ",".join(str(v) for v in WAVELENGTHS_31),
+                                   **(props or {})})
     onnx.save(model, str(path))
     return Wm
 
@@ -137,6 +138,24 @@ def test_onnx_models(tmp_path, layout):
     rgb = np.random.default_rng(6).uniform(0, 2, (6, 5, 3)).astype(np.float32)
     np.testing.assert_allclose(m(rgb), rgb @ Wm, rtol=1e-5)
     np.testing.assert_array_equal(m.wavelengths, WAVELENGTHS_31)
+
+
+def test_onnx_self_contained_metadata_is_honoured(tmp_path):
+    """A graph that applies Reinhard and restores luminance itself gets neither twice."""
+    pytest.importorskip("onnxruntime")
+    path = tmp_path / "self.onnx"
+    Wm = _onnx_model(path, "NCHW", {"mehs_preprocessing": "reinhard",
+                                    "mehs_luminance_restored": "true"})
+    m = load_model(str(path))
+    assert m.preprocessing == "reinhard" and m.restores_luminance is True
+    rgb = np.random.default_rng(7).uniform(0, 4, (4, 3, 3)).astype(np.float32)
+    # The graph sees the raw RGB whether or not pre-processing is asked for.
+    for pp in (False, True):
+        np.testing.assert_allclose(predict(m, rgb, preprocess=pp, restore=False), rgb @ Wm,
+                                   rtol=1e-5)
+    _onnx_model(tmp_path / "plain.onnx", "NCHW")
+    plain = load_model(str(tmp_path / "plain.onnx"))
+    assert not hasattr(plain, "preprocessing") and not getattr(plain, "restores_luminance", False)
 
 
 def test_onnx_errors(tmp_path, monkeypatch):

@@ -311,8 +311,17 @@ class OnnxModel(SSRModel):
         else:
             raise FormatError(f"cannot tell NCHW from NHWC in input shape {shape}", path)
         self.input_type = inputs[0].type
+        meta = self.session.get_modelmeta().custom_metadata_map or {}
+        # A self-contained graph (e.g. exported by `mehs train-ssr`) says whether it
+        # applies Reinhard and restores luminance itself, so the pipeline does
+        # neither a second time.
+        if "mehs_preprocessing" in meta:
+            pp = meta["mehs_preprocessing"].strip().lower()
+            self.preprocessing = None if pp in ("", "none", "off", "false") else pp
+        if "mehs_luminance_restored" in meta:
+            self.restores_luminance = meta["mehs_luminance_restored"].strip().lower() in (
+                "1", "true", "yes", "on")
         if wavelengths is None:
-            meta = self.session.get_modelmeta().custom_metadata_map or {}
             if "wavelengths" in meta:
                 try:
                     wavelengths = [float(v) for v in meta["wavelengths"].replace(";", ",").split(",")]
