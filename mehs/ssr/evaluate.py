@@ -41,9 +41,8 @@ from mehs.ssr.pipeline import predict
 
 EVALUATION_FORMAT = "mehs-evaluation/1"
 PREPROCESS_CHOICES = ("off", "on")
-#: Paper Table 5 (CPU i9-11900, 2048×1024) for orientation in the timing table.
-# Conversion times on 2048×1024 reported by the paper (CPU, i9-11900): Smits and the
-# proposed network (Table 5).
+#: Paper Table 5 (CPU i9-11900, 2048×1024) for orientation in the timing table:
+#: Smits and the proposed network.
 PAPER_SECONDS = {"smits": 0.788, "hdrssr": 16.3}
 
 
