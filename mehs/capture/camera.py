@@ -28,7 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mehs.capture.transport import Channel, open_port
+from mehs.capture.transport import Channel, SerialDriver
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 _ERR_RE = re.compile(r'^ERR (?P<code>-?\d+),"(?P<msg>[^"]*)"$')
@@ -64,7 +64,7 @@ def _is_text(s: str) -> bool:
     return all(32 <= ord(c) < 127 for c in s)
 
 
-class LineCamera:
+class LineCamera(SerialDriver):
     """Driver for the line-scan camera protocol over a pyserial-like port.
 
     Parameters
@@ -79,6 +79,8 @@ class LineCamera:
         Reconnection attempts after a disconnect.
     """
 
+    default_timeout = 2.0
+
     def __init__(self, port: Any, *, opener: Callable[[], Any] | None = None,
                  name: str | None = None, retries: int = 3, reconnects: int = 3,
                  retry_delay_s: float = 0.02):
@@ -89,18 +91,6 @@ class LineCamera:
         self._t_ms: float | None = None
         self._shutter_open: bool | None = None
         self.events: list[str] = []
-
-    @classmethod
-    def open(cls, url: str, *, timeout: float = 2.0, **kwargs: Any) -> "LineCamera":
-        opener = lambda: open_port(url, timeout=timeout)  # noqa: E731
-        return cls(opener(), opener=opener, name=url, **kwargs)
-
-    @property
-    def name(self) -> str:
-        return self.channel.name
-
-    def close(self) -> None:
-        self.channel.close()
 
     # ------------------------------------------------------------ low level
     def _reply_text(self, raw: bytes, command: str) -> str:

@@ -169,3 +169,34 @@ class Channel:
             raise DeviceDisconnected("connection lost and no way to reconnect was given", self.name)
         self.close()
         self.port = self.opener()
+
+
+class SerialDriver:
+    """What every device driver shares: a :class:`Channel`, opening by URL, closing.
+
+    Subclasses set :attr:`default_timeout` (seconds) and build ``self.channel``
+    in their ``__init__(port, *, opener=None, name=None, ...)``.
+    """
+
+    default_timeout: float = 1.0
+    channel: Channel
+
+    @classmethod
+    def open(cls, url: str, *, timeout: float | None = None, **kwargs: Any):
+        """Open ``url`` (``/dev/ttyUSB0``, ``socket://host:port``) and return a driver that can reconnect."""
+        t = cls.default_timeout if timeout is None else timeout
+        opener = lambda: open_port(url, timeout=t)  # noqa: E731
+        return cls(opener(), opener=opener, name=url, **kwargs)
+
+    @property
+    def name(self) -> str:
+        return self.channel.name
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

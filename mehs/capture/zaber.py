@@ -41,7 +41,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from mehs.capture.transport import Channel, PartialReply, open_port
+from mehs.capture.transport import Channel, PartialReply, SerialDriver
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 _REPLY_RE = re.compile(
@@ -139,7 +139,7 @@ def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberRepl
                       busy=m["status"] == "BUSY", flag=m["flag"], data=m["data"])
 
 
-class ZaberStage:
+class ZaberStage(SerialDriver):
     """Driver for one axis of a Zaber stage speaking the ASCII protocol.
 
     Parameters
@@ -175,19 +175,6 @@ class ZaberStage:
         self.info: list[str] = []
         self.alerts: list[str] = []
         self.events: list[str] = []   # recoveries, for the capture log
-
-    @classmethod
-    def open(cls, url: str, *, timeout: float = 1.0, **kwargs: Any) -> "ZaberStage":
-        """Open ``url`` (``/dev/ttyUSB0``, ``socket://host:port``) and return a driver that can reconnect."""
-        opener = lambda: open_port(url, timeout=timeout)  # noqa: E731
-        return cls(opener(), opener=opener, name=url, **kwargs)
-
-    @property
-    def name(self) -> str:
-        return self.channel.name
-
-    def close(self) -> None:
-        self.channel.close()
 
     # ------------------------------------------------------------ low level
     def _read_reply(self) -> ZaberReply:
