@@ -17,7 +17,6 @@ References measured in the same run:
 from __future__ import annotations
 
 import argparse
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -26,14 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _median_time(fn, repeats: int) -> float:
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+from _timing import median_time
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,16 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_io_") as td:
         d = Path(td)
         hp = d / "cube.hdr"
-        t_write = _median_time(lambda: write_envi(hp, cube, interleave="bil"), reps)
-        t_tofile = _median_time(lambda: data.tofile(d / "plain.bin"), reps)
-        t_spy = _median_time(lambda: spy_envi.save_image(str(d / "spy.hdr"), data,
+        t_write = median_time(lambda: write_envi(hp, cube, interleave="bil"), reps)
+        t_tofile = median_time(lambda: data.tofile(d / "plain.bin"), reps)
+        t_spy = median_time(lambda: spy_envi.save_image(str(d / "spy.hdr"), data,
                                                          interleave="bil", ext=".raw",
                                                          force=True), reps)
         raw = d / "cube.raw"
-        t_full = _median_time(lambda: np.fromfile(raw, dtype="<u2").sum(), reps)
-        t_full_read = _median_time(lambda: np.asarray(read_envi(hp, memmap=False).data), reps)
-        t_open = _median_time(lambda: read_envi(hp), reps * 3)
-        t_info = _median_time(lambda: describe(hp), reps * 3)
+        t_full = median_time(lambda: np.fromfile(raw, dtype="<u2").sum(), reps)
+        t_full_read = median_time(lambda: np.asarray(read_envi(hp, memmap=False).data), reps)
+        t_open = median_time(lambda: read_envi(hp), reps * 3)
+        t_info = median_time(lambda: describe(hp), reps * 3)
         t0 = time.perf_counter()
         res = subprocess.run([sys.executable, "-m", "mehs", "info", str(hp)],
                              capture_output=True, text=True)
