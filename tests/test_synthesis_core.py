@@ -336,7 +336,13 @@ def test_auto_response_picks_linear_for_linear_sensor_and_specim_folder_list(tmp
     folders = sorted((scene / "exposures").iterdir(), reverse=True)
     b = load_bracket(folders)
     np.testing.assert_allclose(b.times_ms, sim.times_ms)
-    r2 = fuse_bracket(b, response="linear", ghosts="off")
-    r1 = fuse_bracket(br, response="linear", ghosts="off")
-    # darks are stored rounded to whole DN in the folders: agreement to that level
-    np.testing.assert_allclose(r2.radiance.data, r1.radiance.data, rtol=0, atol=0.5 / 8 + 1e-4)
+    from mehs.synthesis.merge import NoiseModel
+
+    nm = NoiseModel(gain=0.25, read_noise=2.1, relative=0.0)
+    r2 = fuse_bracket(b, response="linear", ghosts="off", noise=nm)
+    r1 = fuse_bracket(br, response="linear", ghosts="off", noise=nm)
+    # darks are stored rounded to whole DN in the folders: agreement to that level,
+    # except where the rounding tips a sample over the "3σ below saturation" rule
+    diff = np.abs(r2.radiance.data - r1.radiance.data)
+    assert np.mean(diff <= 0.5 / 8 + 1e-4) > 0.999
+    assert np.all(diff <= 0.02 * np.abs(r1.radiance.data) + 0.5 / 8 + 1e-4)

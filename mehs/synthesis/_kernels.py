@@ -260,9 +260,18 @@ def stratified_pick(levels, order, n, strata, L):
 
 
 # ------------------------------------------------------------------------ merge
+#: A sample of exposure j ≥ 1 is used only when the prediction from the shorter
+#: exposures lies this many sigmas (squared) below saturation: the choice then
+#: does not depend on the sample's own noise, so no truncation bias.
+ROOM_SIGMA2 = np.float32(9.0)
+#: A saturated sample predicted this far (sigmas², squared) below saturation is
+#: evidence of change (a censored residual in the consistency statistic).
+CENSOR_SIGMA2 = np.float32(25.0)
+
+
 @njit(parallel=True, cache=True)
 def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
-                floor, gain, read_var, rel_var, cal, method, want_chi2,
+                floor, gain, avar, rel_var, cal, method, want_chi2,
                 out, chi2, dof, snr, nsat, nvalid, msum):
     """Merge one chunk of lines of a bracket (band-interleaved-by-line layout).
 
@@ -275,7 +284,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     sat : float32 (bands,)
         Raw DN at or above which a sample counts as saturated.
     times : float32 (P,)
-        Exposure times (ms).
+        Exposure times (ms), ascending.
     linear : bool
         ``True``: linear sensor, ``y = raw − dark``.
     dark_after : bool
@@ -286,15 +295,20 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     wlut : float32 (L,)
         Level weights (Debevec / Robertson).
     floor : float32
-        Noise floor: samples with y ≤ floor get zero weight.
-    gain, read_var, rel_var : float
-        Noise model of y: var = gain·y + read_var, plus (rel·X)² systematic.
+        Debevec only: samples with y ≤ floor get zero weight (``ln y`` needs y > 0).
+    gain : float
+        Shot-noise gain (DN per electron) of the linearised y.
+    avar : float32 (P,)
+        Variance of y at zero signal for each exposure (read noise, dark-current
+        shot noise, quantisation, dark-reference error).
+    rel_var : float
+        Squared systematic relative error (response-curve error).
     cal : float32 (bands,)
         Radiometric calibration factor per band.
     method : int
         DEBEVEC, ROBERTSON, POISSON or INVVAR.
     want_chi2 : bool
-        Accumulate the ghost statistic (one more pass over the row).
+        Accumulate the ghost statistic.
 
     Outputs (written in place): ``out`` float32 (lines, bands, samples);
     per pixel (lines, samples): ``chi2`` float32 consistency statistic,
@@ -302,9 +316,18 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     saturated in every exposure, ``nvalid`` int32 bands with a usable sample,
     ``msum`` float32 sum over bands of the output.
 
-    Every inner loop runs over the contiguous samples axis with no branches
-    (selects only), so LLVM vectorises it; the exposures and bands are the
-    outer loops and per-row scratch lives in L1.
+    Sample selection never looks at the sample's own noise (which would bias the
+    per-exposure estimates and the consistency test): every unsaturated sample
+    is used by the linear estimators, and exposure j ≥ 1 only where the running
+    Poisson estimate of the shorter exposures predicts it ``3σ`` below
+    saturation. ``χ²`` is taken about the inverse-variance mean of the usable
+    samples (the estimate under which it is χ²-distributed with ``n − 1`` dof),
+    plus censored residuals of samples that saturated against a confident
+    prediction (a bright object moved in).
+
+    Every inner loop runs over the contiguous samples axis with selects only,
+    so LLVM vectorises it; the exposures and bands are the outer loops and the
+    per-row scratch lives in L1.
     """
     P = len(zs)
     nl, nb, ns = out.shape
@@ -313,22 +336,28 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
     f0 = np.float32(0.0)
     f1 = np.float32(1.0)
     g32 = np.float32(gain)
-    rv32 = np.float32(read_var)
     rel32 = np.float32(rel_var)
     fl = np.float32(floor)
+    k2u = ROOM_SIGMA2
+    k2c = CENSOR_SIGMA2
     for l in prange(nl):
         y = np.empty((P, ns), dtype=np.float32)
         ok = np.empty((P, ns), dtype=np.float32)
         om = np.empty((P, ns), dtype=np.float32)
+        cs = np.empty((P, ns), dtype=np.float32)
         lev = np.zeros((P, ns), dtype=np.int32)
         sy = np.empty(ns, dtype=np.float32)
         st = np.empty(ns, dtype=np.float32)
+        sav = np.empty(ns, dtype=np.float32)
         nv = np.empty(ns, dtype=np.float32)
+        nc = np.empty(ns, dtype=np.float32)
         nsa = np.empty(ns, dtype=np.float32)
         st2 = np.empty(ns, dtype=np.float32)
         X = np.empty(ns, dtype=np.float32)
+        XP = np.empty(ns, dtype=np.float32)
         num = np.empty(ns, dtype=np.float32)
         den = np.empty(ns, dtype=np.float32)
+        ysat = np.empty(ns, dtype=np.float32)
         for i in range(ns):
             nsa[i] = f0
         had_bad = False
@@ -339,47 +368,90 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 sy[i] = f0
                 st[i] = f0
                 st2[i] = f0
+                sav[i] = f0
                 nv[i] = f0
+                nc[i] = f0
+            any_cens = False
             for j in range(P):
                 zr = zs[j][l, a]
                 dr = darks[j, a]
                 tj = times[j]
                 tj2 = tj * tj
+                aj = avar[j]
                 yj = y[j]
                 okj = ok[j]
+                csj = cs[j]
+                ncens = 0
                 if linear:
                     # the common case in one fused, branch-free loop
                     for i in range(ns):
                         raw = np.float32(zr[i])
-                        yv = raw - dr[i]
+                        d = dr[i]
+                        yv = raw - d
                         yj[i] = yv
-                        o = f1 if (raw < s) & (yv > fl) else f0
+                        ys = s - d
+                        sti = st[i]
+                        syi = max(sy[i], f0)
+                        # (ysat − predicted y)·Σt and the prediction's variance·(Σt)²
+                        room = ys * sti - syi * tj
+                        vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
+                        r2 = room * room
+                        pos = room > f0
+                        unsat = raw < s
+                        o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp))) else f0
+                        c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                        csj[i] = ys if c else f0
+                        ncens += 1 if c else 0
                         okj[i] = o
                         sy[i] += o * yv
                         st[i] += o * tj
                         st2[i] += o * tj2
+                        sav[i] += o * aj
                         nv[i] += o
-                    continue
-                lj = lev[j]
-                if dark_after:
+                else:
+                    lj = lev[j]
+                    if dark_after:
+                        zs_ = min(int(s), L - 1)
+                        for i in range(ns):
+                            zi = min(int(zr[i]), L - 1)
+                            lj[i] = zi
+                            yj[i] = elut[cb, zi] - dr[i]
+                            ysat[i] = elut[cb, zs_] - dr[i]
+                    else:
+                        for i in range(ns):
+                            zi = min(max(int(np.rint(np.float32(zr[i]) - dr[i])), 0), L - 1)
+                            lj[i] = zi
+                            yj[i] = elut[cb, zi]
+                            zsi = min(max(int(np.rint(s - dr[i])), 0), L - 1)
+                            ysat[i] = elut[cb, zsi]
                     for i in range(ns):
-                        zi = min(int(zr[i]), L - 1)
-                        lj[i] = zi
-                        yj[i] = elut[cb, zi] - dr[i]
+                        raw = np.float32(zr[i])
+                        yv = yj[i]
+                        ys = ysat[i]
+                        sti = st[i]
+                        syi = max(sy[i], f0)
+                        room = ys * sti - syi * tj
+                        vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
+                        r2 = room * room
+                        pos = room > f0
+                        unsat = raw < s
+                        o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp))) else f0
+                        c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                        csj[i] = ys if c else f0
+                        ncens += 1 if c else 0
+                        okj[i] = o
+                        sy[i] += o * yv
+                        st[i] += o * tj
+                        st2[i] += o * tj2
+                        sav[i] += o * aj
+                        nv[i] += o
+                if ncens > 0:
+                    any_cens = True
+                    for i in range(ns):
+                        nc[i] += f1 if csj[i] != f0 else f0
                 else:
                     for i in range(ns):
-                        zi = min(max(int(np.rint(np.float32(zr[i]) - dr[i])), 0), L - 1)
-                        lj[i] = zi
-                        yj[i] = elut[cb, zi]
-                for i in range(ns):
-                    raw = np.float32(zr[i])
-                    yv = yj[i]
-                    o = f1 if (raw < s) & (yv > fl) else f0
-                    okj[i] = o
-                    sy[i] += o * yv
-                    st[i] += o * tj
-                    st2[i] += o * tj2
-                    nv[i] += o
+                        csj[i] = f0
             # pooled (Poisson) estimate, branch-free; fall-backs in a rare scalar pass
             nbad = 0
             for i in range(ns):
@@ -391,8 +463,8 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     nsa[i] = f0
                 had_bad = False
             if nbad > 0:
-                # rare: no usable sample somewhere in this row; the saturation
-                # flags are re-derived here rather than counted in the hot loop
+                # rare: no usable sample (saturated in every exposure) somewhere in
+                # this row; the saturation flags are derived here, not in the hot loop
                 had_bad = True
                 t0 = times[0]
                 for i in range(ns):
@@ -402,19 +474,9 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     for j in range(P):
                         ns_i += f1 if np.float32(zs[j][l, a, i]) >= s else f0
                     nsa[i] = ns_i
-                    if nsa[i] == np.float32(P):
-                        X[i] = y[0, i] / t0          # saturated everywhere: a lower bound
-                    else:
-                        # no usable sample: the unbiased mean of the unsaturated ones
-                        a1 = f0
-                        a2 = f0
-                        for j in range(P):
-                            # the saturation flag is re-derived here (rare) rather
-                            # than stored for every sample in the hot loop
-                            u = f1 if np.float32(zs[j][l, a, i]) < s else f0
-                            a1 += u * y[j, i]
-                            a2 += u * times[j]
-                        X[i] = a1 / a2 if a2 > f0 else f0
+                    X[i] = y[0, i] / t0          # a lower bound, never extrapolated
+            for i in range(ns):
+                XP[i] = max(X[i], f0)
             if method == POISSON:
                 for j in range(P):
                     tj = times[j]
@@ -426,6 +488,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     den[i] = f0
                 for j in range(P):
                     tj = times[j]
+                    aj = avar[j]
                     lt = np.float32(np.log(tj))
                     okj = ok[j]
                     yj = y[j]
@@ -434,15 +497,17 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         # variance predicted from the pooled estimate, not from y_j
                         # itself (which would give low samples more weight: biased)
                         for i in range(ns):
-                            w = okj[i] * tj * tj / (g32 * max(X[i] * tj, f0) + rv32)
+                            w = okj[i] * tj * tj / (g32 * XP[i] * tj + aj)
                             omj[i] = w
                             num[i] += w * yj[i] / tj
                             den[i] += w
                     elif method == ROBERTSON:
                         lj = lev[j]
                         if linear:
+                            # the level weight of the *expected* level X·t: the
+                            # sample's own level would favour upward noise (bias)
                             for i in range(ns):
-                                lj[i] = min(max(int(yj[i] + np.float32(0.5)), 0), L - 1)
+                                lj[i] = min(max(int(XP[i] * tj + np.float32(0.5)), 0), L - 1)
                         for i in range(ns):
                             w = okj[i] * wlut[lj[i]] * tj * tj
                             omj[i] = w
@@ -455,7 +520,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                                 lj[i] = min(max(int(yj[i] + np.float32(0.5)), 0), L - 1)
                         if dark_after:
                             for i in range(ns):
-                                w = okj[i] * wlut[lj[i]]
+                                w = okj[i] * wlut[lj[i]] if yj[i] > fl else f0
                                 omj[i] = w
                                 if w > f0:
                                     num[i] += w * (np.log(yj[i]) - lt)
@@ -465,7 +530,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                             # linear sensor), a table look-up, no per-sample log
                             gl = glut[cb]
                             for i in range(ns):
-                                w = okj[i] * wlut[lj[i]]
+                                w = okj[i] * wlut[lj[i]] if yj[i] > fl else f0
                                 omj[i] = w
                                 num[i] += w * (gl[lj[i]] - lt)
                                 den[i] += w
@@ -484,34 +549,61 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 xi = X[i]
                 X[i] = xi if (xi >= f0) & (xi < inf32) else f0
             if method == POISSON:
-                # Σω = Σt, Σω²var = gain·X·Σt + n·σ² + rel·X²·Σt²: no per-sample pass
+                # Σω = Σt, Σω²var = gain·X·Σt + Σa + rel·X²·Σt²: no per-sample pass
                 for i in range(ns):
                     num[i] = st[i]
-                    den[i] = g32 * X[i] * st[i] + nv[i] * rv32 + rel32 * X[i] * X[i] * st2[i]
+                    den[i] = g32 * X[i] * st[i] + sav[i] + rel32 * X[i] * X[i] * st2[i]
             else:
                 for i in range(ns):
                     num[i] = f0
                     den[i] = f0
                 for j in range(P):
                     tj = times[j]
+                    aj = avar[j]
                     okj = ok[j]
                     omj = om[j]
                     for i in range(ns):
-                        v = (g32 * X[i] * tj + rv32) / (tj * tj) + rel32 * X[i] * X[i]
+                        v = (g32 * X[i] * tj + aj) / (tj * tj) + rel32 * X[i] * X[i]
                         num[i] += okj[i] * omj[i]
                         den[i] += okj[i] * omj[i] * omj[i] * v
             if want_chi2:
+                # inverse variances (kept in om) and the inverse-variance mean
                 for i in range(ns):
                     sy[i] = f0
+                    st[i] = f0
                 for j in range(P):
                     tj = times[j]
                     itj = f1 / tj
+                    aj = avar[j]
                     okj = ok[j]
                     yj = y[j]
+                    omj = om[j]
                     for i in range(ns):
-                        v = (g32 * X[i] * tj + rv32) * (itj * itj) + rel32 * X[i] * X[i]
-                        r = yj[i] * itj - X[i]
-                        sy[i] += okj[i] * r * r / v
+                        xp = XP[i]
+                        w = f1 / ((g32 * xp * tj + aj) * (itj * itj) + rel32 * xp * xp)
+                        omj[i] = w
+                        sy[i] += okj[i] * w * yj[i] * itj
+                        st[i] += okj[i] * w
+                for i in range(ns):
+                    XP[i] = sy[i] / st[i] if st[i] > f0 else f0
+                    sy[i] = f0
+                for j in range(P):
+                    itj = f1 / times[j]
+                    okj = ok[j]
+                    yj = y[j]
+                    omj = om[j]
+                    for i in range(ns):
+                        r = yj[i] * itj - XP[i]
+                        sy[i] += okj[i] * omj[i] * r * r
+                if any_cens:
+                    for j in range(P):
+                        itj = f1 / times[j]
+                        csj = cs[j]
+                        omj = om[j]
+                        for i in range(ns):
+                            if csj[i] != f0:
+                                r = csj[i] * itj - XP[i]
+                                sy[i] += omj[i] * r * r if r > f0 else f0
             c = cal[a]
             ol = out[l, a]
             snr_l = snr[l]
@@ -533,6 +625,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 nsat_l[i] += 1 if nsa[i] == fP else 0
             if want_chi2:
                 for i in range(ns):
-                    m2 = nv[i] >= two
+                    ne = nv[i] + nc[i]
+                    m2 = (ne >= two) & (nv[i] > f0)
                     chi2_l[i] += sy[i] if m2 else f0
-                    dof_l[i] += int(nv[i]) - 1 if m2 else 0
+                    dof_l[i] += int(ne) - 1 if m2 else 0

@@ -17,11 +17,13 @@ import numpy as np
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
 from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.merge import (MASK_GHOST, MERGE_METHODS, NoiseModel, merge_bracket)
+from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
+                                  merge_bracket)
 from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
                                      sample_pixels, to_levels)
 
-#: below this deviation from ``ln z`` (over the well-exposed levels) "auto" uses the linear curve
+#: "auto" uses the linear curve while consecutive exposures agree with it within this
+#: relative error at every well-exposed signal level
 LINEARITY_TOLERANCE = 0.02
 
 
@@ -58,14 +60,51 @@ class FusionResult:
 
 
 def noise_from_bracket(bracket: Bracket) -> NoiseModel:
-    """The noise model of the recorded sensor (``scene.json`` device.sensor), else the default."""
+    """The noise model of the recorded sensor (``scene.json`` device.sensor), else the default.
+
+    Only a fallback for :func:`estimate_noise`, which measures the noise from
+    the data (the recorded read noise misses quantisation, the dark
+    reference's error and dark-current shot noise).
+    """
     s = bracket.sensor
     try:
         gain = float(s["gain_dn_per_e"])
         read = float(s.get("read_noise_e", 0.0)) * gain
-        return NoiseModel(gain=gain, read_noise=max(read, 0.5))
+        dc = float(s.get("dark_current_e_per_ms", 0.0)) * gain
+        return NoiseModel(gain=gain, read_noise=float(np.hypot(max(read, 0.5), np.sqrt(1 / 12))),
+                          relative=0.0, dark_current=dc, source="recorded sensor")
     except (KeyError, TypeError, ValueError):
-        return NoiseModel()
+        return NoiseModel(source="default")
+
+
+def _dark_mode(curve: ResponseCurve) -> str:
+    return "linear" if (not curve.is_linear and curve.parameters.get("levels") == "raw") else "raw"
+
+
+def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarray, *,
+                   probe=None) -> tuple[NoiseModel, dict[str, Any]]:
+    """The bracket's noise model measured from its own exposures (photon transfer).
+
+    See :mod:`mehs.synthesis.noise`. Falls back to the recorded sensor (or the
+    default model) when the bracket has too little usable signal to measure
+    it; the returned dict says which was used and why.
+    """
+    from mehs.synthesis.noise import dark_current_from_darks, estimate_noise_PTC, probe_bracket
+
+    try:
+        probe = probe if probe is not None else probe_bracket(bracket, saturation)
+        lin = _lineariser(curve, _dark_mode(curve), bracket.bit_depth)
+        darks = bracket.darks
+        if not curve.is_linear and all(d is not None for d in darks):
+            # the dark's growth in linearised DN (through the curve, as the merge does)
+            e = np.exp(curve.table()[0])
+            darks = [np.interp(d, np.arange(e.size), e) for d in darks]
+        dc = dark_current_from_darks(darks, bracket.times_ms)
+        model, diag = estimate_noise_PTC(probe, lin, dark_current=dc, linear=curve.is_linear)
+        return model, diag
+    except InputError as exc:
+        fb = noise_from_bracket(bracket)
+        return fb, {"fallback": f"{fb.source} ({exc.problem})"}
 
 
 def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation: np.ndarray,
@@ -144,7 +183,7 @@ def linearity_deviation(curve: ResponseCurve) -> float:
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
                  ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,
-                 noise: NoiseModel | tuple[float, float] | None = None,
+                 noise: NoiseModel | tuple[float, float] | str | None = "auto",
                  saturation: float | np.ndarray | None = None,
                  calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
                  reference: int | str = "auto", chunk_lines: int = 128) -> FusionResult:
@@ -155,16 +194,20 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     method
         Merge estimator, a key of :data:`mehs.synthesis.merge.MERGE_METHODS`.
     response
-        ``"auto"`` (recover a Debevec curve on dark-subtracted levels; use the
-        linear curve when it deviates from ``ln z`` by < 2 % over the
-        well-exposed levels, else a curve recovered on raw levels), ``"linear"``,
+        ``"auto"`` (the linear curve when the exposures agree with it — the ratio
+        ``Σy_k/(r·Σy_j)`` of consecutive exposures stays within 2 % of 1 at every
+        well-exposed signal level, see :func:`mehs.synthesis.noise.linearity_PTC` —
+        else a Debevec curve recovered on raw levels), ``"linear"``,
         ``"debevec"`` (always recover), a :class:`ResponseCurve`, or the path of
         a saved curve (JSON).
     ghosts
         ``"detect"`` (flag, mask bit 2), ``"deghost"`` (flag and take ghost pixels
         from one reference exposure), or ``"off"``.
     noise
-        Noise model; default from the scene's recorded sensor, else :class:`NoiseModel`.
+        ``"auto"`` (default, also ``None``): measured from the bracket by photon
+        transfer across exposures (:func:`estimate_noise`; falls back to the
+        recorded sensor); ``"recorded"``: ``scene.json``'s sensor; or a
+        :class:`NoiseModel` / ``(gain, read_noise)``.
     calibration
         Radiometric factor (scalar or per band) from DN/ms to absolute radiance.
     """
@@ -179,6 +222,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
     sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
     auto_info: dict[str, Any] = {}
+    probe = None
     if isinstance(response, ResponseCurve):
         curve = response
     elif isinstance(response, (str, Path)) and str(response) in ("auto", "linear", "debevec"):
@@ -188,16 +232,19 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         else:
             curve = None
             if kind == "auto":
+                from mehs.synthesis.noise import linearity_PTC, probe_bracket
+
                 try:
-                    probe = recover_response(bracket, smoothness=smoothness, samples=samples,
-                                             seed=seed, shared=True, levels="dark-subtracted",
-                                             saturation=sat)
-                    dev = linearity_deviation(probe)
-                    auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE}
+                    probe = probe_bracket(bracket, sat)
+                    lin = linearity_PTC(probe, lambda raw, dark, j: raw - dark,
+                                        bit_depth=bracket.bit_depth)
+                    dev = lin["deviation"]
+                    auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
+                                 "linearity_test": "exposure ratio per signal level"}
                     if dev < LINEARITY_TOLERANCE:
                         curve = ResponseCurve.linear(bracket.bit_depth)
                 except InputError as exc:
-                    # too few usable pixels to tell: the linear curve is the safe choice
+                    # too little signal to tell: the linear curve is the safe choice
                     auto_info = {"linearity_check": f"skipped ({exc.problem})"}
                     curve = ResponseCurve.linear(bracket.bit_depth)
             if curve is None:
@@ -211,10 +258,18 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                          f"{bracket.bit_depth}-bit", bracket.source)
     timings["response_s"] = time.perf_counter() - t0
 
-    if noise is None:
+    noise_info: dict[str, Any] = {}
+    t_noise = time.perf_counter()
+    if noise is None or (isinstance(noise, str) and noise == "auto"):
+        noise, noise_info = estimate_noise(bracket, curve, sat, probe=probe)
+    elif isinstance(noise, str) and noise == "recorded":
         noise = noise_from_bracket(bracket)
+    elif isinstance(noise, str):
+        raise InputError(f"noise must be 'auto', 'recorded', a NoiseModel or (gain, read_noise), "
+                         f"got {noise!r}")
     elif not isinstance(noise, NoiseModel):
         noise = NoiseModel(*noise)
+    timings["noise_s"] = time.perf_counter() - t_noise
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
@@ -256,6 +311,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                                   "mehs exposure times ms": [float(t) for t in bracket.times_ms]})
     summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
                        calibration, ref_used, auto_info)
+    summary["noise"].update(noise_info)
     timings["total_s"] = time.perf_counter() - t0
     summary["timings"] = timings
     return FusionResult(cube, mr.confidence, mask, curve, summary, ghost_score,
@@ -285,16 +341,30 @@ def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int):
     return lambda raw, dark, j: lut(np.rint(raw - dark))
 
 
+def dynamic_range_stops(mean_radiance: np.ndarray, mask: np.ndarray, *,
+                        percentiles: tuple[float, float] = (0.1, 99.9)) -> tuple[float | None, float | None]:
+    """The scene's dynamic range in stops: ``log2(P_hi / P_lo)`` of the per-pixel band-mean radiance.
+
+    Counted: every pixel with a positive estimate except ghosts (bit 2) and pixels
+    with no usable signal (bit 4). Pixels saturated in some band in every
+    exposure (bit 1: a lamp) count with their lower bound, so the figure is a
+    lower bound of the lamp-to-shadow range rather than blind to the lamp.
+    Percentiles 0.1 / 99.9 keep a handful of noisy pixels from setting it;
+    the second value uses the extreme pixels.
+    """
+    m = mean_radiance
+    use = ((mask & (MASK_GHOST | MASK_INVALID)) == 0) & (m > 0) & np.isfinite(m)
+    if use.sum() < 2:
+        return None, None
+    v = m[use]
+    lo, hi = np.percentile(v, list(percentiles))
+    dr = float(np.log2(hi / lo)) if lo > 0 else None
+    return dr, float(np.log2(v.max() / v.min()))
+
+
 def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
              calibration, ref_used, auto_info) -> dict[str, Any]:
-    m = mr.mean_radiance
-    good = (mask == 0) & (m > 0)
-    dr = dr_max = None
-    if good.sum() >= 2:
-        v = m[good]
-        lo, hi = np.percentile(v, [0.1, 99.9])
-        dr = float(np.log2(hi / lo)) if lo > 0 else None
-        dr_max = float(np.log2(v.max() / v.min()))
+    dr, dr_max = dynamic_range_stops(mr.mean_radiance, mask)
     t = bracket.times_ms
     return {
         "format": "mehs-fusion/1",
@@ -309,6 +379,9 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
         "exposure_ratios": (t / t[0]).tolist(),
         "dynamic_range_stops": dr,
         "dynamic_range_stops_max": dr_max,
+        "dynamic_range_definition": "log2(P99.9/P0.1) of per-pixel band-mean radiance over "
+                                    "non-ghost pixels with signal; saturated pixels count "
+                                    "with their lower bound",
         "saturated_fraction": float(np.mean(mask & 1 > 0)),
         "ghost_fraction": float(ghost_fraction),
         "invalid_fraction": float(np.mean(mask & 4 > 0)),
@@ -316,8 +389,7 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
         "ghosts": ghosts,
         "ghost_chi2_scale": None if gres is None else gres.scale,
         "ghost_reference_exposure": ref_used,
-        "noise": {"gain_dn_per_e": noise.gain, "read_noise_dn": noise.read_noise,
-                  "relative": noise.relative},
+        "noise": noise.as_dict(),
         "calibration": None if calibration is None else np.asarray(calibration).tolist(),
         "units": "DN/ms" if calibration is None else "radiance",
         "mean_confidence": float(mr.confidence.mean()),

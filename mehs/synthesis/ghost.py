@@ -7,11 +7,12 @@ accumulates, per pixel, ``χ² = Σ_bands Σ_usable (y_j/t_j − X)² / var_j`` 
 sensitive to anything that moved (a cloud, water) while the noise model keeps
 bright and dark pixels on the same footing.
 
-The noise model is never exact for a real camera (gain, flat-field error), so
-the statistic is first divided by a scale estimated from the frame itself —
-the median of ``χ²/dof``, valid when most pixels are static — and then
-compared with the χ² distribution's upper ``α`` quantile at each pixel's
-``dof``. Isolated detections are dropped (fewer than ``min_pixels`` connected
+The noise model is measured from the bracket itself
+(:mod:`mehs.synthesis.noise`), so for a static scene ``χ²/dof ≈ 1`` at every
+signal level. A residual mismatch common to the whole frame is still divided
+out — the median of ``χ²`` over the median of ``χ²_dof``, valid when most
+pixels are static — before the comparison with the χ² distribution's upper
+``α`` quantile at each pixel's ``dof``. Isolated detections are dropped (fewer than ``min_pixels`` connected
 pixels) and the mask is grown by ``grow`` pixels to cover the soft edges of a
 moving object.
 
@@ -45,7 +46,7 @@ class GhostResult:
     fraction
         Fraction of pixels flagged.
     scale
-        The noise-model correction (median ``χ²/dof``).
+        The noise-model correction (≈ 1 when the noise model fits).
     """
 
     mask: np.ndarray
@@ -67,7 +68,8 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     alpha
         False-alarm probability per static pixel under the (rescaled) model.
     scale
-        ``"auto"`` (median χ²/dof of the frame) or a fixed number (1 trusts the noise model).
+        ``"auto"`` (median of χ² / median of χ²_dof over the frame) or a fixed
+        number (1 trusts the noise model).
     min_pixels
         Connected groups smaller than this are dropped.
     grow
@@ -83,7 +85,13 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
         raise InputError(f"alpha must be in (0, 1), got {alpha}")
     has = dof > 0
     if scale == "auto":
-        s = float(np.median(chi2[has] / dof[has])) if has.any() else 1.0
+        # the median of χ²_ν/ν is below 1 for small ν (0.45 at ν = 1): compare
+        # with each pixel's own χ² median, or few-band cubes get a wrong scale
+        if has.any():
+            ud, inv = np.unique(dof[has], return_inverse=True)
+            s = float(np.median(chi2[has] / stats.chi2.median(ud)[inv]))
+        else:
+            s = 1.0
         s = s if np.isfinite(s) and s > 0 else 1.0
     else:
         s = float(scale)

@@ -5,7 +5,9 @@ Every method works sample by sample on the dark-subtracted values
 (a recovered response curve), with exposure times ``t_j`` in ms:
 
 - ``debevec``  (:func:`merge_Debevec1997`): ``ln X = Σ w(z_j)(g(z_j) − ln t_j) / Σ w(z_j)``;
-- ``robertson`` (:func:`merge_Robertson2003`): ``X = Σ w(z_j) t_j y_j / Σ w(z_j) t_j²``;
+- ``robertson`` (:func:`merge_Robertson2003`): ``X = Σ w(z_j) t_j y_j / Σ w(z_j) t_j²``
+  (for a linear sensor ``w`` is taken at the expected level ``X₀·t_j``, not the
+  noisy one, which would favour upward noise);
 - ``poisson``  (:func:`merge_Hanji2020`): ``X = Σ y_j / Σ t_j`` over the usable samples —
   the maximum-likelihood estimate for Poisson (photon) noise;
 - ``inverse-variance`` (:func:`merge_inverse_variance`): ``X = Σ ω_j y_j/t_j / Σ ω_j`` with
@@ -14,7 +16,12 @@ Every method works sample by sample on the dark-subtracted values
   bias the result low.
 
 A sample is *usable* when its raw DN is below the saturation level (per band)
-and ``y_j`` is above the noise floor. A band saturated in every exposure gets
+and — for exposures after the shortest — the running estimate of the shorter
+exposures predicts it at least 3σ below saturation. The choice never depends
+on the sample's own noise: dropping samples because *they* are low (a noise
+floor) or high (just under saturation) biases each exposure's estimate and
+makes static pixels fail the consistency test. Only ``debevec`` (``ln y``)
+needs ``y_j`` above a floor. A band saturated in every exposure gets
 the lower bound ``y_0/t_0`` of the shortest exposure and the pixel is flagged
 (mask bit 1), never extrapolated; a pixel with no usable sample in any band is
 flagged "no signal" (bit 4). Output radiance is in DN/ms (relative units), or
@@ -56,25 +63,43 @@ MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Noise of a dark-subtracted sample ``y`` (DN): ``var = gain·y + read_noise² + (relative·y)²``.
+    """Noise of a dark-subtracted, linearised sample ``y`` (DN) of an exposure of ``t`` ms.
+
+    ``var(y) = gain·y + read_noise² + gain·dark_current·t + (relative·y)²``
 
     ``gain`` is in DN per electron (shot noise), ``read_noise`` in DN (one
-    sigma, after dark subtraction), ``relative`` a systematic relative error
-    (flat-field, response-curve error) that keeps bright pixels from looking
-    inconsistent in the ghost test.
+    sigma at zero signal, after dark subtraction: read noise, quantisation and
+    the dark reference's own error), ``dark_current`` in DN/ms (its electrons
+    add shot noise although the dark subtraction removes their mean),
+    ``relative`` a systematic relative error between exposures (response-curve
+    error; 0 for a linear sensor, whose flat-field error is the same in every
+    exposure and cancels in the consistency test). :func:`mehs.synthesis.noise.estimate_noise_PTC`
+    measures all of them from a bracket.
     """
 
     gain: float = 1.0
     read_noise: float = 2.0
     relative: float = 0.01
+    dark_current: float = 0.0
+    source: str = "default"
 
     def __post_init__(self) -> None:
-        for name in ("gain", "read_noise", "relative"):
+        for name in ("gain", "read_noise", "relative", "dark_current"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"noise model {name} must be finite and ≥ 0, got {v}")
         if self.gain == 0 and self.read_noise == 0:
             raise InputError("noise model needs gain > 0 or read_noise > 0")
+
+    def zero_signal_variance(self, times_ms) -> np.ndarray:
+        """float64 ``(P,)``: ``var(y)`` at zero signal for each exposure time."""
+        t = np.asarray(times_ms, dtype=np.float64)
+        return self.read_noise ** 2 + self.gain * self.dark_current * t
+
+    def as_dict(self) -> dict:
+        return {"gain_dn_per_e": self.gain, "read_noise_dn": self.read_noise,
+                "dark_current_dn_per_ms": self.dark_current, "relative": self.relative,
+                "source": self.source}
 
 
 @dataclass
@@ -143,7 +168,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     noise
         :class:`NoiseModel` or ``(gain, read_noise)``; default ``NoiseModel()``.
     noise_floor
-        Samples with ``y ≤ noise_floor`` (DN) get zero weight; default the read noise.
+        ``debevec`` only: samples with ``y ≤ noise_floor`` (DN) get zero weight;
+        default the read noise.
     calibration
         Factor (scalar or per band) turning DN/ms into absolute radiance.
     dark_mode
@@ -206,9 +232,12 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         noise = NoiseModel()
     elif not isinstance(noise, NoiseModel):
         noise = NoiseModel(*noise)
+    # Debevec only (ln y needs y > 0): the linear estimators use every unsaturated
+    # sample, since dropping the low ones by their own value biases them upward
     floor = noise.read_noise if noise_floor is None else float(noise_floor)
     if method == "debevec" and linear:
-        floor = max(floor, 0.5)   # ln y needs y > 0
+        floor = max(floor, 0.5)
+    avar = noise.zero_signal_variance(t).astype(np.float32)
 
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float32)
     if sat.ndim == 0:
@@ -284,7 +313,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             parts = [p.astype(np.float32) for p in parts]
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut,
-                    np.float32(floor), float(noise.gain), float(noise.read_noise) ** 2,
+                    np.float32(floor), float(noise.gain), avar,
                     float(noise.relative) ** 2, cal, code, bool(consistency),
                     out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                     nvalid[l0:l1], msum[l0:l1])
@@ -301,6 +330,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             "bit_depth": int(bit_depth), "response": response.method,
             "dark_mode": "linear" if dark_after else "raw",
             "noise": {"gain": noise.gain, "read_noise": noise.read_noise,
+                      "dark_current": noise.dark_current,
                       "relative": noise.relative, "floor": floor},
             "saturation_dn": sat.tolist() if np.unique(sat).size > 1 else float(sat[0]),
             "bands_saturated_in_all": int(nsat.sum()), "nvalid": nvalid}
