@@ -114,8 +114,9 @@ def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
         Sampled levels per channel, pixel and exposure.
     wz : float64 (C, N, P)
         Data weights ``w(Z)`` (0 for saturated / unusable samples).
-    logt : float64 (P,)
-        ln of the exposure times.
+    logt : float64 (1, 1, P) or (C, N, P)
+        ln of the exposure times, or one effective log time per sample
+        (``ln(t_j + B_ij/E_i)`` for an offset ``B`` passed through the response).
     wsm : float64 (L,)
         Weights of the smoothness rows.
     lam : float64 (C,)
@@ -142,18 +143,21 @@ def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
         Winv = np.zeros(N)
         c = np.zeros(L)
         b = np.zeros(L)
+        per_sample = logt.shape[1] > 1
         for i in range(N):
             W = 0.0
             m = 0.0
             for j in range(P):
+                lt = logt[ch, i, j] if per_sample else logt[0, 0, j]
                 W += w2[i, j]
-                m += w2[i, j] * logt[j]
+                m += w2[i, j] * lt
             if W > 0.0:
                 Winv[i] = 1.0 / W
                 m /= W
                 for j in range(P):
+                    lt = logt[ch, i, j] if per_sample else logt[0, 0, j]
                     c[Zc[i, j]] += w2[i, j]
-                    b[Zc[i, j]] += w2[i, j] * (logt[j] - m)
+                    b[Zc[i, j]] += w2[i, j] * (lt - m)
         b[mid] = 0.0
         d = np.zeros(L)
         l1 = np.zeros(L)

@@ -108,30 +108,48 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
 
 
 def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation: np.ndarray,
-                      subtract_dark: bool) -> np.ndarray:
-    """int32 (P, M, bands) levels of M random pixels (memmaps read only there)."""
+                      subtract_dark: bool) -> tuple[np.ndarray, np.ndarray]:
+    """int32 (P, M, bands) levels of M random pixels (memmaps read only there), and
+    float32 (P, M, bands) the raw dark level of each (0 where none or subtracted)."""
     nl, ns, nb = bracket.shape
     rng = np.random.default_rng(seed)
     m = min(nl * ns, n_candidates)
     flat = np.sort(rng.choice(nl * ns, size=m, replace=False))
     rows, cols = np.divmod(flat, ns)
     out = np.empty((len(bracket.exposures), m, nb), dtype=np.int32)
+    darks = np.zeros((len(bracket.exposures), m, nb), dtype=np.float32)
     for j, e in enumerate(bracket.exposures):
         raw = np.asarray(e.data[rows, cols], dtype=np.float32)
-        dark = bracket.darks[j][cols] if (subtract_dark and bracket.darks[j] is not None) else None
-        out[j] = to_levels(raw, dark, bracket.bit_depth, saturation[None, :])
-    return out
+        dk = bracket.darks[j][cols] if bracket.darks[j] is not None else None
+        out[j] = to_levels(raw, dk if subtract_dark else None, bracket.bit_depth,
+                           saturation[None, :])
+        if dk is not None and not subtract_dark:
+            darks[j] = dk
+    return out, darks
 
 
 def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
                      seed: int = 0, shared: bool = False, levels: str = "raw",
                      saturation: np.ndarray | None = None,
-                     weighting: str = "hat") -> ResponseCurve:
+                     weighting: str = "hat", offset_iterations: int = 12) -> ResponseCurve:
     """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
 
     ``levels="raw"`` fits the curve to raw DN (the black level then passes
     through the non-linearity, as on most sensors; the merge subtracts the
     *linearised* dark); ``"dark-subtracted"`` fits it to ``raw − dark``.
+
+    With raw levels, Debevec and Malik's model ``g(Z_ij) = ln E_i + ln Δt_j``
+    misses the offset ``B_j`` (black level plus dark current, which grows with
+    ``Δt``) that is added before the non-linearity: the curve bends near black
+    (by a factor 2 for a gamma-0.8 sensor), and dark pixels of different
+    exposures disagree. ``offset_iterations`` rounds re-solve with per-sample
+    effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))`` the
+    linearised dark of that sample's column, ``E_i`` the pixel's current
+    estimate — which makes the model exact: ``exp(g(Z_ij)) = E_i·Δt_j + B_ij``.
+    A constant added to ``exp(g)`` is not fixed by the data (it cancels in
+    ``f(raw) − f(dark)``, so the merge does not see it) and drifts from round
+    to round while the shape converges; it is set at the end so that the curve
+    follows the plain Debevec–Malik curve over the well-exposed levels.
     """
     L = 1 << bracket.bit_depth
     P = len(bracket.exposures)
@@ -143,23 +161,92 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
         n_per = max(64, int(np.ceil(n / nb)) + 1)
     else:
         n_per = n
-    cand = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw")
+    cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw")
     if shared:
-        Z = _sample_shared(cand, n_per, seed, bracket.bit_depth)
+        Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
     else:
         if npix < n:
             raise InputError(f"{npix} pixels are too few for a per-band {bracket.bit_depth}-bit "
                              f"curve from {P} exposures ({n} needed); use a shared curve",
                              bracket.source)
-        Z = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth)
-    curve = recover_response_Debevec1997(
-        Z, np.log(bracket.times_ms), bit_depth=bracket.bit_depth, smoothness=smoothness,
-        weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
-        parameters={"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()})
+        Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth, return_index=True)
+    lt = np.log(bracket.times_ms)
+    params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
+    curve = plain = recover_response_Debevec1997(
+        Z, lt, bit_depth=bracket.bit_depth, smoothness=smoothness,
+        weighting=weighting, shared=shared, wavelengths=bracket.wavelengths, parameters=params)
+    has_dark = levels == "raw" and all(d is not None for d in bracket.darks)
+    if has_dark and offset_iterations > 0:
+        from mehs.synthesis.response import weighting_table
+
+        # the raw dark level of every sample: (n, P, C) like Z
+        D = np.take_along_axis(cdark.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None],
+                               axis=1).transpose(1, 2, 0)
+        w = weighting_table(weighting, L)[Z]
+        t = bracket.times_ms[None, :, None]
+        lev = np.arange(L)
+        lt_cur = np.broadcast_to(np.log(t), Z.shape)
+        for _ in range(int(offset_iterations)):
+            G = curve.table(None if curve.shared else nb)
+            f = np.exp(G)
+            if curve.shared:
+                B = np.interp(D, lev, f[0])
+                gz = G[0][Z]
+            else:
+                B = np.stack([np.interp(D[:, :, c], lev, f[c]) for c in range(nb)], axis=2)
+                gz = G[np.arange(nb)[None, None, :], Z]
+            W = w.sum(axis=1)
+            lnE = np.where(W > 0, (w * (gz - lt_cur)).sum(axis=1) / np.where(W > 0, W, 1), 0.0)
+            lt_cur = np.log(t + B / np.exp(lnE)[:, None, :])
+            curve = recover_response_Debevec1997(
+                Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
+                weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
+                parameters={**params, "offset_iterations": int(offset_iterations)})
+        zmin = int(max(Z[w > 0].min(), 1)) if np.any(w > 0) else 1
+        curve = _match_constant(curve, plain, zmin)
     return curve
 
 
-def _sample_shared(cand: np.ndarray, n_per: int, seed: int, bit_depth: int) -> np.ndarray:
+def _match_constant(curve: ResponseCurve, plain: ResponseCurve, zmin: int) -> ResponseCurve:
+    """Choose the free additive constant of ``exp(g)`` so that ``g`` follows ``plain``.
+
+    ``plain`` (Debevec–Malik without the offset) is accurate over the
+    well-exposed levels ``L/8 … 0.9·L``, where the offset is negligible; the
+    constant ``c`` that makes ``ln(exp(g) − c)`` parallel to it there is kept,
+    subject to ``exp(g) − c > 0`` at every level from ``zmin`` (the lowest
+    level seen) up.
+    """
+    L = curve.levels
+    f = np.exp(curve.table())
+    g0 = plain.table(None if plain.shared else f.shape[0])
+    if g0.shape[0] != f.shape[0]:
+        g0 = np.broadcast_to(g0, f.shape)
+    zs = np.arange(L // 8, int(0.9 * L), 16)
+    cmax = 0.98 * f[:, zmin:].min(axis=1)
+    cmin = -0.5 * f[:, L // 2]
+    frac = np.linspace(0.0, 1.0, 301)
+    c = cmin[:, None] + (cmax - cmin)[:, None] * frac[None, :]          # (C, K)
+    lg = np.log(np.maximum(f[:, None, zs] - c[:, :, None], 1e-12))      # (C, K, Z)
+    d = lg - g0[:, None, zs]
+    err = d.var(axis=2)
+    best = c[np.arange(c.shape[0]), np.argmin(err, axis=1)]
+    f2 = f - best[:, None]
+    slope = np.maximum(f2[:, zmin + 1] - f2[:, zmin], 1e-6)
+    f2[:, :zmin] = np.maximum(f2[:, zmin][:, None] - slope[:, None] * (zmin - np.arange(zmin)),
+                              1e-6 * slope[:, None])
+    f2 = np.maximum(f2, 1e-12)
+    mid = L // 2
+    g2 = np.log(f2)
+    g2 += np.log(mid) - g2[:, mid:mid + 1]
+    params = dict(curve.parameters)
+    params["offset_constant"] = best.tolist() if best.size > 1 else float(best[0])
+    return ResponseCurve(g2[0] if curve.shared else g2, curve.bit_depth, method=curve.method,
+                         smoothness=curve.smoothness, weighting=curve.weighting,
+                         wavelengths=curve.wavelengths, parameters=params)
+
+
+def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
+                   bit_depth: int) -> tuple[np.ndarray, np.ndarray]:
     from mehs.synthesis._kernels import stratified_pick
 
     P, M, C = cand.shape
@@ -168,7 +255,7 @@ def _sample_shared(cand: np.ndarray, n_per: int, seed: int, bit_depth: int) -> n
     idx = stratified_pick(np.ascontiguousarray(cand), order, n_per, 64, L)   # (C, n_per)
     Z = np.take_along_axis(cand.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None], axis=1)
     Z[idx < 0] = L - 1    # unfilled slots: weight 0
-    return np.ascontiguousarray(Z.transpose(1, 2, 0))
+    return np.ascontiguousarray(Z.transpose(1, 2, 0)), idx
 
 
 def linearity_deviation(curve: ResponseCurve) -> float:

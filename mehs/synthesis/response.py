@@ -284,7 +284,7 @@ def to_levels(raw: np.ndarray, dark: np.ndarray | float | None, bit_depth: int,
 
 def sample_pixels(stack: np.ndarray, n: int | None = None, *, seed: int | None = 0,
                   bit_depth: int = 12, strata: int = 64,
-                  max_candidates: int | None = None) -> np.ndarray:
+                  max_candidates: int | None = None, return_index: bool = False):
     """Stratified sample of pixel levels for the Debevec–Malik solve.
 
     Parameters
@@ -304,7 +304,8 @@ def sample_pixels(stack: np.ndarray, n: int | None = None, *, seed: int | None =
 
     Returns
     -------
-    int32 ``(n, P, C)`` (or ``(n, P)`` for a 2-D ``stack``): the sampled levels.
+    int32 ``(n, P, C)`` (or ``(n, P)`` for a 2-D ``stack``): the sampled levels;
+    with ``return_index`` also the int64 ``(C, n)`` pixel indices into ``stack``.
 
     Raises
     ------
@@ -349,7 +350,8 @@ def sample_pixels(stack: np.ndarray, n: int | None = None, *, seed: int | None =
     # (C, n) indices → (n, P, C) levels
     Z = np.take_along_axis(st.transpose(2, 1, 0), idx[:, :, None], axis=1)  # (C, n, P)
     Z = np.ascontiguousarray(Z.transpose(1, 2, 0))
-    return Z[:, :, 0] if squeeze else Z
+    Z = Z[:, :, 0] if squeeze else Z
+    return (Z, idx) if return_index else Z
 
 
 # ---------------------------------------------------------------- recovery
@@ -370,7 +372,10 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
         Integer levels ``(N, P)`` (one channel) or ``(N, P, C)``; level L−1
         marks a saturated sample (weight 0).
     log_times
-        ``ln Δt_j``, shape ``(P,)``.
+        ``ln Δt_j``, shape ``(P,)``; or one effective log time per sample,
+        ``(N, P)`` / ``(N, P, C)`` — :func:`mehs.synthesis.fuse.recover_response`
+        passes ``ln(Δt_j + B_ij/E_i)`` so that an offset ``B`` (black level, dark
+        current) added *before* the non-linearity fits the model.
     smoothness
         λ, normalised as described in the module docstring.
     weighting
@@ -397,14 +402,24 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
     if not np.issubdtype(Z.dtype, np.integer):
         raise InputError(f"samples must be integer levels, got dtype {Z.dtype}")
     N, P, C = Z.shape
-    lt = np.asarray(log_times, dtype=np.float64).reshape(-1)
+    lt_all = np.asarray(log_times, dtype=np.float64)
+    per_sample = lt_all.ndim > 1
     if P < 2:
         raise InputError(f"response recovery needs at least 2 exposures, got {P}")
+    if per_sample:
+        lt_all = lt_all.reshape(lt_all.shape + (1,) * (3 - lt_all.ndim))
+        if lt_all.shape[:2] != (N, P) or lt_all.shape[2] not in (1, C):
+            raise InputError(f"per-sample log times must have shape ({N}, {P}[, {C}]), "
+                             f"got {np.shape(log_times)}")
+        lt_all = np.broadcast_to(lt_all, (N, P, C))
+        lt = np.median(lt_all.reshape(-1, P), axis=0)
+    else:
+        lt = lt_all.reshape(-1)
     if lt.size != P:
         raise InputError(f"{lt.size} log exposure times for {P} exposures")
-    if not np.all(np.isfinite(lt)):
+    if not np.all(np.isfinite(lt_all)):
         raise InputError("log exposure times must be finite")
-    if np.unique(lt).size != P:
+    if not per_sample and np.unique(lt).size != P:
         raise InputError("exposure times must be distinct")
     if Z.min() < 0 or Z.max() > L - 1:
         raise InputError(f"levels must lie in 0..{L - 1} for {bit_depth} bits "
@@ -414,9 +429,13 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
     w = weighting_table(weighting, L)
     if shared and C > 1:
         Zc = Z.transpose(1, 0, 2).reshape(P, N * C).T[None]      # (1, N·C, P)
+        LTc = lt_all.transpose(1, 0, 2).reshape(P, N * C).T[None] if per_sample else None
     else:
         Zc = Z.transpose(2, 0, 1)                                # (C, N, P)
+        LTc = lt_all.transpose(2, 0, 1) if per_sample else None
     Zc = np.ascontiguousarray(Zc, dtype=np.int32)
+    LTc = (np.ascontiguousarray(LTc, dtype=np.float64) if per_sample
+           else np.ascontiguousarray(lt.reshape(1, 1, P)))
     n_eff = Zc.shape[1]
     if n_eff * (P - 1) <= L:
         raise InputError(f"{n_eff} pixels × ({P}−1) exposures do not exceed the {L} levels")
@@ -430,15 +449,15 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
     if solver == "pcg":
         from mehs.synthesis._kernels import debevec_pcg
 
-        g, iters, relres = debevec_pcg(Zc, wz, lt, wsm, lam, mid, float(tol), int(maxiter))
+        g, iters, relres = debevec_pcg(Zc, wz, LTc, wsm, lam, mid, float(tol), int(maxiter))
         bad = np.flatnonzero(relres > max(tol * 1e3, 1e-6))
         for ch in bad:   # rare: fall back to the direct factorisation for that channel
-            g[ch] = _solve_direct(Zc[ch], wz[ch], lt, wsm, lam_eff, mid)
+            g[ch] = _solve_direct(Zc[ch], wz[ch], LTc[min(ch, LTc.shape[0] - 1)], wsm, lam_eff, mid)
         stats = {"solver": "pcg", "iterations_max": int(iters.max()),
                  "iterations_mean": float(iters.mean()), "direct_fallbacks": int(bad.size)}
     elif solver == "direct":
-        g = np.stack([_solve_direct(Zc[ch], wz[ch], lt, wsm, lam_eff, mid)
-                      for ch in range(Zc.shape[0])])
+        g = np.stack([_solve_direct(Zc[ch], wz[ch], LTc[min(ch, LTc.shape[0] - 1)], wsm, lam_eff,
+                                    mid) for ch in range(Zc.shape[0])])
         stats = {"solver": "direct"}
     else:
         raise InputError(f"unknown solver {solver!r}; use 'pcg' or 'direct'")
@@ -470,8 +489,9 @@ def _solve_direct(Z: np.ndarray, wz: np.ndarray, lt: np.ndarray, wsm: np.ndarray
     D2 = sp.diags([np.ones(L - 2), -2 * np.ones(L - 2), np.ones(L - 2)], [0, 1, 2],
                   shape=(L - 2, L))
     S = sp.diags(c) + lam * (D2.T @ sp.diags(wsm[1:-1] ** 2) @ D2) - U.T @ sp.diags(Winv) @ U
+    lt = np.broadcast_to(lt.reshape(-1, lt.shape[-1]), (N, P))    # (1, P) or (N, P)
     m = (w2 * lt).sum(1) * Winv
-    b = np.bincount(Z.ravel(), weights=(w2 * (lt[None, :] - m[:, None])).ravel(), minlength=L)
+    b = np.bincount(Z.ravel(), weights=(w2 * (lt - m[:, None])).ravel(), minlength=L)
     keep = np.arange(L) != mid
     S = S.tocsr()[keep][:, keep].tocsc()
     with warnings.catch_warnings():
