@@ -282,8 +282,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         Merge estimator, a key of :data:`mehs.synthesis.merge.MERGE_METHODS`.
     response
         ``"auto"`` (the linear curve when the exposures agree with it — the ratio
-        ``Σy_k/(r·Σy_j)`` of consecutive exposures stays within 2 % of 1 at every
-        well-exposed signal level, see :func:`mehs.synthesis.noise.linearity_PTC` —
+        ``Σy_k/(r·Σy_j)`` of consecutive exposures stays within 2 % of 1 at (75 % of)
+        the well-exposed signal levels, see :func:`mehs.synthesis.noise.linearity_PTC` —
         else a Debevec curve recovered on raw levels), ``"linear"``,
         ``"debevec"`` (always recover), a :class:`ResponseCurve`, or the path of
         a saved curve (JSON).
@@ -327,7 +327,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                                         bit_depth=bracket.bit_depth)
                     dev = lin["deviation"]
                     auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
-                                 "linearity_test": "exposure ratio per signal level"}
+                                 "linearity_deviation_max": lin["deviation_max"],
+                                 "linearity_levels": lin["levels"],
+                                 "linearity_test": "exposure ratio per signal level (p75)"}
                     if dev < LINEARITY_TOLERANCE:
                         curve = ResponseCurve.linear(bracket.bit_depth)
                 except InputError as exc:
