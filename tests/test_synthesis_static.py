@@ -103,12 +103,11 @@ def test_linear_merge_accuracy_all_kinds(tmp_path, kind, times):
 
 
 @pytest.mark.parametrize("response", ["gamma", "s-curve"])
-@pytest.mark.parametrize("kind, times", [("colorchecker", (8.0, 32.0, 128.0)),
-                                         ("colorchecker", (2.0, 16.0, 128.0)),
-                                         ("window", (8.0, 32.0, 128.0))])
+@pytest.mark.parametrize("kind", ["colorchecker", "lamp", "window", "ramp"])
+@pytest.mark.parametrize("times", [(8.0, 32.0, 128.0), (2.0, 16.0, 128.0)])
 def test_nonlinear_sensor_auto_debevec_and_few_ghosts(tmp_path, response, kind, times):
     sim, b = _bracket(tmp_path, kind, 48, times, response=response, e_per_ms=1600.0, seed=3,
-                      source_ratio=300.0)
+                      source_ratio=300.0 if kind == "colorchecker" else 1000.0)
     r = fuse_bracket(b)
     assert r.response.method == "debevec1997", r.summary["response"]
     assert r.summary["ghost_fraction"] <= 0.01, r.summary["ghost_fraction"]
@@ -116,7 +115,9 @@ def test_nonlinear_sensor_auto_debevec_and_few_ghosts(tmp_path, response, kind, 
     ok = (sim.exposures[0] < SAT).all(axis=2)
     rad = r.radiance.data / np.median((r.radiance.data / truth)[ok])   # the curve's gauge
     med, p99, sam = _scores(rad, truth, ok)
-    assert med <= 0.03 and p99 <= 0.5 and sam <= 1.5, (med, p99, sam)
+    # the recovered curve's error adds to the noise (SAM ≈ 0.8–1.05° at ratio 4, 1.2–1.35° at 8)
+    assert med <= 0.03 and p99 <= 0.5 and sam <= (1.2 if times[1] / times[0] <= 4 else 1.5), \
+        (med, p99, sam)
 
 
 @pytest.mark.parametrize("response, specim", [("linear", False), ("linear", True),

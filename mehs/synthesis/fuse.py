@@ -376,7 +376,12 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         from mehs.synthesis.ghost import deghost_from_reference, detect_ghosts
 
         t2 = time.perf_counter()
-        gres = detect_ghosts(mr.chi2, mr.dof, alpha=ghost_alpha)
+        # a recovered curve errs by different amounts at different levels (most
+        # near black): its χ² scale is taken per signal level; a linear sensor's
+        # measured noise model fits at every level, one scale for the frame
+        gres = detect_ghosts(mr.chi2, mr.dof, alpha=ghost_alpha,
+                             scale="auto" if curve.is_linear else "level",
+                             level=mr.mean_radiance)
         ghost_score = gres.score
         ghost_fraction = gres.fraction
         mask[gres.mask] |= MASK_GHOST

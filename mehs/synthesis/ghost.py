@@ -56,9 +56,32 @@ class GhostResult:
     alpha: float
 
 
+def _level_scale(ratio: np.ndarray, level: np.ndarray, bins: int = 16,
+                 window: int = 5) -> np.ndarray:
+    """Per-pixel χ² scale as a smooth function of signal level.
+
+    Median of ``ratio`` (χ² over its median under the model) in ``bins``
+    quantile bins of ``level``, smoothed by a running median over ``window``
+    bins — so a moving object that fills one or two bins cannot raise its own
+    scale — and interpolated in log level. Never below the global median.
+    """
+    lv = np.log(np.maximum(level, 1e-30))
+    edges = np.quantile(lv, np.linspace(0, 1, bins + 1))
+    idx = np.clip(np.searchsorted(edges, lv, side="right") - 1, 0, bins - 1)
+    med = np.array([np.median(ratio[idx == b]) if np.any(idx == b) else np.nan
+                    for b in range(bins)])
+    cen = np.array([np.median(lv[idx == b]) if np.any(idx == b) else np.nan for b in range(bins)])
+    ok = np.isfinite(med) & np.isfinite(cen)
+    med, cen = med[ok], cen[ok]
+    h = window // 2
+    sm = np.array([np.median(med[max(0, i - h):i + h + 1]) for i in range(med.size)])
+    glob = float(np.median(ratio))
+    return np.maximum(np.interp(lv, cen, sm), glob)
+
+
 def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
                   scale: float | str = "auto", min_pixels: int = 3,
-                  grow: int = 1) -> GhostResult:
+                  grow: int = 1, level: np.ndarray | None = None) -> GhostResult:
     """Flag pixels whose exposures are inconsistent with their noise.
 
     Parameters
@@ -68,8 +91,12 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     alpha
         False-alarm probability per static pixel under the (rescaled) model.
     scale
-        ``"auto"`` (median of χ² / median of χ²_dof over the frame) or a fixed
-        number (1 trusts the noise model).
+        ``"auto"`` (median of χ² / median of χ²_dof over the frame), ``"level"``
+        (that ratio as a smooth function of ``level``, for recovered response
+        curves whose error depends on the signal level), or a fixed number (1
+        trusts the noise model).
+    level
+        ``(lines, samples)`` signal level (e.g. the mean radiance) for ``scale="level"``.
     min_pixels
         Connected groups smaller than this are dropped.
     grow
@@ -84,6 +111,22 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     if not 0 < alpha < 1:
         raise InputError(f"alpha must be in (0, 1), got {alpha}")
     has = dof > 0
+    if scale == "level":
+        if level is None or np.shape(level) != chi2.shape:
+            raise InputError("scale='level' needs a level array shaped like chi2")
+        if has.sum() >= 64:
+            ud, inv = np.unique(dof[has], return_inverse=True)
+            ratio = chi2[has] / stats.chi2.median(ud)[inv]
+            sl = np.ones(chi2.shape)
+            sl[has] = _level_scale(ratio, np.asarray(level, dtype=np.float64)[has])
+            s = float(np.median(sl[has]))
+            score = np.zeros(chi2.shape, dtype=np.float32)
+            score[has] = chi2[has] / (sl[has] * dof[has])
+            mask = np.zeros(chi2.shape, dtype=bool)
+            thr = stats.chi2.isf(alpha, ud)[inv]
+            mask[has] = chi2[has] / sl[has] > thr
+            return _finish(mask, score, s, alpha, min_pixels, grow)
+        scale = "auto"
     if scale == "auto":
         # the median of χ²_ν/ν is below 1 for small ν (0.45 at ν = 1): compare
         # with each pixel's own χ² median, or few-band cubes get a wrong scale
@@ -104,6 +147,12 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
         ud, inv = np.unique(dof[has], return_inverse=True)
         thr = stats.chi2.isf(alpha, ud)[inv]
         mask[has] = chi2[has] / s > thr
+    return _finish(mask, score, s, alpha, min_pixels, grow)
+
+
+def _finish(mask, score, s, alpha, min_pixels, grow) -> GhostResult:
+    from scipy import ndimage
+
     if min_pixels > 1 and mask.any():
         lab, n = ndimage.label(mask, structure=np.ones((3, 3)))
         sizes = np.bincount(lab.ravel())
