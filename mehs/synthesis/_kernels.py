@@ -386,7 +386,21 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                 okj = ok[j]
                 csj = cs[j]
                 ncens = 0
-                if linear:
+                if linear and j == 0:
+                    # the shortest exposure: nothing to predict from, no censoring
+                    for i in range(ns):
+                        raw = np.float32(zr[i])
+                        yv = raw - dr[i]
+                        yj[i] = yv
+                        o = f1 if raw < s else f0
+                        okj[i] = o
+                        csj[i] = f0
+                        sy[i] = o * yv
+                        st[i] = o * tj
+                        st2[i] = o * tj2
+                        sav[i] = o * aj
+                        nv[i] = o
+                elif linear:
                     # the common case in one fused, branch-free loop
                     for i in range(ns):
                         raw = np.float32(zr[i])
@@ -453,9 +467,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     any_cens = True
                     for i in range(ns):
                         nc[i] += f1 if csj[i] != f0 else f0
-                else:
-                    for i in range(ns):
-                        csj[i] = f0
             # pooled (Poisson) estimate, branch-free; fall-backs in a rare scalar pass
             nbad = 0
             for i in range(ns):
@@ -481,12 +492,8 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     X[i] = y[0, i] / t0          # a lower bound, never extrapolated
             for i in range(ns):
                 XP[i] = max(X[i], f0)
-            if method == POISSON:
-                for j in range(P):
-                    tj = times[j]
-                    for i in range(ns):
-                        om[j, i] = ok[j, i] * tj
-            else:
+            if method != POISSON:
+                # (Poisson's weights are t_j: its SNR comes from the running sums)
                 for i in range(ns):
                     num[i] = f0
                     den[i] = f0
@@ -571,34 +578,34 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                         num[i] += okj[i] * omj[i]
                         den[i] += okj[i] * omj[i] * omj[i] * v
             if want_chi2:
-                # inverse variances (kept in om) and the inverse-variance mean
+                # χ² about the inverse-variance mean in one pass:
+                # Σw(x − x̄)² = Σwx² − (Σwx)²/Σw, with w = 1/var from the pooled estimate
                 for i in range(ns):
                     sy[i] = f0
                     st[i] = f0
+                    st2[i] = f0
                 for j in range(P):
                     tj = times[j]
                     itj = f1 / tj
+                    itj2 = itj * itj
                     aj = avar[j]
                     okj = ok[j]
                     yj = y[j]
                     omj = om[j]
                     for i in range(ns):
                         xp = XP[i]
-                        w = f1 / ((g32 * xp * tj + aj) * (itj * itj) + rel32 * xp * xp)
+                        w = f1 / ((g32 * xp * tj + aj) * itj2 + rel32 * xp * xp)
                         omj[i] = w
-                        sy[i] += okj[i] * w * yj[i] * itj
+                        wx = okj[i] * w * (yj[i] * itj)
                         st[i] += okj[i] * w
+                        sy[i] += wx
+                        st2[i] += wx * (yj[i] * itj)
                 for i in range(ns):
-                    XP[i] = sy[i] / st[i] if st[i] > f0 else f0
-                    sy[i] = f0
-                for j in range(P):
-                    itj = f1 / times[j]
-                    okj = ok[j]
-                    yj = y[j]
-                    omj = om[j]
-                    for i in range(ns):
-                        r = yj[i] * itj - XP[i]
-                        sy[i] += okj[i] * omj[i] * r * r
+                    sti = st[i]
+                    has = sti > f0
+                    XP[i] = sy[i] / sti if has else f0
+                    q = st2[i] - sy[i] * XP[i]
+                    sy[i] = q if q > f0 else f0
                 if any_cens:
                     for j in range(P):
                         itj = f1 / times[j]
