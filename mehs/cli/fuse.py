@@ -23,6 +23,9 @@ def configure(parser):
                              "(deghost), or skip the test (off)")
     parser.add_argument("--reference", default="auto",
                         help="exposure index used for ghost pixels with --ghosts deghost")
+    parser.add_argument("--noise", default="auto", choices=["auto", "recorded"],
+                        help="noise model: measured from the bracket by photon transfer across "
+                             "exposures (auto, default) or the sensor recorded in scene.json")
     parser.add_argument("--calibration", type=float, default=None,
                         help="radiometric factor from DN/ms to absolute radiance")
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
@@ -48,7 +51,7 @@ def run(args) -> int:
     res = fuse_bracket(bracket, method=args.method, response=args.response, ghosts=args.ghosts,
                        smoothness=args.smoothness, samples=args.samples, seed=args.seed,
                        shared_response=not args.per_band, calibration=args.calibration,
-                       reference=ref)
+                       reference=ref, noise=args.noise)
     files = write_fusion(res, args.out)
     s = res.summary
     dr = s["dynamic_range_stops"]

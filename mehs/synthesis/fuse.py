@@ -258,15 +258,6 @@ def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
     return np.ascontiguousarray(Z.transpose(1, 2, 0)), idx
 
 
-def linearity_deviation(curve: ResponseCurve) -> float:
-    """Max |g(z) − ln z − c| over the well-exposed levels L/16 … 0.9·L (c: median offset per band)."""
-    L = curve.levels
-    z = np.arange(L // 16, int(0.9 * L))
-    g = curve.table()[:, z] - np.log(z)[None, :]
-    g -= np.median(g, axis=1, keepdims=True)
-    return float(np.abs(g).max())
-
-
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
                  ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,

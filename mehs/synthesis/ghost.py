@@ -102,7 +102,7 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     grow
         Dilate the mask by this many pixels (8-connected).
     """
-    from scipy import ndimage, stats
+    from scipy import stats
 
     chi2 = np.asarray(chi2, dtype=np.float64)
     dof = np.asarray(dof)
