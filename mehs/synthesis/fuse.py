@@ -100,7 +100,8 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
             e = np.exp(curve.table()[0])
             darks = [np.interp(d, np.arange(e.size), e) for d in darks]
         dc = dark_current_from_darks(darks, bracket.times_ms)
-        model, diag = estimate_noise_PTC(probe, lin, dark_current=dc, linear=curve.is_linear)
+        model, diag = estimate_noise_PTC(probe, lin, dark_current=dc, linear=curve.is_linear,
+                                         key="linear" if curve.is_linear else None)
         return model, diag
     except InputError as exc:
         fb = noise_from_bracket(bracket)
@@ -315,7 +316,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 try:
                     probe = probe_bracket(bracket, sat)
                     lin = linearity_PTC(probe, lambda raw, dark, j: raw - dark,
-                                        bit_depth=bracket.bit_depth)
+                                        bit_depth=bracket.bit_depth, key="linear")
                     dev = lin["deviation"]
                     auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
                                  "linearity_deviation_max": lin["deviation_max"],

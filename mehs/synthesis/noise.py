@@ -66,9 +66,10 @@ class ProbeSamples:
     times_ms: np.ndarray
     saturation: np.ndarray
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    cache: dict = field(default_factory=dict, repr=False)
 
 
-def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 16384) -> ProbeSamples:
+def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> ProbeSamples:
     """Read evenly spaced whole lines (contiguous reads of a memmap) of every exposure."""
     nl, ns, nb = bracket.shape
     step = max(1, int(np.ceil(nl * ns / max_pixels)))
@@ -111,8 +112,18 @@ def _instrument(y: np.ndarray) -> np.ndarray:
 
 
 def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
-                 groups: int) -> dict[str, np.ndarray] | None:
-    """Per-group sums for exposures j < k: n, Σd, Σd² (trimmed), Σq, Σy_j, Σy_k."""
+                 groups: int, key: str | None = None) -> dict[str, np.ndarray] | None:
+    """Per-group robust statistics for exposures j < k (cached under ``key`` when given)."""
+    if key is not None and (key, j, k, groups) in probe.cache:
+        return probe.cache[(key, j, k, groups)]
+    out = _pair_groups_compute(probe, linearise, j, k, groups)
+    if key is not None:
+        probe.cache[(key, j, k, groups)] = out
+    return out
+
+
+def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
+                         groups: int) -> dict[str, np.ndarray] | None:
     raw_j, raw_k = probe.raw[j], probe.raw[k]
     y_j = linearise(raw_j, probe.dark[j], j)
     y_k = linearise(raw_k, probe.dark[k], k)
@@ -168,7 +179,7 @@ def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
 
 def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current: float = 0.0,
                        groups: int = PTC_GROUPS, min_group: int = 64,
-                       linear: bool = True) -> tuple[NoiseModel, dict[str, Any]]:
+                       linear: bool = True, key: str | None = None) -> tuple[NoiseModel, dict[str, Any]]:
     """Gain, zero-signal noise and relative error of a bracket's linearised samples.
 
     Parameters
@@ -182,6 +193,9 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
     linear
         ``False`` for a recovered curve: the relative inconsistency between
         exposures (curve error) is measured into ``NoiseModel.relative``.
+    key
+        Caches the group statistics in ``probe`` under this name (the same
+        lineariser must always go with the same key).
 
     Returns
     -------
@@ -197,7 +211,7 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
     rows, rhs, cnt, rel = [], [], [], []
     for j in range(P - 1):
         k = j + 1
-        st = _pair_groups(probe, linearise, j, k, groups)
+        st = _pair_groups(probe, linearise, j, k, groups, key)
         if st is None:
             continue
         r = st["r"]
@@ -242,7 +256,7 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
 
 def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC_GROUPS,
                   min_level: float = 0.02, max_level: float = 0.85,
-                  bit_depth: int = 12) -> dict[str, Any]:
+                  bit_depth: int = 12, key: str | None = None) -> dict[str, Any]:
     """How far ``Σ y_k / (r·Σ y_j)`` strays from 1 over the signal levels (a linear sensor: ≈ 0).
 
     Groups (instrument quantiles, see the module docstring) whose mean longer-exposure
@@ -259,7 +273,7 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
     P = probe.raw.shape[0]
     dev, ratios = [], []
     for j in range(P - 1):
-        st = _pair_groups(probe, linearise, j, j + 1, groups)
+        st = _pair_groups(probe, linearise, j, j + 1, groups, key)
         if st is None:
             continue
         ok = (st["n"] >= 64) & (st["yk"] > min_level * L) & (st["yk"] < max_level * L)
