@@ -19,9 +19,9 @@ def configure(parser):
                         help="scenes built at once (default: CPU count)")
     parser.add_argument("--force", action="store_true",
                         help="delete this demo folder's earlier captures and outputs and start over")
-    parser.add_argument("--recover-response", action="store_true",
-                        help="recover a Debevec-Malik response curve per scene instead of using "
-                             "the simulated sensor's known linear curve")
+    parser.add_argument("--known-response", action="store_true",
+                        help="give the builder the simulated sensor's known linear curve instead "
+                             "of recovering the response from each bracket")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -30,7 +30,7 @@ def run(args):
 
     doc = run_demo(args.out, scenes=args.scenes, size=args.size, seed=args.seed,
                    workers=args.workers, force=args.force,
-                   recover_response=args.recover_response,
+                   known_response=args.known_response,
                    progress=False if args.no_progress else None)
     print(format_summary(doc))
     return 0
