@@ -215,11 +215,10 @@ class ResponseCurve:
 
     def save(self, path: str | Path) -> Path:
         """Write the curve and its parameters as JSON (atomically)."""
-        from mehs.io.atomic import write_text_atomic
+        from mehs.io.atomic import write_json_atomic
 
-        # repr-precision floats: a saved curve reloads bit-identically
-        text = json.dumps(self.to_dict(), default=_json_default, indent=1)
-        return write_text_atomic(path, text + "\n")
+        # json writes floats at repr precision: a saved curve reloads bit-identically
+        return write_json_atomic(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | Path) -> "ResponseCurve":
@@ -240,16 +239,6 @@ class ResponseCurve:
                        wavelengths=d.get("wavelengths"), parameters=d.get("parameters") or {})
         except (KeyError, TypeError, ValueError) as exc:
             raise FormatError(f"bad response curve ({exc})", path) from None
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
 def _check_bit_depth(bit_depth: Any) -> int:
