@@ -107,13 +107,6 @@ class LineCamera(SerialDriver):
         self.channel.write(command.encode("ascii") + b"\n")
         return self._reply_text(self.channel.read_line(b"\n", what=f"reply to {command!r}"), command)
 
-    def _recover(self, exc: DeviceError) -> None:
-        if isinstance(exc, DeviceDisconnected):
-            self.reconnect()
-        else:
-            time.sleep(self.retry_delay_s)
-            self.channel.discard_input()
-
     def _retrying(self, what: str, fn: Callable[[], Any]) -> Any:
         last: DeviceError | None = None
         for attempt in range(self.retries + 1):

@@ -19,6 +19,7 @@ pyserial pitfalls handled here (design §2.2):
 
 from __future__ import annotations
 
+import time
 from typing import Any, Callable
 
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
@@ -194,6 +195,17 @@ class SerialDriver:
 
     def close(self) -> None:
         self.channel.close()
+
+    def _recover(self, exc: DeviceError) -> None:
+        """Make the link usable again after ``exc``: reconnect after a disconnect, else drop stale bytes.
+
+        Subclasses provide ``reconnect()`` (which re-reads device state) and ``retry_delay_s``.
+        """
+        if isinstance(exc, DeviceDisconnected):
+            self.reconnect()
+        else:
+            time.sleep(self.retry_delay_s)
+            self.channel.discard_input()
 
     def __enter__(self):
         return self

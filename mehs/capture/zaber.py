@@ -216,14 +216,6 @@ class ZaberStage(SerialDriver):
                                 self.name, reason=reason)
         raise AssertionError("unreachable")
 
-    def _recover(self, exc: DeviceError) -> None:
-        """Make the link usable again after ``exc``: reconnect after a disconnect, else drop stale bytes."""
-        if isinstance(exc, DeviceDisconnected):
-            self.reconnect()
-        else:
-            time.sleep(self.retry_delay_s)
-            self.channel.discard_input()
-
     def query(self, command: str) -> ZaberReply:
         """Send an idempotent command; retried after timeouts, garbled replies and disconnects."""
         last: DeviceError | None = None
