@@ -1,13 +1,15 @@
 """ENVI cubes: validated, memory-mapped reading and atomic, chunked writing.
 
-Header parsing (:func:`spectral.io.envi.read_envi_header`), the ENVI data-type
-table, and header writing
+The ENVI data-type table and header writing
 (:func:`spectral.io.envi.write_envi_header`) come from SPy. The data itself is
 mapped with :class:`numpy.memmap` exactly as SPy's ``open_memmap`` does, but
 after mehs has checked the header and the file size itself — SPy's image
 classes keep an open file handle per image, turn a failed memmap into ``None``
 and require keys (``byte order``) that real files omit, so validating first
-and mapping directly gives clear errors instead of wrong numbers.
+and mapping directly gives clear errors instead of wrong numbers. The header
+text itself is parsed here with SPy's rules, because SPy's
+``read_envi_header`` refuses headers that real software writes (a UTF-8
+byte-order mark, code-page-1252 bytes).
 
 Orientation
     Every cube is returned as ``(lines, samples, bands)`` whatever the file's
@@ -169,22 +171,94 @@ def find_data_file(header_path: str | Path, interleave: str | None = None) -> Pa
     raise FormatError(f"data file not found (tried {', '.join(tried[:8])}, …)", hp)
 
 
-def _parse_raw_header(hp: Path) -> dict[str, Any]:
-    from spectral.io import envi as spy_envi
+class _HeaderSyntaxError(ValueError):
+    pass
 
+
+def _decode_header(raw: bytes) -> str:
+    """Header bytes → text, tolerating what real writers put there.
+
+    Windows tools save headers with a UTF-8 or UTF-16 byte-order mark and
+    in code page 1252 (``µm``, ``°C`` in descriptions); SPy's parser reads
+    them with the locale's codec and rejects the BOM as "not ENVI".
+    """
+    if raw.startswith(b"\xef\xbb\xbf"):
+        return raw[3:].decode("utf-8", errors="replace")
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return raw.decode("utf-16", errors="replace")
     try:
-        with warnings.catch_warnings():
-            # SPy warns when it lower-cases capitalised keys; mehs does that on purpose.
-            warnings.simplefilter("ignore")
-            raw = spy_envi.read_envi_header(str(hp))
-    except spy_envi.FileNotAnEnviHeader:
-        raise FormatError("not an ENVI header (first line is not 'ENVI')", hp) from None
-    except (spy_envi.EnviHeaderParsingError, UnicodeDecodeError, IndexError, ValueError):
-        raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
-                          "binary content)", hp) from None
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("cp1252", errors="replace")
+
+
+def _parse_header_text(text: str) -> dict[str, Any] | None:
+    """``key = value`` / ``key = {…}`` pairs of an ENVI header text (``None``: not ENVI).
+
+    The same reading as SPy's ``read_envi_header`` (keys lower-cased, ``;``
+    comment lines, ``{…}`` split at commas, ``description`` kept whole),
+    plus what real headers need: any line ending (CR LF from Specim
+    Lumo/IQ software), a brace block closed on its own line or followed by
+    stray text, and a trailing comma before ``}`` (no empty last item).
+    """
+    lines = text.splitlines()
+    if not lines or not lines[0].strip().startswith("ENVI"):
+        return None
+    out: dict[str, Any] = {}
+    i = 1
+    while i < len(lines):
+        line = lines[i]
+        i += 1
+        if "=" not in line or line.lstrip().startswith(";"):
+            continue
+        key, _, val = line.partition("=")
+        key, val = key.strip().lower(), val.strip()
+        if not val.startswith("{"):
+            out[key] = val
+            continue
+        parts = [val]
+        depth = val.count("{") - val.count("}")
+        while depth > 0:
+            if i >= len(lines):
+                raise _HeaderSyntaxError(f"'{key}' = {{ … is never closed")
+            nxt = lines[i].strip()
+            i += 1
+            if nxt.startswith(";"):
+                continue
+            parts.append(nxt)
+            depth += nxt.count("{") - nxt.count("}")
+        block = "\n".join(parts)
+        # up to the brace that closes the first one; anything after is stray
+        d = 0
+        for j, ch in enumerate(block):
+            d += (ch == "{") - (ch == "}")
+            if d == 0:
+                block = block[:j + 1]
+                break
+        inner = block[1:-1]
+        if key == "description":
+            out[key] = inner.strip()
+            continue
+        items = [v.strip() for v in inner.split(",")]
+        if len(items) > 1 and items[-1] == "":
+            items.pop()  # "{a, b,}": a trailing comma, not an empty last value
+        out[key] = items
+    return out
+
+
+def _parse_raw_header(hp: Path) -> dict[str, Any]:
+    try:
+        raw = hp.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read header ({exc.strerror})", hp) from None
-    return {str(k).strip().lower(): v for k, v in raw.items()}
+    try:
+        h = _parse_header_text(_decode_header(raw))
+    except _HeaderSyntaxError:
+        raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
+                          "binary content)", hp) from None
+    if h is None:
+        raise FormatError("not an ENVI header (first line is not 'ENVI')", hp)
+    return h
 
 
 def _int_field(h: dict, key: str, hp: Path, *, default: int | None = None,

@@ -1,0 +1,282 @@
+"""Real-world ENVI headers and Specim capture folders, reproduced as small fixtures.
+
+Each fixture keeps the header text / XML layout of a file found in a public
+repository or issue thread (named in a comment beside it); only ``samples``,
+``lines``, ``bands`` and the per-band lists are cut down so the synthesised
+data stay tiny. Numbers are deterministic (``np.arange``) so a wrong byte
+order, interleave or offset shows up as wrong values.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from mehs.errors import FormatError
+from mehs.io import load_cube, read_envi
+
+# Specim FX10e (Lumo - Scanner) wavelengths and FWHM, first six bands, as written
+# (two decimals, one per line, comma at the line end, "}" on its own line).
+_LUMO_WL = ["397.01", "398.32", "399.63", "400.93", "402.24", "403.55"]
+_LUMO_FWHM = ["1.31"] * 6
+
+
+def lumo_header(samples: int, lines: int, *, start="19:03:45", stop="19:04:03",
+                nl: str = "\n") -> str:
+    """Header of a Specim Lumo capture, key for key.
+
+    Source: jy773Cornell/HyperFusion, examples/gras_ia10/capture/gras_ia10.hdr and
+    DARKREF_gras_ia10.hdr (1024 samples × 448 bands there; here 6 bands).
+    Its CR LF variant: the same writer's ``\\r\\n`` output in the specsensor_cli
+    code found by the same search (``out << "ENVI\\r\\n"``).
+    """
+    text = f"""ENVI
+description = {{
+File Imported into ENVI}}
+file type = ENVI
+
+sensor type = FX10e , Lumo - Scanner v2020-586
+acquisition date = DATE(yyyy-mm-dd): 2025-10-31
+Start Time = UTC TIME: {start}
+Stop Time = UTC TIME: {stop}
+
+samples = {samples}
+bands = 6
+lines = {lines}
+
+errors = {{none}}
+
+interleave = bil
+data type = 12
+header offset = 0
+byte order = 0
+x start = 0
+y start = 0
+default bands = {{6, 4, 1}}
+
+himg = {{1, {samples}}}
+vimg = {{1, 6}}
+hroi = {{1, {samples}}}
+vroi = {{1, 6}}
+
+fps = 50.00
+fps_qpf = 50.05
+tint = 15.000000
+binning = {{1, 1}}
+trigger mode = Internal
+fodis = {{0, 0}}
+sensorid = 3210441
+acquisitionwindow left = 112
+acquisitionwindow top = 285
+calibration pack = C:/SPECIM/fx10e_these_calpacks/3210441_20211027_FX_calpack.scp
+
+VNIR temperature = 48.43
+
+temperature = {{
+48.43
+}}
+
+
+Wavelength = {{
+{(","+chr(10)).join(_LUMO_WL)}
+}}
+
+fwhm = {{
+{(","+chr(10)).join(_LUMO_FWHM)}
+}}
+"""
+    return text.replace("\n", nl)
+
+
+def write_pair(folder, stem, header, data_lbs, *, ext=".raw", dtype="<u2", prefix=b"",
+               header_bytes=None):
+    """Header + data file; ``data_lbs`` is given in FILE order (already interleaved)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    hp = folder / f"{stem}.hdr"
+    if header_bytes is not None:
+        hp.write_bytes(header_bytes)
+    else:
+        hp.write_bytes(header.encode("utf-8"))
+    (folder / f"{stem}{ext}").write_bytes(prefix + np.asarray(data_lbs).astype(dtype).tobytes())
+    return hp
+
+
+def bil_counts(lines, samples, bands=6, start=0):
+    """(lines, samples, bands) uint16 test cube and its BIL file order."""
+    cube = (np.arange(lines * samples * bands) + start).reshape(lines, samples, bands)
+    return cube.astype(np.uint16), cube.transpose(0, 2, 1)
+
+
+@pytest.mark.parametrize("nl", ["\n", "\r\n"])
+def test_specim_lumo_header_lf_and_crlf(tmp_path, nl):
+    cube, fileorder = bil_counts(3, 4)
+    hp = write_pair(tmp_path, "gras_ia10", lumo_header(4, 3, nl=nl), fileorder)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing here deserves a warning
+        c = read_envi(hp)
+    np.testing.assert_array_equal(c.data, cube)
+    np.testing.assert_array_equal(c.wavelengths, [float(w) for w in _LUMO_WL])
+    np.testing.assert_array_equal(c.fwhm, 1.31)
+    assert c.integration_time_ms == 15.0
+    assert c.default_bands == (5, 3, 0)
+    assert c.binning == (1, 1)
+    assert c.metadata["sensor type"] == "FX10e , Lumo - Scanner v2020-586"
+    assert c.metadata["description"] == "File Imported into ENVI"
+    assert c.metadata["errors"] == ["none"]
+    assert c.metadata["temperature"] == ["48.43"]
+    assert c.metadata["calibration pack"].endswith("_FX_calpack.scp")
+
+
+def test_utf8_bom_header(tmp_path):
+    # Windows editors (Notepad "UTF-8") prepend EF BB BF; SPy then reports
+    # "missing ENVI at beginning of first line".
+    cube, fileorder = bil_counts(3, 4)
+    text = lumo_header(4, 3, nl="\r\n")
+    hp = write_pair(tmp_path, "bom", None, fileorder,
+                    header_bytes=b"\xef\xbb\xbf" + text.encode("utf-8"))
+    c = read_envi(hp)
+    np.testing.assert_array_equal(c.data, cube)
+    assert c.integration_time_ms == 15.0
+
+
+def test_cp1252_description_and_units(tmp_path):
+    # a header saved in code page 1252: "µ" is the single byte 0xB5 (not UTF-8)
+    data = np.arange(2 * 3 * 2, dtype=np.uint16).reshape(2, 3, 2)
+    text = ("ENVI\r\ndescription = {Messung 20 °C, Objektiv 17 µm}\r\nsamples = 2\r\n"
+            "lines = 2\r\nbands = 3\r\ndata type = 12\r\ninterleave = bsq\r\n"
+            "byte order = 0\r\nwavelength units = µm\r\nwavelength = {0.45, 0.55, 0.65}\r\n")
+    hp = write_pair(tmp_path, "cp", None, data, header_bytes=text.encode("cp1252"))
+    c = read_envi(hp)
+    np.testing.assert_allclose(c.wavelengths, [450, 550, 650])
+    assert "µm" in c.metadata["description"]
+
+
+def test_headwall_leading_comma_wavelengths(tmp_path):
+    # Source: tnigon/hs_process issue #2 (Headwall Hyperspec III header):
+    # one value per line with the comma at the START of the next line, bsq,
+    # "wavelength units = nm", a map info list with "units=Degrees".
+    header = """ENVI
+description = {HEADWALL Hyperspec III[HEADWALL Hyperspec III],[HEADWALL Hyperspec III OR]}
+samples = 3
+lines = 2
+bands = 4
+header offset = 0
+file type = ENVI Standard
+data type = 12
+interleave = bsq
+sensor type = Unknown
+byte order = 0
+wavelength units = nm
+map info = {Geographic Lat/Lon,1,1,-89.38681637930115,43.29648597737143,3.080735373867722e-7,2.250256219444636e-7,WGS84,units=Degrees}
+wavelength = {
+399.309
+,401.521
+,403.732
+,405.944
+}
+"""
+    cube = np.arange(2 * 3 * 4, dtype=np.uint16).reshape(2, 3, 4)
+    hp = write_pair(tmp_path, "headwall", header, cube.transpose(2, 0, 1))
+    c = read_envi(hp)
+    np.testing.assert_array_equal(c.data, cube)
+    np.testing.assert_array_equal(c.wavelengths, [399.309, 401.521, 403.732, 405.944])
+    assert c.metadata["map info"][-1] == "units=Degrees"
+
+
+def test_fenix_uint16_reflectance_scale_factor_and_ignore_value(tmp_path):
+    # Source: a Specim Fenix reflectance subset quoted in a public diff (ENVI
+    # "File Resize Result"): uint16 (type 12) with reflectance scale factor
+    # 65535, data ignore value = 0, "lines   =" padded, lists opened on one
+    # line and continued on the next with a leading space, two tints.
+    header = """ENVI
+description = {
+  File Resize Result, x resize factor: 1.000000, y resize factor: 1.000000.}
+samples = 3
+lines   = 2
+bands   = 4
+header offset = 0
+file type = ENVI Standard
+data type = 12
+interleave = bsq
+sensor type = Fenix
+byte order = 0
+x start = 247
+y start = 425
+default bands = {4,3,2}
+wavelength units = Nanometers
+reflectance scale factor = 65535.000000
+data ignore value = 0
+fwhm = {
+ 3.360000, 3.360000, 3.360000, 3.370000}
+wavelength = {
+ 400.120000, 403.480000, 406.850000, 410.210000}
+binning = {
+ 4, 2}
+tint1 = 18.000000
+tint2 = 4.455800
+"""
+    cube = (np.arange(2 * 3 * 4) * 1000).reshape(2, 3, 4).astype(np.uint16)
+    hp = write_pair(tmp_path, "fenix", header, cube.transpose(2, 0, 1))
+    c = read_envi(hp)
+    assert c.data.dtype == np.float32 and c.units == "reflectance"
+    np.testing.assert_allclose(c.data, cube / np.float32(65535), rtol=1e-6)
+    assert c.binning == (4, 2) and c.default_bands == (3, 2, 1)
+    assert c.integration_time_ms is None  # two sensors, two tints: none is "the" tint
+    assert c.metadata["data ignore value"] == "0"
+
+
+def test_enmap_box_header_nanometer_and_band_names(tmp_path):
+    # Source: EnMAP-Box/enmap-box issue #933 / #741: int16 bsq, "Nanometer"
+    # (singular), description on the next line, band names list, data ignore value.
+    header = """ENVI
+description = {
+E:/20220530_AVIRIS_NG_Irlbach/Irlbach/400_2500nm_Cut/ang20210530t101445_rfl_wlCut.bsq}
+samples = 3
+lines   = 2
+bands   = 3
+header offset = 0
+file type = ENVI Standard
+data type = 2
+interleave = bsq
+byte order = 0
+map info = {UTM, 1, 1, 332499.642028, 5419368.76286, 5.3, 5.3, 33, North,WGS-84}
+band names = {
+Band 1,
+Band 2,
+Band 3}
+data ignore value = -9999
+fwhm = {5.590000000000001, 6.0200000000000005, 6.0200000000000005}
+wavelength = {402.11182099999996, 2490.731821, 2495.741821}
+wavelength units = Nanometer
+"""
+    cube = (np.arange(2 * 3 * 3) - 5).reshape(2, 3, 3).astype(np.int16)
+    hp = write_pair(tmp_path, "enmap", header, cube.transpose(2, 0, 1), ext=".bsq",
+                    dtype="<i2")
+    c = read_envi(hp)
+    np.testing.assert_array_equal(c.data, cube)
+    assert c.metadata["band names"] == ["Band 1", "Band 2", "Band 3"]
+    np.testing.assert_allclose(c.wavelengths, [402.111821, 2490.731821, 2495.741821])
+
+
+def test_trailing_comma_in_lists(tmp_path):
+    # A comma after the last value ("398.32,\n}") as written by loops that
+    # print "value," for every band; it is not a missing last value.
+    cube, fileorder = bil_counts(2, 3)
+    text = lumo_header(3, 2).replace("403.55\n}", "403.55,\n}")
+    hp = write_pair(tmp_path, "trail", text, fileorder)
+    c = read_envi(hp)
+    np.testing.assert_array_equal(c.wavelengths, [float(w) for w in _LUMO_WL])
+    # an empty value in the middle is still an error, naming the band
+    bad = lumo_header(3, 2).replace("399.63,\n", ",\n")
+    hp = write_pair(tmp_path, "hole", bad, fileorder)
+    with pytest.raises(FormatError, match=r"hole\.hdr: 'wavelength'"):
+        read_envi(hp)
+
+
+def test_load_cube_reads_real_header_by_data_file(tmp_path):
+    cube, fileorder = bil_counts(3, 4)
+    write_pair(tmp_path, "gras_ia10", lumo_header(4, 3, nl="\r\n"), fileorder)
+    c = load_cube(tmp_path / "gras_ia10.raw")
+    np.testing.assert_array_equal(c.data, cube)
