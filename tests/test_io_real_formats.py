@@ -280,3 +280,16 @@ def test_load_cube_reads_real_header_by_data_file(tmp_path):
     write_pair(tmp_path, "gras_ia10", lumo_header(4, 3, nl="\r\n"), fileorder)
     c = load_cube(tmp_path / "gras_ia10.raw")
     np.testing.assert_array_equal(c.data, cube)
+
+
+def test_specim_start_time_completes_acquisition_date(tmp_path):
+    # Specim writes the day in "acquisition date = DATE(yyyy-mm-dd): …" and the
+    # clock in "Start Time = UTC TIME: …" (HyperFusion gras_ia10.hdr above).
+    cube, fileorder = bil_counts(3, 4)
+    hp = write_pair(tmp_path, "t", lumo_header(4, 3, start="19:03:45"), fileorder)
+    c = read_envi(hp)
+    assert c.acquisition_date == "2025-10-31T19:03:45+00:00"
+    assert c.metadata["start time"] == "UTC TIME: 19:03:45"
+    # a start time that is not a time leaves the day alone
+    hp = write_pair(tmp_path, "u", lumo_header(4, 3, start="unknown"), fileorder)
+    assert read_envi(hp).acquisition_date == "2025-10-31"

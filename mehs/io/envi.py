@@ -454,6 +454,26 @@ def format_acquisition_date(iso: str) -> str:
     return out
 
 
+_START_TIME_RE = re.compile(r"^(?:(UTC)\s*TIME\s*:)?\s*(\d{1,2}:\d{2}(?::\d{2}(?:\.\d+)?)?)$",
+                            re.IGNORECASE)
+
+
+def _with_start_time(iso_day: str, start: Any) -> str:
+    """Add Specim's separate ``Start Time = UTC TIME: HH:MM:SS`` to a date-only value.
+
+    Specim Lumo/IQ headers carry the day in ``acquisition date`` and the
+    clock time in ``Start Time``; without it two captures of one day
+    cannot be ordered.
+    """
+    if not isinstance(start, str):
+        return iso_day
+    m = _START_TIME_RE.match(start.strip())
+    if not m:
+        return iso_day
+    return parse_acquisition_date(f"{iso_day} {m.group(2)}{'Z' if m.group(1) else ''}") \
+        or iso_day
+
+
 def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
     """SpectralCube keyword arguments from the header's optional keys."""
     h, hp, nb = hdr.fields, hdr.header_path, hdr.bands
@@ -492,6 +512,8 @@ def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
         raw = h["acquisition date"]
         raw = ", ".join(raw) if isinstance(raw, list) else str(raw)
         iso = parse_acquisition_date(raw)
+        if iso is not None and "T" not in iso:
+            iso = _with_start_time(iso, h.get("start time"))
         if iso is None:
             warnings.warn(f"{hp}: acquisition date {raw!r} not understood; kept as text",
                           stacklevel=3)
