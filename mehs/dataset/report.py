@@ -47,7 +47,7 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
 
     dataset = Path(dataset)
     manifest = read_manifest(dataset)
-    out_html = Path(out_html) if out_html else dataset / "report.html"
+    out_html = check_report_path(out_html) if out_html else dataset / "report.html"
     files_dir = out_html.parent / f"{out_html.stem}_files"
     tmp_dir = files_dir.with_name(files_dir.name + ".part")
     shutil.rmtree(tmp_dir, ignore_errors=True)
@@ -99,6 +99,22 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
     return out_html
 
 
+def check_report_path(out_html: str | Path) -> Path:
+    """``out_html`` as a Path, or :class:`InputError` if it cannot be the report page.
+
+    The name must end in ``.html``/``.htm``: a mistyped ``--out`` such as
+    ``DATASET/manifest.json`` would otherwise be replaced by the HTML page,
+    destroying the dataset it reports on.
+    """
+    out_html = Path(out_html)
+    if out_html.is_dir():
+        raise InputError("the report must be a .html file, not a folder", out_html)
+    if out_html.suffix.lower() not in (".html", ".htm"):
+        raise InputError("the report file name must end in .html (refusing to replace "
+                         "another kind of file)", out_html)
+    return out_html
+
+
 def write_report(path: str | Path, out_html: str | Path | None = None) -> Path:
     """Report of a dataset folder, or of an SSR evaluation results folder.
 
@@ -110,6 +126,8 @@ def write_report(path: str | Path, out_html: str | Path | None = None) -> Path:
     from mehs.ssr.evaluate import is_evaluation_folder
 
     path = Path(path)
+    if out_html is not None:
+        out_html = check_report_path(out_html)
     if (path / "manifest.json").is_file():
         return write_dataset_report(path, out_html)
     if is_evaluation_folder(path):
