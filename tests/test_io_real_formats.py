@@ -293,3 +293,134 @@ def test_specim_start_time_completes_acquisition_date(tmp_path):
     # a start time that is not a time leaves the day alone
     hp = write_pair(tmp_path, "u", lumo_header(4, 3, start="unknown"), fileorder)
     assert read_envi(hp).acquisition_date == "2025-10-31"
+
+
+# ----------------------------------------------------------------- capture folders
+
+# Source: jy773Cornell/HyperFusion examples/gras_ia10/manifest.xml — a Specim
+# folder as the camera software writes it: "extension" before "type", the raw
+# cube typed "capture", the metadata "properties", and a preview entry whose
+# PNG is not in the folder.
+GRAS_MANIFEST = """<?xml version="1.0" encoding="utf-8"?>
+<manifest>
+ <file extension="raw" type="darkref">capture/DARKREF_gras_ia10.raw</file>
+ <file extension="hdr" type="darkref">capture/DARKREF_gras_ia10.hdr</file>
+ <file extension="raw" type="whiteref">capture/WHITEREF_gras_ia10.raw</file>
+ <file extension="hdr" type="whiteref">capture/WHITEREF_gras_ia10.hdr</file>
+ <file extension="raw" type="capture">capture/gras_ia10.raw</file>
+ <file extension="hdr" type="capture">capture/gras_ia10.hdr</file>
+ <file extension="xml" type="properties">metadata/gras_ia10.xml</file>
+ <file extension="xsl" type="properties">metadata/gras_ia10.xsl</file>
+ <file extension="png" type="preview">gras_ia10.png</file>
+</manifest>
+"""
+
+# Source: the same folder, metadata/gras_ia10.xml: a stylesheet processing
+# instruction and the keys nested in <header> and <userdefined> sections.
+GRAS_METADATA = """<?xml version="1.0" encoding="UTF-8" standalone="yes"?>
+<?xml-stylesheet type="text/xsl" href="gras_ia10.xsl"?>
+<properties><header><key field="sensor type">FX10e</key>
+        <key field="sensor id">3210441</key>
+        <key field="frame rate">50</key>
+        <key field="integration time">15</key>
+        <key field="samples">1024</key>
+        <key field="active bands">448</key>
+        <key field="spatial binning">1</key>
+        <key field="spectral binning">1</key>
+        <key field="frames recorded">921</key>
+        <key field="frames dropped">0</key>
+        <key field="data format">BIL</key>
+        <key field="date">2025-10-31</key>
+        <key field="date text">Friday, October 31, 2025</key>
+        <key field="time">19:03:35</key>
+        <key field="calibration pack">C:/SPECIM/fx10e_these_calpacks/3210441_20211027_FX_calpack.scp</key>
+    </header>
+    <userdefined><key field="sample name">gras_ia10</key>
+        <key field="operator">jy</key>
+        <key field="description"></key>
+        <key field="sensor temperature">48.395446777344</key>
+        <key field="sensor prefix"></key>
+    </userdefined>
+</properties>
+"""
+
+
+def make_gras_folder(root, *, samples=4, lines=3, dark_lines=2, crlf=False, tint=True):
+    """The gras_ia10 Specim folder with tiny cubes (100-line dark reference → 2)."""
+    nl = "\r\n" if crlf else "\n"
+    folder = root / "gras_ia10"
+    cap = folder / "capture"
+    raw, raw_f = bil_counts(lines, samples, start=100)
+    dark, dark_f = bil_counts(dark_lines, samples, start=0)
+    white, white_f = bil_counts(1, samples, start=3000)
+    hdr = lumo_header(samples, lines, nl=nl)
+    if not tint:
+        hdr = hdr.replace("tint = 15.000000" + nl, "")
+    write_pair(cap, "gras_ia10", hdr, raw_f)
+    write_pair(cap, "DARKREF_gras_ia10",
+               lumo_header(samples, dark_lines, start="19:03:36", stop="19:03:38", nl=nl),
+               dark_f)
+    write_pair(cap, "WHITEREF_gras_ia10", lumo_header(samples, 1, nl=nl), white_f)
+    (folder / "metadata").mkdir()
+    (folder / "manifest.xml").write_text(GRAS_MANIFEST)
+    (folder / "metadata" / "gras_ia10.xml").write_text(GRAS_METADATA)
+    (folder / "metadata" / "gras_ia10.xsl").write_text(
+        '<?xml version="1.0"?><xsl:stylesheet version="1.0" '
+        'xmlns:xsl="http://www.w3.org/1999/XSL/Transform"/>\n')
+    (folder / "properties.xml").write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<properties>'
+        '<property name="countervalue">0000</property></properties>\n')
+    (cap / "gras_ia10.log").write_text("  0 dropped frame incidents, 0 dropped frames\n")
+    return folder, raw, dark, white
+
+
+def test_real_specim_folder_reads(tmp_path):
+    from mehs.io import find_captures, read_specim_folder
+
+    folder, raw, dark, white = make_gras_folder(tmp_path, crlf=True)
+    cap = read_specim_folder(folder)
+    assert cap.capture_id == "gras_ia10"
+    np.testing.assert_array_equal(cap.raw.data, raw)
+    np.testing.assert_array_equal(cap.darkref.data, dark)
+    np.testing.assert_array_equal(cap.whiteref.data, white)
+    assert cap.darkref.lines == 2  # a multi-line dark, not a one-line slab
+    assert cap.preview is None  # listed in the manifest, absent on disk
+    assert cap.metadata["integration time"] == "15"
+    assert cap.metadata["operator"] == "jy"  # <userdefined> keys are read too
+    assert cap.raw.acquisition_date == "2025-10-31T19:03:45+00:00"
+    assert find_captures(tmp_path) == [folder]
+    np.testing.assert_array_equal(load_cube(folder).data, raw)
+
+
+def test_real_folder_integration_time_from_metadata_key(tmp_path):
+    # without "tint" in the header the time comes from <key field="integration time">
+    from mehs.io import read_specim_folder
+
+    folder, *_ = make_gras_folder(tmp_path, tint=False)
+    assert read_specim_folder(folder).raw.integration_time_ms == 15.0
+
+
+def test_real_manifest_capture_type_names_the_raw_cube(tmp_path):
+    # a second cube in capture/ (an export beside the camera's own) — the
+    # manifest's type="capture" entry says which is the capture
+    from mehs.io import read_specim_folder
+
+    folder, raw, *_ = make_gras_folder(tmp_path)
+    # folders get renamed by users ("plant <N>" folders of a published IQ data set)
+    folder = folder.rename(tmp_path / "plant 1")
+    cap = folder / "capture"
+    (cap / "gras_ia10_subset.hdr").write_bytes((cap / "gras_ia10.hdr").read_bytes())
+    (cap / "gras_ia10_subset.raw").write_bytes(b"\0" * (cap / "gras_ia10.raw").stat().st_size)
+    got = read_specim_folder(folder)
+    assert got.capture_id == "gras_ia10"
+    np.testing.assert_array_equal(got.raw.data, raw)
+
+
+def test_manifest_entry_missing_on_disk_falls_back_to_names(tmp_path):
+    from mehs.io import read_specim_folder
+
+    folder, raw, *_ = make_gras_folder(tmp_path)
+    mf = folder / "manifest.xml"
+    mf.write_text(mf.read_text().replace("capture/WHITEREF_gras_ia10.hdr",
+                                         "capture/WHITEREF_old_name.hdr"))
+    assert read_specim_folder(folder).whiteref is not None

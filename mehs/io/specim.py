@@ -97,8 +97,21 @@ class SpecimCapture:
 # --------------------------------------------------------------------- reading
 
 
+#: manifest ``type`` values → mehs kinds. Specim software types the raw cube
+#: "capture" and the metadata XML "properties" (HyperFusion
+#: examples/gras_ia10/manifest.xml); mehs wrote "raw"/"metadata" before.
+_MANIFEST_TYPES = {"capture": "raw", "raw": "raw", "darkref": "darkref",
+                   "whiteref": "whiteref", "whitedarkref": "whitedarkref",
+                   "reflectance": "reflectance", "properties": "metadata",
+                   "metadata": "metadata", "preview": "preview"}
+
+
 def _read_manifest(root: Path) -> list[tuple[str, str, str]]:
-    """``(type, extension, relative path)`` entries of ``manifest.xml`` (empty if absent)."""
+    """``(kind, extension, relative path)`` entries of ``manifest.xml`` (empty if absent).
+
+    ``kind`` is the manifest ``type`` mapped through :data:`_MANIFEST_TYPES`
+    (unknown types are kept lower-cased).
+    """
     mf = root / "manifest.xml"
     if not mf.is_file():
         return []
@@ -110,7 +123,8 @@ def _read_manifest(root: Path) -> list[tuple[str, str, str]]:
     for el in tree.getroot().iter("file"):
         rel = (el.text or "").strip()
         if rel:
-            out.append(((el.get("type") or "").strip().lower(),
+            typ = (el.get("type") or "").strip().lower()
+            out.append((_MANIFEST_TYPES.get(typ, typ),
                         (el.get("extension") or "").strip().lower(), rel))
     return out
 
@@ -125,6 +139,9 @@ def _read_metadata_xml(path: Path) -> dict[str, str]:
 
 
 def _capture_id(root: Path, manifest: list[tuple[str, str, str]]) -> str:
+    for typ, ext, rel in manifest:
+        if typ == "raw" and rel.lower().endswith(".hdr"):
+            return Path(rel).stem
     for typ, ext, rel in manifest:
         if typ == "raw":
             return Path(rel).stem
@@ -143,10 +160,17 @@ def _capture_id(root: Path, manifest: list[tuple[str, str, str]]) -> str:
 
 
 def _locate(root: Path, manifest, kind: str, default: str) -> Path:
-    """Path of the ``kind`` header: the manifest's entry, else the conventional name."""
+    """Path of the ``kind`` header: the manifest's entry if it exists, else the conventional name.
+
+    Real manifests list files that are not in the folder (HyperFusion
+    gras_ia10 lists a preview PNG it does not ship), so an entry that is
+    missing on disk does not hide a conventionally named file.
+    """
     for typ, ext, rel in manifest:
         if typ == kind and rel.lower().endswith(".hdr"):
-            return _inside(root, rel)
+            p = _inside(root, rel)
+            if p.is_file():
+                return p
     return root / default
 
 
@@ -207,12 +231,15 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
 
     meta_path = None
     for typ, ext, rel in manifest:
-        if typ == "metadata":
+        if typ == "metadata" and rel.lower().endswith(".xml"):  # not the .xsl
             meta_path = _inside(root, rel)
-    meta_path = meta_path or root / "metadata" / f"{cid}.xml"
+    if meta_path is None or not meta_path.is_file():
+        meta_path = root / "metadata" / f"{cid}.xml"
     metadata = _read_metadata_xml(meta_path) if meta_path.is_file() else {}
     if raw.integration_time_ms is None:
-        t = metadata.get("integration_time") or metadata.get("integrationtime")
+        # key spellings: "integration time" (Specim, HyperFusion gras_ia10.xml)
+        t = next((metadata[k] for k in ("integration_time", "integration time",
+                                        "integrationtime") if metadata.get(k)), None)
         try:
             if t is not None and float(t) > 0:
                 raw.integration_time_ms = float(t)
@@ -245,7 +272,8 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
     for typ, ext, rel in manifest:
         if typ == "preview":
             prev_path = _inside(root, rel)
-    prev_path = prev_path or root / f"{cid}.png"
+    if prev_path is None or not prev_path.is_file():
+        prev_path = root / f"{cid}.png"
     if prev_path.is_file():
         preview = _read_png(prev_path)
     return SpecimCapture(cid, root, raw, refs["darkref"], refs["whiteref"],
