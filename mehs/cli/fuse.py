@@ -39,6 +39,9 @@ def run(args) -> int:
     from mehs.synthesis.bracket import load_bracket
     from mehs.synthesis.fuse import fuse_bracket, write_fusion
 
+    from mehs.io.atomic import check_output_dir
+
+    check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
     bracket = load_bracket(paths, verify=args.verify)
     from mehs.errors import InputError

@@ -586,9 +586,10 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                rules, scheduler, progress, on_commit) -> dict[str, Any]:
     import json
 
+    from mehs.io.atomic import make_output_dir
     from mehs.rgb import WAVELENGTHS_31
 
-    dataset.mkdir(parents=True, exist_ok=True)
+    make_output_dir(dataset, inputs=[p for s in srcs for p in s.paths if s.kind != "hs"])
     scenes_dir = dataset / "scenes"
     with _Lock(dataset):
         scenes_dir.mkdir(exist_ok=True)

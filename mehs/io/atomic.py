@@ -106,3 +106,33 @@ def sha256_file(path: str | Path) -> str:
         for block in iter(lambda: fh.read(_CHUNK), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def check_output_dir(path: str | Path, *, inputs=()) -> Path:
+    """``path`` as a Path if it can be an output folder, else :class:`InputError`.
+
+    Refuses an existing non-folder (``mkdir`` would raise a bare
+    ``FileExistsError``) and a folder equal to, or inside, one of the input
+    folders ``inputs`` (outputs must never be mixed into raw captures). Creates
+    nothing, so callers can check before a long computation.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError("output folder exists and is not a folder", path)
+    target = path.resolve()
+    for inp in inputs:
+        src = Path(inp).resolve()
+        if src.is_dir() and (target == src or src in target.parents):
+            raise InputError(f"output folder is inside the input {inp}; "
+                             "give an --out outside the inputs", path)
+    return path
+
+
+def make_output_dir(path: str | Path, *, inputs=()) -> Path:
+    """:func:`check_output_dir`, then create the folder (and its parents)."""
+    path = check_output_dir(path, inputs=inputs)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder ({exc.strerror})", path) from exc
+    return path
