@@ -424,3 +424,46 @@ def test_manifest_entry_missing_on_disk_falls_back_to_names(tmp_path):
     mf.write_text(mf.read_text().replace("capture/WHITEREF_gras_ia10.hdr",
                                          "capture/WHITEREF_old_name.hdr"))
     assert read_specim_folder(folder).whiteref is not None
+
+
+def test_written_folder_follows_the_real_layout(tmp_path):
+    # what write_specim_folder writes is laid out like GRAS_MANIFEST/GRAS_METADATA
+    import xml.etree.ElementTree as ET
+
+    import spectral.io.envi as spy_envi
+
+    from mehs.io import read_specim_folder, write_specim_folder
+
+    folder, raw, dark, white = make_gras_folder(tmp_path / "in")
+    cap = read_specim_folder(folder)
+    out = write_specim_folder(tmp_path / "out" / "gras_ia10", cap)
+    files = ET.parse(out / "manifest.xml").getroot()
+    assert files.tag == "manifest"
+    got = {(f.get("type"), f.get("extension"), f.text) for f in files.iter("file")}
+    real = {(f.get("type"), f.get("extension"), f.text)
+            for f in ET.fromstring(GRAS_MANIFEST).iter("file")}
+    # every cube, metadata and preview entry is typed and named as Specim does
+    assert real - got == {("properties", "xsl", "metadata/gras_ia10.xsl")}
+    assert list(files.iter("file"))[0].keys() == ["extension", "type"]
+    meta = ET.parse(out / "metadata" / "gras_ia10.xml").getroot()
+    assert meta.tag == "properties" and meta[0].tag == "header"
+    assert meta[0].find("key[@field='integration time']").text == "15"
+    back = read_specim_folder(out)
+    np.testing.assert_array_equal(back.raw.data, raw)
+    np.testing.assert_array_equal(back.darkref.data, dark)
+    assert back.metadata == cap.metadata
+    img = spy_envi.open(str(out / "capture" / "gras_ia10.hdr"))
+    np.testing.assert_array_equal(img.open_memmap(), raw)
+    assert float(img.metadata["tint"]) == 15.0
+
+
+def test_folders_written_by_older_mehs_still_read(tmp_path):
+    # before following Specim, mehs typed the raw cube "raw" and metadata "metadata"
+    from mehs.io import read_specim_folder
+
+    folder, raw, *_ = make_gras_folder(tmp_path)
+    mf = folder / "manifest.xml"
+    mf.write_text(mf.read_text().replace('type="capture"', 'type="raw"')
+                  .replace('type="properties"', 'type="metadata"'))
+    got = read_specim_folder(folder.rename(tmp_path / "renamed"))
+    assert got.capture_id == "gras_ia10" and got.metadata["operator"] == "jy"

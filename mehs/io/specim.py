@@ -5,10 +5,11 @@ Layout (design.md §2.1)::
     <folder>/                         often named <id>; ids need not be digits
       <id>.png                        preview, 8-bit RGB (mehs writes it in native
                                       ENVI orientation: rows = lines, columns = samples)
-      manifest.xml                    <manifest><file type="raw|darkref|whiteref|
-                                      whitedarkref|reflectance|preview|metadata"
-                                      extension="hdr|raw|dat|png|xml">relative/path</file>…
-      metadata/<id>.xml               <properties><key field="NAME">VALUE</key>…
+      manifest.xml                    <manifest><file extension="hdr|raw|dat|png|xml"
+                                      type="capture|darkref|whiteref|whitedarkref|
+                                      reflectance|preview|properties">relative/path</file>…
+                                      (Specim's types; "raw"/"metadata" also read)
+      metadata/<id>.xml               <properties><header><key field="NAME">VALUE</key>…
       capture/<id>.hdr|.raw           raw cube, uint16 (ENVI type 12), bil, byte order 0
       capture/DARKREF_<id>.hdr|.raw   dark reference (usually one line)
       capture/WHITEREF_<id>.hdr|.raw  white reference
@@ -400,12 +401,14 @@ def _write_contents(root: Path, cap: SpecimCapture, cid: str, *, overwrite: bool
     if cap.reflectance is not None:
         cube("reflectance", f"results/REFLECTANCE_{cid}", cap.reflectance, np.float32, ".dat")
 
+    # Specim nests the keys in <header> (HyperFusion examples/gras_ia10/metadata)
     props = ET.Element("properties")
+    section = ET.SubElement(props, "header")
     for k, v in (cap.metadata or {}).items():
-        el = ET.SubElement(props, "key", field=str(k))
+        el = ET.SubElement(section, "key", field=str(k))
         el.text = str(v)
     write_text_atomic(root / "metadata" / f"{cid}.xml", _xml_text(props), overwrite=overwrite)
-    entries.append(("metadata", "xml", f"metadata/{cid}.xml"))
+    entries.append(("properties", "xml", f"metadata/{cid}.xml"))
 
     preview = cap.preview if cap.preview is not None else make_preview(cap.raw)
     _write_png(root / f"{cid}.png", preview, overwrite)
@@ -413,7 +416,9 @@ def _write_contents(root: Path, cap: SpecimCapture, cid: str, *, overwrite: bool
 
     man = ET.Element("manifest")
     for typ, ext, rel in entries:
-        el = ET.SubElement(man, "file", type=typ, extension=ext)
+        # Specim's own layout: raw cube typed "capture", attributes extension, type
+        el = ET.SubElement(man, "file", extension=ext,
+                           type="capture" if typ == "raw" else typ)
         el.text = rel
     # the manifest is written last: its presence marks a complete folder
     write_text_atomic(root / "manifest.xml", _xml_text(man), overwrite=overwrite)
