@@ -467,3 +467,24 @@ def test_folders_written_by_older_mehs_still_read(tmp_path):
                   .replace('type="properties"', 'type="metadata"'))
     got = read_specim_folder(folder.rename(tmp_path / "renamed"))
     assert got.capture_id == "gras_ia10" and got.metadata["operator"] == "jy"
+
+
+def test_mehs_info_on_real_folder_and_header(tmp_path, capsys):
+    import json
+
+    from mehs.cli import main
+
+    folder, raw, *_ = make_gras_folder(tmp_path, crlf=True)
+    assert main(["info", str(folder), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["capture_id"] == "gras_ia10" and info["manifest"] is True
+    assert info["references"]["darkref"]["shape"] == [2, 4, 6]
+    assert info["missing"] == []
+    assert info["raw"]["values"]["max"] == int(raw.max())
+    # a header with a byte-order mark, given by its data file
+    text = lumo_header(4, 3, nl="\r\n")
+    _, fileorder = bil_counts(3, 4)
+    write_pair(tmp_path, "bom", None, fileorder,
+               header_bytes=b"\xef\xbb\xbf" + text.encode("utf-8"))
+    assert main(["info", str(tmp_path / "bom.raw")]) == 0
+    assert "15" in capsys.readouterr().out
