@@ -255,6 +255,9 @@ class RegressionModel(SSRModel):
         non-finite sum are dropped); ``ridge`` is relative to the mean diagonal
         of ``ΦᵀΦ``.
         """
+        if not (np.isfinite(ridge) and ridge >= 0):
+            # a negative ridge can make the normal equations singular or indefinite
+            raise InputError(f"ridge must be finite and >= 0, got {ridge}")
         rgb = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
         spectra = np.asarray(spectra, dtype=np.float64)
         spectra = spectra.reshape(-1, spectra.shape[-1])
@@ -277,7 +280,7 @@ class RegressionModel(SSRModel):
         """Write the model as ``.npz`` (arrays + JSON metadata) or ``.json``, atomically."""
         from mehs.io.atomic import atomic_path, write_json_atomic
 
-        path = Path(path)
+        path = _check_model_path(path, self.FORMAT)
         meta = {"format": self.FORMAT, "name": self.name, "degree": self.degree,
                 "info": self.info}
         if path.suffix.lower() == ".json":
@@ -314,6 +317,28 @@ class RegressionModel(SSRModel):
             raise FormatError(exc.problem, path) from None
 
 
+def _check_model_path(path: str | Path, fmt: str) -> Path:
+    """``path`` if a model may be written there, else :class:`InputError`.
+
+    Only ``.json``/``.npz`` names are accepted and an existing ``.json`` is
+    replaced only if it already holds a model of format ``fmt``: a mistyped
+    ``--out DATASET/manifest.json`` must not destroy the dataset's manifest.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError("the model must be a .json or .npz file, not a folder", path)
+    if path.suffix.lower() not in (".json", ".npz"):
+        raise InputError("the model file name must end in .json or .npz", path)
+    if path.suffix.lower() == ".json" and path.exists():
+        try:
+            existing = json.loads(path.read_text(encoding="utf-8")).get("format")
+        except (OSError, ValueError, AttributeError):
+            existing = None
+        if existing != fmt:
+            raise InputError(f"exists and is not a {fmt} model; refusing to replace it", path)
+    return path
+
+
 def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int = 200_000,
                             input: str = "hdr", ridge: float = 1e-6, seed: int = 0,
                             progress: bool = False) -> RegressionModel:
@@ -328,6 +353,8 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
     input
         ``"hdr"`` or ``"ldr"``: which RGB the baseline learns from.
     """
+    if int(n_samples) < 1:
+        raise InputError(f"n_samples must be at least 1, got {n_samples}")
     pairs = list(pairs)
     if not pairs:
         raise InputError("no training scenes to fit the regression baseline on")
