@@ -488,3 +488,128 @@ def test_mehs_info_on_real_folder_and_header(tmp_path, capsys):
                header_bytes=b"\xef\xbb\xbf" + text.encode("utf-8"))
     assert main(["info", str(tmp_path / "bom.raw")]) == 0
     assert "15" in capsys.readouterr().out
+
+
+# Source: fligt/iqcampy notebooks/10_reading-iqcam-data.ipynb — the header of a
+# real Specim IQ capture (demo data set iqcam_2021-02-03_005) as printed there,
+# and its 204 band centres (nm, two decimals as printed). The wavelength list
+# itself is not printed there; iqcampy parses it as lower-case
+# "wavelength = {…}" at the end of the header, values comma-separated across
+# lines, which is how it is written here.
+IQ_WAVELENGTHS = [
+    397.32, 400.2, 403.09, 405.97, 408.85, 411.74, 414.63, 417.52, 420.4, 423.29, 426.19,
+    429.08, 431.97, 434.87, 437.76, 440.66, 443.56, 446.45, 449.35, 452.25, 455.16, 458.06,
+    460.96, 463.87, 466.77, 469.68, 472.59, 475.5, 478.41, 481.32, 484.23, 487.14, 490.06,
+    492.97, 495.89, 498.8, 501.72, 504.64, 507.56, 510.48, 513.4, 516.33, 519.25, 522.18,
+    525.1, 528.03, 530.96, 533.89, 536.82, 539.75, 542.68, 545.62, 548.55, 551.49, 554.43,
+    557.36, 560.3, 563.24, 566.18, 569.12, 572.07, 575.01, 577.96, 580.9, 583.85, 586.8,
+    589.75, 592.7, 595.65, 598.6, 601.55, 604.51, 607.46, 610.42, 613.38, 616.34, 619.3,
+    622.26, 625.22, 628.18, 631.15, 634.11, 637.08, 640.04, 643.01, 645.98, 648.95, 651.92,
+    654.89, 657.87, 660.84, 663.81, 666.79, 669.77, 672.75, 675.73, 678.71, 681.69, 684.67,
+    687.65, 690.64, 693.62, 696.61, 699.6, 702.58, 705.57, 708.57, 711.56, 714.55, 717.54,
+    720.54, 723.53, 726.53, 729.53, 732.53, 735.53, 738.53, 741.53, 744.53, 747.54, 750.54,
+    753.55, 756.56, 759.56, 762.57, 765.58, 768.6, 771.61, 774.62, 777.64, 780.65, 783.67,
+    786.68, 789.7, 792.72, 795.74, 798.77, 801.79, 804.81, 807.84, 810.86, 813.89, 816.92,
+    819.95, 822.98, 826.01, 829.04, 832.07, 835.11, 838.14, 841.18, 844.22, 847.25, 850.29,
+    853.33, 856.37, 859.42, 862.46, 865.5, 868.55, 871.6, 874.64, 877.69, 880.74, 883.79,
+    886.84, 889.9, 892.95, 896.01, 899.06, 902.12, 905.18, 908.24, 911.3, 914.36, 917.42,
+    920.48, 923.55, 926.61, 929.68, 932.74, 935.81, 938.88, 941.95, 945.02, 948.1, 951.17,
+    954.24, 957.32, 960.4, 963.47, 966.55, 969.63, 972.71, 975.79, 978.88, 981.96, 985.05,
+    988.13, 991.22, 994.31, 997.4, 1000.49, 1003.58]
+
+
+def iq_header(samples: int, lines: int, *, data_type: int = 12) -> str:
+    """The Specim IQ header (512 × 512 there; here ``samples`` × ``lines``)."""
+    wl = ",\n".join(f"{w:.2f}" for w in IQ_WAVELENGTHS)
+    return f"""ENVI
+description = {{Data recorded with Specim IQ}}
+samples = {samples}
+lines = {lines}
+bands = 204
+header offset = 0
+file type = ENVI
+data type = {data_type}
+interleave = BIL
+sensor type = SPECIM IQ
+byte order = 0
+default bands = {{70,53,19}}
+latitude = 0.00000000
+longitude = 0.00000000
+acquisition date = 03-02-2021
+errors = none
+binning = {{1,1}}
+tint = 98
+fps = 10.2041
+wavelength = {{
+{wl}
+}}
+"""
+
+
+def make_iq_folder(root, *, samples=3, lines=2):
+    """The iqcampy demo folder's tree (fligt/iqcampy, same notebook): the folder
+    is named differently from the capture id, has a hidden ``.validated`` file,
+    a one-line WHITEREF (iqcampy reshapes it to 204 × 512) and results/ with
+    REFLECTANCE_ .dat/.hdr/.png and RGBBACKGROUND_/RGBSCENE_/RGBVIEWFINDER_ PNGs.
+    The IQ manifest text is not shown there; the Specim manifest of
+    GRAS_MANIFEST (same software family) is used with the IQ names.
+    """
+    import cv2
+
+    cid = "iqcam_2021-02-03_005"
+    folder = root / "iqcam_2021-02-03_005_4x-aquarelblauw-FL-01"
+    cap = folder / "capture"
+    raw, raw_f = bil_counts(lines, samples, bands=204, start=50)
+    dark, dark_f = bil_counts(1, samples, bands=204, start=0)
+    white, white_f = bil_counts(1, samples, bands=204, start=2000)
+    write_pair(cap, cid, iq_header(samples, lines), raw_f)
+    write_pair(cap, f"DARKREF_{cid}", iq_header(samples, 1), dark_f)
+    write_pair(cap, f"WHITEREF_{cid}", iq_header(samples, 1), white_f)
+    refl = ((raw.astype(np.float32) - dark) / (white.astype(np.float32) - dark))
+    write_pair(folder / "results", f"REFLECTANCE_{cid}", iq_header(samples, lines, data_type=4),
+               refl.transpose(0, 2, 1), ext=".dat", dtype="<f4")
+    png = np.zeros((lines, samples, 3), np.uint8)
+    for name in (f"{cid}.png", f"results/REFLECTANCE_{cid}.png",
+                 f"results/RGBBACKGROUND_{cid}.png", f"results/RGBSCENE_{cid}.png",
+                 f"results/RGBVIEWFINDER_{cid}.png"):
+        cv2.imwrite(str(folder / name), png)
+    (folder / ".validated").write_bytes(b"")
+    (folder / "metadata").mkdir()
+    (folder / "metadata" / f"{cid}.xml").write_text(
+        GRAS_METADATA.replace("gras_ia10", cid).replace(">15<", ">98<"))
+    (folder / "manifest.xml").write_text(GRAS_MANIFEST.replace("gras_ia10", cid))
+    return folder, cid, raw, dark, white, refl
+
+
+def test_real_specim_iq_folder(tmp_path):
+    from mehs.io import find_captures, read_specim_folder
+
+    folder, cid, raw, dark, white, refl = make_iq_folder(tmp_path)
+    cap = read_specim_folder(folder)
+    assert cap.capture_id == cid
+    np.testing.assert_array_equal(cap.raw.data, raw)
+    np.testing.assert_array_equal(cap.darkref.data, dark)
+    np.testing.assert_array_equal(cap.whiteref.data, white)
+    assert cap.reflectance.data.dtype == np.float32
+    np.testing.assert_array_equal(cap.reflectance.data, refl)
+    assert cap.reflectance.units == "reflectance"
+    np.testing.assert_array_equal(cap.raw.wavelengths, IQ_WAVELENGTHS)
+    assert cap.raw.integration_time_ms == 98.0
+    assert cap.raw.acquisition_date == "2021-02-03"  # DD-MM-YYYY (the id says 2021-02-03)
+    # default bands are 1-based: {70,53,19} → 598.6 / 548.55 / 449.35 nm
+    assert [cap.raw.wavelengths[b] for b in cap.raw.default_bands] == [598.6, 548.55, 449.35]
+    assert cap.raw.metadata["errors"] == "none" and cap.raw.metadata["fps"] == "10.2041"
+    assert cap.preview.shape == (2, 3, 3)
+    assert find_captures(tmp_path) == [folder]
+
+
+def test_real_specim_iq_folder_without_manifest_or_metadata(tmp_path):
+    # the capture/ names alone identify the capture (folder name ≠ id)
+    from mehs.io import read_specim_folder
+
+    folder, cid, raw, *_ = make_iq_folder(tmp_path)
+    (folder / "manifest.xml").unlink()
+    (folder / "metadata" / f"{cid}.xml").unlink()
+    cap = read_specim_folder(folder)
+    assert cap.capture_id == cid and cap.metadata == {}
+    np.testing.assert_array_equal(load_cube(folder).data, raw)
