@@ -211,21 +211,36 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> Pa
     if not isinstance(manifest, dict) or not str(manifest.get("format", "")).startswith("mehs-dataset/"):
         raise FormatError(f"not a mehs dataset manifest (format {manifest.get('format') if isinstance(manifest, dict) else None!r})", mpath)
     splits = manifest.get("splits") or {}
+    scenes = manifest.get("scenes", [])
+    # a hand-edited or damaged manifest must fail here, naming the file, not as an
+    # AttributeError deep in the loop below
+    if not isinstance(scenes, list) or not all(isinstance(sc, dict) for sc in scenes):
+        raise FormatError("'scenes' must be a list of scene objects", mpath)
+    if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
+        raise FormatError("'splits' must map split names to lists of scene ids", mpath)
     split_of = {sid: name for name, ids in splits.items() for sid in ids}
     if split is not None and split not in splits:
         raise InputError(f"no split {split!r} in the manifest (has {sorted(splits)})", mpath)
     wanted = None if split is None else set(splits[split])
     pairs = []
-    for sc in manifest.get("scenes", []):
+    for sc in scenes:
         sid = str(sc.get("id"))
         if wanted is not None and sid not in wanted:
             continue
         if sc.get("status", "pass") != "pass" and not include_failed:
             continue
         files = sc.get("files") or {}
+        if not isinstance(files, dict):
+            raise FormatError(f"scene {sid!r}: 'files' must be an object", mpath)
         hs = _inside(root, files.get("hs"), "hs", sid)
         if hs is None:
             raise FormatError(f"scene {sid!r} has no 'hs' file", mpath)
+        # a missing file found only when its scene's turn comes would leave an
+        # evaluation half written; a stat per file up front is cheap
+        for key in ("hs", "hdr_rgb", "ldr_rgb", "mask"):
+            f = _inside(root, files.get(key), key, sid)
+            if f is not None and not f.is_file():
+                raise FormatError(f"scene {sid!r}: {key} file listed in manifest.json is missing", f)
         exposure = next((d["ldr_exposure"] for d in (sc.get("quality"), sc.get("rgb"), sc)
                          if isinstance(d, dict) and d.get("ldr_exposure") is not None), None)
         pairs.append(Pair(

@@ -195,6 +195,10 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     timing
         Also time each model on a ``timing_shape`` image (paper Table 5).
     """
+    if out is not None:
+        from mehs.io.atomic import check_output_dir
+
+        check_output_dir(out)  # before the scoring, not after
     pp = _as_tuple(preprocess, PREPROCESS_CHOICES, "preprocess")
     ins = _as_tuple(inputs, RGB_INPUTS, "input")
     if isinstance(restore, str):
@@ -220,6 +224,7 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     skipped: list[dict[str, Any]] = []
     band_acc: dict[str, list] = {}
     fig_ids: list[str] = []
+    fig_pending: list[tuple[Path, dict[str, Any]]] = []
     fig_dir = None if out is None else Path(out) / "figures"
     it = pairs
     if progress:
@@ -270,7 +275,9 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
         if want_fig and keys:
             fig["keys"] = np.array(json.dumps(keys))
             fig["scene"] = np.array(pair.id)
-            _write_npz(fig_dir / f"{pair.id}.npz", fig)
+            # written with the results only once every scene has been scored: a bad
+            # scene half-way must not leave a results folder that looks started
+            fig_pending.append((fig_dir / f"{pair.id}.npz", fig))
             fig_ids.append(pair.id)
 
     summary = summarise(rows, band_acc)
@@ -297,6 +304,8 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     res = EvaluationResult(rows=rows, summary=summary, config=config, models=model_info,
                            timing=tim, skipped=skipped, figures=fig_ids)
     if out is not None:
+        for path, fig in fig_pending:
+            _write_npz(path, fig)
         res.out = write_results(res, out, dataset=str(all_pairs.root))
     return res
 
@@ -455,11 +464,10 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
 def write_results(res: EvaluationResult, out: str | Path, *, dataset: str | None = None) -> Path:
     """Write the results folder described in the module notes; returns it."""
     from mehs import __version__
-    from mehs.io.atomic import write_json_atomic, write_text_atomic
+    from mehs.io.atomic import make_output_dir, write_json_atomic, write_text_atomic
     from mehs.ssr.data import write_index_csv
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_dir(out)
     doc = {"format": EVALUATION_FORMAT, "software_version": __version__, "dataset": dataset,
            "split": res.config.get("split"), "config": res.config, "models": res.models,
            "rows": res.rows, "summary": res.summary, "timing": res.timing,
