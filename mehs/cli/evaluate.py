@@ -59,6 +59,8 @@ def run(args):
         w, h = (int(v) for v in args.timing_size.lower().split("x"))
     except ValueError:
         raise InputError(f"--timing-size must be WxH, got {args.timing_size!r}") from None
+    if w < 1 or h < 1:
+        raise InputError(f"--timing-size must be at least 1x1 pixels, got {args.timing_size!r}")
     inputs = tuple(s.strip() for s in args.input.split(",") if s.strip())
     split = None if args.split == "all" else args.split
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,
