@@ -613,3 +613,19 @@ def test_real_specim_iq_folder_without_manifest_or_metadata(tmp_path):
     cap = read_specim_folder(folder)
     assert cap.capture_id == cid and cap.metadata == {}
     np.testing.assert_array_equal(load_cube(folder).data, raw)
+
+
+def test_written_results_folder_matches_the_iq(tmp_path):
+    # results/ as in the iqcampy demo folder, minus the RGB-camera images
+    from mehs.io import read_specim_folder, write_specim_folder
+
+    folder, cid, *_ = make_iq_folder(tmp_path / "in")
+    out = write_specim_folder(tmp_path / "out" / cid, read_specim_folder(folder))
+    names = sorted(p.name for p in (out / "results").iterdir())
+    assert names == [f"REFLECTANCE_{cid}.dat", f"REFLECTANCE_{cid}.hdr",
+                     f"REFLECTANCE_{cid}.png"]
+    assert sorted(p.name for p in (out / "capture").iterdir()) == sorted(
+        p.name for p in (folder / "capture").iterdir())
+    back = read_specim_folder(out)
+    np.testing.assert_array_equal(back.reflectance.data,
+                                  read_specim_folder(folder).reflectance.data)

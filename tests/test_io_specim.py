@@ -49,7 +49,8 @@ def test_round_trip_all_parts(tmp_path):
         "capture/DARKREF_444.hdr", "capture/DARKREF_444.raw",
         "capture/WHITEREF_444.hdr", "capture/WHITEREF_444.raw",
         "capture/WHITEDARKREF_444.hdr", "capture/WHITEDARKREF_444.raw",
-        "results/REFLECTANCE_444.hdr", "results/REFLECTANCE_444.dat"])
+        "results/REFLECTANCE_444.hdr", "results/REFLECTANCE_444.dat",
+        "results/REFLECTANCE_444.png"])
     back = read_specim_folder(out)
     assert back.capture_id == "444" and back.root == out
     for kind in ("raw", "darkref", "whiteref", "whitedarkref", "reflectance"):

@@ -14,7 +14,7 @@ Layout (design.md §2.1)::
       capture/DARKREF_<id>.hdr|.raw   dark reference (usually one line)
       capture/WHITEREF_<id>.hdr|.raw  white reference
       capture/WHITEDARKREF_<id>.*     dark for a pre-set white reference (optional)
-      results/REFLECTANCE_<id>.hdr|.dat  float32 bil (optional)
+      results/REFLECTANCE_<id>.hdr|.dat  float32 bil (optional), with a .png quick-look
 
 Files are located through ``manifest.xml`` when it lists them, otherwise by
 these names. The capture id comes from the manifest's raw entry, else from the
@@ -400,6 +400,12 @@ def _write_contents(root: Path, cap: SpecimCapture, cid: str, *, overwrite: bool
             cube(kind, f"capture/{prefix}{cid}", ref, np.uint16, ".raw")
     if cap.reflectance is not None:
         cube("reflectance", f"results/REFLECTANCE_{cid}", cap.reflectance, np.float32, ".dat")
+        # the IQ writes a quick-look beside its reflectance result (iqcampy demo
+        # folder: results/REFLECTANCE_<id>.png); RGBSCENE_/RGBVIEWFINDER_/
+        # RGBBACKGROUND_ come from the IQ's separate RGB camera, so mehs has none
+        _write_png(root / f"results/REFLECTANCE_{cid}.png", make_preview(cap.reflectance),
+                   overwrite)
+        entries.append(("reflectance", "png", f"results/REFLECTANCE_{cid}.png"))
 
     # Specim nests the keys in <header> (HyperFusion examples/gras_ia10/metadata)
     props = ET.Element("properties")
