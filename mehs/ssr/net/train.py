@@ -28,7 +28,7 @@ import torch
 
 from mehs import __version__
 from mehs.errors import FormatError, InputError
-from mehs.io.atomic import atomic_path, write_json_atomic
+from mehs.io.atomic import atomic_path, check_output_dir, make_output_dir, write_json_atomic
 from mehs.ssr.net.model import NetConfig, build_network
 
 CHECKPOINT_FORMAT = "mehs-ssr-net/1"
@@ -81,6 +81,18 @@ class TrainConfig:
     seed: int = 0
     augment: bool = True
     device: str = "cpu"
+
+    def __post_init__(self):
+        # torch raises a bare ValueError for a negative learning rate only once
+        # training starts; check every field where the user's values arrive
+        for name in ("epochs", "batch", "patch", "patches_per_image", "T0", "T_mult"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.lr_max) and self.lr_max > 0):
+            raise InputError(f"lr_max must be a positive number, got {self.lr_max}")
+        if not (math.isfinite(self.lr_min) and 0 <= self.lr_min <= self.lr_max):
+            raise InputError(f"lr_min must be between 0 and lr_max ({self.lr_max}), "
+                             f"got {self.lr_min}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
@@ -247,7 +259,7 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
     extra
         JSON-able provenance stored in the checkpoints (e.g. the dataset path).
     """
-    out_dir = Path(out_dir)
+    out_dir = check_output_dir(out_dir)
     net_config = net_config or NetConfig()
     tc = train_config or TrainConfig()
     last = out_dir / "last.pt"
@@ -286,7 +298,7 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
         history = list(state["history"])
         start_epoch = int(state["epoch"]) + 1
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_output_dir(out_dir)
     write_json_atomic(out_dir / "config.json", {
         "format": CHECKPOINT_FORMAT, "software_version": __version__,
         "net_config": network.config.to_dict(), "train_config": asdict(tc),
