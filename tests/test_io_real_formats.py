@@ -224,7 +224,38 @@ tint2 = 4.455800
     np.testing.assert_allclose(c.data, cube / np.float32(65535), rtol=1e-6)
     assert c.binning == (4, 2) and c.default_bands == (3, 2, 1)
     assert c.integration_time_ms is None  # two sensors, two tints: none is "the" tint
-    assert c.metadata["data ignore value"] == "0"
+    # the ignore marker is scaled with the data: stored 0 → 0.0 reflectance
+    assert c.metadata["data ignore value"] == 0.0
+
+
+def test_ignore_value_scaled_with_the_data_and_written_back(tmp_path):
+    # EnMAP-Box style int16 with 'data ignore value = -9999' plus a reflectance
+    # scale factor of 10000 (ENVI's usual integer reflectance encoding)
+    from mehs.io import write_envi
+
+    header = """ENVI
+samples = 2
+lines   = 1
+bands   = 3
+header offset = 0
+file type = ENVI Standard
+data type = 2
+interleave = bsq
+byte order = 0
+data ignore value = -9999
+reflectance scale factor = 10000
+wavelength = {402.1, 500.2, 600.3}
+wavelength units = Nanometer
+"""
+    stored = np.array([[[-9999, 2500, 5000], [1000, -9999, 7500]]], np.int16)
+    hp = write_pair(tmp_path, "refl", header, stored.transpose(2, 0, 1), ext=".bsq",
+                    dtype="<i2")
+    c = read_envi(hp)
+    ignore = c.metadata["data ignore value"]
+    np.testing.assert_array_equal(c.data == ignore, stored == -9999)
+    back = read_envi(write_envi(tmp_path / "out.hdr", c, data_ext=".dat"))
+    np.testing.assert_array_equal(back.data == float(back.metadata["data ignore value"]),
+                                  stored == -9999)
 
 
 def test_enmap_box_header_nanometer_and_band_names(tmp_path):

@@ -607,6 +607,17 @@ def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
     meta = {k: v for k, v in h.items() if k not in _MANAGED_KEYS}
     if sf is not None:
         meta["reflectance scale factor"] = sf
+        if sf != 1.0 and "data ignore value" in meta:
+            # The ignore value is in stored units (Specim Fenix uint16 reflectance:
+            # 'reflectance scale factor = 65535', 'data ignore value = 0'). The data
+            # are scaled now, so is the marker — else a written-back header would
+            # flag values that no longer occur and miss the ones that do.
+            try:
+                raw_ignore = np.float32(float(str(meta["data ignore value"]).strip()))
+            except ValueError:
+                pass
+            else:
+                meta["data ignore value"] = float(raw_ignore / np.float32(sf))
     return SpectralCube(data=data, source=hp, metadata=meta, **kw)
 
 
