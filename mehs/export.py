@@ -43,6 +43,16 @@ _PREFIX_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 def _check_cube(cube) -> SpectralCube:
     if not isinstance(cube, SpectralCube):
         raise InputError(f"expected a SpectralCube, got {type(cube).__name__}")
+    # checked before the first file is written: the EXR writer refuses NaN only
+    # band by band, which left the earlier bands' files behind as a partial export
+    data = cube.data
+    step = max(1, (1 << 24) // max(1, data[0].size))
+    for i in range(0, data.shape[0], step):
+        block = np.asarray(data[i:i + step])
+        if np.issubdtype(block.dtype, np.floating) and not np.isfinite(block).all():
+            bad = int(np.count_nonzero(~np.isfinite(np.asarray(data, dtype=np.float32))))
+            raise InputError(f"the cube holds {bad} NaN/Inf values; an EXR export would "
+                             "carry them into the renderer", cube.source)
     return cube
 
 
