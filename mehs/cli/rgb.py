@@ -50,10 +50,13 @@ def run(args) -> int:
         resampled = True
     hdr = hdr_rgb(cube)
     ldr, exposure = ldr_rgb(hdr, exposure=args.ldr_exposure)
+    # every image is computed before the first is written, so a bad option
+    # (e.g. --key 0) cannot leave a half-written output folder
+    preview = tonemap(hdr, "reinhard", key=args.key)
     out.mkdir(parents=True, exist_ok=True)
     write_exr_rgb(out / "hdr_rgb.exr", hdr, half=args.half)
     write_png(out / "ldr_rgb.png", ldr)
-    write_png(out / "preview.png", tonemap(hdr, "reinhard", key=args.key))
+    write_png(out / "preview.png", preview)
     write_json_atomic(out / "rgb.json", {
         "source": str(args.hs),
         "resampled_to_31_bands": resampled,
