@@ -660,3 +660,37 @@ def test_written_results_folder_matches_the_iq(tmp_path):
     back = read_specim_folder(out)
     np.testing.assert_array_equal(back.reflectance.data,
                                   read_specim_folder(folder).reflectance.data)
+
+
+def test_casi_pci_header_big_endian_bip_with_offset(tmp_path):
+    # Source: spectralpython/spectral issue #72 (CASI airborne file from geocor):
+    # header named <data>.pix.hdr, padded keys ("lines   =", "interleave  ="),
+    # 'file type = PCI', big-endian (byte order 1) BIP after an 82432-byte
+    # embedded header, braces with inner spaces. (Band names, fwhm and
+    # wavelength were skipped in the issue; a wavelength list is added here.)
+    header = """ENVI
+description = {
+    Image File: ../pix_files/CASI_2017_05_18_120034.cc.dc.sl.fss.so.rc.sc.rY.rad_g.pix, created by geocor V:5.6.3 (A) [2017/11/02 15:13:29] }
+samples = 3
+lines   = 2
+bands   = 4
+header offset = 82432
+file type   = PCI
+data type   = 12
+interleave  = BIP
+sensor type = Unknown
+byte order  = 1
+read procedures = {pci_read_spatial, pci_read_spectral}
+map info = { UTM, 1, 1, 321711.200, 5561737.600,    0.80,    0.80, 33, North, WGS-84 }
+pixel size = {   0.800,    0.800, units=meters }
+wavelength = { 450.0, 550.0, 650.0, 750.0 }
+"""
+    cube = (np.arange(2 * 3 * 4) * 257).reshape(2, 3, 4).astype(np.uint16)
+    stem = "CASI_2017_05_18_120034.cc.dc.sl.fss.so.rc.sc.rY_g.pix"
+    (tmp_path / f"{stem}.hdr").write_text(header)
+    (tmp_path / stem).write_bytes(b"\x55" * 82432 + cube.astype(">u2").tobytes())
+    for p in (tmp_path / f"{stem}.hdr", tmp_path / stem):
+        c = read_envi(p)
+        np.testing.assert_array_equal(c.data, cube)
+        assert c.data.dtype == np.uint16 and c.data.dtype.isnative
+    assert c.metadata["pixel size"] == ["0.800", "0.800", "units=meters"]
