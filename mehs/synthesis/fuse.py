@@ -294,6 +294,17 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
     if ghosts not in ("detect", "deghost", "off"):
         raise InputError(f"ghosts must be 'detect', 'deghost' or 'off', got {ghosts!r}")
+    # these are used only on some paths (response recovery, ghosts found); checked
+    # here so a bad value is an error on every run, not a silently ignored option
+    if not (np.isfinite(smoothness) and smoothness >= 0):
+        raise InputError(f"smoothness (lambda) must be finite and >= 0, got {smoothness}")
+    if samples is not None and int(samples) < 1:
+        raise InputError(f"samples must be at least 1, got {samples}")
+    n_exp = len(bracket.times_ms)
+    if reference != "auto" and not (isinstance(reference, (int, np.integer))
+                                    and 0 <= reference < n_exp):
+        raise InputError(f"reference must be 'auto' or an exposure index 0..{n_exp - 1}, "
+                         f"got {reference!r}", bracket.source)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     nl, ns, nb = bracket.shape
