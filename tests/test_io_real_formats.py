@@ -694,3 +694,25 @@ wavelength = { 450.0, 550.0, 650.0, 750.0 }
         np.testing.assert_array_equal(c.data, cube)
         assert c.data.dtype == np.uint16 and c.data.dtype.isnative
     assert c.metadata["pixel size"] == ["0.800", "0.800", "units=meters"]
+
+
+def test_load_cube_on_a_results_only_folder(tmp_path):
+    # Published IQ data sets ship "plant <N>" folders holding only
+    # REFLECTANCE_<id>.dat/.hdr (float32 BIL, 204 bands, acquisition date
+    # DD-MM-YYYY, tint) and <id>.png — described in a project's notes on the
+    # fire-blight Specim IQ data set (DOI 10.57745/R6AMN3).
+    from mehs.errors import InputError
+
+    folder = tmp_path / "plant 1"
+    refl = (np.arange(2 * 3 * 204, dtype=np.float32) / 1000).reshape(2, 3, 204)
+    write_pair(folder, "REFLECTANCE_2021-03-29_012", iq_header(3, 2, data_type=4),
+               refl.transpose(0, 2, 1), ext=".dat", dtype="<f4")
+    (folder / "2021-03-29_012.png").write_bytes(b"")  # the preview beside it
+    c = load_cube(folder)
+    np.testing.assert_array_equal(c.data, refl)
+    assert c.units == "reflectance" and c.integration_time_ms == 98.0
+    # two results: ambiguous, refused as before
+    write_pair(folder, "REFLECTANCE_other", iq_header(3, 2, data_type=4),
+               refl.transpose(0, 2, 1), ext=".dat", dtype="<f4")
+    with pytest.raises(InputError, match="not a Specim IQ capture"):
+        load_cube(folder)

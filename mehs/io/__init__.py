@@ -24,8 +24,9 @@ def load_cube(path: str | Path, *, memmap: bool = True):
     ----------
     path
         An ENVI header or data file; a Specim IQ capture folder (its raw cube
-        is returned; the dark reference is not required); or a ``.exr`` with
-        one channel per wavelength.
+        is returned; the dark reference is not required); a folder holding only
+        one IQ result ``REFLECTANCE_<id>.hdr`` (itself or in ``results/``; that
+        cube is returned); or a ``.exr`` with one channel per wavelength.
 
     Returns
     -------
@@ -45,6 +46,15 @@ def load_cube(path: str | Path, *, memmap: bool = True):
     if p.is_dir():
         if is_specim_folder(p):
             return read_specim_folder(p, require_dark=False, memmap=memmap).raw
+        # Published IQ data sets often ship only the camera's result: a folder
+        # holding REFLECTANCE_<id>.hdr/.dat and <id>.png, no capture/ (e.g. the
+        # fire-blight set, DOI 10.57745/R6AMN3, "plant <N>" folders).
+        results = sorted({*p.glob("REFLECTANCE_*.hdr"), *p.glob("results/REFLECTANCE_*.hdr")})
+        if len(results) == 1:
+            cube = read_envi(results[0], memmap=memmap)
+            if cube.units in ("unknown", "DN"):
+                cube.units = "reflectance"
+            return cube
         hint = " (a mehs scene folder? use mehs.synthesis.bracket.load_bracket)" \
             if (p / "scene.json").is_file() else ""
         raise InputError("folder is not a Specim IQ capture (no manifest.xml or "
