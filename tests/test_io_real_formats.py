@@ -711,6 +711,9 @@ def test_load_cube_on_a_results_only_folder(tmp_path):
     c = load_cube(folder)
     np.testing.assert_array_equal(c.data, refl)
     assert c.units == "reflectance" and c.integration_time_ms == 98.0
+    from mehs.cli import main
+
+    assert main(["info", str(folder)]) == 0
     # two results: ambiguous, refused as before
     write_pair(folder, "REFLECTANCE_other", iq_header(3, 2, data_type=4),
                refl.transpose(0, 2, 1), ext=".dat", dtype="<f4")

@@ -75,6 +75,10 @@ def describe(path: str | Path, *, max_lines: int = 64, saturation: float | None 
     if p.is_dir():
         if is_specim_folder(p):
             return _describe_specim(p, max_lines, saturation, require_dark)
+        # a published IQ result without capture/ (REFLECTANCE_<id>.hdr/.dat + <id>.png)
+        results = sorted({*p.glob("REFLECTANCE_*.hdr"), *p.glob("results/REFLECTANCE_*.hdr")})
+        if len(results) == 1:
+            return _describe_envi(results[0], max_lines, saturation)
         raise InputError("folder is not a Specim IQ capture (no manifest.xml or "
                          "capture/<id>.hdr)", p)
     if p.suffix.lower() == ".exr":
