@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import math
 import os
 import shutil
 import sys
@@ -81,6 +82,17 @@ class BuildParams:
     seed: int = 0
     resample: str = "gaussian"
     fwhm: float = 10.0
+
+    def __post_init__(self):
+        # a bad value would otherwise fail every scene one by one and still
+        # write a dataset of failed scenes
+        from mehs.synthesis.resample import RESAMPLING_METHODS
+
+        if self.resample not in RESAMPLING_METHODS:
+            raise InputError(f"unknown resampling method {self.resample!r}; use one of "
+                             f"{sorted(RESAMPLING_METHODS)}")
+        if not (math.isfinite(self.fwhm) and self.fwhm > 0):
+            raise InputError(f"target FWHM must be a positive number of nm, got {self.fwhm}")
 
 
 @dataclass
@@ -554,6 +566,9 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     if response:
         if not Path(response).is_file():
             raise InputError("response curve file not found", response)
+        from mehs.synthesis.response import ResponseCurve
+
+        ResponseCurve.load(response)  # an unreadable curve is one error, not one per scene
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,

@@ -21,8 +21,11 @@ passing scenes enter the splits.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
+
+from mehs.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -34,6 +37,17 @@ class QualityRules:
     max_invalid_fraction: float = 0.05
     min_dynamic_range_stops: float = 4.0
     min_exposures: int = 2
+
+    def __post_init__(self):
+        for name in ("max_ghost_fraction", "max_saturated_fraction", "max_invalid_fraction"):
+            v = getattr(self, name)
+            if not (v is not None and 0 <= v <= 1):  # NaN fails too
+                raise InputError(f"{name} must be a fraction between 0 and 1, got {v}")
+        v = self.min_dynamic_range_stops
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise InputError(f"min_dynamic_range_stops must be >= 0 stops, got {v}")
+        if int(self.min_exposures) < 1:
+            raise InputError(f"min_exposures must be at least 1, got {self.min_exposures}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
