@@ -27,6 +27,16 @@ class MehsError(Exception):
         self.problem = message
         super().__init__(f"{self.path}: {message}" if self.path else message)
 
+    def with_path(self, path: str | Path | None) -> "MehsError":
+        """This error naming ``path``; unchanged if it already names a file.
+
+        For library code that checks arrays (which know no file) called on a
+        cube that came from one: ``except MehsError as e: raise e.with_path(src)``.
+        """
+        if self.path is not None or path is None:
+            return self
+        return type(self)(self.problem, path)
+
 
 class InputError(MehsError, ValueError):
     """Bad input data or arguments: truncated files, wrong band counts, NaN, …"""

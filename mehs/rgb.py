@@ -181,7 +181,11 @@ def hdr_rgb(spectra, wavelengths=None) -> np.ndarray:
     h, w, b = spectra.shape
     if b != wl.size:
         raise InputError(f"spectra have {b} bands but {wl.size} wavelengths were given", source)
-    m = (cmfs_matrix(wl) @ XYZ_TO_SRGB.T).astype(np.float32)  # (B, 3): steps 1+2 fused
+    try:
+        cmf = cmfs_matrix(wl)
+    except InputError as exc:  # e.g. bands outside 360–830 nm: say which file
+        raise exc.with_path(source) from None
+    m = (cmf @ XYZ_TO_SRGB.T).astype(np.float32)  # (B, 3): steps 1+2 fused
     out = np.empty((h, w, 3), dtype=np.float32)
     step = max(1, _RGB_CHUNK_PIXELS // max(1, w))
     # ENVI bil/bsq memmaps are transposed views (samples fastest): multiply

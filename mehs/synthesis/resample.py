@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 
 from mehs.cube import SpectralCube, validate_wavelengths
-from mehs.errors import InputError
+from mehs.errors import InputError, MehsError
 from mehs.rgb import WAVELENGTHS_31
 
 #: FWHM = SIGMA_PER_FWHM · σ for a Gaussian.
@@ -291,9 +291,12 @@ def resample_cube(cube: SpectralCube, target=WAVELENGTHS_31, *, method: str = "g
         ``linear``), ``default_bands`` moved to the nearest target bands, and
         ``metadata["resampling method"]`` and ``["resampling fwhm"]`` (nm).
     """
-    m = resampling_matrix(cube.wavelengths, target, method=method, src_fwhm=cube.fwhm,
-                          dst_fwhm=fwhm)
-    dst = validate_wavelengths(target)
+    dst = validate_wavelengths(target)  # a bad target is the option's fault, not the file's
+    try:
+        m = resampling_matrix(cube.wavelengths, target, method=method, src_fwhm=cube.fwhm,
+                              dst_fwhm=fwhm)
+    except MehsError as exc:  # e.g. no coverage: name the cube's file
+        raise exc.with_path(cube.source) from None
     data = apply_matrix(cube.data, m, chunk_lines=chunk_lines, source=cube.source)
     default = None
     if cube.default_bands is not None:
