@@ -233,10 +233,17 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         if (out / sf.SCENE_JSON).exists():
             raise InputError("a scene was already captured here; use --resume to finish it "
                              "(raw captures are never overwritten)", out)
+        if out.exists() and not out.is_dir():
+            raise InputError("output folder exists and is not a folder", out)
         if out.exists() and any(out.iterdir()):
             raise InputError("output folder exists and is not empty", out)
         if lines is None or int(lines) < 1:
             raise InputError(f"number of scan lines must be >= 1, got {lines}")
+        # the stage would reject the first move only after scene.json was written
+        if int(pitch) < 1:
+            raise InputError(f"stage pitch must be >= 1 microstep per line, got {pitch}")
+        if int(start_position) < 0:
+            raise InputError(f"stage start position must be >= 0, got {start_position}")
         if (times_ms is None) == (not auto):
             raise InputError("give either integration times or auto=True")
         if dark_lines < 1:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import time
 from typing import Any, Callable
 
-from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputError
 
 
 class PartialReply(DeviceTimeout):
@@ -40,6 +40,9 @@ def open_port(url: str, *, timeout: float = 2.0, baudrate: int = 115200,
     """
     import serial
 
+    if timeout is None or not (timeout > 0 and timeout != float("inf")):
+        # pyserial's "Not a valid timeout" would read as a fault of the port
+        raise InputError(f"reply timeout must be a positive number of seconds, got {timeout}")
     kwargs: dict[str, Any] = {"timeout": timeout, "write_timeout": timeout}
     if not url.startswith(("socket://", "loop://", "rfc2217://")):
         kwargs.update(baudrate=baudrate, exclusive=exclusive)
