@@ -104,6 +104,8 @@ def read_scene_json(scene_dir: str | Path) -> dict[str, Any]:
     for e in doc["exposures"]:
         if not isinstance(e, dict) or e.get("status") not in ("complete", "incomplete"):
             raise FormatError(f"bad exposure record {e!r}", p)
+        if not isinstance(e.get("folder"), str):
+            raise FormatError(f"exposure record {e.get('index')!r} has no 'folder' path", p)
     return doc
 
 

@@ -117,12 +117,12 @@ def input_files(source: SceneSource) -> dict[str, Path]:
     """
     out: dict[str, Path] = {}
     if source.kind == "scene":
-        import json
+        from mehs.capture.scenefolder import read_scene_json
 
         root = Path(source.paths[0])
-        meta = json.loads((root / "scene.json").read_text(encoding="utf-8"))
+        meta = read_scene_json(root)  # checks the structure: a damaged file is a named error
         out["scene.json"] = root / "scene.json"
-        for exp in meta.get("exposures", []):
+        for exp in meta["exposures"]:
             if exp.get("status") != "complete":
                 continue
             folder = root / exp["folder"]
