@@ -59,6 +59,14 @@ def main(argv: list[str] | None = None) -> int:
     except MehsError as exc:
         print(f"mehs: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # the file system refused (not a directory, permission denied, disk
+        # full, …): the user's path is at fault, so say which, without a traceback
+        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+        what = exc.strerror or str(exc)
+        print(f"mehs: error: {where}: {what}" if where else f"mehs: error: {what}",
+              file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("mehs: interrupted", file=sys.stderr)
         return 130

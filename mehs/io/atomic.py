@@ -31,6 +31,19 @@ def _umask() -> int:
 _FILE_MODE = 0o666 & ~_umask()
 
 
+def _mkdir(folder: Path, target: Path) -> None:
+    """Create ``folder`` (and parents) for ``target``; :class:`InputError` if impossible."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        # name the culprit: usually a file standing where a folder is needed
+        blocker = next((a for a in [folder, *folder.parents] if a.exists() and not a.is_dir()),
+                       None)
+        why = (f"{blocker} is a file, not a folder" if blocker is not None
+               else f"cannot create the folder {folder} ({exc.strerror or exc})")
+        raise InputError(why, target) from None
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
@@ -48,7 +61,7 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
     path = Path(path)
     if not overwrite and path.exists():
         raise InputError("refusing to overwrite an existing file", path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _mkdir(path.parent, path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
                                dir=path.parent)
     os.close(fd)
@@ -119,6 +132,9 @@ def check_output_dir(path: str | Path, *, inputs=()) -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError("output folder exists and is not a folder", path)
+    existing = next((a for a in path.parents if a.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise InputError(f"{existing} is a file, not a folder", path)
     target = path.resolve()
     for inp in inputs:
         src = Path(inp).resolve()
@@ -131,8 +147,5 @@ def check_output_dir(path: str | Path, *, inputs=()) -> Path:
 def make_output_dir(path: str | Path, *, inputs=()) -> Path:
     """:func:`check_output_dir`, then create the folder (and its parents)."""
     path = check_output_dir(path, inputs=inputs)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder ({exc.strerror})", path) from exc
+    _mkdir(path, path)
     return path
