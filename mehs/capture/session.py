@@ -248,6 +248,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
             raise InputError("give either integration times or auto=True")
         if dark_lines < 1:
             raise InputError(f"dark_lines must be >= 1, got {dark_lines}")
+        if times_ms is not None:
+            _check_times(times_ms)  # before the stage is homed or the camera touched
         lines = int(lines)
         white_start_line = lines + WHITE_GAP_LINES if white_start_line is None else int(white_start_line)
 
