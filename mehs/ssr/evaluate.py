@@ -195,6 +195,8 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     timing
         Also time each model on a ``timing_shape`` image (paper Table 5).
     """
+    if int(crop) < 0:  # image_metrics checks it too, but only once scoring has begun
+        raise InputError(f"crop must be ≥ 0, got {crop}")
     if out is not None:
         from mehs.io.atomic import check_output_dir
 
