@@ -25,9 +25,10 @@ def configure(parser):
 def run(args):
     from pathlib import Path
 
-    from mehs.ssr.baselines import fit_regression_baseline
+    from mehs.ssr.baselines import RegressionModel, check_model_path, fit_regression_baseline
     from mehs.ssr.data import load_pairs
 
+    check_model_path(args.out, RegressionModel.FORMAT)  # before the fit, not after
     root = Path(args.dataset)
     split = None if args.split == "all" or not (root / "manifest.json").is_file() else args.split
     pairs = load_pairs(root, split=split)

@@ -280,7 +280,7 @@ class RegressionModel(SSRModel):
         """Write the model as ``.npz`` (arrays + JSON metadata) or ``.json``, atomically."""
         from mehs.io.atomic import atomic_path, write_json_atomic
 
-        path = _check_model_path(path, self.FORMAT)
+        path = check_model_path(path, self.FORMAT)
         meta = {"format": self.FORMAT, "name": self.name, "degree": self.degree,
                 "info": self.info}
         if path.suffix.lower() == ".json":
@@ -317,7 +317,7 @@ class RegressionModel(SSRModel):
             raise FormatError(exc.problem, path) from None
 
 
-def _check_model_path(path: str | Path, fmt: str) -> Path:
+def check_model_path(path: str | Path, fmt: str) -> Path:
     """``path`` if a model may be written there, else :class:`InputError`.
 
     Only ``.json``/``.npz`` names are accepted and an existing ``.json`` is
@@ -355,6 +355,8 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
     """
     if int(n_samples) < 1:
         raise InputError(f"n_samples must be at least 1, got {n_samples}")
+    if not (np.isfinite(ridge) and ridge >= 0):  # before minutes of sampling
+        raise InputError(f"ridge must be finite and >= 0, got {ridge}")
     pairs = list(pairs)
     if not pairs:
         raise InputError("no training scenes to fit the regression baseline on")
