@@ -117,6 +117,11 @@ def test_info_bad_files(check, name, problem):
     check(["info", f"FX/{name}"], f"FX/{name.split('.')[0]}", problem)
 
 
+def test_info_bad_options(check):
+    check(["info", "FX/cube.hdr", "--lines", "-3"], "--lines")
+    check(["info", "FX/cube.hdr", "--saturation", "-1"], "--saturation")
+
+
 @pytest.mark.parametrize("src, args, names", [
     ("trunc.hdr", [], ["FX/trunc", "truncated"]),
     ("nan.hdr", [], ["FX/nan.hdr", "NaN"]),

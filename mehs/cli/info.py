@@ -64,9 +64,14 @@ def describe(path: str | Path, *, max_lines: int = 64, saturation: float | None 
     InputError, FormatError
         Missing path or a file that does not follow its format.
     """
+    import math
+
     from mehs.errors import InputError
     from mehs.io.specim import is_specim_folder
 
+    if saturation is not None and not (math.isfinite(saturation) and saturation > 0):
+        # a level <= 0 would report every pixel as saturated
+        raise InputError(f"--saturation must be a positive DN level, got {saturation}")
     p = Path(path)
     if not p.exists():
         raise InputError("file or folder does not exist", p)
