@@ -374,8 +374,17 @@ def test_capture_port_that_does_not_exist(check, fx):
            "--times", "1,2", "--timeout", "0.2"], "FX/nope-tty", "cannot open port")
 
 
-def test_sim_device_bad_scene(check):
+def test_sim_device_bad_scene_and_ports(check):
     check(["sim-device", "--scene", "nope"], "'nope'")
+    check(["sim-device", "--port", "70000"], "0..65535")  # was an OverflowError traceback
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    try:
+        port = busy.getsockname()[1]
+        check(["sim-device", "--port", str(port)], f"127.0.0.1:{port}", "in use")
+    finally:
+        busy.close()
 
 
 # ------------------------------------------------------------------ Ctrl-C

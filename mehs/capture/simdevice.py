@@ -39,7 +39,7 @@ from mehs.capture.sensor import SensorModel, exposure_seed_for
 from mehs.capture.simulate import (WHITE_TILE_LINES, motion_phase, white_tile_first_line,
                                    world_radiance_line)
 from mehs.capture.zaber import format_reply, lrc
-from mehs.errors import InputError
+from mehs.errors import DeviceError, InputError
 
 FAULT_KINDS = ("timeout", "garble", "partial", "disconnect", "again", "fault")
 _FAULT_RE = re.compile(r"^(stage|camera):([a-z]+)@(\d+)(?:x(\d+))?$")
@@ -397,10 +397,17 @@ class DeviceServer:
     def __init__(self, handler: Callable[[bytes], tuple[bytes | None, str | None]], *,
                  host: str = "127.0.0.1", port: int = 0, name: str = "device"):
         self.handler, self.name = handler, name
+        if not 0 <= int(port) <= 65535:  # socket.bind raises a bare OverflowError
+            raise InputError(f"{name} port must be 0..65535 (0 = any free port), got {port}")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind((host, port))
-        self.sock.listen(4)
+        try:
+            self.sock.bind((host, port))
+            self.sock.listen(4)
+        except OSError as exc:
+            self.sock.close()
+            raise DeviceError(f"cannot serve the simulated {name} here ({exc.strerror or exc}); "
+                              "choose another --port or 0", f"{host}:{port}") from None
         self.host, self.port = self.sock.getsockname()[:2]
         self._closed = threading.Event()
         self._conn: socket.socket | None = None
