@@ -111,7 +111,7 @@ def run(args):
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []
     size = dict(NET_SIZES[args.size])
-    if args.growth:
+    if args.growth is not None:  # "--growth 0" must be refused, not ignored
         size["growth"] = args.growth
     net_config = NetConfig(variant=args.variant, wavelengths=wl.tolist(), n_basis=args.n_basis,
                            reinhard=args.reinhard, **size)

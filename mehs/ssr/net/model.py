@@ -59,6 +59,14 @@ class NetConfig:
     n_basis: int = 10
     reinhard: bool = True
 
+    def __post_init__(self):
+        # torch would fail later with "negative dimension" (or build an empty layer)
+        for name in ("first_channels", "bottleneck_layers", "growth", "reduction", "n_basis"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"network {name} must be at least 1, got {getattr(self, name)}")
+        if not self.down_layers or any(int(n) < 1 for n in self.down_layers):
+            raise InputError(f"network down_layers must be positive counts, got {self.down_layers}")
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["down_layers"] = list(self.down_layers)
