@@ -227,6 +227,11 @@ def test_build_bad_options_fail_before_any_scene(check, args, names):
     check(["build", *args, "--out", "OUT/d", "-q"], *names)
 
 
+def test_build_unreachable_scheduler_leaves_no_dataset_folder(check):
+    pytest.importorskip("distributed")
+    check(["build", "FX/s1", "--out", "OUT/d", "-q", "--scheduler", "bogus"], "bogus", "Dask")
+
+
 def test_build_out_must_be_a_folder_outside_the_scenes(check):
     check(["build", "FX/s1", "--out", "FX/cube.hdr", "-q"], "FX/cube.hdr", "not a folder")
     check(["build", "FX/s1", "--out", "FX/s1", "-q"], "FX/s1", "inside the input")

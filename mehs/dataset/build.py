@@ -604,9 +604,10 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
     from mehs.io.atomic import make_output_dir
     from mehs.rgb import WAVELENGTHS_31
 
+    created = not dataset.exists()
     make_output_dir(dataset, inputs=[p for s in srcs for p in s.paths if s.kind != "hs"])
     scenes_dir = dataset / "scenes"
-    with _Lock(dataset):
+    with _drop_if_empty_on_error(dataset, created), _Lock(dataset):
         scenes_dir.mkdir(exist_ok=True)
         for d in scenes_dir.iterdir():  # leftovers of an interrupted build
             if d.name.startswith((TMP_PREFIX, OLD_PREFIX)):
@@ -690,6 +691,21 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         if tb:
             print(tb, file=sys.stderr)
     return manifest
+
+
+@contextlib.contextmanager
+def _drop_if_empty_on_error(folder: Path, created: bool):
+    """On an error, remove ``folder`` if this build created it and it holds no file yet.
+
+    E.g. an unreachable ``--scheduler`` must not leave an empty dataset folder
+    that a later build (or a user) would take for a started one.
+    """
+    try:
+        yield
+    except BaseException:
+        if created and not any(p.is_file() for p in folder.rglob("*")):
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
 
 
 def _place(scenes_dir: Path, sid: str, *, built: bool) -> None:
