@@ -229,7 +229,7 @@ def test_build_bad_options_fail_before_any_scene(check, args, names):
 
 def test_build_unreachable_scheduler_leaves_no_dataset_folder(check):
     pytest.importorskip("distributed")
-    check(["build", "FX/s1", "--out", "OUT/d", "-q", "--scheduler", "bogus"], "bogus", "Dask")
+    check(["build", "FX/s1", "--out", "OUT", "-q", "--scheduler", "bogus"], "bogus", "Dask")
 
 
 def test_build_out_must_be_a_folder_outside_the_scenes(check):
