@@ -40,19 +40,28 @@ from mehs.io.exr import write_exr_gray, write_exr_spectral
 _PREFIX_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
-def _check_cube(cube) -> SpectralCube:
+def _check_cube(cube, *, half: bool = False) -> SpectralCube:
     if not isinstance(cube, SpectralCube):
         raise InputError(f"expected a SpectralCube, got {type(cube).__name__}")
-    # checked before the first file is written: the EXR writer refuses NaN only
-    # band by band, which left the earlier bands' files behind as a partial export
+    # checked before the first file is written: the EXR writer refuses NaN (and
+    # values beyond half range) only band by band, which left the earlier bands'
+    # files behind as a partial export
+    from mehs.io.exr import HALF_MAX
+
     data = cube.data
     step = max(1, (1 << 24) // max(1, data[0].size))
+    peak = 0.0
     for i in range(0, data.shape[0], step):
         block = np.asarray(data[i:i + step])
         if np.issubdtype(block.dtype, np.floating) and not np.isfinite(block).all():
             bad = int(np.count_nonzero(~np.isfinite(np.asarray(data, dtype=np.float32))))
             raise InputError(f"the cube holds {bad} NaN/Inf values; an EXR export would "
                              "carry them into the renderer", cube.source)
+        if half and block.size:
+            peak = max(peak, float(np.abs(block).max()))
+    if peak > HALF_MAX:
+        raise InputError(f"value {peak:.6g} exceeds the half-float range (±{HALF_MAX:g}); "
+                         "export 32-bit float (no --half) or rescale", cube.source)
     return cube
 
 
@@ -83,7 +92,7 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     list[Path]
         The ``bands`` EXR paths in wavelength order.
     """
-    cube = _check_cube(cube)
+    cube = _check_cube(cube, half=half)
     valid_prefix(prefix)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -115,4 +124,4 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
 
 def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:
     """Write the cube as one multi-channel spectral EXR (Fichet 2021 layout)."""
-    return write_exr_spectral(path, _check_cube(cube), half=half)
+    return write_exr_spectral(path, _check_cube(cube, half=half), half=half)

@@ -169,6 +169,15 @@ def test_export_bad_input(check, src, args, names):
     check(["export", f"FX/{src}", "--out", "OUT/x", *args], *names)
 
 
+def test_export_half_overflow_in_a_late_band_writes_nothing(check, fx, tmp_path):
+    from mehs.rgb import WAVELENGTHS_31
+
+    d = np.ones((4, 4, 31), np.float32)
+    d[..., 20:] = 1e6  # bands 0..19 would have been written before the writer refused
+    big = _cube(tmp_path / "big.hdr", d, WAVELENGTHS_31)
+    check(["export", str(big), "--out", "OUT/x", "--half"], str(big), "half-float range")
+
+
 # ------------------------------------------------------------------ fuse
 
 @pytest.mark.parametrize("args, names", [
