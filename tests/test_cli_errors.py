@@ -293,6 +293,19 @@ def test_evaluate_damaged_dataset_writes_nothing(check, damaged_dataset, name, m
     check(["evaluate", str(d), "--out", "OUT/e", "-m", "smits", "--split", "all"], *names)
 
 
+@pytest.mark.parametrize("text, problem", [
+    ("{bad", "cannot read evaluation results"),
+    ("[1]", "not an evaluation results file"),
+    ('{"format": "mehs-evaluation/1", "rows": "x"}', "'rows'"),  # was a TypeError traceback
+])
+def test_report_damaged_evaluation(check, tmp_path, text, problem):
+    ev = tmp_path / "ev"
+    ev.mkdir()
+    (ev / "evaluation.json").write_text(text)
+    check(["report", str(ev)], str(ev / "evaluation.json"), problem)
+    assert not (ev / "report.html").exists()
+
+
 def test_report_damaged_manifest(check, damaged_dataset):
     d = damaged_dataset("bad", lambda d: (d / "manifest.json").write_text("{oops"))
     check(["report", str(d)], "manifest.json", "JSON")

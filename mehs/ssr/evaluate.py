@@ -494,10 +494,16 @@ def load_results(results_dir: str | Path) -> dict[str, Any]:
         path = path / "evaluation.json"
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"cannot read evaluation results ({exc})", path) from None
-    if doc.get("format") != EVALUATION_FORMAT:
-        raise FormatError(f"not an evaluation results file (format {doc.get('format')!r})", path)
+    fmt = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+    if fmt != EVALUATION_FORMAT:
+        raise FormatError(f"not an evaluation results file (format {fmt!r})", path)
+    # a damaged file must fail here, by name, not as a TypeError inside the report
+    for key in ("rows", "summary", "skipped"):
+        v = doc.get(key, [])
+        if not isinstance(v, list) or not all(isinstance(r, dict) for r in v):
+            raise FormatError(f"'{key}' must be a list of objects", path)
     return doc
 
 
