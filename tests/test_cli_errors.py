@@ -306,10 +306,18 @@ def test_report_damaged_evaluation(check, tmp_path, text, problem):
     assert not (ev / "report.html").exists()
 
 
-def test_report_damaged_manifest(check, damaged_dataset):
-    d = damaged_dataset("bad", lambda d: (d / "manifest.json").write_text("{oops"))
-    check(["report", str(d)], "manifest.json", "JSON")
+@pytest.mark.parametrize("text, problem", [
+    ("{oops", "JSON"),
+    ('{"format": "mehs-dataset/1", "scenes": [1, 2]}', "scene entry #1"),  # was a TypeError
+    ('{"format": "mehs-dataset/1", "scenes": [{"status": "pass"}]}', "scene entry #1"),  # KeyError
+])
+def test_report_and_build_damaged_manifest(check, damaged_dataset, text, problem):
+    d = damaged_dataset("bad", lambda d: (d / "manifest.json").write_text(text))
+    check(["report", str(d)], "manifest.json", problem)
     assert not (d / "report.html").exists()
+    before = (d / "manifest.json").read_text()
+    check(["build", "FX/cubes", "--from-hs", "--out", str(d), "-q"], "manifest.json", problem)
+    assert (d / "manifest.json").read_text() == before
 
 
 @pytest.mark.parametrize("args, names", [

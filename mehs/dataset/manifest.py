@@ -66,6 +66,16 @@ def read_manifest(dataset: str | Path) -> dict[str, Any]:
         raise FormatError(f"not a {FORMAT} manifest (format {got!r})", path)
     if not isinstance(manifest.get("scenes"), list):
         raise FormatError("manifest has no 'scenes' list", path)
+    # a hand-edited or damaged entry must fail here, by name, not as a
+    # TypeError/KeyError in whichever command reads it next
+    for i, s in enumerate(manifest["scenes"]):
+        if not isinstance(s, dict) or not isinstance(s.get("id"), str) or not s["id"]:
+            raise FormatError(f"scene entry #{i + 1} is not an object with an 'id'", path)
+        if not isinstance(s.get("files", {}), dict):
+            raise FormatError(f"scene {s['id']!r}: 'files' must be an object", path)
+    splits = manifest.get("splits", {})
+    if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
+        raise FormatError("'splits' must map split names to lists of scene ids", path)
     return manifest
 
 

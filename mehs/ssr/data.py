@@ -214,8 +214,9 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> Pa
     scenes = manifest.get("scenes", [])
     # a hand-edited or damaged manifest must fail here, naming the file, not as an
     # AttributeError deep in the loop below
-    if not isinstance(scenes, list) or not all(isinstance(sc, dict) for sc in scenes):
-        raise FormatError("'scenes' must be a list of scene objects", mpath)
+    if not isinstance(scenes, list) or not all(isinstance(sc, dict) and sc.get("id")
+                                               for sc in scenes):
+        raise FormatError("'scenes' must be a list of scene objects with an 'id'", mpath)
     if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
         raise FormatError("'splits' must map split names to lists of scene ids", mpath)
     split_of = {sid: name for name, ids in splits.items() for sid in ids}
