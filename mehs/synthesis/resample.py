@@ -249,18 +249,21 @@ def apply_matrix(data: np.ndarray, matrix: np.ndarray, *, chunk_lines: int | Non
     # without copying; a (samples, bands) product on such a view is ~20× slower.
     band_major = data.strides[2] > data.strides[1] if samples > 1 else False
     m_band = np.ascontiguousarray(mt.T)
-    for l0 in range(0, lines, chunk_lines):
-        l1 = min(lines, l0 + chunk_lines)
-        block = np.asarray(data[l0:l1, :, sel])
-        if band_major:
-            block = block.transpose(0, 2, 1)
-            if block.dtype != np.float32:
-                block = block.astype(np.float32)  # keeps the band-major order
-            out[l0:l1] = np.matmul(m_band, block).transpose(0, 2, 1)
-        else:
-            if block.dtype != np.float32:
-                block = block.astype(np.float32)
-            np.matmul(block, mt, out=out[l0:l1])
+    # NaN/Inf are reported once, below, as an InputError naming the lines; numpy's
+    # per-block RuntimeWarning before it would only be noise.
+    with np.errstate(invalid="ignore", over="ignore"):
+        for l0 in range(0, lines, chunk_lines):
+            l1 = min(lines, l0 + chunk_lines)
+            block = np.asarray(data[l0:l1, :, sel])
+            if band_major:
+                block = block.transpose(0, 2, 1)
+                if block.dtype != np.float32:
+                    block = block.astype(np.float32)  # keeps the band-major order
+                out[l0:l1] = np.matmul(m_band, block).transpose(0, 2, 1)
+            else:
+                if block.dtype != np.float32:
+                    block = block.astype(np.float32)
+                np.matmul(block, mt, out=out[l0:l1])
     if not np.isfinite(out).all():
         bad = np.unique(np.argwhere(~np.isfinite(out))[:, 0])
         raise InputError(f"the cube holds NaN/Inf values in the bands used (lines "
