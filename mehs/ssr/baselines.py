@@ -184,30 +184,30 @@ def root_polynomial_features(rgb: np.ndarray, degree: int = 2) -> np.ndarray:
     return np.stack(terms, axis=-1)
 
 
-class Smits1999(SSRModel):
+class _FixedBaseline(SSRModel):
+    """A baseline with no trained state: a function of (rgb, wavelengths)."""
+
+    def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
+        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        return type(self).convert(rgb, self.wavelengths)
+
+
+class Smits1999(_FixedBaseline):
     """Smits (1999) RGB → spectrum, vectorised (matches colour-science per pixel)."""
 
     name = "smits"
     description = "Smits 1999, 7 basis spectra (colour-science tables), vectorised"
-
-    def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
-        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
-
-    def predict(self, rgb: np.ndarray) -> np.ndarray:
-        return RGB_to_spectra_Smits1999(rgb, self.wavelengths)
+    convert = staticmethod(RGB_to_spectra_Smits1999)
 
 
-class Mallett2019(SSRModel):
+class Mallett2019(_FixedBaseline):
     """Mallett & Yuksel (2019) sRGB basis, one matrix product."""
 
     name = "mallett"
     description = "Mallett & Yuksel 2019 sRGB basis (colour-science), one matrix product"
-
-    def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
-        self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
-
-    def predict(self, rgb: np.ndarray) -> np.ndarray:
-        return RGB_to_spectra_Mallett2019(rgb, self.wavelengths)
+    convert = staticmethod(RGB_to_spectra_Mallett2019)
 
 
 class RegressionModel(SSRModel):
