@@ -51,11 +51,21 @@ def run(args) -> int:
     except ValueError:
         raise InputError(f"--reference must be 'auto' or an exposure index, "
                          f"got {args.reference!r}") from None
-    res = fuse_bracket(bracket, method=args.method, response=args.response, ghosts=args.ghosts,
-                       smoothness=args.smoothness, samples=args.samples, seed=args.seed,
-                       shared_response=not args.per_band, calibration=args.calibration,
-                       reference=ref, noise=args.noise)
+    import sys
+    import warnings
+
+    from mehs.synthesis.fuse import ResponseUndeterminedWarning
+
+    with warnings.catch_warnings():
+        # said once below, as a mehs warning, not as a Python warning with a source line
+        warnings.simplefilter("ignore", ResponseUndeterminedWarning)
+        res = fuse_bracket(bracket, method=args.method, response=args.response,
+                           ghosts=args.ghosts, smoothness=args.smoothness, samples=args.samples,
+                           seed=args.seed, shared_response=not args.per_band,
+                           calibration=args.calibration, reference=ref, noise=args.noise)
     files = write_fusion(res, args.out)
+    for w in res.summary.get("warnings", []):
+        print(f"mehs: warning: {w}", file=sys.stderr)
     s = res.summary
     dr = s["dynamic_range_stops"]
     print(f"{files['radiance']}: {' × '.join(map(str, s['shape']))} float32, "

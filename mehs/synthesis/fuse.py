@@ -8,6 +8,7 @@ confidence, the response curve and a JSON summary).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,42 @@ from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997
 #: "auto" uses the linear curve while consecutive exposures agree with it within this
 #: relative error at every well-exposed signal level
 LINEARITY_TOLERANCE = 0.02
+
+
+class ResponseUndeterminedWarning(UserWarning):
+    """A recovered response curve is not determined by its bracket (see :mod:`~mehs.synthesis.response_check`)."""
+
+
+def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothness: float,
+                             samples: int | None, seed: int, shared: bool,
+                             saturation: np.ndarray) -> dict[str, Any]:
+    """Run :func:`mehs.synthesis.response_check.response_uncertainty` on a curve recovered
+    by :func:`recover_response` (raw levels) from ``bracket``."""
+    from mehs.synthesis.response_check import response_uncertainty
+
+
+    def again(*, smoothness: float, pool):
+        return recover_response(bracket, smoothness=smoothness, samples=samples, seed=seed,
+                                shared=shared, levels="raw", saturation=saturation, pool=pool)
+
+    from mehs.synthesis.merge import merge_bracket
+
+    nl, ns, nb = bracket.shape
+    rows = np.unique(np.linspace(0, nl - 1, min(nl, 64)).round().astype(np.intp))
+
+    def merge(c: ResponseCurve):
+        mr = merge_bracket([np.asarray(e.data[rows]) for e in bracket.exposures],
+                           bracket.times_ms, method="poisson", response=c, darks=bracket.darks,
+                           bit_depth=bracket.bit_depth, saturation=saturation,
+                           consistency=False, source=bracket.source)
+        usable = np.broadcast_to((mr.mask == 0)[..., None], mr.radiance.shape)
+        return np.asarray(mr.radiance, dtype=np.float64), usable
+
+    try:
+        return response_uncertainty(again, merge, curve, shape=(nl, ns), smoothness=smoothness)
+    except InputError as exc:   # a half-bracket too small to recover on its own
+        return {"determined": False, "median": None, "p95": None,
+                "reason": f"check impossible ({exc.problem})"}
 
 
 @dataclass
@@ -93,7 +130,8 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
 
     try:
         probe = probe if probe is not None else probe_bracket(bracket, saturation)
-        lin = _lineariser(curve, _dark_mode(curve), bracket.bit_depth)
+        lin = _lineariser(curve, _dark_mode(curve), bracket.bit_depth,
+                          [d is not None for d in bracket.darks])
         darks = bracket.darks
         if not curve.is_linear and all(d is not None for d in darks):
             # the dark's growth in linearised DN (through the curve, as the merge does)
@@ -109,13 +147,19 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
 
 
 def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation: np.ndarray,
-                      subtract_dark: bool) -> tuple[np.ndarray, np.ndarray]:
+                      subtract_dark: bool, pool: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """int32 (P, M, bands) levels of M random pixels (memmaps read only there), and
-    float32 (P, M, bands) the raw dark level of each (0 where none or subtracted)."""
+    float32 (P, M, bands) the raw dark level of each (0 where none or subtracted).
+
+    ``pool``: flat pixel indices to draw from (default every pixel); disjoint pools
+    give independent curves for the self-consistency check.
+    """
     nl, ns, nb = bracket.shape
     rng = np.random.default_rng(seed)
-    m = min(nl * ns, n_candidates)
-    flat = np.sort(rng.choice(nl * ns, size=m, replace=False))
+    pool = np.arange(nl * ns) if pool is None else np.asarray(pool, dtype=np.int64)
+    m = min(pool.size, n_candidates)
+    flat = np.sort(rng.choice(pool, size=m, replace=False))
     rows, cols = np.divmod(flat, ns)
     out = np.empty((len(bracket.exposures), m, nb), dtype=np.int32)
     darks = np.zeros((len(bracket.exposures), m, nb), dtype=np.float32)
@@ -132,7 +176,8 @@ def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation
 def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
                      seed: int = 0, shared: bool = False, levels: str = "raw",
                      saturation: np.ndarray | None = None,
-                     weighting: str = "hat", offset_iterations: int = 12) -> ResponseCurve:
+                     weighting: str = "hat", offset_iterations: int = 12,
+                     pool: np.ndarray | None = None) -> ResponseCurve:
     """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
 
     ``levels="raw"`` fits the curve to raw DN (the black level then passes
@@ -157,12 +202,13 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     nb = bracket.shape[2]
     sat = np.full(nb, 0.98 * (L - 1)) if saturation is None else np.broadcast_to(saturation, (nb,))
     n = samples or int(np.ceil(2.0 * L / (P - 1)))
-    npix = bracket.shape[0] * bracket.shape[1]
+    npix = bracket.shape[0] * bracket.shape[1] if pool is None else len(pool)
     if shared:
         n_per = max(64, int(np.ceil(n / nb)) + 1)
     else:
         n_per = n
-    cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw")
+    cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw",
+                                    pool=pool)
     if shared:
         Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
     else:
@@ -265,7 +311,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                  noise: NoiseModel | tuple[float, float] | str | None = "auto",
                  saturation: float | np.ndarray | None = None,
                  calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
-                 reference: int | str = "auto", chunk_lines: int = 128) -> FusionResult:
+                 reference: int | str = "auto", chunk_lines: int = 128,
+                 check_response: bool = True) -> FusionResult:
     """Fuse a bracket into an HDR radiance cube.
 
     Parameters
@@ -289,6 +336,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         :class:`NoiseModel` / ``(gain, read_noise)``.
     calibration
         Radiometric factor (scalar or per band) from DN/ms to absolute radiance.
+    check_response
+        After recovering a curve, run the self-consistency check of
+        :mod:`mehs.synthesis.response_check` (three more solves): its figures go
+        to ``summary["response"]["check"]``; an undetermined curve adds a
+        ``summary["warnings"]`` entry and a :class:`ResponseUndeterminedWarning`.
     """
     if method not in MERGE_METHODS:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
@@ -343,6 +395,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                          seed=seed, shared=shared_response, levels="raw",
                                          saturation=sat)
+                if check_response:
+                    auto_info["check"] = check_recovered_response(
+                        bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
+                        shared=shared_response, saturation=sat)
     else:
         curve = ResponseCurve.load(response)
     if curve.bit_depth != bracket.bit_depth:
@@ -389,7 +445,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         ghost_fraction = gres.fraction
         mask[gres.mask] |= MASK_GHOST
         if ghosts == "deghost" and gres.mask.any():
-            lin = _lineariser(curve, mr.info["dark_mode"], bracket.bit_depth)
+            lin = _lineariser(curve, mr.info["dark_mode"], bracket.bit_depth,
+                              [d is not None for d in bracket.darks])
             ref_used = deghost_from_reference(
                 radiance, gres.mask, [e.data for e in bracket.exposures], bracket.darks,
                 bracket.times_ms, linearise=lin, saturation=sat, floor=mr.info["noise"]["floor"],
@@ -409,14 +466,31 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
                        calibration, ref_used, auto_info)
     summary["noise"].update(noise_info)
+    chk = auto_info.get("check")
+    summary["response_undetermined"] = bool(chk is not None and not chk.get("determined", True))
+    if summary["response_undetermined"]:
+        why = (f"median uncertainty {chk['median']:.1%} of the linearised signal "
+               f"(> {chk['threshold']:.0%})" if chk.get("median") is not None
+               else chk.get("reason", "not checkable"))
+        from mehs.synthesis.response_check import ADVICE
+
+        msg = (f"response curve undetermined by this bracket: {why}; the radiance is "
+               f"unreliable — {ADVICE}")
+        summary.setdefault("warnings", []).append(msg)
+        warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=2)
     timings["total_s"] = time.perf_counter() - t0
     summary["timings"] = timings
     return FusionResult(cube, mr.confidence, mask, curve, summary, ghost_score,
                         extras={"chi2": mr.chi2, "dof": mr.dof})
 
 
-def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int):
-    """The merge's own raw → dark-subtracted linear DN mapping, for numpy arrays (n, bands)."""
+def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int,
+                has_dark: list[bool] | None = None):
+    """The merge's own raw → dark-subtracted linear DN mapping, for numpy arrays (n, bands).
+
+    ``has_dark[j]`` False: exposure ``j`` has no dark reference, so nothing is
+    subtracted after linearisation (as :func:`merge_bracket` does).
+    """
     L = 1 << bit_depth
     if curve.is_linear:
         return lambda raw, dark, j: raw - dark
@@ -434,7 +508,11 @@ def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int):
         return (1 - fr) * lut(z0) + fr * lut(z1)
 
     if dark_mode == "linear":
-        return lambda raw, dark, j: lut(raw) - interp(np.broadcast_to(dark, raw.shape))
+        def lin(raw, dark, j):
+            if has_dark is not None and not has_dark[j]:
+                return lut(raw)
+            return lut(raw) - interp(np.broadcast_to(dark, raw.shape))
+        return lin
     return lambda raw, dark, j: lut(np.rint(raw - dark))
 
 

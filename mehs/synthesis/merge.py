@@ -253,6 +253,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                          source)
 
     dk = np.zeros((P, ns, nb), dtype=np.float32)
+    has_dark = np.zeros(P, dtype=bool)
     if darks is not None:
         darks = [darks[i] for i in order] if len(darks) == P else None
         if darks is None:
@@ -269,6 +270,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             if not np.all(np.isfinite(d)):
                 raise InputError(f"dark reference {j} contains NaN or inf", source)
             dk[j] = d
+            has_dark[j] = True
 
     if dark_mode == "auto":
         dark_mode = "linear" if response.parameters.get("levels") == "raw" else "raw"
@@ -284,6 +286,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         fr = zl - z0
         bidx = 0 if response.shared else np.arange(nb)[None, None, :]
         dk = ((1 - fr) * e[bidx, z0] + fr * e[bidx, z1]).astype(np.float32)
+        # An exposure without a dark reference has nothing to subtract: exp g(0) is the
+        # curve's extrapolated end, not a measured black level, and subtracting it
+        # turned dark pixels negative (then clipped to exactly 0).
+        dk[~has_dark] = 0.0
 
     # The kernel works band-outer / samples-inner (BIL): a BIL memmap is read
     # as is, other layouts are transposed chunk by chunk.
@@ -329,6 +335,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     info = {"method": method, "times_ms": t.tolist(), "order": order.tolist(),
             "bit_depth": int(bit_depth), "response": response.method,
             "dark_mode": "linear" if dark_after else "raw",
+            "dark_reference": [bool(h) for h in has_dark[np.argsort(order)]],
             "noise": {"gain": noise.gain, "read_noise": noise.read_noise,
                       "dark_current": noise.dark_current,
                       "relative": noise.relative, "floor": floor},
