@@ -267,8 +267,14 @@ def make_scene(kind: str = "colorchecker", lines: int = 64, samples: int = 64,
     Scene
         With float32 radiance ``(lines, samples, bands)``.
     """
+    from mehs.calibration.targets import TARGET_KINDS, make_target_scene
+
+    if kind in TARGET_KINDS:   # uniform calibration targets (sphere, panel)
+        return make_target_scene(kind, lines, samples, wavelengths, illuminant=illuminant,
+                                 fwhm=fwhm, seed=seed)
     if kind not in SCENE_KINDS:
-        raise InputError(f"unknown scene kind {kind!r}; use one of {', '.join(SCENE_KINDS)}")
+        raise InputError(f"unknown scene kind {kind!r}; use one of "
+                         f"{', '.join(SCENE_KINDS + TARGET_KINDS)}")
     if lines < 4 or samples < 4:
         raise InputError(f"scene size must be at least 4×4, got {lines}×{samples}")
     if not np.isfinite(source_ratio):

@@ -67,7 +67,8 @@ class Scanner:
 def auto_exposure(scanner: Scanner, *, lines: int, n: int = 3, probe_lines: int = 16,
                   t_start_ms: float = 1.0, t_min_ms: float = 0.01, t_max_ms: float = 2000.0,
                   bit_depth: int = 12, min_ratio: float = 4.0, target_snr: float = 10.0,
-                  max_iterations: int = 12) -> tuple[list[float], dict[str, Any]]:
+                  max_iterations: int = 12, max_step: float | None = None
+                  ) -> tuple[list[float], dict[str, Any]]:
     """Choose ``n`` integration times from quick probe scans.
 
     - **shortest**: the longest time with at most :data:`MAX_SATURATED_FRACTION`
@@ -76,7 +77,9 @@ def auto_exposure(scanner: Scanner, *, lines: int, n: int = 3, probe_lines: int 
     - **longest**: the time at which the darkest decile of probe samples sits
       ``target_snr`` × the dark noise (at least 1 % of full scale) above the dark
       level, at least ``min_ratio`` × the shortest, at most ``t_max_ms``;
-    - the others geometric in between.
+    - the others geometric in between; with ``max_step`` (a response ladder)
+      as many as needed for consecutive times at most ``max_step`` apart, at
+      least ``n``.
 
     ``probe_lines`` scan lines spread over the scene are read at each trial
     time; the dark level and noise come from shutter-closed lines at the same
@@ -146,6 +149,10 @@ def auto_exposure(scanner: Scanner, *, lines: int, n: int = 3, probe_lines: int 
             break
         t = t_long
     t_long = float(np.clip(t_long, t_short * min_ratio, max(t_max_ms, t_short * min_ratio)))
+    if max_step is not None:
+        if not max_step > 1:
+            raise InputError(f"ladder step must be > 1, got {max_step}")
+        n = max(int(n), int(np.ceil(np.log(t_long / t_short) / np.log(max_step) - 1e-9)) + 1)
     times = np.geomspace(t_short, t_long, n) if n > 1 else np.array([t_short])
     times = [float(f"{v:.3g}") for v in times]
     info.update(t_short_ms=times[0], t_long_ms=times[-1])

@@ -20,6 +20,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("info", "info", "summarise an ENVI cube, a Specim IQ folder or an OpenEXR image"),
     ("sim-device", "sim_device", "start the simulated stage and camera and print their ports"),
     ("capture", "capture", "capture a bracketed scene (dark/white refs + exposures)"),
+    ("calibrate", "calibrate", "radiometric calibration from a capture of a known reference"),
     ("fuse", "fuse", "recover the response curve and merge a bracket into an HDR cube"),
     ("resample", "resample", "resample a cube to a target band set (default 400:700:10)"),
     ("rgb", "rgb", "make pseudo-HDR-RGB (EXR), LDR-RGB (PNG) and previews of an HS cube"),

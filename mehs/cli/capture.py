@@ -12,6 +12,10 @@ def configure(parser):
     g = parser.add_mutually_exclusive_group()
     g.add_argument("--times", help="integration times in ms, ascending, e.g. 5,20,80")
     g.add_argument("--auto", action="store_true", help="choose three times by auto-exposure (default)")
+    g.add_argument("--ladder", action="store_true",
+                   help="a response ladder: auto-exposure range in >= 5 steps of at most x4, "
+                        "of a static target; fuse it with --response debevec once and reuse "
+                        "its response.json (--response) for wide brackets")
     parser.add_argument("--resume", action="store_true",
                         help="finish an interrupted scene without redoing completed exposures")
     parser.add_argument("--scene-id", help="scene id (default: the folder name)")
@@ -35,6 +39,7 @@ def configure(parser):
 
 def run(args):
     import sys
+    from pathlib import Path
 
     from mehs.capture.camera import LineCamera
     from mehs.capture.session import capture_scene
@@ -73,6 +78,7 @@ def run(args):
             white_start_line=args.white_line, scene_id=args.scene_id, resume=args.resume,
             progress=not args.no_progress and sys.stderr.isatty(),
             seed=args.seed if args.simulate else None, device_info=info,
+            auto_options={"n": 5, "max_step": 4.0} if args.ladder else None,
             log=lambda m: print(m, file=sys.stderr))
         if args.simulate and doc["truth"] is None and all(
                 e["status"] == "complete" for e in doc["exposures"]):
@@ -83,6 +89,12 @@ def run(args):
             write_truth(args.out, doc, scene.radiance_at(motion_phase(t0) if scene.moving else 0),
                         scene.wavelengths, fwhm=scene.fwhm,
                         dn_per_ms=dev.world.sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
+            if scene.info.get("certificate"):
+                # a simulated calibrated source comes with its certificate, as a real one does
+                from mehs.calibration.targets import sphere_certificate
+
+                sphere_certificate(Path(args.out) / scene.info["certificate"],
+                                   scene.info.get("level", 0.5))
     finally:
         for d in (stage, camera):
             if d is not None:

@@ -26,8 +26,9 @@ def configure(parser):
     parser.add_argument("--noise", default="auto", choices=["auto", "recorded"],
                         help="noise model: measured from the bracket by photon transfer across "
                              "exposures (auto, default) or the sensor recorded in scene.json")
-    parser.add_argument("--calibration", type=float, default=None,
-                        help="radiometric factor from DN/ms to absolute radiance")
+    parser.add_argument("--calibration", default=None, metavar="CAL",
+                        help="calibration file from `mehs calibrate` (radiance output), or a "
+                             "number: a plain factor from DN/ms to radiance")
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
@@ -42,6 +43,14 @@ def run(args) -> int:
     from mehs.io.atomic import check_output_dir
 
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
+    cal = args.calibration
+    if cal is not None:
+        try:
+            cal = float(cal)
+        except ValueError:
+            from mehs.calibration import Calibration
+
+            cal = Calibration.load(cal)   # a bad file fails before the fusion
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
     bracket = load_bracket(paths, verify=args.verify)
     from mehs.errors import InputError
@@ -62,7 +71,7 @@ def run(args) -> int:
         res = fuse_bracket(bracket, method=args.method, response=args.response,
                            ghosts=args.ghosts, smoothness=args.smoothness, samples=args.samples,
                            seed=args.seed, shared_response=not args.per_band,
-                           calibration=args.calibration, reference=ref, noise=args.noise)
+                           calibration=cal, reference=ref, noise=args.noise)
     files = write_fusion(res, args.out)
     for w in res.summary.get("warnings", []):
         print(f"mehs: warning: {w}", file=sys.stderr)
@@ -72,6 +81,6 @@ def run(args) -> int:
           f"{s['method']} merge, response {s['response']['method']}, "
           f"DR {'n/a' if dr is None else f'{dr:.1f}'} stops, "
           f"saturated {100 * s['saturated_fraction']:.2f} %, ghosts "
-          f"{100 * s['ghost_fraction']:.2f} %")
+          f"{100 * s['ghost_fraction']:.2f} %, unit {s['units']}")
     print(json.dumps({k: str(v) for k, v in files.items()}))
     return 0

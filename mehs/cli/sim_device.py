@@ -14,7 +14,7 @@ from __future__ import annotations
 def add_scene_arguments(parser, *, geometry: bool = True) -> None:
     """Scene/sensor options shared by ``sim-device`` and ``capture --simulate``."""
     parser.add_argument("--scene", default="colorchecker",
-                        help="simulated scene kind: colorchecker, lamp, window, ramp (default colorchecker)")
+                        help="simulated scene kind: colorchecker, lamp, window, ramp; calibration targets sphere, panel (default colorchecker)")
     parser.add_argument("--size", type=int, default=64,
                         help="scene size in lines and samples (default 64; 512 = Specim IQ)")
     if geometry:

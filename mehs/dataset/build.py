@@ -290,6 +290,9 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     mask = np.asarray(result.mask, dtype=np.uint8)
     quality = _quality(summary, mask)
     quality["n_exposures"] = len(summary["exposure_ratios"])
+    chk = (summary.get("response") or {}).get("check") or {}
+    quality["response_undetermined"] = bool(summary.get("response_undetermined", False))
+    quality["response_uncertainty"] = chk.get("median")
     cube = result.radiance
     with _timed(run, "write"):
         result.response.save(tmp / "response.json")

@@ -12,6 +12,9 @@ ghosts                      ``ghost_fraction`` (pixels flagged moving)    > 0.01
 saturated in every exposure ``saturated_fraction``                        > 0.005
 other invalid pixels        ``invalid_fraction`` (mask bit 4)             > 0.05
 dynamic range too low       ``dynamic_range_stops``                       < 4.0
+response undetermined       ``response_uncertainty`` (median, relative;   > 0.02
+                            :mod:`mehs.synthesis.response_check`)
+uncalibrated                ``radiometric_unit`` is DN/ms                 allowed
 ==========================  ============================================  =========
 
 Figures that are unknown (``None``, e.g. ghosts for ``--from-hs`` cubes) are
@@ -37,6 +40,8 @@ class QualityRules:
     max_invalid_fraction: float = 0.05
     min_dynamic_range_stops: float = 4.0
     min_exposures: int = 2
+    max_response_uncertainty: float = 0.02
+    require_calibration: bool = False
 
     def __post_init__(self):
         for name in ("max_ghost_fraction", "max_saturated_fraction", "max_invalid_fraction"):
@@ -46,6 +51,9 @@ class QualityRules:
         v = self.min_dynamic_range_stops
         if v is not None and not (math.isfinite(v) and v >= 0):
             raise InputError(f"min_dynamic_range_stops must be >= 0 stops, got {v}")
+        v = self.max_response_uncertainty
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise InputError(f"max_response_uncertainty must be >= 0, got {v}")
         if int(self.min_exposures) < 1:
             raise InputError(f"min_exposures must be at least 1, got {self.min_exposures}")
 
@@ -84,4 +92,14 @@ def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
     dr = q.get("dynamic_range_stops")
     if dr is not None and dr < rules.min_dynamic_range_stops:
         reasons.append(f"dynamic range {dr:.3g} stops < {rules.min_dynamic_range_stops:g}")
+    ru = q.get("response_uncertainty")
+    if q.get("response_undetermined") and (ru is None or rules.max_response_uncertainty is None):
+        reasons.append("response curve undetermined by the bracket (capture a response ladder "
+                       "and build with --response)")
+    elif ru is not None and rules.max_response_uncertainty is not None:
+        over("response_uncertainty", rules.max_response_uncertainty,
+             "response curve undetermined: uncertainty (use a ladder curve, --response)")
+    unit = q.get("radiometric_unit")
+    if rules.require_calibration and unit is not None and unit.startswith("DN"):
+        reasons.append(f"not radiometrically calibrated ({unit})")
     return ("fail" if reasons else "pass"), reasons

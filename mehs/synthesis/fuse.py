@@ -335,7 +335,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         recorded sensor); ``"recorded"``: ``scene.json``'s sensor; or a
         :class:`NoiseModel` / ``(gain, read_noise)``.
     calibration
-        Radiometric factor (scalar or per band) from DN/ms to absolute radiance.
+        A :class:`mehs.calibration.Calibration` (or the path of its file): the
+        merged DN/ms are divided by its per-column, per-band responsivity and
+        the cube's unit becomes the calibration's (W sr-1 m-2 nm-1 or relative
+        radiance); a calibration of another camera, band set or binning is refused.
+        A number or per-band array is a plain factor from DN/ms to radiance.
     check_response
         After recovering a curve, run the self-consistency check of
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
@@ -418,6 +422,18 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     elif not isinstance(noise, NoiseModel):
         noise = NoiseModel(*noise)
     timings["noise_s"] = time.perf_counter() - t_noise
+    radiometric = None
+    if isinstance(calibration, (str, Path)):
+        from mehs.calibration import Calibration
+
+        calibration = Calibration.load(calibration)
+    if calibration is not None and not np.isscalar(calibration) and hasattr(calibration, "apply"):
+        from mehs.calibration.calibrate import bracket_camera_id
+
+        radiometric = calibration
+        radiometric.check_compatible(bracket.wavelengths, bracket.shape[1], camera_id=bracket_camera_id(bracket),
+                                     binning=bracket.exposures[0].binning, source=bracket.source)
+        calibration = None
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
@@ -454,7 +470,12 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 reference=reference)
         timings["ghosts_s"] = time.perf_counter() - t2
 
-    units = "DN/ms" if calibration is None else "radiance"
+    if radiometric is not None:
+        # after the merge and any deghosting: per column and band, DN/ms → radiance
+        radiometric.apply(radiance, out=radiance)
+        units = radiometric.unit
+    else:
+        units = "DN/ms" if calibration is None else "radiance"
     e0 = bracket.exposures[0]
     cube = SpectralCube(radiance, bracket.wavelengths, fwhm=e0.fwhm, units=units,
                         integration_time_ms=None, acquisition_date=e0.acquisition_date,
@@ -465,6 +486,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                                   "mehs exposure times ms": [float(t) for t in bracket.times_ms]})
     summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
                        calibration, ref_used, auto_info)
+    summary["units"] = units
+    if radiometric is not None:
+        summary["calibration"] = radiometric.summary()
+        summary["dynamic_range_definition"] += " (in DN/ms, before radiometric calibration)"
     summary["noise"].update(noise_info)
     chk = auto_info.get("check")
     summary["response_undetermined"] = bool(chk is not None and not chk.get("determined", True))
@@ -566,7 +591,7 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
         "ghost_reference_exposure": ref_used,
         "noise": noise.as_dict(),
         "calibration": None if calibration is None else np.asarray(calibration).tolist(),
-        "units": "DN/ms" if calibration is None else "radiance",
+        "units": "DN/ms (uncalibrated)" if calibration is None else "radiance",
         "mean_confidence": float(mr.confidence.mean()),
         "bit_depth": bracket.bit_depth,
     }
