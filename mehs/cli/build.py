@@ -26,6 +26,9 @@ def configure(parser):
     parser.add_argument("--response", metavar="CURVE",
                         help="response curve file to use for every scene instead of "
                              "recovering one per scene")
+    parser.add_argument("--calibration", metavar="CAL",
+                        help="radiometric calibration file (mehs calibrate): cubes in radiance "
+                             "(W sr-1 m-2 nm-1 or relative) instead of DN/ms")
     parser.add_argument("--method", default="poisson",
                         help="merge estimator (default: poisson)")
     parser.add_argument("--ghosts", default="detect", choices=["detect", "deghost", "off"],
@@ -45,6 +48,11 @@ def configure(parser):
                    help="max other-invalid fraction (default 0.05)")
     q.add_argument("--min-dr", type=float, default=None, metavar="STOPS",
                    help="min dynamic range in stops (default 4; off with --from-hs)")
+    q.add_argument("--max-response-uncertainty", type=float, default=0.02, metavar="F",
+                   help="max median relative radiance uncertainty of a recovered response "
+                        "curve (default 0.02; see mehs fuse's response check)")
+    q.add_argument("--require-calibration", action="store_true",
+                   help="fail scenes that are not radiometrically calibrated")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
@@ -59,7 +67,9 @@ def run(args):
     rules = QualityRules(max_ghost_fraction=args.max_ghost,
                          max_saturated_fraction=args.max_saturated,
                          max_invalid_fraction=args.max_invalid,
-                         min_dynamic_range_stops=min_dr)
+                         min_dynamic_range_stops=min_dr,
+                         max_response_uncertainty=args.max_response_uncertainty,
+                         require_calibration=args.require_calibration)
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
                   scheduler=args.scheduler, progress=not args.quiet)
@@ -67,11 +77,17 @@ def run(args):
         manifest = build_from_hs(args.scenes, args.out, **common)
     else:
         manifest = build_dataset(args.scenes, args.out, response=args.response,
-                                 method=args.method, ghosts=args.ghosts, **common)
+                                 method=args.method, ghosts=args.ghosts,
+                                 calibration=args.calibration, **common)
     scenes = manifest["scenes"]
     n_pass = sum(s["status"] == "pass" for s in scenes)
     print(f"{args.out}: {len(scenes)} scenes, {n_pass} pass, {len(scenes) - n_pass} fail; "
           f"splits " + ", ".join(f"{k} {len(v)}" for k, v in manifest["splits"].items()))
+    unit = manifest.get("radiance_unit")
+    if unit and unit.startswith("DN"):
+        print(f"  radiance unit: {unit} — not radiometrically calibrated (see mehs calibrate)")
+    elif unit:
+        print(f"  radiance unit: {unit}")
     for s in scenes:
         if s["status"] != "pass":
             print(f"  {s['id']}: fail: {'; '.join(s['reasons'])}")

@@ -155,7 +155,11 @@ def _describe_envi(path: Path, max_lines: int, saturation: float | None) -> dict
         "integration_time_ms": kw.get("integration_time_ms"),
         "acquisition_date": kw.get("acquisition_date"),
         "binning": list(kw["binning"]) if kw.get("binning") else None,
+        "units": str(hdr.fields["data units"]).strip() if "data units" in hdr.fields else None,
     }
+    u = info["units"] or ""
+    info["radiometric"] = ("calibrated" if u in ("W sr-1 m-2 nm-1", "relative radiance")
+                           else "uncalibrated" if u.startswith("DN/ms") else None)
     db = kw.get("default_bands")
     info["default_bands"] = None if db is None else [
         {"band": b + 1, "nm": float(wl[b])} for b in db]
@@ -293,6 +297,11 @@ def format_text(info: dict[str, Any], indent: str = "") -> str:
             f"{d['band']} ({d['nm']:.1f} nm)" for d in info["default_bands"]))
     if info["binning"]:
         lines.append(f"{indent}  binning       {info['binning']}")
+    if info.get("units"):
+        note = {"uncalibrated": " — UNCALIBRATED: camera counts per ms (quantum efficiency "
+                                "included), not radiance; see mehs calibrate",
+                "calibrated": " (radiometrically calibrated)"}.get(info.get("radiometric"), "")
+        lines.append(f"{indent}  units         {info['units']}{note}")
     if "reflectance_scale_factor" in info:
         lines.append(f"{indent}  scale factor  {_fmt(info['reflectance_scale_factor'])} "
                      "(values below divided by it)")

@@ -74,6 +74,9 @@ class BuildParams:
         Resampling method to 31 bands (``"gaussian"``, ``"linear"``, ``"box"``).
     fwhm
         Target band FWHM in nm for Gaussian/box resampling.
+    calibration
+        Path of a radiometric calibration (``mehs calibrate``): cubes in
+        radiance instead of DN/ms.
     """
 
     method: str = "poisson"
@@ -82,6 +85,7 @@ class BuildParams:
     seed: int = 0
     resample: str = "gaussian"
     fwhm: float = 10.0
+    calibration: str | None = None
 
     def __post_init__(self):
         # a bad value would otherwise fail every scene one by one and still
@@ -150,6 +154,8 @@ def input_files(source: SceneSource) -> dict[str, Path]:
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
     p = asdict(task.params)
     p["response"] = task.response_sha256  # the curve's content, not where it lives
+    if p.get("calibration"):
+        p["calibration"] = sha256_file(p["calibration"])
     if task.source.kind == "hs":
         for k in ("method", "response", "ghosts"):
             p.pop(k)
@@ -280,7 +286,7 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     report_stage(sid, "fuse")
     with _timed(run, "fuse"):
         result = fuse_bracket(bracket, method=p.method, response=p.response or "auto",
-                              ghosts=p.ghosts, seed=p.seed)
+                              ghosts=p.ghosts, seed=p.seed, calibration=p.calibration)
     del bracket
     summary = dict(result.summary or {})
     # wall-clock figures belong to the volatile provenance, never to a data file
@@ -293,6 +299,7 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     chk = (summary.get("response") or {}).get("check") or {}
     quality["response_undetermined"] = bool(summary.get("response_undetermined", False))
     quality["response_uncertainty"] = chk.get("median")
+    quality["radiometric_unit"] = summary.get("units")
     cube = result.radiance
     with _timed(run, "write"):
         result.response.save(tmp / "response.json")
@@ -513,7 +520,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
                   splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
                   rules: QualityRules | None = None, resample: str = "gaussian",
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
-                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+                  on_commit: Callable[[dict], None] | None = None,
+                  calibration: str | Path | None = None) -> dict[str, Any]:
     """Build (or resume, or extend) the dataset folder ``out``.
 
     Parameters
@@ -537,6 +545,10 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         Train/val/test fractions over the passing scenes.
     rules
         Pass/fail thresholds (:class:`~mehs.dataset.quality.QualityRules`).
+    calibration
+        A calibration file (``mehs calibrate``) applied to every scene: the
+        dataset is in its unit (recorded in the manifest); without one it is
+        in DN/ms and says so (``radiance_unit``, report, ``mehs info``).
     scheduler
         A Dask scheduler address or ``distributed.Client`` to run scenes on.
     progress
@@ -564,7 +576,14 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     rules = rules or QualityRules()
     fractions = parse_fractions(splits)
     params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,
-                         ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm))
+                         ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm),
+                         calibration=str(Path(calibration).resolve()) if calibration else None)
+    radiometric = {"radiance_unit": "DN/ms (uncalibrated)", "calibration": None}
+    if calibration:
+        from mehs.calibration import Calibration
+
+        cal = Calibration.load(calibration)   # a bad file is one error, not one per scene
+        radiometric = {"radiance_unit": cal.unit, "calibration": cal.summary()}
     response_sha = None
     if response:
         if not Path(response).is_file():
@@ -575,7 +594,7 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,
-                      progress=progress, on_commit=on_commit)
+                      progress=progress, on_commit=on_commit, radiometric=radiometric)
 
 
 def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
@@ -601,7 +620,8 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
 
 
 def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fractions,
-               rules, scheduler, progress, on_commit) -> dict[str, Any]:
+               rules, scheduler, progress, on_commit,
+               radiometric: dict | None = None) -> dict[str, Any]:
     import json
 
     from mehs.io.atomic import make_output_dir
@@ -626,6 +646,8 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         before = json.dumps(manifest, sort_keys=True, default=str)
         manifest["software_version"] = __version__
         manifest["quality_rules"] = rules.to_dict()
+        if radiometric is not None:
+            manifest.update(radiometric)
         entries = mf.scene_map(manifest)
         for e in entries.values():  # rules may have changed since the last build
             e["status"], e["reasons"] = judge(e.get("quality") or {}, rules, e.get("error"))

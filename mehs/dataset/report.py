@@ -86,6 +86,7 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
         splits=html.escape(", ".join(f"{k}: {len(v)}" for k, v in manifest.get("splits", {}).items())),
         rules=html.escape(json.dumps(manifest.get("quality_rules", {}), sort_keys=True)),
         ldr=html.escape(str(manifest.get("rgb", {}).get("ldr_exposure_rule", ""))),
+        radiometry=_radiometry(manifest),
         overview=f"{rel}/{overview}",
         cards="\n".join(cards), rows="\n".join(rows), details="\n".join(details))
     # swap the image folder in first, then the page, so the page never points at missing images
@@ -328,6 +329,22 @@ def _detail(s: dict, fig: str | None) -> str:
             f'<ul>{reasons}</ul><p class="small">inputs: {inputs}</p>{body}</section>')
 
 
+def _radiometry(manifest: dict) -> str:
+    """The radiance unit line: red when the dataset is camera counts, not radiance."""
+    unit = manifest.get("radiance_unit")
+    cal = manifest.get("calibration") or {}
+    if unit is None:
+        return ('<p class="uncal" style="color:#c00;font-weight:bold">Radiance unit not recorded '
+                '(built before radiometric calibration existed): treat as DN/ms, uncalibrated.</p>')
+    if unit.startswith("DN"):
+        return (f'<p class="uncal" style="color:#c00;font-weight:bold">Uncalibrated: the cubes are '
+                f'{html.escape(unit)} (camera quantum efficiency included), not spectral radiance. '
+                f'Calibrate with <code>mehs calibrate</code> and build with --calibration.</p>')
+    return (f'<p class="cal">Radiance unit: <b>{html.escape(unit)}</b> (calibration '
+            f'{html.escape(str(cal.get("method", "")))}, {html.escape(str(cal.get("path", "")))}, '
+            f'median responsivity uncertainty {float(cal.get("median_uncertainty") or 0):.2%}).</p>')
+
+
 _PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{title}</title>
 <style>
@@ -349,6 +366,7 @@ section img {{ max-width: 100%; }}
 <h1>{title}</h1>
 <p>{n} scenes: {n_pass} pass, {n_fail} fail. Splits (passing scenes only): {splits}.
 mehs {version}.</p>
+{radiometry}
 <p class="small">Pass/fail rules: {rules}<br>LDR exposure rule: {ldr}</p>
 <img src="{overview}" alt="dataset overview">
 <h2>Previews</h2>
