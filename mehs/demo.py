@@ -57,7 +57,7 @@ DEMO_MODELS = ("smits", "mallett")
 DEMO_SPLITS = (0.5, 0.0, 0.5)
 
 #: Sub-folders the demo owns inside its output folder (``--force`` removes them).
-SUBFOLDERS = ("captures", "dataset", "models", "evaluation", "export")
+SUBFOLDERS = ("captures", "calibration", "dataset", "models", "evaluation", "export")
 
 
 @dataclass(frozen=True)
@@ -190,6 +190,34 @@ def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed
     return doc
 
 
+def calibrate_demo_camera(folder: Path, cal_path: Path, *, size: int, seed: int,
+                          progress: bool = False, log: Callable[[str], None] = print) -> Path:
+    """Capture the simulated integrating sphere and calibrate the camera (absolute radiance).
+
+    As a lab would: the sphere fills the view, its certificate (CSV, 5 nm,
+    W·sr⁻¹·m⁻²·nm⁻¹) comes with it, :func:`mehs.calibration.calibrate_source_absolute`
+    turns the fused capture into per-column responsivity. Reused when present.
+    """
+    from mehs.calibration import Calibration, calibrate_source_absolute, load_spectrum
+    from mehs.calibration.targets import sphere_certificate
+    from mehs.synthesis.bracket import load_bracket
+
+    spec = DemoScene("calibration_sphere", "sphere", None, None, 0.0, False,
+                     "integrating sphere (QTH, 3000 K) with its certificate")
+    doc = capture_demo_scene(spec, folder, size=size, seed=seed, index=99, progress=progress,
+                             log=log)
+    cert = folder / "truth" / "source_radiance.csv"
+    if not cert.is_file():
+        sphere_certificate(cert)
+    if cal_path.is_file():      # made from this very capture (--force clears both)
+        Calibration.load(cal_path)
+        return cal_path
+    del doc
+    cal = calibrate_source_absolute(load_bracket(folder), load_spectrum(cert, what="sphere certificate"))
+    cal.save(cal_path)
+    return cal_path
+
+
 # --------------------------------------------------------------------------- the demo
 def _check_out(out: Path, params: dict[str, Any], force: bool) -> None:
     marker = out / DEMO_JSON
@@ -217,10 +245,13 @@ def _fmt(v: Any, spec: str = ".1f") -> str:
     return "-" if v is None else format(v, spec)
 
 
-def scene_table(manifest: dict[str, Any], captures: dict[str, dict]) -> str:
-    """Plain-text per-scene summary: exposures, dynamic range, ghosts, saturation, pass/fail."""
+def scene_table(manifest: dict[str, Any], captures: dict[str, dict],
+                accuracy: dict[str, dict] | None = None) -> str:
+    """Plain-text per-scene summary: exposures, dynamic range, ghosts, saturation,
+    radiance accuracy against the simulator's truth (SAM°, median relative error), pass/fail."""
+    accuracy = accuracy or {}
     head = f"{'scene':20s} {'exposures (ms)':22s} {'DR stops':>8s} {'ghost %':>8s} " \
-           f"{'sat. %':>7s}  status"
+           f"{'sat. %':>7s} {'SAM° tr':>7s} {'err % tr':>8s}  status"
     lines = [head, "-" * len(head)]
     for s in manifest["scenes"]:
         q = s.get("quality") or {}
@@ -229,9 +260,13 @@ def scene_table(manifest: dict[str, Any], captures: dict[str, dict]) -> str:
                           if e.get("status") == "complete")
         g, sat = q.get("ghost_fraction"), q.get("saturated_fraction")
         status = s["status"] + (f" ({'; '.join(s['reasons'])})" if s.get("reasons") else "")
+        acc = accuracy.get(s["id"]) or {}
+        rel = acc.get("rel_error_median")
         lines.append(f"{s['id']:20s} {times:22s} {_fmt(q.get('dynamic_range_stops')):>8s} "
                      f"{_fmt(None if g is None else 100 * g, '.2f'):>8s} "
-                     f"{_fmt(None if sat is None else 100 * sat, '.2f'):>7s}  {status}")
+                     f"{_fmt(None if sat is None else 100 * sat, '.2f'):>7s} "
+                     f"{_fmt(acc.get('sam_median_deg'), '.2f'):>7s} "
+                     f"{_fmt(None if rel is None else 100 * rel, '.2f'):>8s}  {status}")
     return "\n".join(lines)
 
 
@@ -317,11 +352,18 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     for i, spec in enumerate(specs):
         captures[spec.scene_id] = capture_demo_scene(spec, cap_dir / spec.scene_id, size=n_pix,
                                                      seed=seed, index=i, progress=bars, log=say)
+
+    say("  calibration: simulated integrating sphere + certificate -> "
+        f"{model_dir / 'calibration.json'} (absolute radiance)")
+    model_dir.mkdir(parents=True, exist_ok=True)
+    cal_path = calibrate_demo_camera(out / "calibration" / "sphere", model_dir / "calibration.json",
+                                     size=n_pix, seed=seed, progress=bars, log=say)
     timings["capture"] = time.perf_counter() - t0
 
     # 2. build
     say(f"[2/6] build: the ME HS set in {ds_dir} (response: "
-        f"{'known linear curve' if known_response else 'recovered per scene, linearity checked'})")
+        f"{'known linear curve' if known_response else 'recovered per scene, linearity checked'}; "
+        f"radiometrically calibrated)")
     t0 = time.perf_counter()
     from mehs.dataset.build import build_dataset
 
@@ -333,8 +375,18 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         if not response.is_file():
             ResponseCurve.linear(12).save(response)
     manifest = build_dataset([cap_dir / s.scene_id for s in specs], ds_dir, workers=workers,
-                             seed=seed, splits=DEMO_SPLITS, response=response, progress=bars)
+                             seed=seed, splits=DEMO_SPLITS, response=response, progress=bars,
+                             calibration=cal_path)
     timings["build"] = time.perf_counter() - t0
+    from mehs.calibration.accuracy import dataset_truth_accuracy
+
+    accuracy = dataset_truth_accuracy(ds_dir, {s.scene_id: cap_dir / s.scene_id for s in specs})
+    if accuracy:
+        sams = [a["sam_median_deg"] for a in accuracy.values()]
+        rels = [a["rel_error_median"] for a in accuracy.values()]
+        say(f"  radiance vs the simulator's truth ({manifest.get('radiance_unit')}): median SAM "
+            f"{min(sams):.2f}-{max(sams):.2f} deg, median relative error "
+            f"{100 * min(rels):.2f}-{100 * max(rels):.2f} % over {len(accuracy)} scenes")
     n_pass = sum(s["status"] == "pass" for s in manifest["scenes"])
     say(f"  {len(manifest['scenes'])} scenes, {n_pass} pass; splits " +
         ", ".join(f"{k} {len(v)}" for k, v in manifest["splits"].items()))
@@ -423,6 +475,7 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
             "dynamic_range_stops": q.get("dynamic_range_stops"),
             "ghost_fraction": q.get("ghost_fraction"),
             "saturated_fraction": q.get("saturated_fraction"),
+            "truth_accuracy": accuracy.get(spec.scene_id),
             "split": next((k for k, v in manifest["splits"].items() if spec.scene_id in v), None)})
     ssr = [] if res is None else [
         {k: s.get(k) for k in ("model", "input", "preprocess", "restore", "sam", "mrae", "rmse",
@@ -436,12 +489,14 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
                   "evaluation_report": str(Path(ev_report).resolve()) if ev_report else None,
                   "export": export_paths or None},
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "radiance_unit": manifest.get("radiance_unit"),
+        "calibration": str(cal_path.resolve()),
         "lamp_scene": specs[0].scene_id,
         "moving_scene": next((s.scene_id for s in specs if s.motion), None),
         "exported_scene": exported,
         "scenes": scene_rows,
         "ssr": ssr,
-        "scene_table": scene_table(manifest, captures),
+        "scene_table": scene_table(manifest, captures, accuracy),
         "ssr_table": ssr_table(ssr) if ssr else None,
     }
     write_json_atomic(out / DEMO_JSON, doc)
