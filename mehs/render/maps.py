@@ -128,17 +128,23 @@ def load_envmap(path: str | Path) -> EnvMap:
 
 
 def map_weights(envmap: EnvMap) -> np.ndarray:
-    """Importance-sampling weights ``(H, W)``: luminance Y × sin θ of the pixel centre.
+    """Importance-sampling weights ``(H, W)`` of the sampling cells (luminance × sin θ).
 
-    A small floor (1e-3 of the mean) keeps pixels that emit only outside ȳ's support
-    (e.g. deep violet) reachable, so emitter sampling stays unbiased everywhere.
+    Cell ``(j, i)`` covers ``v ∈ [j/H, (j+1)/H]``, ``u ∈ [i/W, (i+1)/W]``; the bilinear
+    look-up there reads pixels within one row/column of ``(j, i)``, so the weight is
+    the largest luminance Y in that 3×3 neighbourhood (wrapping in u) times sin θ at the
+    cell centre — never zero where the map emits. A floor of 1e-3 of the mean keeps
+    pixels that emit only outside ȳ's support (deep violet) reachable.
     """
+    from scipy.ndimage import maximum_filter
+
     h, w = envmap.shape
     y = spectra_to_XYZ(envmap.radiance, envmap.wavelengths)[..., 1].astype(np.float64)
     y = np.clip(y, 0.0, None)
     emits = envmap.radiance.max(axis=-1) > 0
     mean = float(y.mean()) if y.size else 0.0
     y = y + np.where(emits, 1e-3 * mean if mean > 0 else 1.0, 0.0)
+    y = maximum_filter(y, size=3, mode=("nearest", "wrap"))
     sin_t = np.sin((np.arange(h) + 0.5) / h * np.pi)[:, None]
     wts = y * sin_t
     if not (wts.sum() > 0):

@@ -38,17 +38,17 @@ _TWO_PI_SQ = 2.0 * math.pi * math.pi
 
 
 def _bilinear_corners(u: float, v: float, h: int, w: int):
-    """Corner indices and weights of the bilinear tap at ``(u, v)`` (wrap in u, clamp in v)."""
+    """Corner indices and weights of the bilinear tap at ``(u, v)``, Mitsuba's layout:
+    column ``i`` sits at ``u = (i + 0.5) / w`` (wrapping), row ``j`` at ``v = j / (h - 1)``."""
     x = u * w - 0.5
-    y = v * h - 0.5
     x0 = math.floor(x)
-    y0 = math.floor(y)
-    fx, fy = x - x0, y - y0
+    fx = x - x0
     x0 %= w
     x1 = (x0 + 1) % w
-    y1 = min(max(y0 + 1, 0), h - 1)
-    y0 = min(max(y0, 0), h - 1)
-    return y0, y1, x0, x1, fx, fy
+    y = min(max(v, 0.0), 1.0) * (h - 1)
+    y0 = min(int(y), h - 2)
+    fy = y - y0
+    return y0, y0 + 1, x0, x1, fx, fy
 
 
 def support_wavelengths(wavelengths: np.ndarray) -> np.ndarray:
@@ -70,8 +70,9 @@ def plugin_classes(variant: str):
 
         Constructed from an :class:`~mehs.render.maps.EnvMap` (radiance ``(H, W, B)``
         at ``wavelengths`` (B,) nm, linearly interpolated between bands, 0 outside
-        them). Importance sampling draws a pixel with probability ∝ luminance × sin θ
-        and a uniform point inside it.
+        them). Importance sampling draws a cell of an ``H × W`` grid over ``(u, v)`` with
+        probability ∝ :func:`~mehs.render.maps.map_weights` and a uniform point inside
+        it; the pdf is ``p_cell · W·H / (2π² sin θ)``.
         """
 
         def __init__(self, props, envmap: EnvMap | None = None, scale: float = 1.0):
