@@ -28,6 +28,7 @@ References
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from functools import lru_cache
 
 import numpy as np
@@ -49,6 +50,24 @@ def _bilinear_corners(u: float, v: float, h: int, w: int):
     y0 = min(int(y), h - 2)
     fy = y - y0
     return y0, y0 + 1, x0, x1, fx, fy
+
+
+def _lerp_bands(values: list, grid: list, wavelengths, clamp: bool = False) -> list:
+    """Values ``(B,)`` on ascending ``grid`` (B,) interpolated at Mitsuba's wavelengths;
+    0 outside the grid, or the edge value when ``clamp``."""
+    out = []
+    last = len(grid) - 1
+    for i in range(len(wavelengths)):
+        lam = wavelengths[i]
+        j = bisect_right(grid, lam) - 1
+        if j < 0:
+            out.append(values[0] if clamp else 0.0)
+        elif j >= last:
+            out.append(values[last] if (clamp or lam == grid[last]) else 0.0)
+        else:
+            t = (lam - grid[j]) / (grid[j + 1] - grid[j])
+            out.append(values[j] + t * (values[j + 1] - values[j]))
+    return out
 
 
 def support_wavelengths(wavelengths: np.ndarray) -> np.ndarray:
@@ -86,11 +105,16 @@ def plugin_classes(variant: str):
             self._wl = support_wavelengths(envmap.wavelengths)
             data = np.concatenate([data[..., :1], data, data[..., -1:]], axis=-1)
             self._data = np.ascontiguousarray(data)
+            self._flat = self._data.reshape(-1, data.shape[-1])
+            self._wl_list = self._wl.tolist()
             self._h, self._w = data.shape[:2]
             w = map_weights(envmap).reshape(-1)
-            self._cdf = np.cumsum(w)
-            self._total = float(self._cdf[-1])
-            self._pmf = w / self._total
+            cdf = np.cumsum(w)
+            self._total = float(cdf[-1])
+            # Python lists: Mitsuba calls these per ray, where numpy's per-call overhead
+            # would dominate
+            self._cdf = cdf.tolist()
+            self._pmf = (w / self._total).tolist()
             self._radius = 1.0
             self._center = mi.Point3f(0.0)
 
@@ -106,17 +130,12 @@ def plugin_classes(variant: str):
             return mi.ScalarBoundingBox3f()
 
         # -- evaluation ----------------------------------------------------
-        def _spectrum_at(self, u: float, v: float) -> np.ndarray:
-            y0, y1, x0, x1, fx, fy = _bilinear_corners(u, v, self._h, self._w)
-            d = self._data
-            return ((1 - fy) * ((1 - fx) * d[y0, x0] + fx * d[y0, x1])
-                    + fy * ((1 - fx) * d[y1, x0] + fx * d[y1, x1]))
-
         def _value(self, u: float, v: float, wavelengths) -> "mi.Spectrum":
-            spec = self._spectrum_at(u, v)
-            lam = np.array([wavelengths[i] for i in range(len(wavelengths))])
-            vals = np.interp(lam, self._wl, spec, left=0.0, right=0.0)
-            return mi.Spectrum(*[float(x) for x in vals])
+            y0, y1, x0, x1, fx, fy = _bilinear_corners(u, v, self._h, self._w)
+            w = self._w
+            rows = self._flat[[y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1]]
+            spec = np.array([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]) @ rows
+            return mi.Spectrum(*_lerp_bands(spec.tolist(), self._wl_list, wavelengths))
 
         @staticmethod
         def _uv(d) -> tuple[float, float]:
@@ -140,13 +159,12 @@ def plugin_classes(variant: str):
                 return 0.0
             px = min(int(u * self._w), self._w - 1)
             py = min(int(v * self._h), self._h - 1)
-            return float(self._pmf[py * self._w + px]) * self._w * self._h / (_TWO_PI_SQ * sin_t)
+            return self._pmf[py * self._w + px] * self._w * self._h / (_TWO_PI_SQ * sin_t)
 
         def sample_direction(self, it, sample, active=True):
             s0, s1 = float(sample[0]), float(sample[1])
             t = s0 * self._total
-            idx = int(np.searchsorted(self._cdf, t, side="right"))
-            idx = min(idx, self._cdf.size - 1)
+            idx = min(bisect_right(self._cdf, t), len(self._cdf) - 1)
             lo = self._cdf[idx - 1] if idx > 0 else 0.0
             wgt = self._cdf[idx] - lo
             fu = (t - lo) / wgt if wgt > 0 else 0.5
@@ -217,6 +235,7 @@ def plugin_classes(variant: str):
             self._table = np.asarray(table, dtype=np.float64)
             self._cos = np.asarray(cos_theta, dtype=np.float64)
             self._wl = None if wavelengths is None else np.asarray(wavelengths, np.float64)
+            self._wl_list = None if self._wl is None else self._wl.tolist()
             self._nc = self._cos.size
             self.m_flags = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
@@ -225,12 +244,11 @@ def plugin_classes(variant: str):
             x = cos_i * (self._nc - 1)
             i0 = min(int(x), self._nc - 2)
             f = x - i0
-            col = (1 - f) * self._table[:, i0] + f * self._table[:, i0 + 1]
             if self._wl is None:
-                return mi.Spectrum(*[float(c) for c in col[:3]])
-            lam = np.array([wavelengths[i] for i in range(len(wavelengths))])
-            vals = np.interp(lam, self._wl, col)
-            return mi.Spectrum(*[float(c) for c in vals])
+                t = self._table
+                return mi.Spectrum(*[(1 - f) * t[c, i0] + f * t[c, i0 + 1] for c in range(3)])
+            col = ((1 - f) * self._table[:, i0] + f * self._table[:, i0 + 1]).tolist()
+            return mi.Spectrum(*_lerp_bands(col, self._wl_list, wavelengths, clamp=True))
 
         def sample(self, ctx, si, sample1, sample2, active=True):
             bs = mi.BSDFSample3f()
