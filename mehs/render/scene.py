@@ -183,8 +183,31 @@ def _rgb_envmap(mi, rgb: np.ndarray) -> dict:
 
 
 def _render(mi, scene_dict: dict, s: RenderSettings, progress=None) -> np.ndarray:
+    import drjit as dr
+
     mi.set_log_level(mi.LogLevel.Error)
     scene = mi.load_dict(scene_dict)
+    # Python plugins run under the GIL: render threads would only queue for it (one
+    # thread is ~1.7x faster than two on the HS path), so use one when the scene has any
+    python_plugins = any(type(v).__module__ == "mehs.render.plugins" for v in _objects(scene_dict))
+    threads = dr.thread_count()
+    if python_plugins:
+        dr.set_thread_count(1)
+    try:
+        return _render_passes(mi, scene, s, progress)
+    finally:
+        dr.set_thread_count(threads)
+
+
+def _objects(d: dict):
+    for v in d.values():
+        if isinstance(v, dict):
+            yield from _objects(v)
+        else:
+            yield v
+
+
+def _render_passes(mi, scene, s: RenderSettings, progress) -> np.ndarray:
     # render in equal passes so a long render shows progress; their mean is the same
     # estimator as one render with all the samples
     passes = render_passes(s.spp)
