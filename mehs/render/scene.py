@@ -133,7 +133,10 @@ def _camera(mi, shape: dict, s: RenderSettings, film: dict) -> dict:
     obj = mi.load_dict(shape)
     bbox = obj.bbox()
     center = np.array([bbox.center()[i] for i in range(3)], dtype=np.float64)
-    radius = float(np.linalg.norm(np.array([bbox.extents()[i] for i in range(3)]))) / 2
+    if shape["type"] == "sphere":
+        radius = float(shape["radius"])
+    else:  # the bounding box's circumsphere
+        radius = float(np.linalg.norm(np.array([bbox.extents()[i] for i in range(3)]))) / 2
     if not np.isfinite(radius) or radius <= 0:
         raise InputError("the object is empty or degenerate", shape.get("filename"))
     dist = radius / np.sin(np.radians(s.fov / 2)) / 0.7
