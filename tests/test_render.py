@@ -184,6 +184,21 @@ def test_map_readers_agree_and_refuse_bad_maps(tmp_path):
         load_envmap(tmp_path / "raw.hdr")
 
 
+def test_mesh_object_renders(tmp_path):
+    """A .obj mesh (a unit cube written here) is framed and lit like the sphere."""
+    v = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    quads = [(1, 2, 4, 3), (5, 7, 8, 6), (1, 5, 6, 2), (3, 4, 8, 7), (1, 3, 7, 5), (2, 6, 8, 4)]
+    text = "".join(f"v {a} {b} {c}\n" for a, b, c in v)
+    text += "".join(f"f {a} {b} {c}\nf {a} {c} {d}\n" for a, b, c, d in quads)
+    (tmp_path / "cube.obj").write_text(text)
+    s = RenderSettings(width=12, height=12, spp=4, material="diffuse:0.5",
+                       object=str(tmp_path / "cube.obj"), bands=(550.0,))
+    img = render_spectral(s, hs_map=uniform_map(np.ones(WL.size), WL))[..., 0]
+    # centre: the cube's face, ρ = 0.5 of a uniform unit map; corners: the map itself
+    assert img[5:7, 5:7].mean() == pytest.approx(0.5, rel=0.15)
+    assert img[0, 0] == pytest.approx(1.0, rel=1e-3)
+
+
 def _sodium_lamp_map(path: Path) -> Path:
     """The demo's sodium-lamp scene (D65 dusk, HP1 lamp in view) as a 31-band map."""
     sc = make_scene("lamp", lines=16, samples=32, wavelengths=WL, illuminant="D65",
@@ -209,9 +224,15 @@ def test_cli_render_sodium_lamp_scene_writes_renders_differences_and_page(tmp_pa
         if r["name"] != "hs":
             assert r["mean_delta_E2000"] > 0 and 0 < r["relative_error"] < 10
     assert (out / "index.html").is_file() and (out / "rgb_diff_x5.png").is_file()
-    # bad input: a clear error, no traceback
-    assert main(["render", str(hs), "--out", str(tmp_path / "x"), "--material", "gold"]) == 2
-    assert "--material" in capsys.readouterr().err
+    # bad input: a clear error naming the problem, no traceback, no output folder
+    for args, msg in ((["--material", "gold"], "--material"),
+                      (["--object", str(tmp_path / "none.obj")], "none.obj"),
+                      (["--size", "0x5"], "--size")):
+        assert main(["render", str(hs), "--out", str(tmp_path / "x")] + args) == 2
+        assert msg in capsys.readouterr().err
+    assert main(["render", str(tmp_path / "nope.hdr"), "--out", str(tmp_path / "x")]) == 2
+    assert "nope.hdr" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
     sys.path.insert(0, str(TOOLS))
     try:

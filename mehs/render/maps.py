@@ -51,8 +51,9 @@ class EnvMap:
 
     def __post_init__(self) -> None:
         r = np.asarray(self.radiance, dtype=np.float32)
-        if r.ndim != 3 or r.shape[0] < 2 or r.shape[1] < 2:
-            raise InputError(f"an environment map must be (H ≥ 2, W ≥ 2, bands), got shape "
+        # Mitsuba's envmap (the RGB renders) needs at least 2 columns and 3 rows
+        if r.ndim != 3 or r.shape[0] < 3 or r.shape[1] < 2:
+            raise InputError(f"an environment map must be (H ≥ 3, W ≥ 2, bands), got shape "
                              f"{r.shape}", self.source or None)
         wl = np.asarray(self.wavelengths, dtype=np.float64).reshape(-1)
         if wl.size != r.shape[2]:

@@ -81,6 +81,11 @@ class RenderSettings:
             raise InputError(f"image size must be positive, got {self.width}x{self.height}")
         if self.spp < 1:
             raise InputError(f"--spp must be ≥ 1, got {self.spp}")
+        # fail before any output folder is made or any render starts
+        from mehs.render.materials import parse_material
+
+        parse_material(self.material)
+        _shape_dict(self.object)
 
 
 def parse_size(text: str) -> tuple[int, int]:
