@@ -7,7 +7,7 @@ name            lighting                                                       r
 ==============  ============================================================  =========
 ``hs``          the HS map (ground truth, the reference of every difference)   spectral
 ``rgb``         the map's pseudo-HDR-RGB                                       RGB
-``smits``       RGB map up-sampled by Smits 1999 (what PBRT does)              spectral
+``smits``       RGB map up-sampled by Smits 1999, illuminant basis (pbrt-v3)   spectral
 ``jakob``       RGB map up-sampled by Mitsuba (Jakob & Hanika 2019)            spectral
 ``ssr-<name>``  RGB map reconstructed by an SSR model (``--ssr``)              spectral
 ==============  ============================================================  =========
@@ -32,6 +32,7 @@ from mehs.io.atomic import make_output_dir, write_json_atomic
 from mehs.render.compare import DIFF_GAIN, difference_image, score
 from mehs.render.maps import EnvMap, load_envmap, rgb_map, ssr_map
 from mehs.render.scene import RenderSettings, import_mitsuba, render_rgb, render_spectral
+from mehs.render.smits_pbrt import SmitsPBRT
 from mehs.rgb import hdr_rgb, ldr_exposure, ldr_rgb
 
 RENDER_FORMAT = "mehs-render/1"
@@ -39,7 +40,7 @@ RENDER_FORMAT = "mehs-render/1"
 DESCRIPTIONS = {
     "hs": "spectral rendering with the HS map (reference)",
     "rgb": "RGB rendering with the pseudo-HDR-RGB map",
-    "smits": "spectral rendering, RGB map up-sampled by Smits 1999 (as PBRT)",
+    "smits": "spectral rendering, RGB map up-sampled by Smits 1999 as pbrt-v3 (illuminant basis)",
     "jakob": "spectral rendering, RGB map up-sampled by Jakob & Hanika 2019 (Mitsuba's envmap)",
 }
 
@@ -98,7 +99,7 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
         if m == "rgb":
             jobs.append(("rgb", "rgb", rgb_env))
         elif m == "smits":
-            jobs.append(("smits", "spectral", ssr_map(rgb_env, load_model("smits"), "smits")))
+            jobs.append(("smits", "spectral", ssr_map(rgb_env, SmitsPBRT(), "smits")))
         else:
             jobs.append(("jakob", "jakob", rgb_env))
     for name, spec, model in models:

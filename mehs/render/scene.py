@@ -9,8 +9,10 @@ Four ways to light the same object (paper §4.4, Figs. 11–14):
 ``jakob``    spectral rendering with Mitsuba's own ``envmap`` fed the RGB map, which
              up-samples each pixel with Jakob & Hanika 2019 (× D65, as Mitsuba does for
              emitters);
+``smits``    spectral rendering with the RGB map up-sampled as pbrt-v3 does for lights
+             (Smits 1999 with the illuminant basis, :mod:`mehs.render.smits_pbrt`);
 ``<model>``  spectral rendering with an HS map reconstructed from the RGB map by an SSR
-             model (``smits`` is the Smits 1999 up-sampling PBRT uses).
+             model.
 
 Spectral renders are recorded with Mitsuba's ``specfilm``: one channel per output band,
 a narrow (0.2 nm) box response at each centre (400, 410, … 700 nm by default), divided by
