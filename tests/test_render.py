@@ -214,12 +214,12 @@ def test_cli_render_sodium_lamp_scene_writes_renders_differences_and_page(tmp_pa
     hs = _sodium_lamp_map(tmp_path / "lamp.hdr")
     out = tmp_path / "render"
     assert main(["render", str(hs), "--out", str(out), "--size", "24x24", "--spp", "4",
-                 "--ssr", "mallett", "--no-progress"]) == 0
+                 "--ssr", "mallett", "--ssr-input", "both", "--no-progress"]) == 0
     text = capsys.readouterr().out
     assert "mean ΔE2000" in text and "ssr-mallett" in text
     doc = json.loads((out / "render.json").read_text())
     names = [r["name"] for r in doc["results"]]
-    assert names == ["hs", "rgb", "smits", "jakob", "ssr-mallett"]
+    assert names == ["hs", "rgb", "smits", "jakob", "ssr-mallett", "ssr-mallett-ldr"]
     for r in doc["results"]:
         for key in ("exr", "png") + (("diff_png",) if r["name"] != "hs" else ()):
             assert (out / r[key]).is_file(), r[key]
@@ -247,3 +247,14 @@ def test_cli_render_sodium_lamp_scene_writes_renders_differences_and_page(tmp_pa
     assert res["images"] == 2 * len(names) and res["broken"] == []
     (out / "smits_diff_x5.png").write_bytes(b"not a png")
     assert chk.check_report(out / "index.html")["broken"] == ["smits_diff_x5.png"]
+
+
+def test_ldr_map_keeps_the_scene_and_clips_the_lamp():
+    from mehs.render.run import ldr_map
+
+    rgb = np.full((8, 16, 3), 0.2, np.float32)
+    rgb[..., 0] = 0.3
+    rgb[2, 3] = 500.0
+    ldr = ldr_map(rgb)
+    assert np.allclose(ldr[5, 5], rgb[5, 5], rtol=0.03)      # 8-bit quantisation only
+    assert ldr[2, 3].max() < 0.05 * 500.0                     # the lamp is clipped

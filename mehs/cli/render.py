@@ -26,6 +26,9 @@ def configure(parser) -> None:
     parser.add_argument("--ssr", nargs="+", default=[], metavar="MODEL",
                         help="also render with maps reconstructed from the RGB map by these SSR "
                              "models (names, module:function, .onnx, .npz, .pt; see mehs evaluate)")
+    parser.add_argument("--ssr-input", default="hdr", choices=["hdr", "ldr", "both"],
+                        help="what the --ssr models see: the pseudo-HDR-RGB (default), its 8-bit "
+                             "LDR-RGB (the paper's LDR-SSR map, highlights clipped), or both")
     parser.add_argument("--methods", default="rgb,smits,jakob",
                         help="comparison renders besides the HS reference (default rgb,smits,jakob)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -39,8 +42,9 @@ def run(args) -> int:
     settings = RenderSettings(width=width, height=height, spp=args.spp, seed=args.seed,
                               object=args.object, material=args.material)
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    inputs = ("hdr", "ldr") if args.ssr_input == "both" else (args.ssr_input,)
     doc = render_comparison(args.hs_map, args.out, settings, ssr=args.ssr, methods=methods,
-                            progress=not args.no_progress, say=print)
+                            ssr_inputs=inputs, progress=not args.no_progress, say=print)
     print(f"{'render':<14}{'mean ΔE2000':>12}{'rel. error':>12}{'SAM (°)':>9}{'time (s)':>10}")
     for r in doc["results"]:
         de, rel, sam = r.get("mean_delta_E2000"), r.get("relative_error"), r.get("mean_sam_deg")

@@ -9,7 +9,8 @@ name            lighting                                                       r
 ``rgb``         the map's pseudo-HDR-RGB                                       RGB
 ``smits``       RGB map up-sampled by Smits 1999, illuminant basis (pbrt-v3)   spectral
 ``jakob``       RGB map up-sampled by Mitsuba (Jakob & Hanika 2019)            spectral
-``ssr-<name>``  RGB map reconstructed by an SSR model (``--ssr``)              spectral
+``ssr-<name>``  pseudo-HDR-RGB map reconstructed by an SSR model (``--ssr``)   spectral
+``…-ldr``       the same from the map's 8-bit LDR-RGB (``--ssr-input ldr``)   spectral
 ==============  ============================================================  =========
 
 and writes per name ``<name>.exr`` (linear sRGB, float32), ``<name>.png`` (exposed like
@@ -45,12 +46,27 @@ DESCRIPTIONS = {
 }
 
 
+def _describe(name: str) -> str:
+    if name in DESCRIPTIONS:
+        return DESCRIPTIONS[name]
+    src = "8-bit LDR-RGB" if name.endswith("-ldr") else "pseudo-HDR-RGB"
+    return f"spectral rendering, map reconstructed from the {src} by SSR model {name[4:]}"
+
+
 def _png(path: Path, rgb: np.ndarray, exposure: float) -> str:
     from mehs.preview import write_png
 
     img, _ = ldr_rgb(np.clip(rgb, 0.0, None), exposure=exposure)
     write_png(path, img)
     return path.name
+
+
+def ldr_map(rgb: np.ndarray) -> np.ndarray:
+    """The 8-bit LDR version of an RGB map, linearised back to the HDR scale ``(H, W, 3)``."""
+    from mehs.ssr.data import srgb_decode_8bit
+
+    img, exposure = ldr_rgb(rgb)
+    return srgb_decode_8bit(img) / np.float32(exposure)
 
 
 def _exposure(reference_rgb: np.ndarray) -> float:
@@ -62,6 +78,7 @@ def _exposure(reference_rgb: np.ndarray) -> float:
 
 def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: RenderSettings,
                       *, ssr: list[str] = (), methods: tuple[str, ...] = ("rgb", "smits", "jakob"),
+                      ssr_inputs: tuple[str, ...] = ("hdr",),
                       progress: bool = True, say: Callable[[str], None] = lambda s: None) -> dict:
     """Render the comparison into ``out`` and return the ``render.json`` document.
 
@@ -76,6 +93,10 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
         ``ssr-<name>`` from the map's pseudo-HDR-RGB.
     methods
         Which of ``rgb``, ``smits``, ``jakob`` to render besides ``hs``.
+    ssr_inputs
+        What the SSR models see: ``hdr`` (the pseudo-HDR-RGB) and/or ``ldr`` (its 8-bit
+        LDR-RGB, :func:`mehs.rgb.ldr_rgb`, decoded and divided by its exposure — the
+        paper's LDR-SSR map of Fig. 11, whose highlights are clipped).
     progress
         Show a tqdm bar over all samples of all renders.
     """
@@ -85,6 +106,9 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
     unknown = [m for m in methods if m not in ("rgb", "smits", "jakob")]
     if unknown:
         raise InputError(f"unknown render method(s) {unknown}; use rgb, smits, jakob")
+    bad = [i for i in ssr_inputs if i not in ("hdr", "ldr")]
+    if bad or not ssr_inputs:
+        raise InputError(f"SSR input must be hdr and/or ldr, got {list(ssr_inputs)}")
     env = hs_map if isinstance(hs_map, EnvMap) else load_envmap(hs_map)
     rgb_env = rgb_map(env)
     models = []
@@ -103,7 +127,10 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
         else:
             jobs.append(("jakob", "jakob", rgb_env))
     for name, spec, model in models:
-        jobs.append((name, "spectral", ssr_map(rgb_env, model, name)))
+        for inp in ssr_inputs:
+            label = name if inp == "hdr" else f"{name}-ldr"
+            jobs.append((label, "spectral", ssr_map(rgb_env if inp == "hdr" else ldr_map(rgb_env),
+                                                    model, label)))
 
     bar = None
     if progress:
@@ -117,7 +144,7 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
     timings: dict[str, float] = {}
     try:
         for name, kind, light in jobs:
-            say(f"render {name}: {DESCRIPTIONS.get(name, 'spectral rendering, SSR-reconstructed map')}")
+            say(f"render {name}: {_describe(name)}")
             if bar is not None:
                 bar.set_description(f"render {name}")
             t0 = time.perf_counter()
@@ -135,11 +162,12 @@ def render_comparison(hs_map: str | Path | EnvMap, out: str | Path, settings: Re
     finally:
         if bar is not None:
             bar.close()
-    return _write_outputs(out, env, rgb_env, settings, images, timings, [m[1] for m in models])
+    return _write_outputs(out, env, rgb_env, settings, images, timings, [m[1] for m in models],
+                          ssr_inputs)
 
 
 def _write_outputs(out: Path, env: EnvMap, rgb_env: np.ndarray, settings: RenderSettings,
-                   images: dict, timings: dict, ssr_specs: list[str]) -> dict:
+                   images: dict, timings: dict, ssr_specs: list[str], ssr_inputs) -> dict:
     from mehs.io.exr import write_exr_rgb, write_exr_spectral
     from mehs.render.page import write_page
 
@@ -150,8 +178,7 @@ def _write_outputs(out: Path, env: EnvMap, rgb_env: np.ndarray, settings: Render
     files = {"env_rgb.png": _png(out / "env_rgb.png", rgb_env, env_exposure)}
     results = []
     for name, im in images.items():
-        entry = {"name": name, "description": DESCRIPTIONS.get(name, "spectral rendering, "
-                                                                     "SSR-reconstructed map"),
+        entry = {"name": name, "description": _describe(name),
                  "seconds": round(timings[name], 3),
                  "exr": write_exr_rgb(out / f"{name}.exr", im["rgb"], half=False).name,
                  "png": _png(out / f"{name}.png", im["rgb"], exposure)}
@@ -173,7 +200,7 @@ def _write_outputs(out: Path, env: EnvMap, rgb_env: np.ndarray, settings: Render
                      "seed": settings.seed, "object": settings.object,
                      "material": settings.material, "bands_nm": [float(b) for b in wl]},
         "reference": "hs", "difference_gain": DIFF_GAIN, "exposure": exposure,
-        "ssr_models": ssr_specs, "results": results, "files": files,
+        "ssr_models": ssr_specs, "ssr_inputs": list(ssr_inputs), "results": results, "files": files,
     }
     doc["page"] = write_page(out, doc).name
     write_json_atomic(out / "render.json", doc)
