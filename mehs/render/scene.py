@@ -124,7 +124,7 @@ def _is_prime_square(n: int) -> bool:
 
 def _sampler(spp: int) -> str:
     # Orthogonal-array sampling stratifies the wavelength dimension too, which cuts the
-    # per-band noise of a spectral film by ~2x; Mitsuba requires a prime-square count.
+    # per-band noise of a spectral film by ~1.5x at equal spp (measured); Mitsuba requires a prime-square count.
     return "orthogonal" if _is_prime_square(spp) else "independent"
 
 
