@@ -457,6 +457,12 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         export_paths = {"per_wavelength": str((export_dir / exported).resolve()),
                         "first_band": str(bands[0].resolve()),
                         "spectral_exr": str(spectral.resolve())}
+        # spectral image-based lighting of the exported map (only with the render extra)
+        from mehs.render.demo import demo_render_step
+
+        render_page = demo_render_step(spectral, export_dir / "render", say)
+        if render_page:
+            export_paths["render_page"] = render_page
     else:
         say("[6/6] export: skipped, no passing scene")
     timings["export"] = time.perf_counter() - t0

@@ -25,6 +25,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("resample", "resample", "resample a cube to a target band set (default 400:700:10)"),
     ("rgb", "rgb", "make pseudo-HDR-RGB (EXR), LDR-RGB (PNG) and previews of an HS cube"),
     ("export", "export", "export an HS cube for spectral rendering (EXR per wavelength)"),
+    ("render", "render", "render an object under an HS map with Mitsuba 3 (render extra)"),
     ("build", "build", "build the ME HS dataset from bracketed scenes"),
     ("report", "report", "write the HTML report of a dataset or an evaluation"),
     ("train-baseline", "train_baseline", "fit the regression SSR baseline on a dataset"),
