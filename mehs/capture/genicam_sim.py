@@ -215,7 +215,7 @@ class GenicamSimCamera:
         for addr, v in zip((gx.REG_WL_A, gx.REG_WL_B, gx.REG_WL_C), self.coefficients):
             self._write_double(fc, addr, float(v))
         self._write_double(fc, gx.REG_TEMPERATURE, w.temperature())
-        for off, text in ((0x48, "MEHS"), (0x68, "SIM-HS line-scan"), (0x88, "1.0")):
+        for off, text in ((0x48, "MEHS"), (0x68, "SIM-HS"), (0x88, "1.0")):
             raw = text.encode("ascii")[:31] + b"\0"
             for i in range(0, len(raw), 4):
                 reg(off + i, struct.unpack(">I", raw[i:i + 4].ljust(4, b"\0"))[0])

@@ -27,7 +27,9 @@ import numpy as np
 from mehs.errors import DeviceError, DeviceTimeout
 
 #: The stage covers one line pitch in ``oversample`` frame periods.
-DEFAULT_OVERSAMPLE = 1.25
+DEFAULT_OVERSAMPLE = 2
+#: Longest along-track travel during one exposure, in lines (motion blur).
+MAX_BLUR_LINES = 0.1
 #: Lines of run-up before the first and after the last scan line (acceleration, settling).
 RUN_UP_LINES = 4
 
@@ -114,6 +116,29 @@ def _line_rate(camera, t_ms: float) -> float:
     return 3.0 / (time.perf_counter() - t0)
 
 
+def _wait_for_phase(stage, frames: list, rate: float, lead_s: float) -> None:
+    """Sleep until the move command puts line centres on the camera's frame clock.
+
+    The stage reaches line 0's centre ``lead_s`` after it starts; frames expose
+    (mid-exposure) at ``t_last + n / rate``. The command latency is taken as half
+    a position query's round trip. Only the quality (frames on line centres)
+    depends on this: positions are measured, never assumed.
+    """
+    if not frames:
+        return
+    rtt = []
+    for _ in range(3):
+        a = time.time()
+        stage.position()
+        rtt.append(time.time() - a)
+    latency = float(np.median(rtt)) / 2.0
+    period = 1.0 / rate
+    base = frames[-1].t - lead_s - latency        # a command time that is in phase
+    now = time.time() + 0.002
+    t_cmd = base + np.ceil((now - base) / period) * period
+    time.sleep(max(0.0, t_cmd - time.time()))
+
+
 def _stage_speed(stage) -> int | None:
     try:
         return int(stage.query("get maxspeed").data)
@@ -150,8 +175,8 @@ class MissingLines(DeviceError):
 
 def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int,
               start_position: int, t_ms: float, oversample: float = DEFAULT_OVERSAMPLE,
-              run_up_lines: int = RUN_UP_LINES, on_line: Callable[[int], None] | None = None
-              ) -> tuple[np.ndarray, dict[str, Any]]:
+              max_blur_lines: float = MAX_BLUR_LINES, run_up_lines: int = RUN_UP_LINES,
+              on_line: Callable[[int], None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """One constant-velocity scan of ``lines`` lines at integration time ``t_ms``.
 
     Returns
@@ -169,7 +194,12 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
         Lines no frame reached (lost frames, stage too fast), naming them.
     """
     rate = _line_rate(camera, t_ms)
-    speed = max(1, int(round(pitch * rate / float(oversample))))
+    # Frames per line: at least `oversample`, and enough that the slit moves at most
+    # `max_blur_lines` during an exposure; an integer, so that with a phase-locked start
+    # every m-th frame sits on a line centre.
+    m = int(np.ceil(max(float(oversample), rate * t_ms / 1000.0 / float(max_blur_lines)) - 1e-9))
+    m = max(m, 1)
+    speed = max(1, int(round(pitch * rate / m)))
     run_up = int(run_up_lines) * int(pitch)
     p_from = max(0, int(start_position) - run_up)
     p_to = int(start_position) + (int(lines) - 1) * int(pitch) + run_up
@@ -192,6 +222,8 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
                     if time.time() > t_first:
                         raise DeviceTimeout("the camera sent no frame after AcquisitionStart",
                                             getattr(camera, "name", None))
+            if hasattr(camera, "stream"):
+                _wait_for_phase(stage, s.frames(), rate, lead_s=(int(start_position) - p_from) / speed)
             t0 = time.time()
             positions.append((t0, stage.position()))
             stage.move_abs(p_to, wait=False)
@@ -226,7 +258,7 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
     chosen, dups, offset = assign_frames(u, lines)
     missing = np.flatnonzero(chosen < 0)
     info = {"mode": "continuous", "frame_rate_hz": round(float(rate), 3), "speed_microsteps_per_s": speed,
-            "oversample": float(oversample), "frames": len(frames), "duplicate_frames": dups,
+            "frames_per_line": m, "frames": len(frames), "duplicate_frames": dups,
             "missing_lines": int(missing.size), "position_reads": len(positions),
             "lost_buffers": int(getattr(camera, "lost_buffers", 0) - lost0),
             "max_offset_lines": None if missing.size == lines else round(float(np.nanmax(offset)), 3)}

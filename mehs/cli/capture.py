@@ -16,8 +16,8 @@ def configure(parser):
                         help="step: the stage stops on every line (default); continuous: constant "
                              "velocity, the camera free-running at a matching frame rate")
     parser.add_argument("--oversample", type=float, default=None,
-                        help="--scan continuous: frames per line pitch (default 1.25; more tolerates "
-                             "frame-timing jitter, fewer is faster)")
+                        help="--scan continuous: at least this many frames per line pitch (default 2: "
+                             "a lost frame costs no line; 1 is fastest)")
     parser.add_argument("--dark-prompt", action="store_true",
                         help="GenICam camera without a shutter feature: ask on the terminal to cap / "
                              "uncap the lens for the dark references")
