@@ -60,9 +60,10 @@ def frame_bytes(code: int, width: int, height: int) -> int:
 
 
 def _unpack12(raw: np.ndarray, n: int, layout: str) -> np.ndarray:
-    if raw.size != 3 * ((n + 1) // 2):
-        raise ValueError(f"{layout}: {raw.size} bytes cannot hold {n} pixels")
-    b = raw.reshape(-1, 3).astype(np.uint16)
+    # an odd pixel count ends mid-triple (12·n bits round up to whole bytes)
+    b = np.zeros(3 * ((n + 1) // 2), dtype=np.uint16)
+    b[:raw.size] = raw
+    b = b.reshape(-1, 3)
     out = np.empty((b.shape[0], 2), dtype=np.uint16)
     if layout == "Mono12Packed":
         out[:, 0] = (b[:, 0] << 4) | (b[:, 1] & 0x0F)
@@ -110,6 +111,7 @@ def pack(pixels: np.ndarray, code: int) -> bytes:
     """uint16 pixels (any shape, C order) → frame bytes in format ``code`` (inverse of :func:`unpack`)."""
     name = name_of(code)
     px = np.ascontiguousarray(pixels, dtype=np.uint16).reshape(-1)
+    n = px.size
     if name not in PIXEL_FORMATS:
         raise ValueError(f"cannot pack pixel format {name}")
     if int(px.max(initial=0)) >> SIGNIFICANT_BITS[name]:
@@ -129,5 +131,5 @@ def pack(pixels: np.ndarray, code: int) -> bytes:
             out[:, 0] = p[:, 0] & 0xFF
             out[:, 1] = ((p[:, 1] & 0x0F) << 4) | (p[:, 0] >> 8)
             out[:, 2] = p[:, 1] >> 4
-        return out.tobytes()
+        return out.tobytes()[:frame_bytes(code, n, 1)]
     return px.astype("<u2").tobytes()
