@@ -109,11 +109,12 @@ def _line_rate(camera, t_ms: float) -> float:
     if hasattr(camera, "stream"):
         cap = camera.max_frame_rate()
         return float(min(cap, 1000.0 / (t_ms * 1.05 + 0.05)))
-    # serial camera: measure three back-to-back reads (stationary, before the run-up)
+    # serial camera: measure three back-to-back reads (stationary, before the run-up);
+    # a line cannot come faster than its exposure (the simulator's may, unless realtime)
     t0 = time.perf_counter()
     for _ in range(3):
         camera.read_line()
-    return 3.0 / (time.perf_counter() - t0)
+    return min(3.0 / (time.perf_counter() - t0), 1000.0 / t_ms)
 
 
 def _wait_for_phase(stage, frames: list, rate: float, lead_s: float) -> None:
