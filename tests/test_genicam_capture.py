@@ -247,3 +247,30 @@ def test_list_cameras_finds_the_simulated_camera(capsys):
         assert main(["capture", "--list-cameras"]) == 0
     out = capsys.readouterr().out
     assert "aravis://MEHS-SIM-HS-MEHS0001" in out and "127.0.0.1" in out
+
+
+def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
+    out = tmp_path / "scene"
+    # exposure 0: 32 stop-and-go reference frames + ≈ 2 frames/line over 32 lines of travel
+    proc, urls = start_sim("--faults", "camera:unplug@130")
+    try:
+        r = capture(urls, out, "--times", "1,4", "--scan", "continuous")
+    finally:
+        stop(proc)
+    assert r.returncode == 2, r.stderr
+    assert "exposure 1" in r.stderr and "mehs capture --resume" in r.stderr, r.stderr
+    doc = sf.read_scene_json(out)
+    assert [e["status"] for e in doc["exposures"]] == ["complete", "incomplete"]
+    rec0 = doc["exposures"][0]
+    raw0 = out / rec0["folder"] / "capture" / (rec0["folder"].split("/")[-1] + ".raw")
+    sha0 = sha256_file(raw0)
+    proc, urls = start_sim()
+    try:
+        r = capture(urls, out, "--resume")
+    finally:
+        stop(proc)
+    assert r.returncode == 0, r.stderr
+    doc = sf.read_scene_json(out)
+    assert [e["status"] for e in doc["exposures"]] == ["complete"] * 2
+    assert sha256_file(raw0) == sha0 and sf.verify_exposure(out, doc["exposures"][0]) == []
+    assert doc["exposures"][1]["stage"]["scan"]["missing_lines"] == 0

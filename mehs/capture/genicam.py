@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -517,8 +518,15 @@ class GenicamCamera:
             self._stop()
         except DeviceError:
             pass
+        held = [self._stream, self.dev, self.cam]
         self._stream = None
         self.cam = self.dev = None
+        if self._control_lost:
+            # Releasing a vanished device waits out GVCP timeouts (~10 s); the last
+            # references go in a daemon thread so the error reaches the user at once.
+            threading.Thread(target=held.clear, daemon=True).start()
+        else:
+            held.clear()
 
     def __enter__(self):
         return self
