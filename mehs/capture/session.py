@@ -31,6 +31,8 @@ from mehs.errors import DeviceError, InputError, MehsError
 #: Auto-exposure: at most this fraction of samples may be at or above ``SAT_LEVEL`` × full scale.
 MAX_SATURATED_FRACTION = 1e-4
 SAT_LEVEL = 0.98
+#: ``scan=`` values of :func:`capture_scene`.
+SCAN_MODES = ("step", "continuous")
 
 
 class Scanner:
@@ -188,7 +190,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                   white_start_line: int | None = None, scene_id: str | None = None,
                   resume: bool = False, progress: bool = True, seed: int | None = None,
                   device_info: dict | None = None, auto_options: dict | None = None,
-                  log: Callable[[str], None] | None = None) -> dict[str, Any]:
+                  log: Callable[[str], None] | None = None, scan: str = "step",
+                  scan_options: dict | None = None) -> dict[str, Any]:
     """Capture (or finish, with ``resume=True``) a bracketed scene into ``out_dir``.
 
     Parameters
@@ -207,7 +210,12 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         skips the white reference.
     resume
         Finish an interrupted scene: completed exposures are verified (SHA-256)
-        and kept, the plan (times, geometry) is read from ``scene.json``.
+        and kept, the plan (times, geometry, scan mode) is read from ``scene.json``.
+    scan
+        ``"step"`` (stop-and-go: the stage stops on each line) or
+        ``"continuous"`` (constant velocity, camera free-running:
+        :func:`mehs.capture.scan.scan_continuous`, with ``scan_options`` such
+        as ``oversample``). References are always taken stop-and-go.
 
     Returns
     -------
@@ -236,6 +244,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         lines, pitch, start_position = plan["lines"], plan["pitch"], plan["start_position"]
         dark_lines, white_lines = plan["dark_lines"], plan["white_lines"]
         white_start_line = plan["white_start_line"]
+        scan = plan.get("scan", "step")
+        scan_options = plan.get("scan_options") or {}
     else:
         if (out / sf.SCENE_JSON).exists():
             raise InputError("a scene was already captured here; use --resume to finish it "
@@ -255,6 +265,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
             raise InputError("give either integration times or auto=True")
         if dark_lines < 1:
             raise InputError(f"dark_lines must be >= 1, got {dark_lines}")
+        if scan not in SCAN_MODES:
+            raise InputError(f"scan mode must be one of {', '.join(SCAN_MODES)}, got {scan!r}")
         if times_ms is not None:
             _check_times(times_ms)  # before the stage is homed or the camera touched
         lines = int(lines)
@@ -307,7 +319,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         doc["plan"] = {"times_ms": times, "lines": lines, "pitch": pitch,
                        "start_position": start_position, "dark_lines": dark_lines,
                        "white_lines": white_lines, "white_start_line": white_start_line,
-                       "auto_exposure": auto_info}
+                       "auto_exposure": auto_info, "scan": scan,
+                       "scan_options": dict(scan_options or {})}
         doc["white_reference"] = ({"lines": white_lines, "start_line": white_start_line,
                                    "start_position": scanner.position_of(white_start_line)}
                                   if white_lines else {})
@@ -343,7 +356,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                                                   bands=bands, dark_lines=dark_lines,
                                                   white_lines=white_lines,
                                                   white_start_line=white_start_line,
-                                                  progress=progress, rec=rec)
+                                                  progress=progress, rec=rec, scan=scan,
+                                                  scan_options=scan_options)
             extra = {"frame_rate_hz": camera.frame_rate(), "temperature_c": camera.temperature(),
                      "saturation_fraction": float(np.count_nonzero(raw >= full) / raw.size),
                      "stage": st, "started": rec["started"], "lines_done": lines,
@@ -373,7 +387,7 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
 
 def _scan_exposure(scanner: Scanner, k: int, t: float, *, lines: int, samples: int, bands: int,
                    dark_lines: int, white_lines: int, white_start_line: int, progress: bool,
-                   rec: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+                   rec: dict, scan: str = "step", scan_options: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     cam, stage = scanner.camera, scanner.stage
     # Dark reference at this time: shutter closed, stepping so each line is a new frame.
     cam.set_shutter(False)
@@ -382,6 +396,16 @@ def _scan_exposure(scanner: Scanner, k: int, t: float, *, lines: int, samples: i
     white = None
     if white_lines:
         white = scanner.read_mean(range(white_start_line, white_start_line + white_lines))
+    if scan == "continuous":
+        from mehs.capture.scan import scan_continuous
+
+        with _progress(lines, f"exposure {k} ({sf.format_time_ms(t)} ms, continuous)", progress) as bar:
+            raw, info = scan_continuous(stage, cam, lines=lines, samples=samples, bands=bands,
+                                        pitch=scanner.pitch, start_position=scanner.start_position,
+                                        t_ms=t, on_line=bar.update, **(scan_options or {}))
+        rec["lines_done"] = lines
+        return raw, dark, white, {"start_position": scanner.start_position, "end_position": stage.position(),
+                                  "warnings": stage.warnings(), "scan": info}
     raw = np.empty((lines, samples, bands), dtype=np.uint16)
     with _progress(lines, f"exposure {k} ({sf.format_time_ms(t)} ms)", progress) as bar:
         start = scanner.goto(0)

@@ -7,8 +7,23 @@ def configure(parser):
     from mehs.cli.sim_device import add_scene_arguments
 
     parser.add_argument("--stage", help="stage port: /dev/ttyUSB0, socket://host:port, …")
-    parser.add_argument("--camera", help="camera port: /dev/ttyUSB1, socket://host:port, …")
-    parser.add_argument("--out", required=True, help="scene folder to create (or to finish with --resume)")
+    parser.add_argument("--camera", help="camera: serial port (/dev/ttyUSB1, socket://host:port, …) or a "
+                                         "GenICam camera through Aravis (aravis://DEVICE-ID, genicam://DEVICE-ID)")
+    parser.add_argument("--out", help="scene folder to create (or to finish with --resume)")
+    parser.add_argument("--list-cameras", action="store_true",
+                        help="list the GenICam cameras (GigE Vision, USB3 Vision) Aravis finds, and exit")
+    parser.add_argument("--scan", choices=["step", "continuous"], default="step",
+                        help="step: the stage stops on every line (default); continuous: constant "
+                             "velocity, the camera free-running at a matching frame rate")
+    parser.add_argument("--oversample", type=float, default=None,
+                        help="--scan continuous: at least this many frames per line pitch (default 2: "
+                             "a lost frame costs no line; 1 is fastest)")
+    parser.add_argument("--dark-prompt", action="store_true",
+                        help="GenICam camera without a shutter feature: ask on the terminal to cap / "
+                             "uncap the lens for the dark references")
+    parser.add_argument("--wavelengths", metavar="FILE",
+                        help="GenICam camera: band centres in nm (one per band) when the camera does "
+                             "not report its spectral calibration")
     g = parser.add_mutually_exclusive_group()
     g.add_argument("--times", help="integration times in ms, ascending, e.g. 5,20,80")
     g.add_argument("--auto", action="store_true", help="choose three times by auto-exposure (default)")
@@ -34,6 +49,9 @@ def configure(parser):
     parser.add_argument("--simulate", action="store_true",
                         help="start the simulated stage and camera in-process (loopback TCP); "
                              "the scene folder then also gets truth/radiance.hdr")
+    parser.add_argument("--genicam", action="store_true",
+                        help="with --simulate: the simulated camera is a GigE Vision camera on "
+                             "127.0.0.1 (needs Aravis)")
     add_scene_arguments(parser, geometry=False)
 
 
@@ -41,10 +59,14 @@ def run(args):
     import sys
     from pathlib import Path
 
-    from mehs.capture.camera import LineCamera
     from mehs.capture.session import capture_scene
     from mehs.capture.zaber import ZaberStage
     from mehs.errors import InputError
+
+    if args.list_cameras:
+        return _list_cameras()
+    if not args.out:
+        raise InputError("give --out SCENE_FOLDER (or --list-cameras)")
 
     times = None
     if args.times:
@@ -56,7 +78,7 @@ def run(args):
     if args.simulate:
         from mehs.cli.sim_device import build_devices
 
-        dev = build_devices(args).start()
+        dev = build_devices(args, genicam=args.genicam).start()
         stage_url, camera_url = dev.stage_url, dev.camera_url
         lines = args.lines or dev.scene_lines
     else:
@@ -67,7 +89,7 @@ def run(args):
     stage = camera = None
     try:
         stage = ZaberStage.open(stage_url, timeout=args.timeout, checksum=args.checksum)
-        camera = LineCamera.open(camera_url, timeout=args.timeout)
+        camera = open_camera(camera_url, args)
         info = {"simulated": bool(args.simulate)}
         if args.simulate:
             info["scene"] = dev.world.scene.info
@@ -75,7 +97,8 @@ def run(args):
             stage, camera, args.out, times_ms=times, auto=times is None and not args.resume,
             lines=lines, pitch=args.pitch, start_position=args.start_position,
             dark_lines=args.dark_lines, white_lines=args.white_lines,
-            white_start_line=args.white_line, scene_id=args.scene_id, resume=args.resume,
+            white_start_line=args.white_line, scene_id=args.scene_id, resume=args.resume, scan=args.scan,
+            scan_options={"oversample": args.oversample} if args.oversample else None,
             progress=not args.no_progress and sys.stderr.isatty(),
             seed=args.seed if args.simulate else None, device_info=info,
             auto_options={"n": 5, "max_step": 4.0} if args.ladder else None,
@@ -104,4 +127,41 @@ def run(args):
     done = [e for e in doc["exposures"] if e["status"] == "complete"]
     print(f"{args.out}: {len(done)} of {len(doc['plan']['times_ms'])} exposures complete "
           f"({', '.join(str(e['integration_time_ms']) for e in done)} ms)")
+    return 0
+
+
+def _prompt(state: str) -> None:
+    import sys
+
+    from mehs.errors import InputError
+
+    what = "Cap the lens (dark reference)" if state == "close" else "Uncap the lens"
+    print(f"{what}, then press Enter: ", end="", file=sys.stderr, flush=True)
+    if not sys.stdin.readline():
+        raise InputError("--dark-prompt needs a terminal (stdin closed while waiting for Enter)")
+
+
+def open_camera(url: str, args):
+    """The camera driver for ``url``: GenICam (``aravis://``, ``genicam://``) or the serial line camera."""
+    from mehs.capture.genicam import GenicamCamera, is_genicam_url, read_calibration
+
+    if is_genicam_url(url):
+        cal = read_calibration(args.wavelengths) if args.wavelengths else None
+        return GenicamCamera.open(url, timeout=args.timeout, wavelengths=cal,
+                                  dark_prompt=_prompt if args.dark_prompt else None)
+    from mehs.capture.camera import LineCamera
+
+    return LineCamera.open(url, timeout=args.timeout)
+
+
+def _list_cameras() -> int:
+    from mehs.capture.genicam import list_cameras
+
+    cams = list_cameras()
+    if not cams:
+        print("no GenICam cameras found (GigE Vision: same subnet, firewall open for UDP 3956; "
+              "USB3 Vision: udev permissions)")
+    for c in cams:
+        print(f"aravis://{c['id']}  {c['vendor']} {c['model']}  serial {c['serial']}  "
+              f"{c['protocol']} {c['address']}")
     return 0

@@ -33,7 +33,7 @@ def add_scene_arguments(parser, *, geometry: bool = True) -> None:
                              "(kinds: timeout garble partial disconnect again fault)")
 
 
-def build_devices(args, *, port: int = 0, transport: str = "tcp"):
+def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool = False):
     from mehs.capture.scene import make_scene
     from mehs.capture.sensor import SensorModel
     from mehs.capture.simdevice import SimDevices
@@ -43,6 +43,12 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp"):
     scene = make_scene(args.scene, lines=lines, samples=samples, source_ratio=args.source_ratio,
                        motion=args.motion, seed=args.seed)
     sensor = SensorModel(seed=args.seed, response=args.response)
+    if genicam:
+        from mehs.capture.genicam_sim import SimGenicamDevices
+
+        return SimGenicamDevices(scene, sensor, faults=args.faults, port=port,
+                                 pixel_format=getattr(args, "pixel_format", None) or "Mono12",
+                                 shutter=not getattr(args, "no_shutter", False))
     return SimDevices(scene, sensor, faults=args.faults, port=port, transport=transport)
 
 
@@ -50,6 +56,13 @@ def configure(parser):
     parser.add_argument("--port", type=int, default=0,
                         help="TCP port of the stage (camera on port+1); 0 picks free ports")
     parser.add_argument("--pty", action="store_true", help="serve on pseudo-terminals instead of TCP")
+    parser.add_argument("--genicam", action="store_true",
+                        help="serve the camera over GigE Vision on 127.0.0.1 (Aravis fake camera; "
+                             "camera: aravis://127.0.0.1); the stage stays on TCP")
+    parser.add_argument("--pixel-format", choices=["Mono12", "Mono16", "Mono12Packed", "Mono12p"],
+                        default="Mono12", help="--genicam: pixel format the camera starts in")
+    parser.add_argument("--no-shutter", action="store_true",
+                        help="--genicam: a camera without a shutter feature (darks need --dark-prompt)")
     add_scene_arguments(parser)
 
 
@@ -59,9 +72,19 @@ def run(args):
     import threading
 
     from mehs.capture.simdevice import parse_faults
+    from mehs.errors import InputError
 
-    parse_faults(args.faults)  # fail fast on a bad spec
-    dev = build_devices(args, port=args.port, transport="pty" if args.pty else "tcp")
+    if args.genicam:
+        from mehs.capture.genicam_sim import split_faults
+
+        if args.pty:
+            raise InputError("--genicam serves the camera over GigE Vision; --pty applies to serial devices")
+        gv, rest = split_faults(args.faults)
+        parse_faults(rest)
+    else:
+        parse_faults(args.faults)  # fail fast on a bad spec
+    dev = build_devices(args, port=args.port, transport="pty" if args.pty else "tcp",
+                        genicam=args.genicam)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     with dev:

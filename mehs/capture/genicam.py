@@ -1,0 +1,603 @@
+"""GenICam camera driver (GigE Vision, USB3 Vision) through Aravis: line-scan hyperspectral cameras.
+
+A line-scan hyperspectral camera (Specim FX10/FX17, Resonon Pika, …) sends one
+*spectral frame* per scan line: ``Width`` = spatial samples, ``Height`` =
+bands, pixel format Mono12 / Mono12Packed / Mono12p / Mono16. This driver
+gives it the interface :class:`~mehs.capture.camera.LineCamera` has
+(``shape``, ``wavelengths``, ``set_integration_time``, ``set_shutter``,
+``read_line``, …), so :func:`~mehs.capture.session.capture_scene`,
+auto-exposure, references, resume and provenance work unchanged, plus
+:meth:`GenicamCamera.stream` for constant-velocity scans
+(:mod:`mehs.capture.scan`).
+
+Features used (GenICam SFNC): ``ExposureTime`` (µs), ``AcquisitionFrameRate``,
+``AcquisitionMode``, ``TriggerSelector``/``TriggerMode``/``TriggerSource``/
+``TriggerSoftware``, ``AcquisitionStart``/``AcquisitionStop``,
+``BinningVertical``, ``PixelFormat``, ``PixelDynamicRangeMax``,
+``DeviceTemperature``. Not standardised, hence configurable: the shutter
+(default feature ``Shutter`` = ``Open``/``Closed``) and the spectral
+calibration (features ``WavelengthCoefficientA/B/C`` of the vendor
+polynomial λ = A·x² + B·x + C over the unbinned sensor row x, or a
+calibration given by the user).
+
+Reliability: a step-mode line is software-triggered; a timeout or an
+incomplete / lost buffer (missing packets) is counted in :attr:`events` and
+the line triggered again (same stage position) up to ``retries`` times;
+a buffer whose pixel format or size does not match the configured frame
+is a :class:`~mehs.errors.DeviceError` at once (a configuration fault, not a
+transient one). A lost control channel ("camera unplugged") is
+:class:`~mehs.errors.DeviceDisconnected`; the capture then stops and can be
+resumed.
+
+References
+----------
+EMVA, *GenICam Standard Features Naming Convention (SFNC) 2.7*, 2022.
+AIA, *GigE Vision 2.0*, 2011. E. Pacaud, *Aravis 0.8 API reference*,
+https://aravisproject.github.io/aravis/.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from mehs.capture import pixfmt
+from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputError
+
+#: URL schemes this driver opens: ``aravis://DEVICE-ID`` or ``genicam://DEVICE-ID``.
+SCHEMES = ("aravis://", "genicam://")
+
+#: Where Debian's ``python3-gi`` lives (used only when no ``gi`` is importable).
+_DEBIAN_GI = Path("/usr/lib/python3/dist-packages/gi")
+
+INSTALL_HINT = ("Aravis is not installed: apt-get install gir1.2-aravis-0.8 aravis-tools "
+                "libgirepository1.0-dev libcairo2-dev pkg-config, then "
+                "pip install 'mehs[aravis]' (see README, 'GenICam cameras')")
+
+
+class AravisUnavailable(DeviceError):
+    """PyGObject or the Aravis 0.8 typelib is missing."""
+
+
+def is_genicam_url(url: str | None) -> bool:
+    return bool(url) and str(url).startswith(SCHEMES)
+
+
+def _load_debian_gi():
+    # Debian's python3-gi is compiled for the system CPython; load only the `gi`
+    # package from it (not the whole dist-packages, whose numpy etc. would shadow ours).
+    init = _DEBIAN_GI / "__init__.py"
+    abi = f"cpython-{sys.version_info.major}{sys.version_info.minor}"
+    if not init.exists() or not any(abi in p.name for p in _DEBIAN_GI.glob("_gi*.so")):
+        raise ImportError("no Debian python3-gi for this Python")
+    spec = importlib.util.spec_from_file_location("gi", init, submodule_search_locations=[str(_DEBIAN_GI)])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["gi"] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except Exception:
+        del sys.modules["gi"]
+        raise
+    return mod
+
+
+def import_aravis():
+    """``(Aravis, GLib)`` from PyGObject (pip ``PyGObject``, else Debian's ``python3-gi``).
+
+    Raises
+    ------
+    AravisUnavailable
+        With the install steps, when either is missing.
+    """
+    try:
+        try:
+            import gi
+        except ImportError:
+            gi = _load_debian_gi()
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis, GLib
+    except (ImportError, ValueError) as exc:
+        raise AravisUnavailable(f"{INSTALL_HINT} ({exc})") from None
+    return Aravis, GLib
+
+
+def aravis_available() -> str | None:
+    """``None`` when Aravis can be used, else the reason it cannot."""
+    try:
+        import_aravis()
+    except AravisUnavailable as exc:
+        return str(exc)
+    return None
+
+
+def list_cameras() -> list[dict[str, str]]:
+    """The GenICam devices Aravis discovers (GigE Vision on every interface, USB3 Vision)."""
+    Aravis, _ = import_aravis()
+    Aravis.update_device_list()
+    out = []
+    for i in range(Aravis.get_n_devices()):
+        out.append({"id": Aravis.get_device_id(i), "vendor": Aravis.get_device_vendor(i) or "",
+                    "model": Aravis.get_device_model(i) or "",
+                    "serial": Aravis.get_device_serial_nbr(i) or "",
+                    "address": Aravis.get_device_address(i) or "",
+                    "protocol": Aravis.get_device_protocol(i) or ""})
+    return out
+
+
+def read_calibration(path: str | Path) -> np.ndarray:
+    """Band centres (nm) from a calibration file: one wavelength per band, whitespace/comma separated.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, non-numbers, non-finite or non-increasing values.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise InputError(f"cannot read the wavelength calibration ({exc.strerror or exc})", p) from None
+    try:
+        wl = np.array([float(v) for v in text.replace(",", " ").split()], dtype=np.float64)
+    except ValueError:
+        raise InputError("wavelength calibration must hold numbers only (one per band, nm)", p) from None
+    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+        raise InputError(f"wavelength calibration must be ≥ 2 increasing finite numbers (nm), "
+                         f"got {wl.size} values", p)
+    return wl
+
+
+def polynomial_wavelengths(coeffs: Sequence[float], bands: int, binning: int = 1,
+                           offset: int = 0) -> np.ndarray:
+    """λ = A·x² + B·x + C at the centre of each (binned) band; ``coeffs = (A, B, C)``.
+
+    ``x`` is the unbinned sensor row: band ``b`` of a camera binning ``binning``
+    rows starting at row ``offset`` covers rows ``offset + b·binning …`` and its
+    centre is ``offset + b·binning + (binning − 1)/2``. Shape ``(bands,)``.
+
+    References
+    ----------
+    Resonon, *Pika cameras: spectral calibration* (the ``A, B, C`` calibration
+    coefficients shipped with every camera).
+    """
+    a, b, c = (float(v) for v in coeffs)
+    x = int(offset) + np.arange(int(bands), dtype=np.float64) * int(binning) + (int(binning) - 1) / 2.0
+    return (a * x + b) * x + c
+
+
+@dataclass
+class Frame:
+    """One received spectral frame: ``line`` uint16 ``(samples, bands)``; ``t`` host time (s) of mid-exposure."""
+
+    line: np.ndarray
+    t: float
+    frame_id: int
+
+
+class GenicamCamera:
+    """Line-scan hyperspectral camera on Aravis (GigE Vision / USB3 Vision).
+
+    Parameters
+    ----------
+    device_id
+        Aravis device id (``Vendor-Model-Serial``), an IP address, or a serial.
+    timeout
+        Seconds to wait for a frame beyond its exposure and frame period.
+    retries
+        Re-triggers of a step-mode line after a timeout or an incomplete buffer.
+    wavelengths
+        Band centres (nm) from a calibration file; default: the camera's
+        ``WavelengthCoefficientA/B/C`` features.
+    dark_prompt
+        Called with ``"close"`` / ``"open"`` when the camera has no shutter
+        feature and the shutter must change (a person caps the lens); without it
+        such a camera cannot take dark references.
+    shutter_feature, shutter_values
+        Enumeration feature and its ``(open, closed)`` entries.
+    n_buffers
+        Stream buffers queued to the receiver.
+    """
+
+    default_timeout = 2.0
+    url_scheme = "aravis://"
+
+    def __init__(self, device_id: str, *, timeout: float | None = None, retries: int = 3,
+                 wavelengths: np.ndarray | None = None, dark_prompt: Callable[[str], None] | None = None,
+                 shutter_feature: str = "Shutter", shutter_values: tuple[str, str] = ("Open", "Closed"),
+                 n_buffers: int = 16, name: str | None = None):
+        self.Aravis, self.GLib = import_aravis()
+        self.device_id = str(device_id)
+        self._name = name or f"{self.url_scheme}{self.device_id}"
+        self.timeout = float(self.default_timeout if timeout is None else timeout)
+        self.retries = int(retries)
+        self._calibration = None if wavelengths is None else np.asarray(wavelengths, np.float64)
+        self.dark_prompt = dark_prompt
+        self.shutter_feature, self.shutter_values = shutter_feature, tuple(shutter_values)
+        self.n_buffers = int(n_buffers)
+        self.events: list[str] = []
+        self.lost_buffers = 0
+        self._control_lost = False
+        self._acquiring: str | None = None   # None, "trigger" or "free"
+        self._shutter_open: bool | None = None
+        self._t_ms: float | None = None
+        self._stream = None
+        try:
+            self.cam = self.Aravis.Camera.new(self.device_id)
+        except Exception as exc:  # GLib.Error: no such device / not reachable
+            raise DeviceError(f"cannot open GenICam camera {self.device_id!r} ({_gerror(exc)}); "
+                              "'mehs capture --list-cameras' lists the cameras Aravis finds",
+                              self._name) from None
+        self.dev = self.cam.get_device()
+        self.dev.connect("control-lost", self._on_control_lost)
+        self._configure()
+
+    # ------------------------------------------------------------ plumbing
+    @classmethod
+    def open(cls, url: str, *, timeout: float | None = None, **kwargs: Any) -> "GenicamCamera":
+        """Open ``aravis://DEVICE-ID`` or ``genicam://DEVICE-ID``."""
+        for s in SCHEMES:
+            if str(url).startswith(s):
+                dev = str(url)[len(s):]
+                if not dev:
+                    raise InputError(f"camera URL {url!r} names no device; give {s}DEVICE-ID")
+                return cls(dev, timeout=timeout, name=str(url), **kwargs)
+        raise InputError(f"not a GenICam camera URL: {url!r} (use aravis://DEVICE-ID)")
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    def _on_control_lost(self, *_a) -> None:
+        self._control_lost = True
+
+    def _gi(self, what: str, fn: Callable[[], Any]) -> Any:
+        """Run an Aravis call; GLib errors become DeviceError / DeviceDisconnected."""
+        if self._control_lost:
+            raise DeviceDisconnected(f"camera control channel lost (unplugged?) before {what}", self.name)
+        try:
+            return fn()
+        except Exception as exc:
+            if not isinstance(exc, self.GLib.Error):
+                raise
+            if self._control_lost or "timeout" in _gerror(exc).lower():
+                self._control_lost = True
+                raise DeviceDisconnected(f"camera stopped answering on {what} ({_gerror(exc)}): "
+                                         "unplugged or powered off?", self.name) from None
+            raise DeviceError(f"{what}: {_gerror(exc)}", self.name) from None
+
+    def _has(self, feature: str) -> bool:
+        return bool(self._gi(f"feature {feature}", lambda: self.dev.is_feature_available(feature)))
+
+    def _int(self, f: str) -> int:
+        return int(self._gi(f"reading {f}", lambda: self.dev.get_integer_feature_value(f)))
+
+    def _float(self, f: str) -> float:
+        return float(self._gi(f"reading {f}", lambda: self.dev.get_float_feature_value(f)))
+
+    def _str(self, f: str) -> str:
+        return str(self._gi(f"reading {f}", lambda: self.dev.get_string_feature_value(f)))
+
+    def _set_str(self, f: str, v: str) -> None:
+        self._gi(f"setting {f}={v}", lambda: self.dev.set_string_feature_value(f, v))
+
+    def _configure(self) -> None:
+        fmts = list(self._gi("PixelFormat entries",
+                             lambda: self.dev.dup_available_enumeration_feature_values_as_strings("PixelFormat")) or [])
+        current = self._str("PixelFormat")
+        usable = [f for f in pixfmt.PREFERRED if f in fmts]
+        if current in pixfmt.PREFERRED:
+            chosen = current
+        elif usable:
+            chosen = usable[0]
+            self._set_str("PixelFormat", chosen)
+        else:
+            raise DeviceError(f"camera offers pixel formats {fmts or [current]}; mehs needs one of "
+                              f"{', '.join(pixfmt.PREFERRED)} (≥ 10-bit monochrome spectral frames)",
+                              self.name)
+        self.pixel_format = chosen
+        self.pixel_code = pixfmt.PIXEL_FORMATS[chosen]
+        self.width, self.height = self._int("Width"), self._int("Height")
+        if self._has("AcquisitionMode"):
+            self._set_str("AcquisitionMode", "Continuous")
+        self.payload = self._int("PayloadSize") if self._has("PayloadSize") else \
+            pixfmt.frame_bytes(self.pixel_code, self.width, self.height)
+        self._stream = self._gi("creating the stream", lambda: self.cam.create_stream(None, None))
+        if self._stream is None:
+            raise DeviceError("Aravis could not create a stream (is another program streaming "
+                              "from this camera?)", self.name)
+        for _ in range(self.n_buffers):
+            self._stream.push_buffer(self.Aravis.Buffer.new_allocate(self.payload))
+
+    # ------------------------------------------------------------ LineCamera interface
+    def identify(self) -> str:
+        parts = [self._safe_str(f) for f in ("DeviceVendorName", "DeviceModelName",
+                                              "DeviceSerialNumber", "DeviceVersion")]
+        if not parts[2]:
+            parts[2] = self._safe_str("DeviceID")
+        return ",".join(parts)
+
+    def _safe_str(self, f: str) -> str:
+        try:
+            return self._str(f).strip() if self._has(f) else ""
+        except DeviceError:
+            return ""
+
+    def shape(self) -> tuple[int, int]:
+        """``(samples, bands)`` = ``(Width, Height)`` of a spectral frame."""
+        self.width, self.height = self._int("Width"), self._int("Height")
+        return self.width, self.height
+
+    def binning(self) -> int:
+        """Spectral (vertical) binning factor, 1 when the camera has none."""
+        return self._int("BinningVertical") if self._has("BinningVertical") else 1
+
+    def wavelengths(self) -> np.ndarray:
+        """Band centres (nm): the calibration given, else the camera's polynomial features."""
+        bands = self.shape()[1]
+        if self._calibration is not None:
+            if self._calibration.size != bands:
+                raise InputError(f"the wavelength calibration has {self._calibration.size} values but "
+                                 f"the camera sends {bands} bands (binning {self.binning()})")
+            return self._calibration.copy()
+        names = ("WavelengthCoefficientA", "WavelengthCoefficientB", "WavelengthCoefficientC")
+        if not all(self._has(f) for f in names):
+            raise DeviceError("the camera has no wavelength calibration features "
+                              f"({', '.join(names)}); give the vendor calibration with --wavelengths FILE",
+                              self.name)
+        off = self._int("OffsetY") if self._has("OffsetY") else 0
+        wl = polynomial_wavelengths([self._float(f) for f in names], bands, self.binning(), off)
+        return np.round(wl, 3)
+
+    def fwhm(self) -> np.ndarray:
+        raise DeviceError("GenICam cameras do not report band widths", self.name)
+
+    def bit_depth(self) -> int:
+        bits = pixfmt.SIGNIFICANT_BITS[self.pixel_format]
+        if self._has("PixelDynamicRangeMax"):
+            bits = min(bits, int(self._int("PixelDynamicRangeMax")).bit_length())
+        return bits
+
+    def set_integration_time(self, ms: float) -> float:
+        """Set ``ExposureTime``; returns the time the camera uses (ms)."""
+        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", float(ms) * 1000.0))
+        self._t_ms = self.integration_time()
+        return self._t_ms
+
+    def integration_time(self) -> float:
+        return round(self._float("ExposureTime") / 1000.0, 6)
+
+    def has_shutter(self) -> bool:
+        return self._has(self.shutter_feature)
+
+    def set_shutter(self, open_: bool) -> None:
+        """Open/close the shutter feature, or ask a person (``dark_prompt``) to (un)cap the lens."""
+        open_ = bool(open_)
+        if self.has_shutter():
+            self._set_str(self.shutter_feature, self.shutter_values[0 if open_ else 1])
+        elif self._shutter_open != open_ or self._shutter_open is None:
+            if self.dark_prompt is None:
+                if open_:
+                    self._shutter_open = True
+                    return
+                raise DeviceError(f"the camera has no {self.shutter_feature!r} feature, so it cannot take "
+                                  "dark references by itself: use --dark-prompt (cap the lens when asked)",
+                                  self.name)
+            self.dark_prompt("open" if open_ else "close")
+        self._shutter_open = open_
+
+    def temperature(self) -> float | None:
+        return self._float("DeviceTemperature") if self._has("DeviceTemperature") else None
+
+    def frame_rate(self) -> float:
+        return self._float("AcquisitionFrameRate")
+
+    def max_frame_rate(self) -> float:
+        lo, hi = self._gi("AcquisitionFrameRate bounds",
+                          lambda: self.dev.get_float_feature_bounds("AcquisitionFrameRate"))
+        return float(hi)
+
+    # ------------------------------------------------------------ acquisition
+    def _stop(self) -> None:
+        if self._acquiring is not None:
+            self._acquiring = None
+            if not self._control_lost:
+                try:
+                    self._gi("AcquisitionStop", lambda: self.dev.execute_command("AcquisitionStop"))
+                    if self._has("TLParamsLocked"):
+                        self._gi("TLParamsLocked",
+                                 lambda: self.dev.set_integer_feature_value("TLParamsLocked", 0))
+                except DeviceError:
+                    pass
+            self._drain()
+
+    def _start(self, mode: str) -> None:
+        if self._acquiring == mode:
+            return
+        self._stop()
+        if self._has("TriggerSelector"):
+            self._set_str("TriggerSelector", "FrameStart")
+        if mode == "trigger":
+            self._set_str("TriggerMode", "On")
+            self._set_str("TriggerSource", "Software")
+        else:
+            self._set_str("TriggerMode", "Off")
+        if self._has("TLParamsLocked"):
+            # what a GenTL producer does: geometry and pixel format stay fixed while streaming
+            self._gi("TLParamsLocked", lambda: self.dev.set_integer_feature_value("TLParamsLocked", 1))
+        self._gi("AcquisitionStart", lambda: self.dev.execute_command("AcquisitionStart"))
+        self._acquiring = mode
+
+    def _drain(self) -> None:
+        if self._stream is None:
+            return
+        while True:
+            b = self._stream.try_pop_buffer()
+            if b is None:
+                return
+            self._stream.push_buffer(b)
+
+    def _frame_wait_us(self) -> int:
+        t = (self._t_ms or 0.0) / 1000.0
+        return int(1e6 * (self.timeout + 2 * t))
+
+    def _decode(self, buf) -> np.ndarray:
+        """Check a SUCCESS buffer against the configured frame and unpack it → ``(samples, bands)``."""
+        code = int(buf.get_image_pixel_format())
+        w, h = int(buf.get_image_width()), int(buf.get_image_height())
+        data = buf.get_image_data()
+        if code != self.pixel_code:
+            raise DeviceError(f"camera sent {pixfmt.name_of(code)} frames, expected {self.pixel_format}: "
+                              "another program changed PixelFormat? Restart the capture with --resume",
+                              self.name)
+        if (w, h) != (self.width, self.height):
+            raise DeviceError(f"camera sent a {w}×{h} frame, expected {self.width}×{self.height} "
+                              "(binning or region changed during the capture)", self.name)
+        need = pixfmt.frame_bytes(code, w, h)
+        if len(data) != need:
+            raise DeviceError(f"frame buffer holds {len(data)} bytes, a {w}×{h} {self.pixel_format} frame "
+                              f"needs {need} (binned or padded frames are not supported)", self.name)
+        return np.ascontiguousarray(pixfmt.unpack(data, code, w, h).T)
+
+    def _pop(self, timeout_us: int):
+        """Next buffer, or ``None`` on timeout; failed buffers are counted, re-queued and reported as ``False``."""
+        if timeout_us > 0:
+            b = self._gi("waiting for a frame", lambda: self._stream.timeout_pop_buffer(timeout_us))
+        else:
+            b = self._gi("polling frames", lambda: self._stream.try_pop_buffer())
+        if b is None:
+            if self._control_lost:
+                raise DeviceDisconnected("camera control channel lost (unplugged?)", self.name)
+            return None
+        status = b.get_status()
+        if status != self.Aravis.BufferStatus.SUCCESS:
+            self.lost_buffers += 1
+            self.events.append(f"camera: buffer {b.get_frame_id()} {status.value_nick} (lost / incomplete)")
+            self._stream.push_buffer(b)
+            return False
+        return b
+
+    def read_line(self) -> np.ndarray:
+        """Software-trigger one frame and return it: uint16 ``(samples, bands)``.
+
+        A timeout or an incomplete buffer triggers the line again (the stage has
+        not moved), up to ``retries`` times.
+        """
+        self._start("trigger")
+        self._drain()  # frames of an earlier, abandoned trigger
+        last = "no frame"
+        for attempt in range(self.retries + 1):
+            self._gi("TriggerSoftware", lambda: self.dev.execute_command("TriggerSoftware"))
+            b = self._pop(self._frame_wait_us())
+            if b is None:
+                last = f"no frame within {self._frame_wait_us() / 1e6:.1f} s"
+                self.events.append(f"camera: timeout waiting for a triggered frame (attempt {attempt + 1})")
+                continue
+            if b is False:
+                last = "incomplete frame (lost packets)"
+                continue
+            try:
+                return self._decode(b)
+            finally:
+                self._stream.push_buffer(b)
+        err = DeviceDisconnected if self._control_lost else DeviceTimeout
+        raise err(f"{last} (after {self.retries + 1} triggers of one line)", self.name)
+
+    def stream(self, frame_rate_hz: float) -> "FrameStream":
+        """Free-run at ``frame_rate_hz`` (constant-velocity scans); use as a context manager."""
+        return FrameStream(self, frame_rate_hz)
+
+    def close(self) -> None:
+        try:
+            self._stop()
+        except DeviceError:
+            pass
+        held = [self._stream, self.dev, self.cam]
+        self._stream = None
+        self.cam = self.dev = None
+        if self._control_lost:
+            # Releasing a vanished device waits out GVCP timeouts (~10 s); the last
+            # references go in a daemon thread so the error reaches the user at once.
+            threading.Thread(target=held.clear, daemon=True).start()
+        else:
+            held.clear()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class FrameStream:
+    """Free-running acquisition; :meth:`poll` returns the frames received so far with host times.
+
+    Host time of a frame = camera timestamp + clock offset + t_exposure / 2
+    (timestamps mark the exposure start: GigE Vision cameras latch them at the
+    frame-start trigger). A camera whose clock is the host's (IEEE 1588 PTP
+    synchronised; the simulator) needs no offset; otherwise the offset is the
+    smallest ``system_timestamp − timestamp`` seen (the minimum transfer
+    latency, as NTP's minimum-delay filter), which places frames late by at
+    most the fastest frame's transfer time.
+    """
+
+    def __init__(self, camera: GenicamCamera, frame_rate_hz: float):
+        self.cam = camera
+        self.requested = float(frame_rate_hz)
+        self.rate = None
+        self._raw: list[tuple[np.ndarray, int, int, int]] = []
+        self._offset_ns: int | None = None
+
+    def __enter__(self) -> "FrameStream":
+        c = self.cam
+        c._stop()
+        c._gi("setting AcquisitionFrameRate",
+              lambda: c.dev.set_float_feature_value("AcquisitionFrameRate", self.requested))
+        self.rate = c.frame_rate()
+        c._start("free")
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.cam._stop()
+
+    def poll(self, timeout_s: float = 0.0) -> list[Frame]:
+        """Frames received since the last call (waiting up to ``timeout_s`` for the first)."""
+        c = self.cam
+        out: list[Frame] = []
+        wait = int(max(timeout_s, 0.0) * 1e6)
+        while True:
+            b = c._pop(wait)
+            if b is None:
+                break
+            wait = 0
+            if b is False:
+                continue
+            try:
+                line = c._decode(b)
+                ts, sys_ts, fid = int(b.get_timestamp()), int(b.get_system_timestamp()), int(b.get_frame_id())
+            finally:
+                c._stream.push_buffer(b)
+            off = sys_ts - ts
+            self._offset_ns = off if self._offset_ns is None else min(self._offset_ns, off)
+            self._raw.append((line, ts, sys_ts, fid))
+            out.append(Frame(line, 0.0, fid))
+        return out
+
+    def frames(self) -> list[Frame]:
+        """All frames with host mid-exposure times (final clock offset applied)."""
+        half = (self.cam._t_ms or 0.0) / 2000.0
+        off = self._offset_ns or 0
+        if self._raw and abs(float(np.median([s - t for _l, t, s, _f in self._raw]))) < 1e9:
+            # the camera clock already is the host's (IEEE 1588 PTP, or the simulator): no offset
+            off = 0
+        return [Frame(line, (ts + off) / 1e9 + half, fid) for line, ts, _s, fid in self._raw]
+
+
+def _gerror(exc: BaseException) -> str:
+    return getattr(exc, "message", None) or str(exc)

@@ -1,0 +1,369 @@
+"""A simulated line-scan hyperspectral camera served over real GigE Vision on loopback.
+
+Aravis's fake GigE Vision camera (``ArvGvFakeCamera``) answers GVCP (control)
+and sends GVSP (stream) on 127.0.0.1 exactly as a camera on the wire; its
+GenICam XML is :func:`mehs.capture.genicam_xml.genicam_xml` (a line-scan HS
+camera: Width = samples, Height = bands, Mono12/Mono16/packed, ExposureTime,
+software trigger, shutter, spectral calibration). Each frame is filled from
+the mehs sensor model (:class:`~mehs.capture.sensor.SensorModel`: QE, photon
+and read noise, dark current, 12-bit ADC) looking at the world line under the
+simulated stage (:class:`~mehs.capture.simdevice.SimWorld`, shared with the
+simulated Zaber stage on TCP).
+
+A stationary stage gives the frame :func:`~mehs.capture.simulate.simulate_bracket`
+gives (same noise keys), so a step-mode capture over GigE Vision equals the
+serial one byte for byte. While the stage moves, a frame integrates the
+radiance the slit sweeps during its exposure (linear interpolation between
+world lines, five sub-samples), as a real pushbroom camera does.
+
+Facts this module relies on (Aravis 0.8): the fill-pattern callback must be
+installed through ctypes with a kept-alive ``CFUNCTYPE`` (PyGObject frees a
+Python callback at once); inside it ``arv_buffer_get_data`` reports size 0,
+so the frame size comes from the registers (the fake camera allocated
+``Width·Height·bpp/8`` at acquisition start).
+
+Faults (``camera:KIND@N[xCOUNT]``, N = 1-based frame count):
+``unplug`` — the camera disappears at frame N (GVCP and GVSP stop);
+``incomplete`` — frame N's data packets are dropped on the way (the
+receiver gets a leader and trailer only: an incomplete buffer);
+``pixfmt`` — from frame N on the camera sends Mono8 frames (a
+misconfigured camera). Stage faults are those of :mod:`mehs.capture.simdevice`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import re
+import shutil
+import struct
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mehs.capture import genicam_xml as gx
+from mehs.capture import pixfmt
+from mehs.capture.genicam import import_aravis
+from mehs.capture.scene import Scene
+from mehs.capture.sensor import SensorModel, exposure_seed_for
+from mehs.capture.simdevice import DeviceServer, SimStage, SimWorld
+from mehs.capture.simulate import motion_phase, world_radiance_line
+from mehs.errors import DeviceError, InputError
+
+GV_FAULT_KINDS = ("unplug", "incomplete", "pixfmt")
+_GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt)@(\d+)(?:x(\d+))?$")
+#: Trigger-mode polling rate of the fake camera (Aravis's default, 25 Hz, caps step scans at ~24 lines/s).
+TRIGGER_POLL_HZ = 2000.0
+
+
+@dataclass(frozen=True)
+class GvFault:
+    kind: str
+    at: int
+    count: int = 1
+
+    def fires(self, n: int) -> bool:
+        return self.at <= n < self.at + self.count
+
+
+def split_faults(spec: str | None) -> tuple[list[GvFault], str]:
+    """GigE Vision camera faults, and the rest of the spec (stage faults) for :class:`SimWorld`."""
+    gv, rest = [], []
+    for item in re.split(r"[,\s]+", (spec or "").strip()):
+        if not item:
+            continue
+        m = _GV_RE.match(item)
+        if m:
+            if int(m[2]) < 1 or int(m[3] or 1) < 1:
+                raise InputError(f"bad fault {item!r}: N and COUNT start at 1")
+            gv.append(GvFault(m[1], int(m[2]), int(m[3] or 1)))
+        elif item.startswith("camera:"):
+            raise InputError(f"bad GigE Vision camera fault {item!r}: use camera:KIND@N[xCOUNT] with "
+                             f"KIND one of {', '.join(GV_FAULT_KINDS)}")
+        else:
+            rest.append(item)
+    return gv, ",".join(rest)
+
+
+def _position_at(w: SimWorld, t_mono: float) -> float:
+    """Stage position (microsteps) at monotonic time ``t_mono`` from the current move."""
+    if w._move is None:
+        return float(w.pos)
+    p0, p1, t0, dur = w._move
+    frac = 1.0 if dur <= 0 else min(1.0, max(0.0, (t_mono - t0) / dur))
+    if w._stall_at is not None:
+        frac = min(frac, w._stall_at)
+    return p0 + (p1 - p0) * frac
+
+
+def _swept_radiance(scene: Scene, u0: float, u1: float, phase: float) -> np.ndarray:
+    """Mean radiance ``(samples, bands)`` the slit sees sweeping world lines ``u0 → u1``."""
+    acc = None
+    for u in np.linspace(u0, u1, 5):
+        lo = int(np.floor(u))
+        f = float(u - lo)
+        r = world_radiance_line(scene, lo, phase).astype(np.float64)
+        if f > 1e-9:
+            r = (1 - f) * r + f * world_radiance_line(scene, lo + 1, phase)
+        acc = r if acc is None else acc + r
+    return (acc / 5.0).astype(np.float32)
+
+
+_FILL = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32,
+                         ctypes.c_uint32)
+
+
+def _libaravis():
+    lib = ctypes.CDLL("libaravis-0.8.so.0")
+    lib.arv_buffer_get_data.restype = ctypes.c_void_p
+    lib.arv_buffer_get_data.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
+    lib.arv_buffer_get_timestamp.restype = ctypes.c_uint64
+    lib.arv_buffer_get_timestamp.argtypes = [ctypes.c_void_p]
+    lib.arv_buffer_set_timestamp.restype = None
+    lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
+    lib.arv_fake_camera_set_fill_pattern.restype = None
+    lib.arv_fake_camera_set_fill_pattern.argtypes = [ctypes.c_void_p, _FILL, ctypes.c_void_p]
+    return lib
+
+
+def _gobject_pointer(obj) -> int:
+    pyapi = ctypes.pythonapi
+    pyapi.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    pyapi.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    return pyapi.PyCapsule_GetPointer(obj.__gpointer__, None)
+
+
+class GenicamSimCamera:
+    """The simulated HS camera on Aravis's fake GigE Vision camera (127.0.0.1, GVCP port 3956).
+
+    Parameters
+    ----------
+    world
+        Shared scene, sensor and stage state.
+    pixel_format, pixel_formats
+        Initial PixelFormat and the entries the XML offers.
+    shutter
+        Whether the camera has a ``Shutter`` feature; without one, dark
+        references need the lens capped (:attr:`lens_capped`, set by the
+        ``--dark-prompt`` hook in tests).
+    faults
+        :class:`GvFault` list or spec string.
+    max_frame_rate
+        Highest ``AcquisitionFrameRate`` (Hz). Every frame is computed in Python
+        (about 1 ms for 64 × 204); 100 Hz keeps a loaded two-core host on time.
+    """
+
+    def __init__(self, world: SimWorld, *, serial: str = "MEHS0001", pixel_format: str = "Mono12",
+                 pixel_formats: tuple[str, ...] = ("Mono12", "Mono16", "Mono12Packed", "Mono12p"),
+                 shutter: bool = True, faults: list[GvFault] | str | None = None,
+                 interface: str | None = None, max_frame_rate: float = 100.0):
+        self.Aravis, _ = import_aravis()
+        self.world = world
+        self.serial = serial
+        self.faults = split_faults(faults)[0] if isinstance(faults, (str, type(None))) else list(faults)
+        if pixel_format not in pixel_formats:
+            raise InputError(f"pixel format {pixel_format} is not among the offered {pixel_formats}")
+        self.pixel_format, self.pixel_formats, self.shutter = pixel_format, tuple(pixel_formats), shutter
+        self.interface = interface or self.Aravis.GV_FAKE_CAMERA_DEFAULT_INTERFACE
+        self.lens_capped = False
+        self.frames = 0
+        self.fired: list[tuple[int, str]] = []
+        self.unplugged = threading.Event()
+        self.errors: list[str] = []
+        self._gv = None
+        self._relay = None
+        self._tmp = Path(tempfile.mkdtemp(prefix="mehs-gv-"))
+        self.xml_path = self._tmp / "mehs-sim-hs.xml"
+        self.xml_path.write_text(gx.genicam_xml(samples=world.samples, bands=world.bands,
+                                                pixel_formats=pixel_formats, shutter=shutter,
+                                                max_frame_rate=max_frame_rate))
+        self._cb = _FILL(self._fill)   # kept alive for as long as the fake camera may call it
+        self._lib = _libaravis()
+        wl = np.asarray(world.scene.wavelengths, np.float64)
+        self.coefficients = np.polyfit(np.arange(wl.size, dtype=np.float64), wl, 2)  # A, B, C
+
+    @property
+    def url(self) -> str:
+        return "aravis://127.0.0.1"
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> "GenicamSimCamera":
+        # The fill callback needs the GIL within a frame period; CPython's default 5 ms
+        # switch interval would make a busy host thread skip frames of the simulated camera.
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial, str(self.xml_path))
+        if gv is None or not gv.is_running():
+            raise DeviceError("cannot serve the simulated GigE Vision camera: is another one "
+                              "(arv-fake-gv-camera, mehs sim-device --genicam) already on port 3956?",
+                              self.interface)
+        fc = gv.get_fake_camera()
+        fc.set_trigger_frequency(TRIGGER_POLL_HZ)
+        w = self.world
+        reg = fc.write_register
+        reg(gx.REG_SENSOR_WIDTH, w.samples)
+        reg(gx.REG_SENSOR_HEIGHT, w.bands)
+        reg(gx.REG_WIDTH, w.samples)
+        reg(gx.REG_HEIGHT, w.bands)
+        reg(gx.REG_PIXEL_FORMAT, pixfmt.PIXEL_FORMATS[self.pixel_format])
+        reg(gx.REG_DYNAMIC_RANGE_MAX, (1 << w.sensor.bit_depth) - 1)
+        reg(gx.REG_SHUTTER, 1)
+        reg(gx.REG_FRAME_PERIOD_US, 10000)
+        for addr, v in zip((gx.REG_WL_A, gx.REG_WL_B, gx.REG_WL_C), self.coefficients):
+            self._write_double(fc, addr, float(v))
+        self._write_double(fc, gx.REG_TEMPERATURE, w.temperature())
+        for off, text in ((0x48, "MEHS"), (0x68, "SIM-HS"), (0x88, "1.0")):
+            raw = text.encode("ascii")[:31] + b"\0"
+            for i in range(0, len(raw), 4):
+                reg(off + i, struct.unpack(">I", raw[i:i + 4].ljust(4, b"\0"))[0])
+        self._fc, self._gv = fc, gv
+        self._lib.arv_fake_camera_set_fill_pattern(_gobject_pointer(fc), self._cb, None)
+        if any(f.kind == "incomplete" for f in self.faults):
+            from mehs.capture.gvrelay import StreamRelay
+
+            self._relay = StreamRelay(fc, drop=self._drop_frame).start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving (the camera is "unplugged"); safe to call twice."""
+        if self._relay is not None:
+            self._relay.close()
+            self._relay = None
+        gv, self._gv = self._gv, None
+        if gv is not None:
+            self._fc = None
+            gv.run_dispose()
+            del gv
+        self.unplugged.set()
+
+    def close(self) -> None:
+        self.stop()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @staticmethod
+    def _write_double(fc, addr: int, v: float) -> None:
+        hi, lo = struct.unpack(">II", struct.pack(">d", v))
+        fc.write_register(addr, hi)
+        fc.write_register(addr + 4, lo)
+
+    def _read(self, addr: int) -> int:
+        ok, v = self._fc.read_register(addr)
+        return int(v)
+
+    def _drop_frame(self, frame_number: int) -> bool:
+        return any(f.kind == "incomplete" and f.fires(frame_number) for f in self.faults)
+
+    # ------------------------------------------------------------ frames
+    def _fill(self, buf, _data, exposure_us, _gain, pixel_format) -> None:
+        # Runs on the fake camera's thread: never let an exception cross into C.
+        try:
+            self._fill_checked(buf, int(exposure_us), int(pixel_format))
+        except Exception as exc:  # pragma: no cover - reported through .errors
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def _fill_checked(self, buf, exposure_us: int, code: int) -> None:
+        fc = self._fc
+        if fc is None:
+            return
+        self.frames += 1
+        n = self.frames
+        for f in self.faults:
+            if f.fires(n) and f.kind in ("unplug", "pixfmt"):
+                self.fired.append((n, f.kind))
+                if f.kind == "unplug":
+                    # dispose from another thread: this one is the camera's own
+                    threading.Thread(target=self.stop, daemon=True).start()
+                    return
+                fc.write_register(gx.REG_PIXEL_FORMAT, pixfmt.PIXEL_FORMATS["Mono8"])
+        w = self.world
+        t_ms = exposure_us / 1000.0
+        # A hardware-timed camera: in free-run, frame n's exposure starts on the frame
+        # clock tick (the fake camera wakes on multiples of the period, but on a busy host
+        # late, and this callback later still, waiting for the GIL). The timestamp sent
+        # in the GVSP leader is set to that tick, and the exposure simulated there.
+        ts_ns = int(self._lib.arv_buffer_get_timestamp(buf))
+        if self._read(0x300) == 0:   # TriggerMode Off: free-running on the frame clock
+            period_ns = max(1, self._read(gx.REG_FRAME_PERIOD_US)) * 1000
+            ts_ns -= ts_ns % period_ns
+            self._lib.arv_buffer_set_timestamp(buf, ts_ns)
+        ts = ts_ns / 1e9
+        with w.lock:
+            now = time.monotonic() - (time.time() - ts)
+            p0, p1 = _position_at(w, now), _position_at(w, now + t_ms / 1000.0)
+            shutter_open = self._read(gx.REG_SHUTTER) == 1 and not self.lens_capped
+            w.lines_acquired += 1
+            temp = w.temperature()
+        scene, phase = w.scene, (motion_phase(t_ms) if w.scene.moving else 0)
+        u0, u1 = p0 / w.pitch, p1 / w.pitch
+        if abs(u1 - u0) < 1e-9 and abs(u0 - round(u0)) < 1e-9:
+            line = int(round(u0))   # stationary on a line: exactly the serial simulator's frame
+            rad, seed = world_radiance_line(scene, line, phase), exposure_seed_for(t_ms)
+        else:
+            line = int(round((u0 + u1) / 2))
+            rad = _swept_radiance(scene, u0, u1, phase)
+            seed = exposure_seed_for(t_ms) ^ (n * 0x9E3779B1 & 0x7FFFFFFF)
+        z = w.sensor.expose_line(rad, t_ms, exposure_seed=seed, line_index=line,
+                                 shutter_open=shutter_open, wavelengths=scene.wavelengths)
+        self._write_double(fc, gx.REG_TEMPERATURE, temp)
+        name = pixfmt.name_of(code)
+        # the sensor is 12-bit; Mono8 (the pixfmt fault) keeps the top 8 bits
+        px = (z >> 4) if name == "Mono8" else z
+        data = pixfmt.pack(px.T, code)            # frame rows = bands, columns = samples
+        size = ctypes.c_size_t(0)
+        ptr = self._lib.arv_buffer_get_data(buf, ctypes.byref(size))  # size is 0 here: see module doc
+        if ptr:
+            ctypes.memmove(ptr, data, len(data))
+
+
+class SimGenicamDevices:
+    """Simulated Zaber stage (TCP) + simulated GigE Vision HS camera sharing one world.
+
+    Use as a context manager; :attr:`stage_url` and :attr:`camera_url` are what
+    ``mehs capture --stage … --camera …`` opens.
+    """
+
+    def __init__(self, scene: Scene, sensor: SensorModel | None = None, *, faults: str | None = None,
+                 pitch: int = 64, host: str = "127.0.0.1", port: int = 0, start_homed: bool = False,
+                 speed: float = 4e6, **camera_options):
+        gv, rest = split_faults(faults)
+        self.world = SimWorld(scene, sensor or SensorModel(), pitch=pitch, faults=rest,
+                              start_homed=start_homed, speed=speed)
+        self.stage = SimStage(self.world)
+        self.server = DeviceServer(self.stage.handle, host=host, port=port, name="stage")
+        self.camera = GenicamSimCamera(self.world, faults=gv, **camera_options)
+
+    @property
+    def stage_url(self) -> str:
+        return self.server.url
+
+    @property
+    def camera_url(self) -> str:
+        return self.camera.url
+
+    @property
+    def scene_lines(self) -> int:
+        return self.world.scene.radiance.shape[0]
+
+    def start(self) -> "SimGenicamDevices":
+        self.camera.start()
+        self.server.start()
+        return self
+
+    def close(self) -> None:
+        self.server.close()
+        self.camera.close()
+
+    def __enter__(self) -> "SimGenicamDevices":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,105 @@
+"""A GVSP relay that loses packets on purpose: incomplete buffers for the fault tests.
+
+GigE Vision streams frames as UDP packets (GVSP): a leader, data packets, a
+trailer, all tagged with the frame's block id. Aravis's fake camera sends them
+to the stream destination the receiver wrote into the camera's bootstrap
+registers (SCDA / SCP0). The relay watches those registers, puts itself in
+between (rewriting the port once the receiver has set it), and forwards every
+packet, except the data packets of the frames ``drop(n)`` selects (n = 1-based
+frame count): the receiver then gets a leader and a trailer without data, as
+when packets are lost on a real link, and reports an incomplete buffer.
+
+References
+----------
+AIA, *GigE Vision 2.0*, 2011, §22 "GVSP header" and §28 bootstrap registers
+(SCP0 0x0D00: host port in bits 0–15; SCDA0 0x0D18).
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+from typing import Callable
+
+SCP0, SCDA0 = 0x0D00, 0x0D18
+_LEADER, _TRAILER, _DATA = 1, 2, 3
+
+
+def gvsp_header(packet: bytes) -> tuple[int, int]:
+    """``(packet format, block id)`` of a GVSP packet (standard or extended-id header)."""
+    fmt_byte = packet[4]
+    if fmt_byte & 0x80:                       # EI flag: 64-bit block id at bytes 8..15
+        return fmt_byte & 0x0F, struct.unpack(">Q", packet[8:16])[0]
+    return fmt_byte & 0x0F, struct.unpack(">H", packet[2:4])[0]
+
+
+class StreamRelay:
+    """Forward GVSP from the fake camera to the receiver, dropping the data of selected frames."""
+
+    def __init__(self, fake_camera, *, drop: Callable[[int], bool]):
+        self.fc, self.drop = fake_camera, drop
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.dest: tuple[str, int] | None = None
+        self.frames = 0
+        self.dropped_frames: list[int] = []
+        self._dropping: int | None = None
+        self._closed = threading.Event()
+        self._threads = [threading.Thread(target=self._watch, daemon=True, name="gvsp-relay-watch"),
+                         threading.Thread(target=self._forward, daemon=True, name="gvsp-relay")]
+
+    def start(self) -> "StreamRelay":
+        for t in self._threads:
+            t.start()
+        return self
+
+    def close(self) -> None:
+        self._closed.set()
+        for t in self._threads:
+            t.join(timeout=1)
+        self.sock.close()
+
+    def _reg(self, addr: int) -> int:
+        return int(self.fc.read_register(addr)[1])
+
+    def _watch(self) -> None:
+        # The receiver writes its port when it creates its stream, long before
+        # AcquisitionStart; re-point the camera at the relay whenever it does.
+        while not self._closed.wait(0.0005):
+            try:
+                scp = self._reg(SCP0)
+                port = scp & 0xFFFF
+                if port and port != self.port:
+                    ip = socket.inet_ntoa(struct.pack(">I", self._reg(SCDA0)))
+                    self.dest = (ip, port)
+                    self.fc.write_register(SCP0, (scp & 0xFFFF0000) | self.port)
+            except Exception:   # the camera was unplugged
+                return
+
+    def _forward(self) -> None:
+        while not self._closed.is_set():
+            try:
+                pkt, _ = self.sock.recvfrom(65536)
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            if self.dest is None or len(pkt) < 8:
+                continue
+            fmt, block = gvsp_header(pkt)
+            if fmt == _LEADER:
+                self.frames += 1
+                self._dropping = block if self.drop(self.frames) else None
+                if self._dropping is not None:
+                    self.dropped_frames.append(self.frames)
+            elif fmt == _DATA and block == self._dropping:
+                continue
+            try:
+                self.sock.sendto(pkt, self.dest)
+            except OSError:
+                time.sleep(0.001)
