@@ -30,12 +30,13 @@ from mehs.ssr.net.layers import FCDenseNet
 #: Jégou et al.'s FC-DenseNet56: 48 first filters, 5 levels of 4 layers, bottleneck 4,
 #: growth 12 (published: 1.5 M parameters with a 1×1 classifier).
 FC_DENSENET56 = dict(first_channels=48, down_layers=(4, 4, 4, 4, 4), bottleneck_layers=4,
-                     growth=12)
+                     growth=12, reduction=4)
 #: A 3-level FC-DenseNet that trains on two CPU cores in minutes.
 FC_DENSENET_SMALL = dict(first_channels=16, down_layers=(2, 2, 2), bottleneck_layers=2,
-                         growth=8)
+                         growth=8, reduction=4)
 #: Smallest sensible net (unit tests).
-FC_DENSENET_TINY = dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8)
+FC_DENSENET_TINY = dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8,
+                        reduction=4)
 
 _FEATURE_KEYS = ("first_channels", "down_layers", "bottleneck_layers", "growth", "reduction",
                  "attention", "dropout")
