@@ -6,7 +6,10 @@ into tiles that overlap by ``R`` on every side and only the tile centres are kep
 memory then grows with the tile, not the image (a 2048×1024 HSCNN-D needs ~9 GB
 for its 1088 dense feature channels in one piece). Networks with image-wide
 operations (attention over all pixels, global pooling, pooling pyramids) have
-``receptive_radius = None`` and are always run whole: tiling would change them.
+``receptive_radius = None`` and are run whole unless the caller asks for
+``approximate=True`` (plain tiles without overlap: each tile is then treated as an
+image of its own, e.g. AWAN's non-local block, whose pixel-by-pixel affinity would
+have 2.7·10¹¹ entries per quadrant of a 2048×1024 image).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from mehs.ssr.net.base import SSRNetwork
 
 @torch.no_grad()
 def predict_tiled(network: SSRNetwork, rgb: torch.Tensor, tile: int = 512,
-                  spectra: bool = True) -> torch.Tensor:
+                  spectra: bool = True, approximate: bool = False) -> torch.Tensor:
     """``rgb`` ``(N, 3, H, W)`` → ``(N, L, H, W)``, in ``tile``×``tile`` pieces when exact.
 
     Parameters
@@ -32,9 +35,15 @@ def predict_tiled(network: SSRNetwork, rgb: torch.Tensor, tile: int = 512,
     spectra
         True: :meth:`SSRNetwork.spectra` (luminance restored in similarity mode);
         False: the raw output.
+    approximate
+        Also tile networks with image-wide operations (no overlap; not exact).
     """
+    if tile < 1:
+        raise ValueError(f"tile must be at least 1 pixel, got {tile}")
     fn = network.spectra if spectra else network
     r = network.receptive_radius
+    if r is None and approximate:
+        r = 0
     h, w = rgb.shape[-2:]
     if r is None or (h <= tile and w <= tile):
         return fn(rgb)
