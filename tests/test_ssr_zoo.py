@@ -194,3 +194,24 @@ def test_train_ssr_cli_refuses_a_bad_param_before_reading_data(tmp_path, capsys)
     assert main(["train-ssr", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"),
                  "--arch", "mstpp", "--param", "stages"]) == 2
     assert "KEY=VALUE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_every_architecture_trains_with_the_one_recipe_and_reloads(arch, tmp_path):
+    from mehs.ssr.net.train import TrainConfig, TrainingPair, load_network, train_network
+
+    rng = np.random.default_rng(0)
+    hs = rng.uniform(0.05, 2.0, (20, 18, 31)).astype(np.float32)
+    rgb = rng.uniform(0.05, 3.0, (20, 18, 3)).astype(np.float32)
+    cfg = NetConfig(arch=arch, preset="tiny", mode="e2e" if arch == "awan" else "similarity")
+    tc = TrainConfig.for_arch(arch, epochs=1, batch=2, patch=12, patches_per_image=2)
+    if arch == "awan":
+        assert (tc.lr_max, tc.lr_min) == (2e-4, 1e-5)  # the paper's AWAN range
+    res = train_network([TrainingPair(rgb, hs)], tmp_path, net_config=cfg, train_config=tc,
+                        progress=False)
+    assert np.isfinite(res.history[0]["train_loss"])
+    net, state = load_network(res.last_checkpoint)
+    assert (state["arch"], state["preset"], state["mode"]) == (arch, "tiny", cfg.mode)
+    x = torch.from_numpy(rgb.transpose(2, 0, 1)[None].copy())
+    with torch.no_grad():
+        torch.testing.assert_close(net.spectra(x), res.network.eval().spectra(x))

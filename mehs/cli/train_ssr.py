@@ -152,11 +152,11 @@ def run(args):
     net_config = NetConfig(arch=args.arch, preset=args.preset, mode=args.mode,
                            wavelengths=wl.tolist(), reinhard=args.reinhard,
                            reinhard_scale=args.reinhard_scale, input=args.input, params=params)
-    lr_max = args.lr_max if args.lr_max is not None else arch.recipe.get("lr_max", 0.002)
-    lr_min = args.lr_min if args.lr_min is not None else arch.recipe.get("lr_min", 0.0001)
-    tc = TrainConfig(epochs=args.epochs, batch=args.batch, patch=args.patch,
-                     patches_per_image=args.patches_per_image, lr_max=lr_max,
-                     lr_min=lr_min, T0=args.t0, seed=args.seed, device=args.device)
+    lr = {k: v for k, v in (("lr_max", args.lr_max), ("lr_min", args.lr_min)) if v is not None}
+    tc = TrainConfig.for_arch(args.arch, epochs=args.epochs, batch=args.batch, patch=args.patch,
+                              patches_per_image=args.patches_per_image, T0=args.t0,
+                              seed=args.seed, device=args.device, **lr)
+    lr_max, lr_min = tc.lr_max, tc.lr_min
     print(f"training {args.arch} ({args.preset}, {args.mode}) on {len(pairs)} scene(s)"
           f"{f', validating on {len(val)}' if val else ''} ({args.input.upper()}-RGB, "
           f"{'Reinhard' if args.reinhard else 'linear'} input), {args.epochs} epochs, "

@@ -108,6 +108,14 @@ class TrainConfig:
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
         return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
 
+    @classmethod
+    def for_arch(cls, arch: str, **overrides) -> "TrainConfig":
+        """The recipe with the architecture's changes (AWAN's learning-rate range) applied;
+        ``overrides`` win over both."""
+        from mehs.ssr.net.zoo import get_architecture
+
+        return cls(**{**get_architecture(arch).recipe, **overrides})
+
 
 @dataclass
 class TrainResult:
