@@ -174,7 +174,8 @@ def test_format_1_checkpoints_still_load(tmp_path):
 @pytest.mark.parametrize("kwargs, msg", [
     (dict(arch="unet"), "unknown network architecture 'unet'.*mstpp"),
     (dict(arch="awan", params={"growth": 4}), r"no parameter\(s\) \['growth'\]"),
-    (dict(arch="hscnnd", params={"n_blocks": 0}), "n_blocks must be a positive size"),
+    (dict(arch="hscnnd", params={"n_blocks": 0}), "n_blocks must be a positive whole number"),
+    (dict(arch="mikamoto", params={"growth": 4.5}), "growth must be a positive whole number"),
     (dict(arch="galliani", params={"dropout": 1.5}), "dropout"),
     (dict(arch="mstpp", preset="huge"), "no preset 'huge'"),
     (dict(arch="mstpp", mode="mse"), "learning mode"),

@@ -129,6 +129,7 @@ def run(args):
         import torch  # noqa: F401
     except ImportError:
         raise InputError("'mehs train-ssr' needs PyTorch: pip install \"mehs[torch]\"") from None
+    import math
     from pathlib import Path
 
     from mehs.ssr.net.base import NetConfig
@@ -141,6 +142,8 @@ def run(args):
             raise InputError(f"--{name.replace('_', '-')} must be at least 1")
     if args.threads < 0:
         raise InputError("--threads must be 0 (torch's choice) or more")
+    if not (math.isfinite(args.reinhard_scale) and args.reinhard_scale > 0):
+        raise InputError(f"--reinhard-scale must be a positive number, got {args.reinhard_scale}")
     arch = get_architecture(args.arch)
     params = parse_params(args.param)
     arch.params(args.preset, params)  # refuse a bad --param before reading the data

@@ -86,8 +86,9 @@ def _check_sizes(arch: str, p: dict[str, Any]) -> None:
             continue
         vals = list(v) if isinstance(v, (list, tuple)) else [v]
         for x in vals:
-            if not isinstance(x, (int, float)) or x < (0 if k == "levels" else 1):
-                raise InputError(f"{arch}: parameter {k} must be a positive size, got {v!r}")
+            if isinstance(x, bool) or not isinstance(x, int) or x < (0 if k == "levels" else 1):
+                raise InputError(f"{arch}: parameter {k} must be a positive whole number, "
+                                 f"got {v!r}")
         if isinstance(v, (list, tuple)) and not vals:
             raise InputError(f"{arch}: parameter {k} must not be empty")
     d = p.get("dropout", 0.0)
