@@ -1,6 +1,6 @@
 """Conversion time of the SSR networks on a 2048×1024 HDR image on the CPU, beside Smits 1999.
 
-    python benchmarks/bench_ssr_net.py [--quick] [--size small|tiny|large] [--threads N] [--no-onnx]
+    python benchmarks/bench_ssr_net.py [--quick] [--size small|tiny|full] [--threads N] [--no-onnx]
 
 Reference measured in the same run: the vectorised Smits 1999 baseline
 (``mehs.ssr.baselines.Smits1999``). Paper figures (CPU i9-11900, 2048×1024):
@@ -40,7 +40,7 @@ def best_time(fn, x, repeat: int) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="512×256 instead of 2048×1024")
-    ap.add_argument("--size", default="small", help="network size preset of mehs train-ssr")
+    ap.add_argument("--size", default="small", help="zoo preset (--preset of mehs train-ssr)")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--no-onnx", dest="onnx", action="store_false",
@@ -52,9 +52,8 @@ def main(argv=None) -> int:
 
     import torch
 
-    from mehs.cli.train_ssr import NET_SIZES
     from mehs.ssr.baselines import Smits1999
-    from mehs.ssr.net import build_network
+    from mehs.ssr.net.zoo import ARCHITECTURES
     from mehs.ssr.net.export import TorchSSRModel, export_onnx
 
     if args.threads:
@@ -64,8 +63,12 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     rows = [("smits", "Smits 1999 (vectorised numpy)", Smits1999())]
     nets = {}
-    for variant in ("hdrssr", "fcdensenet"):
-        net = build_network(variant=variant, **NET_SIZES[args.size])
+    # the paper's net, and the FC-DenseNet end to end (the attention variant format 1
+    # called "fcdensenet"); bench_ssr_zoo.py times every architecture
+    for variant, make in (("hdrssr", lambda: ARCHITECTURES["hdrssr"](args.size)),
+                          ("fcdensenet", lambda: ARCHITECTURES["galliani"](
+                              args.size, mode="e2e", params={"attention": True, "dropout": 0.0}))):
+        net = make()
         nets[variant] = net
         n_par = sum(p.numel() for p in net.parameters())
         rows.append((variant, f"{variant} torch ({args.size}, {n_par / 1e3:.0f} k params)",

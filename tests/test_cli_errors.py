@@ -341,8 +341,11 @@ def test_train_ssr_bad_options(check):
     check(["train-ssr", "FX/nope", "--out", "OUT/t"], "FX/nope")
     check(["train-ssr", "FX/ds", "--out", "OUT/t", "--epochs", "0"], "--epochs")
     check(["train-ssr", "FX/ds", "--out", "OUT/t", "--lr-max", "-1", "--quiet"], "lr_max")
-    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--growth", "-3", "--quiet"], "growth")
-    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--growth", "0", "--quiet"], "growth")
+    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--param", "growth=-3", "--quiet"], "growth")
+    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--param", "growth=0", "--quiet"], "growth")
+    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--arch", "unet", "--quiet"], "'unet'", "mstpp")
+    check(["train-ssr", "FX/ds", "--out", "OUT/t", "--reinhard-scale", "0", "--quiet"],
+          "--reinhard-scale")
     check(["train-ssr", "FX/ds", "--out", "FX/cube.hdr", "--epochs", "1", "--quiet"],
           "FX/cube.hdr", "not a folder")
 

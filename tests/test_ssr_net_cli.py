@@ -21,7 +21,7 @@ def tiny_set(tmp_path_factory):
 
 def test_train_ssr_trains_resumes_and_exports(tiny_set, tmp_path, capsys):
     out = tmp_path / "run"
-    base = [str(tiny_set), "--out", str(out), "--size", "tiny", "--patch", "16", "--batch", "2",
+    base = [str(tiny_set), "--out", str(out), "--preset", "tiny", "--patch", "16", "--batch", "2",
             "--patches-per-image", "2", "--quiet", "--seed", "1"]
     assert main(["train-ssr", *base, "--epochs", "2", "--no-onnx"]) == 0
     assert not (out / "model.onnx").exists()
@@ -33,7 +33,8 @@ def test_train_ssr_trains_resumes_and_exports(tiny_set, tmp_path, capsys):
     assert [h["epoch"] for h in hist] == [0, 1, 2]
     assert all(np.isfinite(h["train_loss"]) and np.isfinite(h["val_loss"]) for h in hist)
     cfg = json.loads((out / "config.json").read_text())
-    assert cfg["net_config"]["variant"] == "hdrssr" and cfg["extra"]["train_split"] == "train"
+    assert cfg["net_config"]["arch"] == "hdrssr" and cfg["extra"]["train_split"] == "train"
+    assert cfg["net_config"]["mode"] == "similarity" and cfg["net_config"]["preset"] == "tiny"
 
     from mehs.ssr.data import load_pairs
     from mehs.ssr.models import load_model
@@ -49,14 +50,19 @@ def test_train_ssr_trains_resumes_and_exports(tiny_set, tmp_path, capsys):
 
 def test_train_ssr_end_to_end_variant_on_ldr_input(tiny_set, tmp_path):
     out = tmp_path / "e2e"
-    assert main(["train-ssr", str(tiny_set), "--out", str(out), "--variant", "fcdensenet",
-                 "--input", "ldr", "--no-reinhard", "--size", "tiny", "--epochs", "1",
+    assert main(["train-ssr", str(tiny_set), "--out", str(out), "--arch", "galliani",
+                 "--mode", "e2e", "--input", "ldr", "--no-reinhard", "--preset", "tiny",
+                 "--param", "growth=4", "--epochs", "1",
                  "--patch", "16", "--batch", "2", "--patches-per-image", "1", "--quiet",
                  "--no-onnx"]) == 0
     from mehs.ssr.net.train import read_checkpoint
 
     st = read_checkpoint(out / "last.pt")
-    assert st["variant"] == "fcdensenet" and st["net_config"]["reinhard"] is False
+    assert (st["arch"], st["mode"], st["preset"]) == ("galliani", "e2e", "tiny")
+    assert st["net_config"]["reinhard"] is False and st["net_config"]["params"] == {"growth": 4}
+    assert st["trained_input"] == {"arch": "galliani", "preset": "tiny", "mode": "e2e",
+                                   "input": "ldr", "preprocessing": None, "reinhard_scale": 1.0,
+                                   "restores_luminance": False}
     assert st["extra"]["input"] == "ldr"
 
 

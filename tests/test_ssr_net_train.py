@@ -41,7 +41,7 @@ def _checker_pair(h, w, seed, block=8):
 @pytest.mark.parametrize("variant,epochs", [("hdrssr", 40), ("fcdensenet", 80)])
 def test_tiny_network_overfits_a_tiny_set(tmp_path, variant, epochs):
     pairs = [_checker_pair(32, 32, 0)]
-    cfg = NetConfig(variant=variant, **TINY)
+    cfg = NetConfig.from_dict(dict(variant=variant, **TINY))
     torch.manual_seed(0)
     before = evaluate_pairs(build_network(cfg), pairs)["loss"]
     res = train_network(pairs, tmp_path, net_config=cfg, progress=False,
@@ -58,7 +58,7 @@ def test_tiny_network_overfits_a_tiny_set(tmp_path, variant, epochs):
 def test_checkpoints_resume_and_determinism(tmp_path):
     pairs = [_checker_pair(24, 24, 1), _checker_pair(24, 16, 2)]
     val = [_checker_pair(16, 24, 3)]
-    cfg = NetConfig(variant="hdrssr", **TINY)
+    cfg = NetConfig.from_dict(dict(variant="hdrssr", **TINY))
     tc = TrainConfig(epochs=4, batch=2, patch=16, patches_per_image=2, seed=7)
     full = train_network(pairs, tmp_path / "full", net_config=cfg, train_config=tc,
                          val_pairs=val, progress=False)

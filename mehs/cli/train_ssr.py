@@ -1,4 +1,11 @@
-"""`mehs train-ssr` — train the HDR SSR network (or the plain FC-DenseNet) on a dataset.
+"""`mehs train-ssr` — train a network of the SSR zoo (``--arch``) on a dataset.
+
+Every architecture (the paper's ``hdrssr``, ``mikamoto``, ``galliani``, ``hscnnd``,
+``awan``, ``mstpp``) trains with the same recipe in either learning mode
+(``--mode similarity|e2e``), at the published size (``--preset full``) or one that
+trains on two CPU cores (``--preset small``). The checkpoint records the
+architecture, preset, learning mode and trained input (HDR/LDR, Reinhard on/off and
+its scale).
 
 Needs the torch extra (``pip install "mehs[torch]"``). Reads a dataset folder
 (format 3) or a plain folder of pairs; trains on the ``train`` split (all
@@ -11,22 +18,26 @@ from __future__ import annotations
 
 from mehs.errors import InputError
 
-NET_SIZES = {
-    # ~80 k parameters: trains on a laptop CPU in minutes
-    "small": dict(first_channels=16, down_layers=(2, 2, 2), bottleneck_layers=2, growth=8),
-    "tiny": dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8),
-    # FC-DenseNet-56/67-sized (Jégou et al. 2017 use growth 12-16, 4-5 levels): a GPU job
-    "large": dict(first_channels=48, down_layers=(4, 5, 7, 10), bottleneck_layers=12,
-                  growth=16),
-}
+#: Zoo names, for the help text only (the zoo itself needs torch to import).
+ARCH_HELP = "hdrssr (the paper's), mikamoto, galliani, hscnnd, awan, mstpp"
 
 
 def configure(parser):
     parser.add_argument("dataset", help="dataset folder (manifest.json) or a plain folder of pairs")
     parser.add_argument("--out", required=True, help="output folder for checkpoints and model.onnx")
-    parser.add_argument("--variant", choices=("hdrssr", "fcdensenet"), default="hdrssr",
-                        help="hdrssr: basis branches, learns spectral similarity (default); "
-                             "fcdensenet: plain end-to-end FC-DenseNet, MSE on spectra")
+    parser.add_argument("--arch", default="hdrssr",
+                        help=f"architecture: {ARCH_HELP} (default hdrssr; "
+                             "`python -m mehs.ssr.net` lists them with parameter counts)")
+    parser.add_argument("--preset", choices=("full", "small", "tiny"), default="small",
+                        help="full: the published size (a GPU job); small: trains on two CPU "
+                             "cores (default); tiny: tests")
+    parser.add_argument("--mode", choices=("similarity", "e2e"), default="similarity",
+                        help="similarity: learn the standard spectrum HS/(X+Y+Z), luminance "
+                             "restored afterwards (default, the paper's ◇); e2e: MSE on the "
+                             "spectra, nothing restored")
+    parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one architecture parameter of the preset, e.g. "
+                             "growth=4, n_blocks=10, down_layers=2,2 (repeatable)")
     parser.add_argument("--epochs", type=int, default=40, help="total epochs (default 40)")
     parser.add_argument("--batch", type=int, default=8, help="patches per batch (default 8)")
     parser.add_argument("--patch", type=int, default=64, help="patch side in pixels (default 64)")
@@ -38,15 +49,15 @@ def configure(parser):
                         help="continue the run in --out from its last.pt")
     parser.add_argument("--no-reinhard", dest="reinhard", action="store_false",
                         help="feed linear RGB to the network instead of Reinhard x/(1+x)")
+    parser.add_argument("--reinhard-scale", type=float, default=1.0,
+                        help="Reinhard scale s: the network sees (x/s)/(1+x/s) (default 1, "
+                             "the data's unit); recorded in the checkpoint")
     parser.add_argument("--input", choices=("hdr", "ldr"), default="hdr",
                         help="train on pseudo-HDR-RGB (default) or on linearised LDR-RGB")
-    parser.add_argument("--size", choices=sorted(NET_SIZES), default="small",
-                        help="network size preset (default small)")
-    parser.add_argument("--growth", type=int, help="override the preset's growth rate")
-    parser.add_argument("--n-basis", type=int, default=10,
-                        help="basis functions per branch (default 10)")
-    parser.add_argument("--lr-max", type=float, default=0.002, help="η_max (default 0.002)")
-    parser.add_argument("--lr-min", type=float, default=0.0001, help="η_min (default 0.0001)")
+    parser.add_argument("--lr-max", type=float, default=None,
+                        help="η_max (default 0.002; AWAN 0.0002 as in the paper)")
+    parser.add_argument("--lr-min", type=float, default=None,
+                        help="η_min (default 0.0001; AWAN 0.00001 as in the paper)")
     parser.add_argument("--t0", type=int, default=20, help="warm-restart period T0 in epochs (default 20)")
     parser.add_argument("--no-onnx", dest="onnx", action="store_false",
                         help="do not export OUT/model.onnx at the end")
@@ -54,6 +65,30 @@ def configure(parser):
                         help="torch CPU threads (default 0: torch's choice); 1 is often "
                              "faster on a busy machine")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def parse_params(items) -> dict:
+    """``["growth=4", "down_layers=2,2", "dropout=0.1", "attention=false"]`` → typed dict."""
+    out = {}
+    for item in items:
+        key, sep, raw = str(item).partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key or not raw.strip():
+            raise InputError(f"--param must be KEY=VALUE, got {item!r}")
+        vals = [_parse_value(v.strip(), item) for v in raw.split(",")]
+        out[key] = vals[0] if "," not in raw else tuple(vals)
+    return out
+
+
+def _parse_value(v: str, item: str):
+    if v.lower() in ("true", "false"):
+        return v.lower() == "true"
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    raise InputError(f"--param {item!r}: {v!r} is not a number or true/false")
 
 
 def load_training_pairs(dataset, *, split: str | None, kind: str = "hdr"):
@@ -94,34 +129,41 @@ def run(args):
         import torch  # noqa: F401
     except ImportError:
         raise InputError("'mehs train-ssr' needs PyTorch: pip install \"mehs[torch]\"") from None
+    import math
     from pathlib import Path
 
+    from mehs.ssr.net.base import NetConfig
     from mehs.ssr.net.export import export_onnx
-    from mehs.ssr.net.model import NetConfig
     from mehs.ssr.net.train import TrainConfig, history_summary, train_network
+    from mehs.ssr.net.zoo import get_architecture
 
-    for name in ("epochs", "batch", "patch", "patches_per_image", "n_basis", "t0"):
+    for name in ("epochs", "batch", "patch", "patches_per_image", "t0"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be at least 1")
     if args.threads < 0:
         raise InputError("--threads must be 0 (torch's choice) or more")
+    if not (math.isfinite(args.reinhard_scale) and args.reinhard_scale > 0):
+        raise InputError(f"--reinhard-scale must be a positive number, got {args.reinhard_scale}")
+    arch = get_architecture(args.arch)
+    params = parse_params(args.param)
+    arch.params(args.preset, params)  # refuse a bad --param before reading the data
     if args.threads:
         torch.set_num_threads(args.threads)
     train_split, val_split = _splits(args.dataset)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []
-    size = dict(NET_SIZES[args.size])
-    if args.growth is not None:  # "--growth 0" must be refused, not ignored
-        size["growth"] = args.growth
-    net_config = NetConfig(variant=args.variant, wavelengths=wl.tolist(), n_basis=args.n_basis,
-                           reinhard=args.reinhard, **size)
-    tc = TrainConfig(epochs=args.epochs, batch=args.batch, patch=args.patch,
-                     patches_per_image=args.patches_per_image, lr_max=args.lr_max,
-                     lr_min=args.lr_min, T0=args.t0, seed=args.seed, device=args.device)
-    print(f"training {args.variant} on {len(pairs)} scene(s)"
+    net_config = NetConfig(arch=args.arch, preset=args.preset, mode=args.mode,
+                           wavelengths=wl.tolist(), reinhard=args.reinhard,
+                           reinhard_scale=args.reinhard_scale, input=args.input, params=params)
+    lr = {k: v for k, v in (("lr_max", args.lr_max), ("lr_min", args.lr_min)) if v is not None}
+    tc = TrainConfig.for_arch(args.arch, epochs=args.epochs, batch=args.batch, patch=args.patch,
+                              patches_per_image=args.patches_per_image, T0=args.t0,
+                              seed=args.seed, device=args.device, **lr)
+    lr_max, lr_min = tc.lr_max, tc.lr_min
+    print(f"training {args.arch} ({args.preset}, {args.mode}) on {len(pairs)} scene(s)"
           f"{f', validating on {len(val)}' if val else ''} ({args.input.upper()}-RGB, "
           f"{'Reinhard' if args.reinhard else 'linear'} input), {args.epochs} epochs, "
-          f"device {args.device}")
+          f"lr {lr_max:g}..{lr_min:g}, device {args.device}")
     res = train_network(pairs, args.out, net_config=net_config, train_config=tc, val_pairs=val,
                         resume=args.resume, progress=not args.quiet,
                         extra={"dataset": str(Path(args.dataset).resolve()),

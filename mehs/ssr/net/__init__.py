@@ -1,18 +1,24 @@
-"""The HDR SSR network (PyTorch, optional extra ``mehs[torch]``).
+"""The SSR network zoo (PyTorch, optional extra ``mehs[torch]``).
 
-An FC-DenseNet feature extractor whose dense layers use channel attention in
-place of dropout, followed by two basis-function branches (sigmoid and
-Mexican hat) and a fusion layer that predicts the *standard spectrum*
-``S = HS / (X+Y+Z)`` of every pixel; the luminance is restored afterwards with
-:func:`mehs.ssr.luminance.restore_luminance`. The plain end-to-end FC-DenseNet
-(MSE on the spectra) is the comparison variant.
+Every network maps linear RGB ``(N, 3, H, W)`` to ``(N, L, H, W)`` and is trained by
+one recipe (:mod:`~mehs.ssr.net.train`) in either learning mode: spectral similarity
+(the standard spectrum ``S = HS/(X+Y+Z)``, luminance restored afterwards) or end to
+end (MSE on the spectra). Architectures, one module each, all in the dispatcher dict
+:data:`~mehs.ssr.net.zoo.ARCHITECTURES`:
 
-Modules: :mod:`~mehs.ssr.net.layers` (dense blocks, channel attention,
-FC-DenseNet), :mod:`~mehs.ssr.net.basis` (basis functions and branches),
-:mod:`~mehs.ssr.net.model` (the two variants, losses, configuration),
-:mod:`~mehs.ssr.net.train` (training loop, checkpoints),
-:mod:`~mehs.ssr.net.export` (model-contract wrapper, ONNX export),
-:mod:`~mehs.ssr.net.register` (registers ``hdrssr`` and ``fcdensenet``).
+- ``hdrssr`` (:mod:`~mehs.ssr.net.hdrssr`): the HDR SSR paper's network;
+- ``mikamoto`` (:mod:`~mehs.ssr.net.mikamoto`): Mikamoto's two-branch network;
+- ``galliani`` (:mod:`~mehs.ssr.net.galliani2017`): Galliani 2017, FC-DenseNet;
+- ``hscnnd`` (:mod:`~mehs.ssr.net.hscnnd2018`): HSCNN-D, Shi 2018;
+- ``awan`` (:mod:`~mehs.ssr.net.awan2020`): AWAN, Li 2020;
+- ``mstpp`` (:mod:`~mehs.ssr.net.mstpp2022`): MST++, Cai 2022.
+
+Shared pieces: :mod:`~mehs.ssr.net.base` (configuration, learning modes, losses,
+luminance restoration), :mod:`~mehs.ssr.net.layers` (FC-DenseNet, channel
+attention), :mod:`~mehs.ssr.net.basis` (basis functions and branches),
+:mod:`~mehs.ssr.net.infer` (tiled inference), :mod:`~mehs.ssr.net.train` (training
+loop, checkpoints), :mod:`~mehs.ssr.net.export` (model-contract wrapper, ONNX).
+``python -m mehs.ssr.net`` prints the parameter counts.
 
 Importing this package needs torch; the rest of mehs does not.
 """
@@ -26,16 +32,19 @@ except ImportError as exc:  # pragma: no cover - depends on the environment
         "mehs.ssr.net needs PyTorch: install the extra with "
         "`pip install \"mehs[torch]\"` (torch==2.13.0)") from exc
 
+from mehs.ssr.net.base import LEARNING_MODES, NetConfig, SSRNetwork  # noqa: E402
 from mehs.ssr.net.basis import (BASIS_FUNCTIONS, MexicanHatBranch, SigmoidBasisBranch,  # noqa: E402
                                 mexican_hat_basis, normalise_wavelengths, sigmoid_basis,
                                 sigmoid_Jakob2019)
 from mehs.ssr.net.layers import ChannelAttention, DenseLayer, FCDenseNet  # noqa: E402
-from mehs.ssr.net.model import (VARIANTS, FCDenseNetSSR, HDRSSRNet, NetConfig,  # noqa: E402
-                                build_network)
+from mehs.ssr.net.model import VARIANTS, FCDenseNetSSR, HDRSSRNet  # noqa: E402
+from mehs.ssr.net.zoo import (ARCHITECTURES, build_network, format_parameter_table,  # noqa: E402
+                              parameter_table)
 
 __all__ = [
-    "BASIS_FUNCTIONS", "ChannelAttention", "DenseLayer", "FCDenseNet", "FCDenseNetSSR",
-    "HDRSSRNet", "MexicanHatBranch", "NetConfig", "SigmoidBasisBranch", "VARIANTS",
-    "build_network", "mexican_hat_basis", "normalise_wavelengths", "sigmoid_Jakob2019",
+    "ARCHITECTURES", "BASIS_FUNCTIONS", "ChannelAttention", "DenseLayer", "FCDenseNet",
+    "FCDenseNetSSR", "HDRSSRNet", "LEARNING_MODES", "MexicanHatBranch", "NetConfig",
+    "SSRNetwork", "SigmoidBasisBranch", "VARIANTS", "build_network", "format_parameter_table",
+    "mexican_hat_basis", "normalise_wavelengths", "parameter_table", "sigmoid_Jakob2019",
     "sigmoid_basis",
 ]

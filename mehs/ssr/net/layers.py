@@ -1,4 +1,6 @@
-"""FC-DenseNet ("Tiramisu") with channel attention in place of dropout.
+"""FC-DenseNet ("Tiramisu"): dense layers with dropout (Jégou et al. 2017, as
+Galliani et al. 2017 and Mikamoto et al. use it) or with channel attention in place
+of dropout (the HDR SSR paper, Fig. 6).
 
 Shapes are PyTorch's ``(N, C, H, W)``. :class:`FCDenseNet` pads ``H`` and ``W``
 up to a multiple of ``2**depth`` (replicate padding) and crops the features back,
@@ -47,15 +49,18 @@ class ChannelAttention(nn.Module):
 
 
 class DenseLayer(nn.Sequential):
-    """BN → ReLU → 3×3 conv (``growth`` channels) → channel attention (instead of dropout)."""
+    """BN → ReLU → 3×3 conv (``growth`` channels) → channel attention (``attention``,
+    the paper's layer) or dropout ``p = dropout`` (Jégou's original layer)."""
 
-    def __init__(self, in_channels: int, growth: int, reduction: int = 4):
-        super().__init__(
-            nn.BatchNorm2d(in_channels),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(in_channels, growth, kernel_size=3, padding=1, bias=False),
-            ChannelAttention(growth, reduction),
-        )
+    def __init__(self, in_channels: int, growth: int, reduction: int = 4, *,
+                 attention: bool = True, dropout: float = 0.0):
+        layers = [nn.BatchNorm2d(in_channels), nn.ReLU(inplace=True),
+                  nn.Conv2d(in_channels, growth, kernel_size=3, padding=1, bias=False)]
+        if attention:
+            layers.append(ChannelAttention(growth, reduction))
+        if dropout > 0:
+            layers.append(nn.Dropout2d(dropout))
+        super().__init__(*layers)
 
 
 class DenseBlock(nn.Module):
@@ -64,11 +69,12 @@ class DenseBlock(nn.Module):
     (``n_layers·growth`` channels) or, with ``keep_input``, input + new features."""
 
     def __init__(self, in_channels: int, n_layers: int, growth: int, reduction: int = 4,
-                 *, keep_input: bool = False):
+                 *, keep_input: bool = False, attention: bool = True, dropout: float = 0.0):
         super().__init__()
         self.keep_input = keep_input
         self.layers = nn.ModuleList(
-            DenseLayer(in_channels + i * growth, growth, reduction) for i in range(n_layers))
+            DenseLayer(in_channels + i * growth, growth, reduction, attention=attention,
+                       dropout=dropout) for i in range(n_layers))
         self.out_channels = (in_channels if keep_input else 0) + n_layers * growth
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -79,15 +85,14 @@ class DenseBlock(nn.Module):
 
 
 class TransitionDown(nn.Sequential):
-    """BN → ReLU → 1×1 conv → 2×2 max-pool (halves H and W)."""
+    """BN → ReLU → 1×1 conv → (dropout) → 2×2 max-pool (halves H and W)."""
 
-    def __init__(self, channels: int):
-        super().__init__(
-            nn.BatchNorm2d(channels),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(channels, channels, kernel_size=1, bias=False),
-            nn.MaxPool2d(2),
-        )
+    def __init__(self, channels: int, dropout: float = 0.0):
+        layers = [nn.BatchNorm2d(channels), nn.ReLU(inplace=True),
+                  nn.Conv2d(channels, channels, kernel_size=1, bias=False)]
+        if dropout > 0:
+            layers.append(nn.Dropout2d(dropout))
+        super().__init__(*layers, nn.MaxPool2d(2))
 
 
 class FCDenseNet(nn.Module):
@@ -108,14 +113,21 @@ class FCDenseNet(nn.Module):
         Growth rate (channels each dense layer adds).
     reduction
         Channel-attention reduction ratio ``r``.
+    attention, dropout
+        Dense layers with channel attention (the paper's) and/or dropout ``p``
+        (Jégou's original: ``attention=False, dropout=0.2``).
 
     Input ``(N, in_channels, H, W)``; output ``(N, out_channels, H, W)``.
     """
 
     def __init__(self, in_channels: int = 3, *, first_channels: int = 16,
                  down_layers: Sequence[int] = (2, 2, 2), bottleneck_layers: int = 2,
-                 growth: int = 8, reduction: int = 4):
+                 growth: int = 8, reduction: int = 4, attention: bool = True,
+                 dropout: float = 0.0):
         super().__init__()
+        if not 0.0 <= float(dropout) < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        opts = dict(attention=bool(attention), dropout=float(dropout))
         self.depth = len(down_layers)
         self.first = nn.Conv2d(in_channels, first_channels, kernel_size=3, padding=1)
         self.down_blocks = nn.ModuleList()
@@ -123,12 +135,12 @@ class FCDenseNet(nn.Module):
         skips = []
         c = first_channels
         for n in down_layers:
-            block = DenseBlock(c, n, growth, reduction, keep_input=True)
+            block = DenseBlock(c, n, growth, reduction, keep_input=True, **opts)
             self.down_blocks.append(block)
             c = block.out_channels
             skips.append(c)
-            self.trans_down.append(TransitionDown(c))
-        self.bottleneck = DenseBlock(c, bottleneck_layers, growth, reduction)
+            self.trans_down.append(TransitionDown(c, float(dropout)))
+        self.bottleneck = DenseBlock(c, bottleneck_layers, growth, reduction, **opts)
         up_in = self.bottleneck.out_channels
         self.trans_up = nn.ModuleList()
         self.up_blocks = nn.ModuleList()
@@ -137,7 +149,7 @@ class FCDenseNet(nn.Module):
             self.trans_up.append(nn.ConvTranspose2d(up_in, up_in, kernel_size=3, stride=2,
                                                     padding=1, output_padding=1))
             last = i == len(up_layers) - 1
-            block = DenseBlock(up_in + skip, n, growth, reduction, keep_input=last)
+            block = DenseBlock(up_in + skip, n, growth, reduction, keep_input=last, **opts)
             self.up_blocks.append(block)
             up_in = block.out_channels
         self.out_channels = up_in

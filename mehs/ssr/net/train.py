@@ -9,7 +9,14 @@ so a resumed run draws the same patches as an uninterrupted one).
 
 An *epoch* is ``ceil(n_images · patches_per_image / batch)`` batches.
 
-Checkpoints (``torch.save`` of plain dicts, written atomically):
+Every zoo architecture (:data:`mehs.ssr.net.zoo.ARCHITECTURES`) trains with this one
+recipe, in either learning mode (the loss is the network's, :meth:`SSRNetwork.loss`);
+an architecture's ``recipe`` (AWAN: η_max 2e-4, η_min 1e-5, as the paper did) changes
+only the learning-rate range, and only where the caller leaves it at its default.
+
+Checkpoints (``torch.save`` of plain dicts, written atomically; format 2 records
+``arch``, ``preset``, ``mode`` and the trained input beside the weights; format 1,
+the single-architecture checkpoints, still load):
 ``OUT/last.pt`` after every epoch, ``OUT/best.pt`` whenever the validation loss
 (training loss when there is no validation set) improves; ``OUT/history.json``
 holds the per-epoch figures and ``OUT/config.json`` the configuration.
@@ -29,9 +36,12 @@ import torch
 from mehs import __version__
 from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path, check_output_dir, make_output_dir, write_json_atomic
-from mehs.ssr.net.model import NetConfig, build_network
+from mehs.ssr.net.base import NetConfig
+from mehs.ssr.net.zoo import build_network
 
-CHECKPOINT_FORMAT = "mehs-ssr-net/1"
+CHECKPOINT_FORMAT = "mehs-ssr-net/2"
+#: Formats :func:`read_checkpoint` accepts (1: before the zoo; its config is migrated).
+READABLE_FORMATS = ("mehs-ssr-net/1", CHECKPOINT_FORMAT)
 
 
 @dataclass
@@ -97,6 +107,14 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
         return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+
+    @classmethod
+    def for_arch(cls, arch: str, **overrides) -> "TrainConfig":
+        """The recipe with the architecture's changes (AWAN's learning-rate range) applied;
+        ``overrides`` win over both."""
+        from mehs.ssr.net.zoo import get_architecture
+
+        return cls(**{**get_architecture(arch).recipe, **overrides})
 
 
 @dataclass
@@ -196,6 +214,10 @@ def save_checkpoint(path: str | Path, network, optimizer, scheduler, *, epoch: i
         "format": CHECKPOINT_FORMAT,
         "software_version": __version__,
         "variant": network.config.variant,
+        "arch": network.config.arch,
+        "preset": network.config.preset,
+        "mode": network.config.mode,
+        "trained_input": network.trained_input(),
         "net_config": network.config.to_dict(),
         "train_config": asdict(train_config),
         "epoch": int(epoch),
@@ -220,16 +242,24 @@ def read_checkpoint(path: str | Path, map_location="cpu") -> dict:
     except Exception as exc:  # torch raises several unrelated types for corrupt files
         raise FormatError(f"not a readable torch checkpoint ({type(exc).__name__}: {exc})",
                           path) from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(state, dict) or state.get("format") not in READABLE_FORMATS:
         raise FormatError(f"not a mehs SSR network checkpoint (expected format "
                           f"{CHECKPOINT_FORMAT!r})", path)
+    try:
+        NetConfig.from_dict(state["net_config"])
+    except (InputError, KeyError, TypeError) as exc:
+        raise FormatError(f"checkpoint has no usable network configuration ({exc})",
+                          path) from None
     return state
 
 
 def load_network(path: str | Path, map_location="cpu"):
     """Rebuild the network stored in a checkpoint, in eval mode. Returns ``(network, state)``."""
     state = read_checkpoint(path, map_location)
-    net = build_network(NetConfig.from_dict(state["net_config"]))
+    try:
+        net = build_network(NetConfig.from_dict(state["net_config"]))
+    except InputError as exc:
+        raise FormatError(f"checkpoint configuration does not build ({exc})", path) from None
     try:
         net.load_state_dict(state["model"])
     except RuntimeError as exc:

@@ -1,0 +1,203 @@
+"""MST++ (Cai et al. 2022): multi-stage spectral-wise transformer, NTIRE 2022 winner.
+
+Layer by layer as the authors' ``MST_Plus_Plus`` (caiyuanhao1998/MST-plus-plus):
+3×3 conv in (3 → C) → ``stage`` single-stage MSTs in sequence → 3×3 conv out
+(C → L) + the conv-in features (global residual). Each MST is a U-shaped
+encoder–decoder of spectral-wise multi-head self-attention blocks (MSAB):
+embedding 3×3 conv; per level an MSAB then a 4×4 stride-2 conv doubling the
+channels; a bottleneck MSAB; per level a 2×2 stride-2 transposed conv, a 1×1 fusion
+conv with the skip, an MSAB; a 3×3 mapping conv + the MST's input.
+
+An MSAB block is ``x + S-MSA(x)`` then ``x + FFN(LayerNorm(x))``. S-MSA treats each
+channel as a token: per head (head dim = C), ``A = softmax(σ · K̂ Q̂ᵀ)`` over the
+``d × d`` channel similarity of L2-normalised (over pixels) keys and queries, ``A V``,
+a linear projection, plus a positional term: depth-wise 3×3 conv → GELU → depth-wise
+3×3 conv applied to V. FFN: 1×1 conv (×4) → GELU → depth-wise 3×3 → GELU → 1×1 conv.
+The cost is linear in the number of pixels.
+
+Input ``(N, 3, H, W)``, padded (reflect; replicate for images smaller than the pad)
+to a multiple of 8 and cropped back; output ``(N, L, H, W)``. The channel width is the
+number of output bands (31), as in the authors' code: the global residual adds the
+conv-in features to the output.
+
+Full preset (3 stages, 2 levels, one block per MSAB): 1.62 M parameters with 31
+bands, as the MST++ paper lists.
+
+References
+----------
+- Cai, Y., Lin, J., Lin, Z., Wang, H., Zhang, Y., Pfister, H., Timofte, R., Van Gool,
+  L. (2022). MST++: Multi-stage Spectral-wise Transformer for Efficient Spectral
+  Reconstruction. CVPR Workshops.
+- Cai, Y. et al. (2022). Mask-guided Spectral-wise Transformer for Efficient
+  Hyperspectral Image Reconstruction. CVPR (the single-stage MST).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from mehs.errors import InputError
+from mehs.ssr.net.base import NetConfig, SSRNetwork
+
+
+class SpectralMSA(nn.Module):
+    """Spectral-wise multi-head self-attention on ``(N, H, W, C)`` → ``(N, H, W, C)``."""
+
+    def __init__(self, dim: int, dim_head: int, heads: int):
+        super().__init__()
+        self.heads, self.dim_head = heads, dim_head
+        inner = dim_head * heads
+        if inner != dim:
+            raise ValueError(f"S-MSA needs heads·dim_head == dim, got {heads}·{dim_head} != {dim}")
+        self.to_q = nn.Linear(dim, inner, bias=False)
+        self.to_k = nn.Linear(dim, inner, bias=False)
+        self.to_v = nn.Linear(dim, inner, bias=False)
+        self.rescale = nn.Parameter(torch.ones(heads, 1, 1))
+        self.proj = nn.Linear(inner, dim, bias=True)
+        self.pos_emb = nn.Sequential(
+            nn.Conv2d(dim, dim, 3, 1, 1, bias=False, groups=dim), nn.GELU(),
+            nn.Conv2d(dim, dim, 3, 1, 1, bias=False, groups=dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, h, w, c = x.shape
+        tokens = x.reshape(n, h * w, c)
+        v_inp = self.to_v(tokens)
+
+        def heads_first(t):  # (n, hw, heads·d) → (n, heads, d, hw)
+            return t.reshape(n, h * w, self.heads, self.dim_head).permute(0, 2, 3, 1)
+
+        q = F.normalize(heads_first(self.to_q(tokens)), dim=-1, p=2)
+        k = F.normalize(heads_first(self.to_k(tokens)), dim=-1, p=2)
+        v = heads_first(v_inp)
+        attn = (k @ q.transpose(-2, -1)) * self.rescale  # (n, heads, d, d)
+        out = attn.softmax(dim=-1) @ v                    # (n, heads, d, hw)
+        out = out.permute(0, 3, 1, 2).reshape(n, h * w, self.heads * self.dim_head)
+        out_c = self.proj(out).view(n, h, w, c)
+        out_p = self.pos_emb(v_inp.reshape(n, h, w, c).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        return out_c + out_p
+
+
+class FeedForward(nn.Module):
+    """1×1 conv (×mult) → GELU → depth-wise 3×3 → GELU → 1×1 conv, on ``(N, H, W, C)``."""
+
+    def __init__(self, dim: int, mult: int = 4):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(dim, dim * mult, 1, 1, bias=False), nn.GELU(),
+            nn.Conv2d(dim * mult, dim * mult, 3, 1, 1, bias=False, groups=dim * mult), nn.GELU(),
+            nn.Conv2d(dim * mult, dim, 1, 1, bias=False))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+
+
+class MSAB(nn.Module):
+    """``num_blocks`` × (S-MSA + residual, LayerNorm → FFN + residual) on ``(N, C, H, W)``."""
+
+    def __init__(self, dim: int, dim_head: int, heads: int, num_blocks: int):
+        super().__init__()
+        self.attn = nn.ModuleList(SpectralMSA(dim, dim_head, heads) for _ in range(num_blocks))
+        self.norm = nn.ModuleList(nn.LayerNorm(dim) for _ in range(num_blocks))
+        self.ff = nn.ModuleList(FeedForward(dim) for _ in range(num_blocks))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.permute(0, 2, 3, 1)
+        for attn, norm, ff in zip(self.attn, self.norm, self.ff):
+            x = attn(x) + x
+            x = ff(norm(x)) + x
+        return x.permute(0, 3, 1, 2)
+
+
+class MST(nn.Module):
+    """Single-stage U-shaped spectral transformer, ``(N, C, H, W)`` → ``(N, C, H, W)``;
+    H and W must be multiples of ``2**levels``."""
+
+    def __init__(self, dim: int, levels: int, num_blocks: Sequence[int]):
+        super().__init__()
+        if len(num_blocks) != levels + 1:
+            raise ValueError(f"MST with {levels} levels needs {levels + 1} block counts")
+        self.embedding = nn.Conv2d(dim, dim, 3, 1, 1, bias=False)
+        self.encoder = nn.ModuleList()
+        d = dim
+        for i in range(levels):
+            self.encoder.append(nn.ModuleList([
+                MSAB(d, dim, d // dim, num_blocks[i]),
+                nn.Conv2d(d, 2 * d, 4, 2, 1, bias=False)]))
+            d *= 2
+        self.bottleneck = MSAB(d, dim, d // dim, num_blocks[-1])
+        self.decoder = nn.ModuleList()
+        for i in range(levels):
+            self.decoder.append(nn.ModuleList([
+                nn.ConvTranspose2d(d, d // 2, kernel_size=2, stride=2),
+                nn.Conv2d(d, d // 2, 1, 1, bias=False),
+                MSAB(d // 2, dim, (d // 2) // dim, num_blocks[levels - 1 - i])]))
+            d //= 2
+        self.mapping = nn.Conv2d(dim, dim, 3, 1, 1, bias=False)
+        self.apply(_init_weights)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        fea = self.embedding(x)
+        skips = []
+        for msab, down in self.encoder:
+            fea = msab(fea)
+            skips.append(fea)
+            fea = down(fea)
+        fea = self.bottleneck(fea)
+        for (up, fuse, msab), skip in zip(self.decoder, skips[::-1]):
+            fea = msab(fuse(torch.cat([up(fea), skip], dim=1)))
+        return self.mapping(fea) + x
+
+
+def _init_weights(m: nn.Module) -> None:
+    # the authors' initialisation: truncated normal (std 0.02) linear weights, zero biases
+    if isinstance(m, nn.Linear):
+        nn.init.trunc_normal_(m.weight, std=0.02)
+        if m.bias is not None:
+            nn.init.zeros_(m.bias)
+    elif isinstance(m, nn.LayerNorm):
+        nn.init.ones_(m.weight)
+        nn.init.zeros_(m.bias)
+
+
+class MSTPlusPlus2022(SSRNetwork):
+    """MST++: ``stages`` MSTs of ``levels`` levels between a 3×3 conv in and a 3×3 conv out.
+
+    Parameters (``params``): ``stages`` (3), ``levels`` (2), ``num_blocks``
+    (``(1, 1, 1)``, one count per level plus the bottleneck).
+    """
+
+    PRESETS = {
+        "full": dict(stages=3, levels=2, num_blocks=(1, 1, 1)),
+        "small": dict(stages=1, levels=1, num_blocks=(1, 1)),
+        "tiny": dict(stages=1, levels=1, num_blocks=(1, 1)),
+    }
+
+    def __init__(self, config: NetConfig, *, stages: int = 3, levels: int = 2,
+                 num_blocks: Sequence[int] = (1, 1, 1)):
+        super().__init__(config)
+        dim = self.n_bands
+        num_blocks = tuple(int(b) for b in num_blocks)
+        if len(num_blocks) != int(levels) + 1:
+            raise InputError(f"MST++ with levels={levels} needs {int(levels) + 1} num_blocks, "
+                             f"got {list(num_blocks)}")
+        # the authors pad to a multiple of 8 (enough for up to 3 levels)
+        self.multiple = max(8, 2 ** int(levels))
+        self.conv_in = nn.Conv2d(3, dim, 3, padding=1, bias=False)
+        self.body_stages = nn.Sequential(*(MST(dim, int(levels), num_blocks)
+                                           for _ in range(int(stages))))
+        self.conv_out = nn.Conv2d(dim, dim, 3, padding=1, bias=False)
+
+    def body(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        m = self.multiple
+        pad_h, pad_w = (-h) % m, (-w) % m
+        # the authors pad by reflection; reflection needs the pad to be smaller than the side
+        mode = "reflect" if (pad_h < h and pad_w < w) else "replicate"
+        x = F.pad(x, [0, pad_w, 0, pad_h], mode=mode)
+        x = self.conv_in(x)
+        out = self.conv_out(self.body_stages(x)) + x
+        return out[..., :h, :w]
