@@ -22,7 +22,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.rgb import XYZ_TO_SRGB, cmfs_matrix
-from mehs.ssr.models import all_finite
+from mehs.ssr.contract import all_finite
 
 
 def _xyz_sum_vector(wavelengths: np.ndarray) -> np.ndarray:

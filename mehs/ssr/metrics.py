@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.models import all_finite
+from mehs.ssr.contract import all_finite
 
 #: PSNR ceiling (dB) reached when the MSE is 0.
 PSNR_MAX_DB = 120.0

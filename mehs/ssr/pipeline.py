@@ -26,7 +26,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.ssr.luminance import restore_luminance
-from mehs.ssr.models import check_output, check_rgb
+from mehs.ssr.contract import check_output, check_rgb
 from mehs.ssr.preprocess import inverse_reinhard, reinhard
 
 
