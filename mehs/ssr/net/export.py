@@ -122,6 +122,13 @@ class TorchSSRModel(SSRModel):
     def restores_luminance(self) -> bool:
         return self.trained_for.output == "shape"
 
+    def on_device(self, device: str) -> "TorchSSRModel":
+        """The same network as a model on ``device`` (for timing on CUDA)."""
+        import copy
+
+        return TorchSSRModel(copy.deepcopy(self.network), name=self.name, device=device,
+                             source=self.source, trained_for=self.trained_for, arch=self.arch)
+
     @torch.no_grad()
     def standard_spectrum(self, rgb: np.ndarray) -> np.ndarray:
         """The network's raw output ``(H, W, B)`` float32 (a shape S for ◇ networks)."""
