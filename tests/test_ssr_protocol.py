@@ -137,9 +137,9 @@ def test_issue_crash_command_and_named_rows(ds, models, tmp_path, capsys):
     names = [m["name"] for m in json.loads((out2 / "evaluation.json").read_text())["models"]]
     assert names == ["ours", "mine", "smits"]
     capsys.readouterr()
-    assert main(["evaluate", str(ds), "--models", f"a={ckpt},a=smits", "--out",
+    assert main(["evaluate", str(ds), "--models", f"a={ckpt},a={ckpt}", "--out",
                  str(tmp_path / "dup")]) == 2
-    assert "named 'a'" in capsys.readouterr().err
+    assert "named 'a' and were trained for the same setting" in capsys.readouterr().err
 
 
 def test_nothing_trained_for_the_request_is_an_error(ds, tmp_path):

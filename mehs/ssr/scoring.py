@@ -107,7 +107,8 @@ def _resolve_models(models, pairs: PairSet, *, seed: int = 0, pp: tuple = PREPRO
     default_pp = default_pp or Preprocessing()
     if isinstance(models, str):
         models = [m for m in models.split(",") if m.strip()]
-    resolved, names = [], set()
+    resolved: list = []
+    names: dict[str, set] = {}
     for spec in models:
         label = None
         if isinstance(spec, str):
@@ -120,13 +121,17 @@ def _resolve_models(models, pairs: PairSet, *, seed: int = 0, pp: tuple = PREPRO
                 model.name = label
             group = [(model, str(getattr(model, "description", "")))]
         base = label or str(getattr(group[0][0], "name", spec))
+        mine = {x for m, _ in group for x in model_settings(m, ins, pp, (True, False))}
         name, k = base, 2
         while name in names:
+            if label and not (names[name] & mine):
+                break  # one row, several models each trained for other settings (the paper's)
             if label:
-                raise InputError(f"two models are named {label!r}; give each row its own name")
+                raise InputError(f"two models are named {label!r} and were trained for the "
+                                 "same setting; give each row its own name")
             name = f"{base}_{k}"
             k += 1
-        names.add(name)
+        names[name] = names.get(name, set()) | mine
         for model, note in group:
             resolved.append((model, name, note))
     if not resolved:
