@@ -20,6 +20,9 @@ from mehs.ssr.preprocess import PAPER_PREPROCESSING, Preprocessing
 from mehs.ssr.protocol import allowed
 from mehs.ssr.synthetic import make_paired_set
 
+#: A tiny network, in the keywords both the first release and the model zoo accept.
+TINY = dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8)
+
 
 @pytest.fixture(scope="module")
 def ds(tmp_path_factory):
@@ -40,14 +43,13 @@ def models(ds, tmp_path_factory):
         import torch  # noqa: F401
     except ImportError:
         return out
-    from mehs.cli.train_ssr import NET_SIZES
-    from mehs.ssr.net.model import NetConfig, build_network
+    from mehs.ssr.net.model import build_network
     from mehs.ssr.net.train import TrainConfig, save_checkpoint
 
     torch.manual_seed(0)
     for name, variant, reinhard in (("netpp", "hdrssr", True), ("netraw", "hdrssr", False),
                                     ("e2e", "fcdensenet", True)):
-        net = build_network(NetConfig(variant=variant, reinhard=reinhard, **NET_SIZES["tiny"]))
+        net = build_network(variant=variant, reinhard=reinhard, **TINY)
         path = d / f"{name}.pt"
         save_checkpoint(path, net, None, None, epoch=0, train_config=TrainConfig(), history=[])
         out[name] = (str(path), reinhard, "shape" if variant == "hdrssr" else "spectra")

@@ -10,6 +10,9 @@ import pytest
 
 from mehs.errors import FormatError, InputError
 
+#: A tiny network, in the keywords both the first release and the model zoo accept.
+TINY = dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8)
+
 
 def test_bottom_modules_import_nothing_above_them():
     code = ("import sys, mehs.ssr.registry, mehs.ssr.contract; "
@@ -83,19 +86,21 @@ def test_registered_architecture_loads_from_its_checkpoint(tmp_path):
 
 def test_legacy_checkpoint_declarations_are_derived(tmp_path):
     pytest.importorskip("torch")
-    from mehs.cli.train_ssr import NET_SIZES
     from mehs.ssr.contract import trained_for
     from mehs.ssr.models import load_model
-    from mehs.ssr.net.model import NetConfig, build_network
+    from mehs.ssr.net.model import build_network
     from mehs.ssr.net.train import TrainConfig, save_checkpoint
     from mehs.ssr.preprocess import PAPER_PREPROCESSING
 
     for variant, reinhard, out in (("hdrssr", True, "shape"), ("fcdensenet", False, "spectra")):
-        net = build_network(NetConfig(variant=variant, reinhard=reinhard, **NET_SIZES["tiny"]))
+        net = build_network(variant=variant, reinhard=reinhard, **TINY)
         p = tmp_path / f"{variant}.pt"
         save_checkpoint(p, net, None, None, epoch=0, train_config=TrainConfig(), history=[],
                         extra={"input": "ldr"})
         tf = trained_for(load_model(str(p)))
-        assert tf.output == out and tf.input == "ldr"
+        from mehs.ssr.net.train import read_checkpoint
+
+        # the network's own record of its input wins over the training run's notes
+        assert tf.output == out and tf.input == read_checkpoint(p)["net_config"].get("input", "ldr")
         assert tf.preprocessing == (PAPER_PREPROCESSING if reinhard else None)
     assert json.dumps(tf.to_dict())

@@ -111,12 +111,17 @@ def _train_cli(dataset, out_dir: Path, run: Run, *, preset, preprocessing, input
     from mehs.cli import main
 
     argv = ["train-ssr", str(dataset), "--out", str(out_dir), "--arch", run.arch,
-            "--learning", run.learning, "--input", input, "--epochs", str(epochs),
+            "--mode", run.learning, "--input", input, "--epochs", str(epochs),
             "--device", device, "--seed", str(seed), "--no-onnx"]
     if preset:
         argv += ["--preset", preset]
     if preprocessing is None:
         argv.append("--no-reinhard")
+    elif preprocessing.key is not None:
+        raise InputError(f"{run.arch}: mehs train-ssr applies Reinhard at a fixed scale; "
+                         f"{preprocessing.label()} needs --reinhard-key none")
+    else:  # train-ssr's scale s divides: x/s / (1 + x/s)
+        argv += ["--reinhard-scale", repr(1.0 / preprocessing.scale)]
     for k, v in (options or {}).items():
         argv += [f"--{k.replace('_', '-')}", str(v)]
     if (out_dir / "last.pt").is_file():

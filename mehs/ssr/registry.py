@@ -74,6 +74,9 @@ class Architecture:
         checkpoint), resuming when ``out_dir/last.pt`` exists; used by
         ``mehs paper``. Without it ``mehs paper`` runs
         ``mehs train-ssr DATASET --arch NAME …``.
+    listed
+        False for aliases kept only so older checkpoints load (not trained by
+        ``mehs paper``, not in :func:`list_architectures`).
     """
 
     name: str
@@ -84,6 +87,7 @@ class Architecture:
     reference: str = ""
     published_params: int | None = None
     train: Callable[..., Any] | None = None
+    listed: bool = True
 
 
 #: Registered models by name (see :func:`register_model`).
@@ -148,6 +152,6 @@ def get_architecture(arch: str) -> Architecture:
 
 
 def list_architectures() -> dict[str, Architecture]:
-    """Registered architectures by name (after loading the providers)."""
+    """Listed architectures by name (after loading the providers)."""
     load_providers()
-    return dict(sorted(ARCHITECTURES.items()))
+    return {k: v for k, v in sorted(ARCHITECTURES.items()) if v.listed}

@@ -30,7 +30,7 @@ from mehs import __version__
 from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path
 from mehs.ssr.contract import SSRModel, TrainedFor
-from mehs.ssr.preprocess import PAPER_PREPROCESSING
+from mehs.ssr.preprocess import PAPER_PREPROCESSING, Preprocessing
 from mehs.ssr.registry import get_architecture
 from mehs.ssr.net.train import read_checkpoint, resolve_device
 
@@ -46,16 +46,21 @@ def checkpoint_arch(state: dict) -> str:
 def checkpoint_trained_for(state: dict, network) -> TrainedFor:
     """The checkpoint's ``trained_for`` record, or one derived from an older checkpoint.
 
-    Older checkpoints: ``net_config.reinhard`` → the paper's x/(1+x) at scale 1,
-    ``network.predicts_standard_spectrum`` → output shape (else spectra),
-    ``extra.input`` → the trained input.
+    Checkpoints without it: ``net_config.reinhard`` with ``reinhard_scale`` s (the
+    network computes ``x/s / (1 + x/s)``; absent: 1, the paper's x/(1+x)) →
+    ``Preprocessing(key=None, scale=1/s)``; ``network.predicts_standard_spectrum`` →
+    output shape (else spectra); ``net_config.input``, else ``extra.input`` → the
+    trained input.
     """
     if isinstance(state.get("trained_for"), dict):
         return TrainedFor.from_dict(state["trained_for"])
     nc = state.get("net_config") or {}
-    inp = (state.get("extra") or {}).get("input")
-    return TrainedFor(input=inp if inp in ("hdr", "ldr") else None,
-                      preprocessing=PAPER_PREPROCESSING if nc.get("reinhard") else None,
+    inp = nc.get("input") or (state.get("extra") or {}).get("input")
+    pp = None
+    if nc.get("reinhard"):
+        s = float(nc.get("reinhard_scale", 1.0) or 1.0)
+        pp = PAPER_PREPROCESSING if s == 1.0 else Preprocessing(key=None, scale=1.0 / s)
+    return TrainedFor(input=inp if inp in ("hdr", "ldr") else None, preprocessing=pp,
                       output="shape" if getattr(network, "predicts_standard_spectrum", False)
                       else "spectra")
 

@@ -6,9 +6,11 @@ Imported by :func:`mehs.ssr.registry.load_providers`. It
    calls :func:`~mehs.ssr.registry.register_architecture` at import time is
    found without editing this file; one that fails to import is skipped and
    listed in :data:`SKIPPED`);
-2. registers today's two variants of :mod:`mehs.ssr.net.model` as
-   architectures ``hdrssr`` (learns spectral similarity) and ``fcdensenet``
-   (end to end), unless a module registered those names already;
+2. adopts the zoo's own dispatcher dict (``mehs.ssr.net.zoo.ARCHITECTURES``)
+   when there is one; without a zoo, registers the two variants of
+   :mod:`mehs.ssr.net.model` as architectures ``hdrssr`` (learns spectral
+   similarity) and ``fcdensenet`` (end to end), unless a module registered
+   those names already;
 3. makes every registered architecture a model name:
    ``load_model("hdrssr", checkpoint="runs/x/best.pt")`` (the checkpoint must
    hold that architecture); naming a ``.pt`` file directly works too.
@@ -25,7 +27,7 @@ from mehs.ssr.registry import ARCHITECTURES, Architecture, register_architecture
 
 #: ``module name → error`` of net modules that did not import.
 SKIPPED: dict[str, str] = {}
-_NOT_ARCH = {"register", "export", "train", "layers", "basis"}
+_NOT_ARCH = {"register", "export", "train", "layers", "basis", "zoo", "__main__"}
 
 
 def _import_net_modules() -> None:
@@ -102,15 +104,52 @@ def _checkpoint_factory(arch: str):
     return make
 
 
+def _register_zoo() -> bool:
+    """Adopt a zoo module's own dispatcher dict (``mehs.ssr.net.zoo.ARCHITECTURES``, entries
+    with ``cls``, ``presets``, ``title``, ``published_params``) if there is one; True if so.
+
+    Such networks take the zoo's ``NetConfig`` dict (``arch``, ``preset``, ``mode``, …) and
+    learn in both modes; they are trained through ``mehs train-ssr --arch`` (no hook).
+    """
+    try:
+        zoo = importlib.import_module("mehs.ssr.net.zoo")
+    except Exception as exc:
+        if not isinstance(exc, ModuleNotFoundError) or exc.name != "mehs.ssr.net.zoo":
+            SKIPPED["zoo"] = f"{type(exc).__name__}: {exc}"
+        return False
+    entries = getattr(zoo, "ARCHITECTURES", None)
+    if not isinstance(entries, dict) or not callable(getattr(zoo, "build_network", None)):
+        return False
+
+    def build(net_config: dict):
+        return zoo.build_network(dict(net_config))
+
+    for name, a in entries.items():
+        if name in ARCHITECTURES:
+            continue
+        pub = getattr(a, "published_params", None)
+        register_architecture(Architecture(
+            name, build, presets=dict(getattr(a, "presets", {}) or {}),
+            learning=("similarity", "e2e"), description=str(getattr(a, "title", name)),
+            reference=str(getattr(a, "published_source", "")),
+            published_params=None if pub is None else int(round(pub))))
+    # format-1 checkpoints named "fcdensenet": the zoo's build migrates their configuration
+    if "fcdensenet" not in ARCHITECTURES:
+        register_architecture(Architecture("fcdensenet", build, learning=("e2e",),
+                                           description="older FC-DenseNet checkpoints (migrated)",
+                                           listed=False))
+    return True
+
+
 _import_net_modules()
-if "hdrssr" not in ARCHITECTURES:
+if not _register_zoo() and "hdrssr" not in ARCHITECTURES:
     register_architecture(Architecture(
         "hdrssr", _legacy_build("hdrssr"), presets=_legacy_presets(), learning=("similarity",),
         description="FC-DenseNet + channel attention + sigmoid/Mexican-hat basis branches, "
                     "learns spectral similarity (mehs.ssr.net.model)",
         reference="HDR SSR by learning only spectral similarity (the paper's network)",
         train=_legacy_train("hdrssr")))
-if "fcdensenet" not in ARCHITECTURES:
+if "fcdensenet" not in ARCHITECTURES:  # the single-architecture release, before a zoo
     register_architecture(Architecture(
         "fcdensenet", _legacy_build("fcdensenet"), presets=_legacy_presets(), learning=("e2e",),
         description="the same FC-DenseNet with a 1×1 conv to 31 bands, MSE on spectra, end to end",
