@@ -402,13 +402,19 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     if train_ids:
         say(f"[3/6] train: root-polynomial regression baseline on the train split "
             f"({', '.join(train_ids)})")
-        model = fit_regression_baseline(load_pairs(ds_dir, split="train"), seed=seed)
-        model.info.update({"dataset": str(ds_dir), "split": "train"})
-        model.save(reg_path)
-        models.append(str(reg_path))
+        from mehs.ssr.preprocess import Preprocessing
+
+        # one fit per pre-processing setting, as the paper trains one network per setting
+        for path, pp in ((reg_path, None), (reg_path.with_name("regression_pp.npz"), Preprocessing())):
+            model = fit_regression_baseline(load_pairs(ds_dir, split="train"), seed=seed,
+                                            preprocessing=pp)
+            model.info.update({"dataset": str(ds_dir), "split": "train"})
+            model.save(path)
+            models.append(f"regression={path}")
     else:
         say("[3/6] train: skipped, no scene passed into the train split")
         reg_path.unlink(missing_ok=True)
+        reg_path.with_name("regression_pp.npz").unlink(missing_ok=True)
     timings["train"] = time.perf_counter() - t0
 
     # 4. evaluate
@@ -418,7 +424,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     res = None
     if n_pass:
         split = "test" if manifest["splits"].get("test") else None
-        say(f"[4/6] evaluate: {', '.join(Path(m).stem for m in models)} on HDR and LDR input, "
+        say(f"[4/6] evaluate: {', '.join(dict.fromkeys(m.split('=')[0] for m in models))} on "
+            f"HDR and LDR input, "
             f"Reinhard pre-processing off/on, on the {split or 'whole'} "
             f"{'split' if split else 'set'}")
         res = evaluate(ds_dir, models, preprocess="both", inputs=("hdr", "ldr"), split=split,

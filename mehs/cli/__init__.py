@@ -31,6 +31,7 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("train-baseline", "train_baseline", "fit the regression SSR baseline on a dataset"),
     ("evaluate", "evaluate", "score SSR models on a dataset (SAM, MRAE, RMSE, PSNR)"),
     ("train-ssr", "train_ssr", "train the HDR SSR network (needs the torch extra)"),
+    ("paper", "paper", "train every SSR method in both settings and write Tables 1-5"),
     ("demo", "demo", "run the whole pipeline on the simulated device"),
 ]
 

@@ -8,12 +8,28 @@ def configure(parser):
                         help="dataset folder (manifest.json) or a plain folder of pairs "
                              "(<stem>.hdr with <stem>.exr and/or <stem>.png)")
     parser.add_argument("--models", "-m", default="smits,mallett",
-                        help="comma-separated models: built-in names (smits, mallett, "
-                             "regression = fitted on the train split; see --list-models), "
+                        help="comma-separated models, each optionally NAME=SPEC to name its "
+                             "row: built-in names (smits, mallett, regression = fitted on the "
+                             "train split once per pre-processing setting; see --list-models), "
                              "package.module:function, file.py:function, model.onnx, "
-                             "model.npz (from train-baseline) (default: %(default)s)")
+                             "model.npz (from train-baseline), a .pt checkpoint "
+                             "(default: %(default)s)")
     parser.add_argument("--preprocess", choices=["off", "on", "both"], default="both",
-                        help="Reinhard x/(1+x) on the input (default: %(default)s)")
+                        help="Reinhard pre-processing settings to score; each model is scored "
+                             "only in the one it was trained for (default: %(default)s)")
+    add_preprocessing_args(parser, "for fixed baselines scored with pre-processing and "
+                                   "regressions fitted here")
+    parser.add_argument("--fixed-preprocess", action="store_true",
+                        help="also score fixed baselines (Smits, Mallett) with pre-processing "
+                             "(the paper shows '–' there)")
+    parser.add_argument("--pixels", action="append", default=[], metavar="SCENE:ROW,COL",
+                        help="plot the spectra at this pixel in the report (repeatable)")
+    parser.add_argument("--mrae-threshold", type=float, default=0.0, metavar="T",
+                        help="MRAE over elements with ground truth > T (default: %(default)s)")
+    parser.add_argument("--mrae-relative", action="store_true",
+                        help="--mrae-threshold is a fraction of each image's maximum")
+    parser.add_argument("--mrae-bands", default=None, metavar="LO-HI",
+                        help="MRAE over the bands LO..HI nm only, e.g. 420-680")
     parser.add_argument("--input", default="hdr",
                         help="RGB input(s): hdr, ldr or hdr,ldr (default: %(default)s)")
     parser.add_argument("--restore", nargs="?", const="on", default="on",
@@ -29,7 +45,7 @@ def configure(parser):
     parser.add_argument("--out", "-o", default="evaluation", metavar="DIR",
                         help="results folder (evaluation.json, results.csv, tables.md, "
                              "figures/) (default: %(default)s)")
-    parser.add_argument("--figures", type=int, default=2, metavar="N",
+    parser.add_argument("--figures", default="2", metavar="N|all",
                         help="scenes kept for the report's figures (default: %(default)s)")
     parser.add_argument("--timing", action="store_true",
                         help="also time each model on a 2048×1024 image (paper Table 5)")
@@ -42,6 +58,57 @@ def configure(parser):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--list-models", action="store_true",
                         help="list the registered model names and exit")
+
+
+def add_preprocessing_args(parser, what: str) -> None:
+    """``--reinhard-key`` / ``--reinhard-scale`` (shared with train-baseline)."""
+    parser.add_argument("--reinhard-key", default="0.18", metavar="KEY|none",
+                        help=f"Reinhard pre-processing {what}: each image scaled so its "
+                             "log-average luminance is KEY, then x/(1+x); 'none' = a fixed "
+                             "--reinhard-scale (default: %(default)s)")
+    parser.add_argument("--reinhard-scale", type=float, default=1.0, metavar="S",
+                        help="fixed scale with --reinhard-key none: x·S/(1+x·S); S=1 is the "
+                             "paper's x/(1+x) on the data as given (default: %(default)s)")
+
+
+def preprocessing_from_args(args):
+    """The :class:`~mehs.ssr.preprocess.Preprocessing` the options describe."""
+    from mehs.errors import InputError
+    from mehs.ssr.preprocess import Preprocessing
+
+    key = None if str(args.reinhard_key).lower() == "none" else args.reinhard_key
+    try:
+        return Preprocessing(key=None if key is None else float(key), scale=args.reinhard_scale)
+    except ValueError as exc:
+        raise InputError(f"--reinhard-key/--reinhard-scale: {exc}") from None
+
+
+def _figures(text: str) -> int:
+    from mehs.errors import InputError
+
+    if str(text).lower() == "all":
+        return -1
+    try:
+        n = int(text)
+    except ValueError:
+        n = -2
+    if n < 0:
+        raise InputError(f"--figures must be a count ≥ 0 or 'all', got {text!r}")
+    return n
+
+
+def _bands(text):
+    from mehs.errors import InputError
+
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in str(text).replace(",", "-").split("-"))
+    except ValueError:
+        lo = hi = float("nan")
+    if not (lo <= hi):
+        raise InputError(f"--mrae-bands must be LO-HI in nm with LO ≤ HI, got {text!r}")
+    return lo, hi
 
 
 def run(args):
@@ -65,8 +132,12 @@ def run(args):
     split = None if args.split == "all" else args.split
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,
                    restore={"on": True, "off": False, "both": "both"}[args.restore],
-                   crop=args.crop, split=split, out=args.out, figures=args.figures,
-                   timing=args.timing, timing_shape=(h, w), seed=args.seed, progress=True)
+                   crop=args.crop, split=split, out=args.out, figures=_figures(args.figures),
+                   timing=args.timing, timing_shape=(h, w), seed=args.seed, progress=True,
+                   preprocessing=preprocessing_from_args(args),
+                   fixed_preprocess=args.fixed_preprocess, pixels=args.pixels,
+                   mrae_threshold=args.mrae_threshold, mrae_relative=args.mrae_relative,
+                   mrae_bands=_bands(args.mrae_bands))
     fmt = "markdown" if args.markdown else "text"
     print(res.tables(fmt))
     if any(s.get(f"{k}_undefined") for s in res.summary for k in METRIC_NAMES):

@@ -19,6 +19,13 @@ def configure(parser):
                         help="RGB the baseline learns from (default: %(default)s)")
     parser.add_argument("--ridge", type=float, default=1e-6,
                         help="relative ridge regularisation (default: %(default)s)")
+    parser.add_argument("--preprocess", choices=["off", "on"], default="off",
+                        help="fit on Reinhard pre-processed RGB (recorded in the model: the "
+                             "evaluation scores it only with that pre-processing) "
+                             "(default: %(default)s)")
+    from mehs.cli.evaluate import add_preprocessing_args
+
+    add_preprocessing_args(parser, "with --preprocess on")
     parser.add_argument("--seed", type=int, default=0)
 
 
@@ -32,12 +39,16 @@ def run(args):
     root = Path(args.dataset)
     split = None if args.split == "all" or not (root / "manifest.json").is_file() else args.split
     pairs = load_pairs(root, split=split)
+    from mehs.cli.evaluate import preprocessing_from_args
+
+    spec = preprocessing_from_args(args) if args.preprocess == "on" else None
     model = fit_regression_baseline(pairs, degree=args.degree, n_samples=args.samples,
                                     input=args.input, ridge=args.ridge, seed=args.seed,
-                                    progress=True)
+                                    preprocessing=spec, progress=True)
     model.info.update({"dataset": str(root), "split": split})
     out = model.save(args.out)
     print(f"fitted root-polynomial regression (degree {model.degree}) on "
           f"{model.info['n_samples']} pixels of {len(pairs)} scenes "
-          f"({split or 'all'}) → {out}")
+          f"({split or 'all'}, {args.input.upper()}-RGB, "
+          f"{spec.label() if spec else 'no pre-processing'}) → {out}")
     return 0

@@ -59,7 +59,9 @@ import numpy as np
 
 from mehs.errors import FormatError, InputError
 from mehs.rgb import WAVELENGTHS_31
-from mehs.ssr.models import SSRModel, check_rgb, register_model
+from mehs.ssr.contract import SSRModel, TrainedFor
+from mehs.ssr.preprocess import Preprocessing
+from mehs.ssr.registry import register_model
 
 SMITS_BASIS_ORDER = ("white", "cyan", "magenta", "yellow", "red", "green", "blue")
 
@@ -185,7 +187,13 @@ def root_polynomial_features(rgb: np.ndarray, degree: int = 2) -> np.ndarray:
 
 
 class _FixedBaseline(SSRModel):
-    """A baseline with no trained state: a function of (rgb, wavelengths)."""
+    """A baseline with no trained state: a function of (rgb, wavelengths).
+
+    Nothing was fitted, so its own setting is "no pre-processing"; the
+    evaluation scores it with pre-processing only when the user asks.
+    """
+
+    trained_for = TrainedFor(input=None, preprocessing=None, output="either", fixed=True)
 
     def __init__(self, wavelengths: np.ndarray = WAVELENGTHS_31):
         self.wavelengths = np.asarray(wavelengths, dtype=np.float64)
@@ -240,6 +248,14 @@ class RegressionModel(SSRModel):
                              f"{self.degree} ({nf} terms) and {self.wavelengths.size} bands")
         self.name = name
         self.info = dict(info or {})
+
+    @property
+    def trained_for(self) -> TrainedFor:
+        """Fitted on ``info["input"]`` RGB with ``info["preprocessing"]`` (older files: none)."""
+        inp = self.info.get("input")
+        return TrainedFor(input=inp if inp in ("hdr", "ldr") else None,
+                          preprocessing=Preprocessing.from_dict(self.info.get("preprocessing")),
+                          output="either")
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         phi = root_polynomial_features(rgb, self.degree)
@@ -341,6 +357,7 @@ def check_model_path(path: str | Path, fmt: str) -> Path:
 
 def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int = 200_000,
                             input: str = "hdr", ridge: float = 1e-6, seed: int = 0,
+                            preprocessing: Preprocessing | None = None,
                             progress: bool = False) -> RegressionModel:
     """Fit :class:`RegressionModel` on pixels sampled from paired scenes.
 
@@ -352,6 +369,10 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
         Total pixels to sample, spread evenly over the scenes (valid pixels only).
     input
         ``"hdr"`` or ``"ldr"``: which RGB the baseline learns from.
+    preprocessing
+        Pre-processing applied to each training image before sampling (e.g.
+        ``Preprocessing()``: Reinhard at key 0.18); recorded in the model, so
+        the evaluation scores it only with that pre-processing.
     """
     if int(n_samples) < 1:
         raise InputError(f"n_samples must be at least 1, got {n_samples}")
@@ -375,6 +396,8 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
         elif wl.shape != cube.wavelengths.shape or not np.allclose(wl, cube.wavelengths):
             raise InputError("training scenes have different band sets", pair.hs_path)
         rgb = pair.rgb(input)
+        if preprocessing is not None:
+            rgb = preprocessing(rgb)
         valid = pair.valid()
         idx = np.flatnonzero(valid.reshape(-1))
         if idx.size == 0:
@@ -384,7 +407,8 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
         ys.append(np.asarray(cube.data).reshape(-1, cube.bands)[take])
     if not xs:
         raise InputError("no valid training pixels in the given scenes")
-    info = {"input": input, "seed": seed, "scenes": [p.id for p in pairs]}
+    info = {"input": input, "seed": seed, "scenes": [p.id for p in pairs],
+            "preprocessing": None if preprocessing is None else preprocessing.to_dict()}
     return RegressionModel.fit(np.concatenate(xs), np.concatenate(ys), degree=degree,
                                wavelengths=wl, ridge=ridge, info=info)
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.rgb import XYZ_TO_SRGB, cmfs_matrix
-from mehs.ssr.models import all_finite
+from mehs.ssr.contract import all_finite
 
 
 def _xyz_sum_vector(wavelengths: np.ndarray) -> np.ndarray:
@@ -46,7 +46,8 @@ def rgb_xyz_sum(rgb: np.ndarray) -> np.ndarray:
     return np.asarray(rgb, dtype=np.float64) @ w
 
 
-def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray, *,
+                      return_fallback: bool = False):
     """Scale predicted spectra so each pixel has the input RGB's ``X+Y+Z``.
 
     Parameters
@@ -58,10 +59,16 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -
     wavelengths
         Band centres of ``S`` in nm, shape ``(B,)``.
 
+    return_fallback
+        Also return the number of pixels that got the flat-spectrum fallback
+        while the input has light (so a caller can report it; the evaluation
+        always does).
+
     Returns
     -------
     ndarray
         Shape ``(..., B)``, float32 for float32 ``S`` (float64 otherwise); always finite.
+        With ``return_fallback``: ``(spectra, n_fallback)``.
     """
     S = np.asarray(S)
     rgb = np.asarray(rgb)
@@ -83,4 +90,7 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray) -
         flat_sum = _xyz_sum_vector(wavelengths).sum()
         fill = (np.where(np.isfinite(target), target, 0.0) / flat_sum).astype(dtype)
         out = np.where(good[..., None], out, fill[..., None])
+    if return_fallback:
+        # black input pixels (X+Y+Z = 0) come out black either way: not a substitution
+        return out, int(np.count_nonzero(~good & (np.abs(np.nan_to_num(target)) > 0)))
     return out

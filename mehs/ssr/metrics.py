@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.models import all_finite
+from mehs.ssr.contract import all_finite
 
 #: PSNR ceiling (dB) reached when the MSE is 0.
 PSNR_MAX_DB = 120.0
@@ -143,7 +143,9 @@ def psnr(pred, gt, *, valid=None, crop: int = 0, peak: float | None = None):
 
 
 def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None = None,
-                  crop: int = 0, peak: float | None = None) -> dict[str, Any]:
+                  crop: int = 0, peak: float | None = None, mrae_threshold: float = 0.0,
+                  mrae_relative: bool = False,
+                  mrae_band_mask: np.ndarray | None = None) -> dict[str, Any]:
     """All four metrics of one image plus the counts behind them.
 
     Returns
@@ -153,6 +155,12 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None 
         scored), ``sam_excluded`` (zero-norm pixels), ``mrae_excluded``
         (elements with y ≤ 0), ``peak`` (the PSNR peak used), and
         ``band_mrae`` (list of B per-band MRAE values, ``None`` where undefined).
+
+    MRAE element rule: elements with ``y > mrae_threshold`` (× the ground
+    truth's maximum over the scored pixels when ``mrae_relative``) count; the
+    others are excluded and counted. ``mrae_band_mask`` (bool ``(B,)``)
+    restricts the scalar MRAE to those bands (``band_mrae`` keeps every band).
+    The default (0, absolute, all bands) is the NTIRE form of the module notes.
     """
     p, g, _ = _prepare(pred, gt, valid, crop)
     out: dict[str, Any] = {"n_pixels": int(p.shape[0])}
@@ -162,12 +170,17 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None 
     out["sam"] = (float(np.degrees(np.arccos(np.clip(dot[ok] / norm[ok], -1, 1))).mean())
                   if ok.any() else None)
     out["sam_excluded"] = int(np.count_nonzero(~ok))
-    pos = g > 0
-    out["mrae_excluded"] = int(np.count_nonzero(~pos))
+    thr = float(mrae_threshold) * (float(g.max()) if mrae_relative and g.size else 1.0)
+    pos = g > max(thr, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         rel = np.where(pos, np.abs(p - g) / np.where(pos, g, 1.0), 0.0)
     n_pos = pos.sum(0)
-    out["mrae"] = float(rel.sum() / n_pos.sum()) if n_pos.sum() else None
+    sel = np.ones(g.shape[-1], bool) if mrae_band_mask is None else np.asarray(mrae_band_mask, bool)
+    if sel.shape != (g.shape[-1],):
+        raise InputError(f"MRAE band mask has shape {sel.shape}, expected ({g.shape[-1]},)")
+    out["mrae_excluded"] = int(np.count_nonzero(~pos[:, sel]))
+    n_sel = n_pos[sel].sum()
+    out["mrae"] = float(rel[:, sel].sum() / n_sel) if n_sel else None
     band = rel.sum(0) / np.maximum(n_pos, 1)
     out["band_mrae"] = [float(v) if n else None for v, n in zip(band, n_pos)]
     if p.size:

@@ -1,21 +1,16 @@
-"""The SSR model contract, the model registry and :func:`load_model`.
+"""Load SSR models by name, file or ``module:function``: :func:`load_model`.
 
-Contract
---------
-An SSR model is any object with
-
-- ``name: str``
-- ``wavelengths: ndarray (B,)`` — the band centres (nm) of its output
-- ``__call__(rgb: float32 (H, W, 3) linear) -> float32 (H, W, B)``
-
-:class:`SSRModel` is a convenience base class; duck typing is enough.
+The contract (:class:`SSRModel`, :class:`TrainedFor`) lives in
+:mod:`mehs.ssr.contract`, the registry in :mod:`mehs.ssr.registry`; both are
+re-exported here. This module sits *above* the baselines and networks (it
+imports them to fill the registry), never below.
 
 Ways to name a model (``load_model(spec, **kwargs)``)
 -----------------------------------------------------
 - a registered name: ``smits``, ``mallett``, ``regression`` (needs ``path=`` to a
   fitted model, see :mod:`mehs.ssr.baselines`), plus anything registered with
-  :func:`register_model` (the network engineer registers ``hdrssr`` and
-  ``fcdensenet`` from :mod:`mehs.ssr.net.register` when torch imports);
+  :func:`register_model` (every registered network architecture is a model
+  name too, via :mod:`mehs.ssr.net.register`, when torch imports);
 - ``package.module:function`` or ``path/to/file.py:function``. The object found is
   used as follows: an object with a ``wavelengths`` attribute that is callable
   is a model already; a class, or a callable that needs no positional argument,
@@ -30,133 +25,26 @@ Ways to name a model (``load_model(spec, **kwargs)``)
   ``wavelengths`` (comma-separated nm), else 400:700:10 when B = 31;
 - a fitted regression baseline file (``.npz``, from ``mehs train-baseline``);
 - a torch checkpoint (``.pt``/``.pth``) via :func:`mehs.ssr.net.export.load_torch_model`
-  (torch extra).
+  (torch extra), which dispatches on the checkpoint's ``arch`` through the registry;
+- ``name=SPEC`` (any of the above): the same model, shown as ``name`` in tables.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import importlib.util
 import inspect
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable
 
 import numpy as np
 
 from mehs.errors import FormatError, InputError
 from mehs.rgb import WAVELENGTHS_31
-
-
-@runtime_checkable
-class SSRModelProtocol(Protocol):
-    name: str
-    wavelengths: np.ndarray
-
-    def __call__(self, rgb: np.ndarray) -> np.ndarray: ...
-
-
-class SSRModel:
-    """Base class of SSR models: subclasses implement :meth:`predict`.
-
-    ``__call__`` checks the input ``(H, W, 3)``, casts it to float32, calls
-    :meth:`predict` and checks the output ``(H, W, B)`` is finite.
-    """
-
-    name: str = "model"
-    wavelengths: np.ndarray = WAVELENGTHS_31
-    description: str = ""
-
-    def predict(self, rgb: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def __call__(self, rgb: np.ndarray) -> np.ndarray:
-        rgb = check_rgb(rgb, self.name)
-        out = np.asarray(self.predict(rgb))
-        return check_output(out, rgb.shape, self.wavelengths, self.name)
-
-    def __repr__(self) -> str:
-        wl = np.asarray(self.wavelengths)
-        return f"{type(self).__name__}(name={self.name!r}, bands={wl.size} {wl[0]:g}..{wl[-1]:g} nm)"
-
-
-def check_rgb(rgb: np.ndarray, name: str = "model") -> np.ndarray:
-    """Return ``rgb`` as a float32 ``(H, W, 3)`` array or raise :class:`InputError`."""
-    rgb = np.asarray(rgb)
-    if rgb.ndim != 3 or rgb.shape[-1] != 3:
-        raise InputError(f"{name}: input must be (H, W, 3) RGB, got shape {rgb.shape}")
-    return rgb.astype(np.float32, copy=False)
-
-
-def all_finite(a: np.ndarray) -> bool:
-    """True if no element of ``a`` is NaN or ±inf, without a full-size boolean temporary.
-
-    A float64 sum is non-finite exactly when some element is (finite float32/64
-    values cannot overflow it: 3.4e38 · 1e9 ≪ 1.8e308 for float32; float64
-    input falls back to ``isfinite`` when the sum overflows).
-    """
-    a = np.asarray(a)
-    if a.dtype.kind not in "fc":
-        return True
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(a.sum(dtype=np.float64)):
-            return True
-    return bool(np.isfinite(a).all())
-
-
-def check_output(out: np.ndarray, in_shape: tuple, wavelengths: np.ndarray,
-                 name: str = "model") -> np.ndarray:
-    """Check a model output against the contract; return it as float32."""
-    nb = np.asarray(wavelengths).size
-    want = (*in_shape[:2], nb)
-    if tuple(out.shape) != want:
-        raise InputError(f"{name}: output shape {tuple(out.shape)} breaks the contract, "
-                         f"expected {want} (H, W, bands)")
-    out = out.astype(np.float32, copy=False)
-    if not all_finite(out):
-        n = int(np.count_nonzero(~np.isfinite(out)))
-        raise InputError(f"{name}: output has {n} NaN/inf values")
-    return out
-
-
-class FunctionModel(SSRModel):
-    """Wrap a plain function ``rgb (H, W, 3) → spectra (H, W, B)`` as a model."""
-
-    def __init__(self, fn: Callable[[np.ndarray], np.ndarray], *, name: str,
-                 wavelengths: np.ndarray | None = None, description: str = ""):
-        self.fn = fn
-        self.name = name
-        wl = getattr(fn, "wavelengths", None) if wavelengths is None else wavelengths
-        self.wavelengths = np.asarray(WAVELENGTHS_31 if wl is None else wl, dtype=np.float64)
-        self.description = description or (inspect.getdoc(fn) or "").split("\n")[0]
-
-    def predict(self, rgb: np.ndarray) -> np.ndarray:
-        return self.fn(rgb)
-
-
-@dataclass
-class ModelEntry:
-    """A registry entry: ``factory(**kwargs)`` returns a model."""
-
-    name: str
-    factory: Callable[..., Any]
-    description: str = ""
-
-
-#: Registered models by name (see :func:`register_model`).
-MODELS: dict[str, ModelEntry] = {}
-_PLUGINS_LOADED = False
-
-
-def register_model(name: str, factory: Callable[..., Any], *, description: str = "",
-                   overwrite: bool = False) -> None:
-    """Register ``factory`` (called with ``**kwargs``, returns a model) under ``name``."""
-    key = name.strip().lower()
-    if not key or any(c in key for c in ",:/\\ "):
-        raise InputError(f"invalid model name {name!r}")
-    if key in MODELS and not overwrite:
-        raise InputError(f"a model named {key!r} is already registered")
-    MODELS[key] = ModelEntry(key, factory, description)
+from mehs.ssr.contract import (FunctionModel, SSRModel, SSRModelProtocol, all_finite,  # noqa: F401
+                               check_output, check_rgb)
+from mehs.ssr.registry import MODELS, ModelEntry, load_providers, register_model  # noqa: F401
 
 
 def _load_builtins() -> None:
@@ -164,20 +52,8 @@ def _load_builtins() -> None:
 
 
 def _load_plugins() -> None:
-    """Import the optional registrations (the torch networks) once, quietly.
-
-    Only done when a name is not a built-in or the list is asked for, because
-    importing torch costs seconds.
-    """
-    global _PLUGINS_LOADED
-    _load_builtins()
-    if _PLUGINS_LOADED:
-        return
-    _PLUGINS_LOADED = True
-    try:
-        importlib.import_module("mehs.ssr.net.register")
-    except (ImportError, OSError):
-        pass  # torch (or the network module) absent or broken: the networks stay unlisted
+    """Import every registering module once (torch networks quietly skipped without torch)."""
+    load_providers()
 
 
 def list_models() -> dict[str, str]:
@@ -220,6 +96,20 @@ def _import_object(spec: str) -> Any:
     return obj
 
 
+def split_named_spec(spec: str) -> tuple[str | None, str]:
+    """``"ours=runs/a/best.pt"`` → ``("ours", "runs/a/best.pt")``; no label → ``(None, spec)``.
+
+    The label is what precedes the first ``=`` when it is a plain name (letters,
+    digits, ``_ - .``, no path separator), so ``dir=x/best.pt`` names a row but a
+    path containing ``=`` further on is left alone.
+    """
+    head, sep, tail = spec.partition("=")
+    head = head.strip()
+    if sep and head and tail.strip() and all(c.isalnum() or c in "_-.+" for c in head):
+        return head, tail.strip()
+    return None, spec
+
+
 def _needs_positional(fn: Callable) -> bool:
     try:
         sig = inspect.signature(fn)
@@ -241,6 +131,14 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
             return _as_model(spec, getattr(spec, "__name__", "model"), kwargs.get("wavelengths"))
         raise InputError(f"cannot make a model from {type(spec).__name__}")
     text = str(spec).strip()
+    label, text = split_named_spec(text)
+    if label is not None:
+        model = load_model(text, **kwargs)
+        try:
+            model.name = label
+        except AttributeError:  # a model with a read-only name: wrap it
+            model = FunctionModel(model, name=label, wavelengths=model.wavelengths)
+        return model
     low = text.lower()
     if low.endswith(".onnx"):
         return OnnxModel(text, **kwargs)
@@ -321,6 +219,13 @@ class OnnxModel(SSRModel):
         if "mehs_luminance_restored" in meta:
             self.restores_luminance = meta["mehs_luminance_restored"].strip().lower() in (
                 "1", "true", "yes", "on")
+        if "mehs_trained_for" in meta:
+            from mehs.ssr.contract import TrainedFor
+
+            try:
+                self.trained_for = TrainedFor.from_dict(json.loads(meta["mehs_trained_for"]))
+            except (ValueError, InputError) as exc:
+                raise FormatError(f"metadata 'mehs_trained_for' is damaged ({exc})", path) from None
         if wavelengths is None:
             if "wavelengths" in meta:
                 try:

@@ -1,33 +1,38 @@
 """Input RGB → predicted HS cube, with the paper's switches (§3.3).
 
-``predict(model, rgb, preprocess=..., restore=...)``:
+``predict(model, rgb, preprocessing=..., restore=...)``:
 
-1. ``x = reinhard(rgb)`` when ``preprocess`` is on, else ``x = rgb``;
+1. ``x = preprocessing(rgb)`` (a :class:`~mehs.ssr.preprocess.Preprocessing`:
+   Reinhard at its recorded key/scale) when given, else ``x = rgb``;
+   ``preprocess=True`` is the older spelling of the paper's fixed-scale operator;
 2. ``S = model(x)`` (contract: float32 ``(H, W, B)``, finite);
 3. with ``restore`` on: ``HS = (X+Y+Z)_rgb / (X+Y+Z)_S · S`` using the
-   *unprocessed* input (:func:`mehs.ssr.luminance.restore_luminance`);
-   with ``restore`` off and ``preprocess`` on, the model's output is taken to be
+   *unprocessed* input (:func:`mehs.ssr.luminance.restore_luminance`); the
+   pixels that get its flat-spectrum fallback (``X+Y+Z ≤ 0``) are counted;
+   with ``restore`` off and pre-processing on, the model's output is taken to be
    in the tone-mapped domain and mapped back with the inverse Reinhard
-   operator band by band; with both off, ``HS = S``.
+   operator band by band (at the same scale); with both off, ``HS = S``.
 4. The model's bands are matched to the requested ``wavelengths`` (the
    dataset's): they must be present in the model's band set (within 0.01 nm).
 
-Self-contained models: a model with a ``preprocessing`` attribute (e.g. the
-networks of :mod:`mehs.ssr.net`, ``"reinhard"`` or ``None``) applies its own
-input pre-processing, so step 1 is skipped for it whatever ``preprocess`` says;
-one with ``restores_luminance = True`` has already done step 3 (doing it again
-changes nothing). :func:`mehs.ssr.evaluate.evaluate` scores such models only
-under the settings they were built for.
+Self-contained models (:func:`mehs.ssr.contract.applies_preprocessing`, e.g. the
+networks) apply their own pre-processing, so step 1 is skipped for them. A
+model that restores luminance inside ``__call__`` and offers
+``standard_spectrum(rgb)`` is run through that instead, so step 3 (and its
+fallback count) happens here; one that offers nothing reports the count as
+``None`` (unknown).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.ssr.contract import applies_preprocessing, check_output, check_rgb, trained_for
 from mehs.ssr.luminance import restore_luminance
-from mehs.ssr.models import check_output, check_rgb
-from mehs.ssr.preprocess import inverse_reinhard, reinhard
+from mehs.ssr.preprocess import PAPER_PREPROCESSING, Preprocessing, inverse_reinhard
 
 
 def band_indices(model_wl: np.ndarray, target_wl: np.ndarray, name: str = "model") -> np.ndarray | None:
@@ -45,26 +50,39 @@ def band_indices(model_wl: np.ndarray, target_wl: np.ndarray, name: str = "model
 
 
 def predict(model, rgb: np.ndarray, *, preprocess: bool = False, restore: bool = True,
-            wavelengths: np.ndarray | None = None) -> np.ndarray:
+            wavelengths: np.ndarray | None = None,
+            preprocessing: Preprocessing | None = None, return_stats: bool = False):
     """Run ``model`` on linear ``rgb`` float32 ``(H, W, 3)`` → float32 ``(H, W, B)``.
 
-    ``wavelengths`` (the dataset's bands) selects the model's output bands;
-    default: all of them.
+    ``preprocessing`` (or ``preprocess=True`` for the paper's fixed-scale
+    operator) is applied unless the model applies its own. ``wavelengths``
+    (the dataset's bands) selects the model's output bands; default: all.
+    With ``return_stats`` returns ``(cube, {"restore_fallback": int | None})``.
     """
     name = getattr(model, "name", "model")
     rgb = check_rgb(rgb, name)
-    own_pp = hasattr(model, "preprocessing")
-    x = reinhard(rgb) if preprocess and not own_pp else rgb
+    spec = preprocessing if preprocessing is not None else (PAPER_PREPROCESSING if preprocess else None)
+    own_pp = applies_preprocessing(model)
+    x = spec(rgb) if spec is not None and not own_pp else rgb
     model_wl = np.asarray(model.wavelengths, dtype=np.float64)
-    S = check_output(np.asarray(model(x)), rgb.shape, model_wl, name)
-    if restore:
-        out = restore_luminance(S, rgb, model_wl)
-    elif preprocess and not own_pp:
-        out = inverse_reinhard(S)
+    stats: dict[str, Any] = {"restore_fallback": None}
+    inner = getattr(model, "standard_spectrum", None)
+    restores_inside = trained_for(model).output == "shape" and own_pp
+    if restore and restores_inside and callable(inner):
+        S = check_output(np.asarray(inner(x)), rgb.shape, model_wl, name)
+    else:
+        S = check_output(np.asarray(model(x)), rgb.shape, model_wl, name)
+    if restore and not (restores_inside and not callable(inner)):
+        out, stats["restore_fallback"] = restore_luminance(S, rgb, model_wl, return_fallback=True)
+    elif restore:
+        out = restore_luminance(S, rgb, model_wl)  # a no-op on an already restored output
+    elif spec is not None and not own_pp:
+        out = inverse_reinhard(S) / np.float32(spec.factor(rgb))
     else:
         out = S
     if wavelengths is not None:
         idx = band_indices(model_wl, wavelengths, name)
         if idx is not None:
             out = out[..., idx]
-    return np.ascontiguousarray(out, dtype=np.float32)
+    out = np.ascontiguousarray(out, dtype=np.float32)
+    return (out, stats) if return_stats else out

@@ -1,15 +1,22 @@
-"""HTML report of an SSR evaluation (the paper's Tables 2–5 and Figures).
+"""HTML report of an SSR evaluation (the paper's Tables 2–5 and Figures 9/10).
 
 :func:`write_evaluation_report` reads a results folder written by
-:func:`mehs.ssr.evaluate.evaluate` and writes one self-contained HTML file
+:func:`mehs.ssr.scoring.evaluate` and writes one self-contained HTML file
 (figures embedded as base64 PNG, no network access needed) with
 
-- the summary tables (SAM/MRAE, then all four metrics; best value in bold) and
+- the protocol (each model's trained-input declaration, the MRAE element
+  rule, the pre-processing), the notes (incl. luminance-restoration fallbacks);
+- the summary tables (SAM/MRAE, then all four metrics; best value in bold),
+  the spread across images (mean ± std, median) and the per-scene table, and
   the conversion-time table when timing was measured;
-- per scene kept for figures: the input RGB preview, a map of the method with
-  the lowest SAM at each pixel, the per-pixel SAM map of each method, and the
-  spectra at selected pixels (ground truth vs each method);
-- the per-wavelength MRAE of each method and setting.
+- per scene kept for figures, per input: the input preview, the method with
+  the lowest SAM at each pixel (each method at its best setting per pixel,
+  as the paper's Figure 10), the SAM map of every configuration, and the
+  spectra at the user's ``--pixels`` and at selected pixels;
+- the per-wavelength MRAE of every configuration, on a log axis.
+
+Any combination of models and settings renders: figures only use the
+configurations a scene actually has.
 """
 
 from __future__ import annotations
@@ -24,8 +31,10 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.evaluate import load_results, table_blocks
 from mehs.ssr.metrics import METRIC_NAMES
+from mehs.ssr.results_io import (load_results, per_scene_blocks, row_label, spread_block,
+                                 table_blocks, timing_block)
+from mehs.ssr.scoring import parse_key
 
 _CSS = """body{font-family:sans-serif;margin:2em;max-width:1400px}
 table{border-collapse:collapse;margin:1em 0}th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
@@ -42,7 +51,7 @@ def _png(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _html_table(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]]) -> str:
+def html_table(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]]) -> str:
     e = html.escape
     rows = ["<tr>" + "".join(f"<th>{e(h)}</th>" for h in header) + "</tr>"]
     for r, b in zip(body, bold):
@@ -52,9 +61,29 @@ def _html_table(title: str, header: list[str], body: list[list[str]], bold: list
     return f"<table><caption>{e(title)}</caption>{''.join(rows)}</table>"
 
 
-def _parse_key(key: str) -> tuple[str, str, str, str]:
-    inp, pp, lr, model = key.split("-", 3)
-    return inp, pp.split("_", 1)[1], lr.split("_", 1)[1], model
+def _key_label(key: str, keys: list[str]) -> str:
+    """``model w/ pp`` — plus the restoration setting when the model has both in ``keys``."""
+    inp, pp, lr, m = parse_key(key)
+    both = len({parse_key(k)[2] for k in keys if parse_key(k)[3] == m}) > 1
+    return f"{m} {'w/' if pp == 'on' else 'w/o'} pp" + (f", restoration {lr}" if both else "")
+
+
+def _best_method_map(sams: dict[str, np.ndarray], keys: list[str]) -> tuple[list[str], np.ndarray]:
+    """Per pixel, the model with the lowest SAM, each model at its best setting there.
+
+    Returns ``(models, index map)`` with NaN where no model has an angle.
+    """
+    models = list(dict.fromkeys(parse_key(k)[3] for k in keys))
+    per_model = []
+    for m in models:
+        st = np.stack([sams[k] for k in keys if parse_key(k)[3] == m])
+        st = np.where(np.isfinite(st), st, np.inf).min(0)
+        per_model.append(st)
+    stack = np.stack(per_model)
+    finite = np.isfinite(stack).any(0)
+    best = np.argmin(stack, 0).astype(float)
+    best[~finite] = np.nan
+    return models, best
 
 
 def _scene_figures(npz_path: Path, plt) -> list[tuple[str, str]]:
@@ -69,48 +98,44 @@ def _scene_figures(npz_path: Path, plt) -> list[tuple[str, str]]:
         wl = z["wavelengths"]
         pix = z["pixels"]
         gt = z["gt"]
+        n_user = int(z["n_user_pixels"]) if "n_user_pixels" in z.files else 0
         sams = {k: z[f"sam_{k}"].astype(np.float32) for k in keys}
         preds = {k: z[f"pred_{k}"] for k in keys}
-    groups: dict[tuple, list[str]] = {}
-    for k in keys:
-        inp, pp, lr, model = _parse_key(k)
-        groups.setdefault((inp, lr), []).append(k)
-    for (inp, lr), ks in groups.items():
-        pps = list(dict.fromkeys(_parse_key(k)[1] for k in ks))
-        models = list(dict.fromkeys(_parse_key(k)[3] for k in ks))
+    for inp in dict.fromkeys(parse_key(k)[0] for k in keys):
+        ks = [k for k in keys if parse_key(k)[0] == inp]
+        models, best = _best_method_map(sams, ks)
         vmax = max(float(np.nanpercentile(sams[k], 99)) if np.isfinite(sams[k]).any() else 1.0
                    for k in ks) or 1.0
-        ncol = 2 + len(models)
-        fig, axes = plt.subplots(len(pps), ncol, figsize=(2.6 * ncol, 3.0 * len(pps)),
-                                 squeeze=False)
-        cmap = ListedColormap(plt.get_cmap("tab10").colors[:max(len(models), 1)])
-        for i, pp in enumerate(pps):
-            axes[i, 0].imshow(preview)
-            axes[i, 0].set_title(f"input {inp.upper()}-RGB", fontsize=8)
-            stack = np.stack([sams[f"{inp}-pp_{pp}-lr_{lr}-{m}"] for m in models])
-            finite = np.isfinite(stack).any(0)
-            best = np.where(finite, np.nanargmin(np.where(np.isfinite(stack), stack, np.inf), 0),
-                            -1).astype(float)
-            best[~finite] = np.nan
-            axes[i, 1].imshow(best, cmap=cmap, vmin=-0.5, vmax=len(models) - 0.5,
-                              interpolation="nearest")
-            shares = [np.mean(best[finite] == j) * 100 for j in range(len(models))]
-            axes[i, 1].set_title(f"lowest SAM, pre-proc. {pp}", fontsize=8)
-            axes[i, 1].legend(handles=[Patch(color=cmap(j), label=f"{m} {sh:.0f}%")
-                                       for j, (m, sh) in enumerate(zip(models, shares))],
-                              fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.02),
-                              ncol=2, frameon=False)
-            for j, m in enumerate(models):
-                im = axes[i, 2 + j].imshow(stack[j], cmap="magma", vmin=0, vmax=vmax)
-                axes[i, 2 + j].set_title(f"SAM° {m}, pre-proc. {pp}", fontsize=8)
-            fig.colorbar(im, ax=axes[i, -1], fraction=0.046)
-            for ax in axes[i]:
-                ax.set_xticks([])
-                ax.set_yticks([])
-        fig.suptitle(f"{scene}: luminance restoration {lr}", fontsize=9)
-        out.append((f"{scene} — {inp.upper()}-RGB, restoration {lr}: input, method with the "
-                    f"lowest SAM per pixel (share of pixels), SAM maps (degrees; masked pixels "
-                    f"blank)", _png(fig)))
+        ncol = min(4, 2 + len(ks))
+        nrow = int(np.ceil((2 + len(ks)) / ncol))
+        fig, axes = plt.subplots(nrow, ncol, figsize=(2.8 * ncol, 2.9 * nrow), squeeze=False)
+        axf = axes.ravel()
+        axf[0].imshow(preview)
+        axf[0].set_title(f"input {inp.upper()}-RGB", fontsize=8)
+        cmap = ListedColormap(list(plt.get_cmap("tab20").colors)[:max(len(models), 1)])
+        axf[1].imshow(best, cmap=cmap, vmin=-0.5, vmax=len(models) - 0.5, interpolation="nearest")
+        fin = np.isfinite(best)
+        shares = [np.mean(best[fin] == j) * 100 if fin.any() else 0.0 for j in range(len(models))]
+        axf[1].set_title("lowest SAM per pixel", fontsize=8)
+        axf[1].legend(handles=[Patch(color=cmap(j), label=f"{m} {sh:.0f}%")
+                               for j, (m, sh) in enumerate(zip(models, shares))],
+                      fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=2,
+                      frameon=False)
+        im = None
+        for j, k in enumerate(ks):
+            im = axf[2 + j].imshow(sams[k], cmap="magma", vmin=0, vmax=vmax)
+            axf[2 + j].set_title(f"SAM° {_key_label(k, ks)}", fontsize=7)
+        if im is not None:
+            fig.colorbar(im, ax=axf[1 + len(ks)], fraction=0.046)
+        for ax in axf:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        for ax in axf[2 + len(ks):]:
+            ax.axis("off")
+        fig.suptitle(f"{scene}, {inp.upper()}-RGB input", fontsize=9)
+        out.append((f"{scene} — {inp.upper()}-RGB: input, method with the lowest SAM per pixel "
+                    f"(each at its best setting; share of pixels), SAM maps (degrees; masked "
+                    f"pixels blank)", _png(fig)))
         if len(pix):
             n = len(pix)
             fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 2.8), squeeze=False)
@@ -118,38 +143,57 @@ def _scene_figures(npz_path: Path, plt) -> list[tuple[str, str]]:
                 ax = axes[0, c]
                 ax.plot(wl, gt[c], "k-", lw=2.2, label="ground truth")
                 for k in ks:
-                    _, pp, _, m = _parse_key(k)
-                    ax.plot(wl, preds[k][c], "--" if pp == "on" else "-", lw=1,
-                            label=f"{m} (pre-proc. {pp})")
-                ax.set_title(f"pixel (row {pix[c][0]}, col {pix[c][1]})", fontsize=8)
+                    ax.plot(wl, preds[k][c], "--" if parse_key(k)[1] == "on" else "-", lw=1,
+                            label=_key_label(k, ks))
+                who = "chosen" if c < n_user else "auto"
+                ax.set_title(f"({who}) row {pix[c][0]}, col {pix[c][1]}", fontsize=8)
                 ax.set_xlabel("nm", fontsize=8)
                 ax.tick_params(labelsize=7)
             axes[0, -1].legend(fontsize=6, loc="best")
-            out.append((f"{scene} — spectra at selected pixels (darkest, median, brightest, "
-                        f"random), {inp.upper()}-RGB, restoration {lr}", _png(fig)))
+            out.append((f"{scene} — spectra, {inp.upper()}-RGB input: {n_user} chosen pixel(s) "
+                        f"(--pixels), then the darkest, median, brightest and a random valid "
+                        f"pixel", _png(fig)))
     return out
 
 
 def _band_figure(summary: list[dict[str, Any]], wl: np.ndarray, plt) -> list[tuple[str, str]]:
     out = []
-    combos = list(dict.fromkeys((s["input"], s["restore"]) for s in summary))
-    for inp, rs in combos:
-        sub = [s for s in summary if s["input"] == inp and s["restore"] == rs and s.get("band_mrae")]
+    for inp in dict.fromkeys(s["input"] for s in summary):
+        sub = [s for s in summary if s["input"] == inp and s.get("band_mrae")]
         if not sub:
             continue
         fig, ax = plt.subplots(figsize=(7, 3.5))
         for s in sub:
-            y = np.array([np.nan if v is None else v for v in s["band_mrae"]])
+            y = np.array([np.nan if v is None else v for v in s["band_mrae"]], dtype=float)
+            y[~(y > 0)] = np.nan  # a log axis has no place for 0
             x = wl if wl.size == y.size else np.arange(y.size)
             ax.plot(x, y, "--" if s["preprocess"] == "on" else "-",
-                    label=f"{s['model']} (pre-proc. {s['preprocess']})")
+                    label=f"{row_label(s)} ({'w/' if s['preprocess'] == 'on' else 'w/o'} pp)")
+        ax.set_yscale("log")
         ax.set_xlabel("wavelength (nm)")
-        ax.set_ylabel("MRAE")
+        ax.set_ylabel("MRAE (log)")
         ax.legend(fontsize=7)
-        ax.set_title(f"{inp.upper()}-RGB, restoration {'on' if rs else 'off'}", fontsize=9)
-        out.append((f"Per-wavelength MRAE, {inp.upper()}-RGB input, luminance restoration "
-                    f"{'on' if rs else 'off'}", _png(fig)))
+        ax.set_title(f"{inp.upper()}-RGB input", fontsize=9)
+        out.append((f"Per-wavelength MRAE, {inp.upper()}-RGB input (log axis)", _png(fig)))
     return out
+
+
+def _protocol_html(doc: dict[str, Any]) -> list[str]:
+    e = html.escape
+    cfg = doc.get("config", {})
+    rule = cfg.get("mrae_rule") or {"threshold": 0.0, "relative": False, "band_range": None}
+    br = rule.get("band_range")
+    pp = cfg.get("preprocessing") or {}
+    parts = [f"<p>MRAE element rule: ground truth &gt; {rule.get('threshold', 0):g}"
+             f"{' × the image maximum' if rule.get('relative') else ''}; bands "
+             f"{'all' if not br else f'{br[0]:g}–{br[1]:g} nm'}. Pre-processing for "
+             f"fixed baselines (when asked) and regressions fitted here: "
+             f"{e(json.dumps(pp))}; fixed baselines with pre-processing: "
+             f"{'yes' if cfg.get('fixed_preprocess') else 'no'}.</p>"]
+    parts.append("<h2>Models and what they were trained for</h2><ul>" + "".join(
+        f"<li><b>{e(m['name'])}</b>: {e(m.get('trained_for_label') or 'not recorded')} — "
+        f"{e(m.get('description') or '')}</li>" for m in doc.get("models", [])) + "</ul>")
+    return parts
 
 
 def write_evaluation_report(results_dir: str | Path, out_html: str | Path | None = None) -> Path:
@@ -179,20 +223,27 @@ def write_evaluation_report(results_dir: str | Path, out_html: str | Path | None
     for note in cfg.get("notes", []):
         parts.append(f"<p><b>Note:</b> {e(note)}</p>")
     parts.append("<p>SAM in degrees (zero-norm pixels excluded and counted), MRAE over "
-                 "elements with ground truth &gt; 0, RMSE in the data's units, PSNR with "
+                 "the elements the rule below admits, RMSE in the data's units, PSNR with "
                  "peak = the ground truth's maximum per image; per image, then averaged. "
-                 "Masked pixels (saturated, ghost, invalid) are not scored.</p>")
-    parts.append("<h2>Models</h2><ul>" + "".join(
-        f"<li><b>{e(m['name'])}</b>: {e(m.get('description') or '')}</li>"
-        for m in doc.get("models", [])) + "</ul>")
+                 "Masked pixels (saturated, ghost, invalid) are not scored. Each model is "
+                 "scored only in the setting it was trained for; '–' elsewhere.</p>")
+    parts += _protocol_html(doc)
     summary = doc.get("summary", [])
+    rows = doc.get("rows", [])
     parts.append("<h2>SAM and MRAE</h2>")
-    parts += [_html_table(*b) for b in table_blocks(summary, timing=doc.get("timing"))]
+    parts += [html_table(*b) for b in table_blocks(summary)]
+    if doc.get("timing"):
+        parts.append(html_table(*timing_block(doc["timing"])))
     parts.append("<h2>All metrics</h2>")
-    parts += [_html_table(*b) for b in table_blocks(summary, metrics=METRIC_NAMES)]
+    parts += [html_table(*b) for b in table_blocks(summary, metrics=METRIC_NAMES)]
+    if summary:
+        parts.append("<h2>Spread across images and per scene</h2>")
+        parts.append(html_table(*spread_block(summary)))
+        parts += [html_table(*b) for m in ("sam", "mrae") for b in per_scene_blocks(rows, summary, m)]
     excl = [s for s in summary if s.get("sam_excluded") or s.get("mrae_excluded")]
     if excl:
-        parts.append("<p>Excluded from SAM / MRAE (zero-norm pixels / elements with y ≤ 0): " +
+        parts.append("<p>Excluded from SAM / MRAE (zero-norm pixels / elements outside the "
+                     "MRAE rule): " +
                      "; ".join(f"{e(s['model'])} {s['input']} pp {s['preprocess']}: "
                                f"{s['sam_excluded']} / {s['mrae_excluded']}" for s in excl) + "</p>")
     if doc.get("skipped"):

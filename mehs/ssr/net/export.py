@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -26,10 +27,59 @@ import torch
 from torch import nn
 
 from mehs import __version__
-from mehs.errors import InputError
+from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path
-from mehs.ssr.models import SSRModel
-from mehs.ssr.net.train import load_network, resolve_device
+from mehs.ssr.contract import SSRModel, TrainedFor
+from mehs.ssr.preprocess import PAPER_PREPROCESSING, Preprocessing
+from mehs.ssr.registry import get_architecture
+from mehs.ssr.net.train import read_checkpoint, resolve_device
+
+
+def checkpoint_arch(state: dict) -> str:
+    """The architecture name a checkpoint records (``arch``; older ones: ``variant``)."""
+    arch = state.get("arch") or state.get("variant") or (state.get("net_config") or {}).get("variant")
+    if not arch:
+        raise FormatError("the checkpoint names no architecture ('arch')")
+    return str(arch)
+
+
+def checkpoint_trained_for(state: dict, network) -> TrainedFor:
+    """The checkpoint's ``trained_for`` record, or one derived from an older checkpoint.
+
+    Checkpoints without it: ``net_config.reinhard`` with ``reinhard_scale`` s (the
+    network computes ``x/s / (1 + x/s)``; absent: 1, the paper's x/(1+x)) →
+    ``Preprocessing(key=None, scale=1/s)``; ``network.predicts_standard_spectrum`` →
+    output shape (else spectra); ``net_config.input``, else ``extra.input`` → the
+    trained input.
+    """
+    if isinstance(state.get("trained_for"), dict):
+        return TrainedFor.from_dict(state["trained_for"])
+    nc = state.get("net_config") or {}
+    inp = nc.get("input") or (state.get("extra") or {}).get("input")
+    pp = None
+    if nc.get("reinhard"):
+        s = float(nc.get("reinhard_scale", 1.0) or 1.0)
+        pp = PAPER_PREPROCESSING if s == 1.0 else Preprocessing(key=None, scale=1.0 / s)
+    return TrainedFor(input=inp if inp in ("hdr", "ldr") else None, preprocessing=pp,
+                      output="shape" if getattr(network, "predicts_standard_spectrum", False)
+                      else "spectra")
+
+
+def load_checkpoint_network(path: str | Path, map_location="cpu"):
+    """Rebuild the network of a checkpoint through the registry; ``(network, state)``, eval mode."""
+    state = read_checkpoint(path, map_location)
+    arch = checkpoint_arch(state)
+    try:
+        net = get_architecture(arch).build(dict(state.get("net_config") or {}))
+    except InputError as exc:
+        raise exc.with_path(path) from None
+    try:
+        net.load_state_dict(state["model"])
+    except (RuntimeError, KeyError) as exc:
+        raise FormatError(f"checkpoint weights do not fit its {arch!r} configuration ({exc})",
+                          path) from None
+    net.eval()
+    return net, state
 
 
 class TorchSSRModel(SSRModel):
@@ -38,35 +88,64 @@ class TorchSSRModel(SSRModel):
     Parameters
     ----------
     network
-        An :class:`~mehs.ssr.net.model.HDRSSRNet` or
-        :class:`~mehs.ssr.net.model.FCDenseNetSSR` (put in eval mode).
+        A torch module built by a registered architecture (put in eval mode);
+        ``forward(rgb (N, 3, H, W))`` applies its own pre-processing.
     name
-        Model name in tables (default: the variant).
+        Model name in tables (default: the architecture).
     device
         Torch device for inference.
+    trained_for
+        What it was trained for (default: derived from the network, see
+        :func:`checkpoint_trained_for`).
+    arch
+        The registered architecture name.
     """
 
+    applies_preprocessing = True
+
     def __init__(self, network, *, name: str | None = None, device: str = "cpu",
-                 source: str | None = None):
+                 source: str | None = None, trained_for: TrainedFor | None = None,
+                 arch: str | None = None):
         self.device = resolve_device(device)
         self.network = network.to(self.device).eval()
-        self.name = name or network.config.variant
-        self.wavelengths = network.wavelengths
-        self.preprocessing = "reinhard" if network.config.reinhard else None
-        self.restores_luminance = bool(network.predicts_standard_spectrum)
+        cfg = getattr(network, "config", None)
+        self.arch = arch or getattr(cfg, "variant", None) or type(network).__name__.lower()
+        self.name = name or self.arch
+        self.wavelengths = np.asarray(network.wavelengths, dtype=np.float64)
+        self.trained_for = trained_for or checkpoint_trained_for(
+            {"net_config": cfg.to_dict() if hasattr(cfg, "to_dict") else {}}, network)
         self.source = source
-        what = ("FC-DenseNet + basis branches, learns spectral similarity"
-                if self.restores_luminance else "FC-DenseNet end to end")
-        self.description = f"{what}{' (Reinhard input)' if self.preprocessing else ''}" + (
-            f", {Path(source).name}" if source else "")
+        self.description = (f"{self.arch}: {self.trained_for.label()}"
+                            + (f", {Path(source).name}" if source else ""))
+
+    # older attribute names, still read by callers of the first network release
+    @property
+    def preprocessing(self):
+        return self.trained_for.preprocessing.method if self.trained_for.preprocessing else None
+
+    @property
+    def restores_luminance(self) -> bool:
+        return self.trained_for.output == "shape"
+
+    def on_device(self, device: str) -> "TorchSSRModel":
+        """The same network as a model on ``device`` (for timing on CUDA)."""
+        import copy
+
+        return TorchSSRModel(copy.deepcopy(self.network), name=self.name, device=device,
+                             source=self.source, trained_for=self.trained_for, arch=self.arch)
 
     @torch.no_grad()
-    def predict(self, rgb: np.ndarray) -> np.ndarray:
-        """``rgb`` float32 ``(H, W, 3)`` linear → float32 ``(H, W, B)``."""
+    def standard_spectrum(self, rgb: np.ndarray) -> np.ndarray:
+        """The network's raw output ``(H, W, B)`` float32 (a shape S for ◇ networks)."""
+        rgb = np.asarray(rgb, dtype=np.float32)
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
         x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
-        y = self.network(x)[0].permute(1, 2, 0).cpu().numpy()
+        return self.network(x)[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        """``rgb`` float32 ``(H, W, 3)`` linear → float32 ``(H, W, B)`` spectra."""
+        y = self.standard_spectrum(rgb)
         if self.restores_luminance:
             from mehs.ssr.luminance import restore_luminance
 
@@ -78,17 +157,21 @@ def load_torch_model(checkpoint: str | Path, *, name: str | None = None,
                      device: str = "cpu", wavelengths=None) -> TorchSSRModel:
     """A :class:`TorchSSRModel` from a training checkpoint (``last.pt`` / ``best.pt``).
 
-    ``wavelengths``, if given, must be the network's own bands (a network cannot
-    be asked for others); ``mehs.ssr.models.load_model("x.pt", ...)`` lands here.
+    The network is rebuilt by the architecture the checkpoint names
+    (:func:`mehs.ssr.registry.get_architecture`). ``wavelengths``, if given,
+    must be the network's own bands; ``load_model("x.pt", ...)`` lands here.
     """
-    net, _ = load_network(checkpoint, map_location="cpu")
+    net, state = load_checkpoint_network(checkpoint, map_location="cpu")
+    net_wl = np.asarray(net.wavelengths, dtype=np.float64)
     if wavelengths is not None:
         want = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
-        if want.shape != net.wavelengths.shape or not np.allclose(want, net.wavelengths, atol=0.01):
-            raise InputError(f"the network predicts {net.wavelengths.size} bands "
-                             f"{net.wavelengths[0]:g}..{net.wavelengths[-1]:g} nm, not the "
+        if want.shape != net_wl.shape or not np.allclose(want, net_wl, atol=0.01):
+            raise InputError(f"the network predicts {net_wl.size} bands "
+                             f"{net_wl[0]:g}..{net_wl[-1]:g} nm, not the "
                              f"{want.size} requested", checkpoint)
-    return TorchSSRModel(net, name=name, device=device, source=str(checkpoint))
+    return TorchSSRModel(net, name=name, device=device, source=str(checkpoint),
+                         trained_for=checkpoint_trained_for(state, net),
+                         arch=checkpoint_arch(state))
 
 
 class _ContractGraph(nn.Module):
@@ -109,10 +192,18 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
     package beyond torch and keeps H and W dynamic, including the padding to a
     multiple of ``2**depth`` done inside the network.
     """
+    tf, tf_arch = None, None
     if isinstance(model, (str, Path)):
-        model, _ = load_network(model)
+        model, state = load_checkpoint_network(model)
+        tf, tf_arch = checkpoint_trained_for(state, model), checkpoint_arch(state)
     elif isinstance(model, TorchSSRModel):
+        tf, tf_arch = model.trained_for, model.arch
         model = model.network
+    if tf is None:
+        cfg = getattr(model, "config", None)
+        tf = checkpoint_trained_for({"net_config": cfg.to_dict() if hasattr(cfg, "to_dict")
+                                     else {}}, model)
+        tf_arch = getattr(cfg, "variant", type(model).__name__.lower())
     if not hasattr(model, "spectra"):
         raise InputError(f"cannot export {type(model).__name__}: not an SSR network")
     net = model.to("cpu").eval()
@@ -128,9 +219,10 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
                                             "spectra": {0: "batch", 2: "height", 3: "width"}})
         _add_metadata(tmp, {
             "wavelengths": ",".join(f"{w:g}" for w in net.wavelengths),
-            "mehs_variant": net.config.variant,
-            "mehs_preprocessing": "reinhard" if net.config.reinhard else "none",
-            "mehs_luminance_restored": "true" if net.predicts_standard_spectrum else "false",
+            "mehs_variant": tf_arch,
+            "mehs_preprocessing": "reinhard" if tf.preprocessing else "none",
+            "mehs_luminance_restored": "true" if tf.output == "shape" else "false",
+            "mehs_trained_for": json.dumps(tf.to_dict()),
             "mehs_version": __version__,
         })
     return path

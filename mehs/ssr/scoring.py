@@ -1,0 +1,521 @@
+"""Score SSR models on paired HS/RGB scenes: per-image metrics and their summaries.
+
+:func:`evaluate` runs every model in every requested setting it was trained
+for (:mod:`mehs.ssr.protocol`) — input HDR-RGB / LDR-RGB, Reinhard
+pre-processing off / on, luminance restoration on / off — on each scene,
+computes SAM, MRAE, RMSE and PSNR per image (:mod:`mehs.ssr.metrics`, dataset
+masks respected, optional border crop, the MRAE element rule as recorded
+options), and summarises them over images (mean ± std, median). The results
+folder is written by :mod:`mehs.ssr.results_io`.
+
+Luminance-restoration fallbacks (``X+Y+Z ≤ 0`` of a predicted shape: the
+pixel gets a flat spectrum) are counted per image (``restore_fallback``) and
+summed per configuration; never silent.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.ssr.contract import trained_for
+from mehs.ssr.data import RGB_INPUTS, PairSet, load_pairs
+from mehs.ssr.metrics import METRIC_NAMES, image_metrics, sam_map
+from mehs.ssr.pipeline import predict
+from mehs.ssr.preprocess import Preprocessing
+from mehs.ssr.protocol import (PREPROCESS_CHOICES, model_settings, preprocessing_for,
+                               protocol_notes)
+
+#: Paper Table 5 (CPU i9-11900 / GPU RTX 3090, 2048×1024), by row name.
+PAPER_SECONDS = {"smits": (0.788, None), "hdrssr": (16.338, 1.066), "ours": (16.338, 1.066),
+                 "mikamoto": (14.766, 0.948), "galliani": (6.337, 0.946),
+                 "hscnn-d": (51.998, 2.344), "hscnnd": (51.998, 2.344),
+                 "awan": (324.586, 7.110)}
+
+
+def config_key(input: str, preprocess: str, restore: bool, model: str) -> str:
+    """A file-name-safe key of one configuration, e.g. ``hdr-pp_on-lr_on-smits``."""
+    return f"{input}-pp_{preprocess}-lr_{'on' if restore else 'off'}-{model}"
+
+
+def parse_key(key: str) -> tuple[str, str, str, str]:
+    """Inverse of :func:`config_key`: ``(input, "on"/"off", "on"/"off", model)``."""
+    inp, pp, lr, model = key.split("-", 3)
+    return inp, pp.split("_", 1)[1], lr.split("_", 1)[1], model
+
+
+def _as_tuple(v, allowed: Sequence, what: str) -> tuple:
+    if isinstance(v, (str, bool)):
+        v = [v]
+    out = []
+    for x in v:
+        if isinstance(x, str) and x in ("both", "all"):
+            out.extend(allowed)
+            continue
+        if isinstance(x, bool) and what == "preprocess":
+            x = "on" if x else "off"
+        if x not in allowed:
+            raise InputError(f"{what} must be among {list(allowed)}, got {x!r}")
+        out.append(x)
+    return tuple(dict.fromkeys(out))
+
+
+def _restore_tuple(restore) -> tuple[bool, ...]:
+    if isinstance(restore, str):
+        if restore != "both":
+            raise InputError(f"restore must be True, False or 'both', got {restore!r}")
+        return (True, False)
+    if isinstance(restore, bool):
+        return (restore,)
+    return tuple(dict.fromkeys(bool(r) for r in restore))
+
+
+def _fit_regressions(pairs: PairSet, label: str, pp: tuple, ins: tuple, default_pp: Preprocessing,
+                     seed: int) -> list[tuple[Any, str]]:
+    """A bare ``regression``: one fit per requested pre-processing setting, as the paper
+    trains one network per setting; all share the row ``label``."""
+    from mehs.ssr.baselines import fit_regression_baseline
+
+    train_ids = (pairs.splits or {}).get("train") or []
+    if pairs.manifest is None or not train_ids:
+        raise InputError("the 'regression' baseline needs a train split to fit on; run "
+                         "'mehs train-baseline' and pass the .npz instead", pairs.root)
+    kind = "hdr" if "hdr" in ins else "ldr"
+    train = load_pairs(pairs.root, split="train")
+    out = []
+    for p in pp:
+        spec = default_pp if p == "on" else None
+        model = fit_regression_baseline(train, seed=seed, input=kind, preprocessing=spec)
+        model.name = label
+        out.append((model, f"fitted on the train split ({len(train_ids)} scenes, "
+                           f"{kind.upper()}, {spec.label() if spec else 'no pre-processing'})"))
+    return out
+
+
+def _resolve_models(models, pairs: PairSet, *, seed: int = 0, pp: tuple = PREPROCESS_CHOICES,
+                    ins: tuple = ("hdr",), default_pp: Preprocessing | None = None
+                    ) -> list[tuple[Any, str, str]]:
+    """Load each spec (``NAME=SPEC`` names the row); a bare ``regression`` is fitted here."""
+    from mehs.ssr.models import load_model, split_named_spec
+
+    default_pp = default_pp or Preprocessing()
+    if isinstance(models, str):
+        models = [m for m in models.split(",") if m.strip()]
+    resolved: list = []
+    names: dict[str, set] = {}
+    for spec in models:
+        label = None
+        if isinstance(spec, str):
+            label, spec = split_named_spec(spec.strip())
+        if isinstance(spec, str) and spec.strip().lower() == "regression":
+            group = _fit_regressions(pairs, label or "regression", pp, ins, default_pp, seed)
+        else:
+            model = load_model(spec)
+            if label:
+                model.name = label
+            group = [(model, str(getattr(model, "description", "")))]
+        base = label or str(getattr(group[0][0], "name", spec))
+        mine = {x for m, _ in group for x in model_settings(m, ins, pp, (True, False))}
+        name, k = base, 2
+        while name in names:
+            if label and not (names[name] & mine):
+                break  # one row, several models each trained for other settings (the paper's)
+            if label:
+                raise InputError(f"two models are named {label!r} and were trained for the "
+                                 "same setting; give each row its own name")
+            name = f"{base}_{k}"
+            k += 1
+        names[name] = names.get(name, set()) | mine
+        for model, note in group:
+            resolved.append((model, name, note))
+    if not resolved:
+        raise InputError("no models given")
+    return resolved
+
+
+def _preview(rgb: np.ndarray) -> np.ndarray:
+    """uint8 sRGB preview of linear HDR RGB: median luminance → 0.18, Reinhard on luminance."""
+    lum = rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    pos = lum[lum > 0]
+    key = float(np.median(pos)) if pos.size else 1.0
+    L = lum * np.float32(0.18 / key)
+    scale = np.where(L > 0, 1 / (1 + L), 0).astype(np.float32) * np.float32(0.18 / key)
+    x = np.clip(rgb * scale[..., None], 0, 1)
+    enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.round(enc * 255).astype(np.uint8)
+
+
+def _pick_pixels(gt: np.ndarray, valid: np.ndarray, k: int = 4, seed: int = 0) -> np.ndarray:
+    """Pixels for the spectra figure: darkest, median, brightest valid, and a random one."""
+    lum = gt.sum(-1)
+    idx = np.flatnonzero(valid.reshape(-1) & (lum.reshape(-1) > 0))
+    if idx.size == 0:
+        return np.zeros((0, 2), dtype=int)
+    order = idx[np.argsort(lum.reshape(-1)[idx], kind="stable")]
+    rng = np.random.default_rng(seed)
+    pick = [order[0], order[len(order) // 2], order[-1], rng.choice(order)][:k]
+    pick = list(dict.fromkeys(int(p) for p in pick))
+    return np.stack(np.unravel_index(pick, gt.shape[:2]), 1)
+
+
+def parse_pixels(specs: Iterable[str] | str | None) -> dict[str, list[tuple[int, int]]]:
+    """``["s01:10,20", "s01:3,4"]`` (or one string, ``;``-separated) → ``{"s01": [(10, 20), (3, 4)]}``."""
+    if not specs:
+        return {}
+    if isinstance(specs, str):
+        specs = [s for s in specs.split(";") if s.strip()]
+    out: dict[str, list[tuple[int, int]]] = {}
+    for s in specs:
+        scene, sep, rc = str(s).strip().rpartition(":")
+        try:
+            r, c = (int(v) for v in rc.split(","))
+        except ValueError:
+            r = c = -1
+        if not sep or not scene or r < 0 or c < 0:
+            raise InputError(f"pixel {s!r} must be SCENE:ROW,COL with ROW, COL ≥ 0")
+        out.setdefault(scene, []).append((r, c))
+    return out
+
+
+def mrae_band_mask(wl: np.ndarray, band_range) -> np.ndarray | None:
+    """Bool ``(B,)`` of the bands inside ``band_range = (lo, hi)`` nm, or ``None`` for all."""
+    if band_range is None:
+        return None
+    lo, hi = (float(v) for v in band_range)
+    m = (np.asarray(wl) >= lo - 0.01) & (np.asarray(wl) <= hi + 0.01)
+    if not m.any():
+        raise InputError(f"MRAE band range {lo:g}–{hi:g} nm contains none of the dataset's bands")
+    return m
+
+
+@dataclass
+class EvaluationResult:
+    """What :func:`evaluate` computed; ``out`` is the results folder (or None)."""
+
+    rows: list[dict[str, Any]]
+    summary: list[dict[str, Any]]
+    config: dict[str, Any]
+    models: list[dict[str, Any]]
+    timing: list[dict[str, Any]] | None = None
+    skipped: list[dict[str, Any]] = field(default_factory=list)
+    figures: list[str] = field(default_factory=list)
+    out: Path | None = None
+
+    def tables(self, fmt: str = "markdown", metrics: Sequence[str] = ("sam", "mrae")) -> str:
+        from mehs.ssr.results_io import format_tables
+
+        return format_tables(self.summary, self.config, fmt=fmt, metrics=metrics,
+                             timing=self.timing)
+
+
+def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
+             preprocess: Sequence[str] | str = ("off", "on"),
+             inputs: Sequence[str] | str = ("hdr",),
+             restore: bool | Sequence[bool] | str = True,
+             crop: int = 0, split: str | None = None, out: str | Path | None = None,
+             figures: int = 2, timing: bool = False,
+             timing_shape: tuple[int, int] = (1024, 2048),
+             seed: int = 0, progress: bool = False,
+             preprocessing: Preprocessing | None = None, fixed_preprocess: bool = False,
+             pixels: Iterable[str] | str | None = None,
+             mrae_threshold: float = 0.0, mrae_relative: bool = False,
+             mrae_bands: tuple[float, float] | None = None,
+             timing_devices: Sequence[str] = ("cpu", "cuda")) -> EvaluationResult:
+    """Evaluate ``models`` on ``dataset``, each in the settings it was trained for.
+
+    Parameters
+    ----------
+    dataset
+        A dataset folder, a plain folder of pairs, or a :class:`PairSet`.
+    models
+        Model specs (see :func:`mehs.ssr.models.load_model`; ``NAME=SPEC`` names
+        the row) or model objects; a comma-separated string is split. A bare
+        ``"regression"`` is fitted on the train split once per requested
+        pre-processing setting.
+    preprocess
+        ``"off"``, ``"on"`` or ``"both"`` (or a sequence of them).
+    inputs
+        ``"hdr"``, ``"ldr"`` or both.
+    restore
+        Luminance restoration for models whose output allows both: ``True``,
+        ``False`` or ``"both"``. Shape models are always restored, end-to-end
+        ones never (their setting is added when absent).
+    crop
+        Border (pixels) removed on every side before scoring.
+    split
+        Manifest split to score, ``None`` for every scene, or ``"auto"`` (the
+        test split if there is a non-empty one, else every scene).
+    out
+        Results folder to write (see :mod:`mehs.ssr.results_io`); ``None`` writes nothing.
+    figures
+        How many scenes keep per-pixel SAM maps and spectra for the report
+        (``-1``: all).
+    timing
+        Also time each model on a ``timing_shape`` image (paper Table 5), on
+        each of ``timing_devices`` a model can run on.
+    preprocessing
+        The :class:`Preprocessing` for fitted-here regressions and for fixed
+        baselines scored with pre-processing (default: Reinhard, key 0.18).
+    fixed_preprocess
+        Also score fixed baselines (Smits, Mallett) with pre-processing.
+    pixels
+        Extra spectra for the report: ``"SCENE:ROW,COL"`` strings.
+    mrae_threshold, mrae_relative, mrae_bands
+        MRAE element rule: elements with ``y > threshold`` (× the image's
+        ground-truth maximum when ``mrae_relative``) inside ``mrae_bands =
+        (lo, hi)`` nm; recorded in the results.
+    """
+    if int(crop) < 0:  # image_metrics checks it too, but only once scoring has begun
+        raise InputError(f"crop must be ≥ 0, got {crop}")
+    if not (np.isfinite(mrae_threshold) and mrae_threshold >= 0):
+        raise InputError(f"MRAE threshold must be a number ≥ 0, got {mrae_threshold}")
+    if out is not None:
+        from mehs.io.atomic import check_output_dir
+
+        check_output_dir(out)  # before the scoring, not after
+    default_pp = preprocessing or Preprocessing()
+    pp = _as_tuple(preprocess, PREPROCESS_CHOICES, "preprocess")
+    ins = _as_tuple(inputs, RGB_INPUTS, "input")
+    rs_req = _restore_tuple(restore)
+    want_pix = parse_pixels(pixels)
+    all_pairs = dataset if isinstance(dataset, PairSet) else load_pairs(dataset)
+    if split == "auto":
+        split = "test" if (all_pairs.splits or {}).get("test") else None
+    pairs = all_pairs if split is None else load_pairs(all_pairs.root, split=split)
+    unknown = sorted(set(want_pix) - {p.id for p in pairs})
+    if unknown:
+        raise InputError(f"--pixels names scene(s) {unknown} not among the scored scenes", pairs.root)
+    resolved = _resolve_models(models, all_pairs, seed=seed, pp=pp, ins=ins, default_pp=default_pp)
+    plans = [(model, name, model_settings(model, ins, pp, rs_req, fixed_preprocess=fixed_preprocess))
+             for model, name, _ in resolved]
+    rs = tuple(dict.fromkeys(r for _, _, st in plans for _, _, r in st)) or rs_req
+    if not any(st for _, _, st in plans):
+        notes = protocol_notes(resolved, ins, pp, rs, fixed_preprocess=fixed_preprocess)
+        raise InputError("no model was trained for the requested settings (input "
+                         f"{'/'.join(ins)}, pre-processing {'/'.join(pp)}): " + "; ".join(notes) +
+                         " — use --preprocess both, or --fixed-preprocess for fixed baselines")
+    rule = {"threshold": float(mrae_threshold), "relative": bool(mrae_relative),
+            "band_range": None if mrae_bands is None else [float(v) for v in mrae_bands]}
+
+    rows: list[dict[str, Any]] = []
+    skipped: list[dict[str, Any]] = []
+    band_acc: dict[str, list] = {}
+    fig_ids: list[str] = []
+    fig_pending: list[tuple[Path, dict[str, Any]]] = []
+    fig_dir = None if out is None else Path(out) / "figures"
+    it = pairs
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(pairs, desc="evaluate", unit="scene")
+    for i_scene, pair in enumerate(it):
+        gt, wl = pair.hs_array()
+        valid = pair.valid(gt.shape[:2])
+        bmask = mrae_band_mask(wl, mrae_bands)
+        want_fig = fig_dir is not None and (figures < 0 or len(fig_ids) < figures
+                                            or pair.id in want_pix)
+        fig: dict[str, Any] = {}
+        if want_fig:
+            pix = _pick_pixels(gt, valid, seed=seed + i_scene)
+            user = np.array(want_pix.get(pair.id, []), dtype=int).reshape(-1, 2)
+            if user.size and ((user[:, 0] >= gt.shape[0]) | (user[:, 1] >= gt.shape[1])).any():
+                raise InputError(f"--pixels {pair.id}: a pixel lies outside the "
+                                 f"{gt.shape[0]}×{gt.shape[1]} image", pair.hs_path)
+            pix = np.concatenate([user, pix]) if user.size else pix
+            fig = {"pixels": pix, "gt": gt[pix[:, 0], pix[:, 1]], "wavelengths": wl,
+                   "n_user_pixels": np.array(len(user))}
+        keys: list[str] = []
+        for inp in ins:
+            if not pair.has(inp):
+                skipped.append({"scene": pair.id, "input": inp, "reason": f"no {inp.upper()}-RGB file"})
+                continue
+            rgb = pair.rgb(inp)
+            if rgb.shape[:2] != gt.shape[:2]:
+                raise InputError(f"{inp.upper()}-RGB is {rgb.shape[:2]}, the cube is {gt.shape[:2]}",
+                                 pair.hdr_path if inp == "hdr" else pair.ldr_path)
+            if want_fig and "preview" not in fig:
+                fig["preview"] = _preview(rgb)
+            for model, name, settings in plans:
+                tf = trained_for(model)
+                for s_inp, p, r in settings:
+                    if s_inp != inp:
+                        continue
+                    t0 = time.perf_counter()
+                    pred, st = predict(model, rgb, restore=r, wavelengths=wl, return_stats=True,
+                                       preprocessing=preprocessing_for(tf, p, default_pp))
+                    dt = time.perf_counter() - t0
+                    m = image_metrics(pred, gt, valid=valid, crop=crop,
+                                      mrae_threshold=mrae_threshold, mrae_relative=mrae_relative,
+                                      mrae_band_mask=bmask)
+                    key = config_key(inp, p, r, name)
+                    band_acc.setdefault(key, []).append(m.pop("band_mrae"))
+                    rows.append({"scene": pair.id, "input": inp, "preprocess": p, "restore": r,
+                                 "model": name, **m, "restore_fallback": st["restore_fallback"],
+                                 "seconds": dt})
+                    if want_fig:
+                        smap = sam_map(pred, gt)
+                        smap[~valid] = np.nan
+                        fig[f"sam_{key}"] = smap.astype(np.float16)
+                        fig[f"pred_{key}"] = pred[fig["pixels"][:, 0], fig["pixels"][:, 1]]
+                        keys.append(key)
+        if want_fig and keys:
+            fig["keys"] = np.array(json.dumps(keys))
+            fig["scene"] = np.array(pair.id)
+            # written with the results only once every scene has been scored: a bad
+            # scene half-way must not leave a results folder that looks started
+            fig_pending.append((fig_dir / f"{pair.id}.npz", fig))
+            fig_ids.append(pair.id)
+
+    summary = summarise(rows, band_acc)
+    outputs = {n: trained_for(m).output for m, n, _ in resolved}
+    for s in summary:  # the model's own restoration setting: rows are labelled by it
+        s["natural"] = outputs.get(s["model"]) != "spectra"
+    config = {"preprocess": list(pp), "inputs": list(ins), "restore": list(rs), "crop": crop,
+              "split": split, "n_scenes": len(pairs), "seed": seed,
+              "preprocessing": default_pp.to_dict(), "fixed_preprocess": bool(fixed_preprocess),
+              "mrae_rule": rule, "pixels": {k: [list(v) for v in vs] for k, vs in want_pix.items()},
+              "notes": protocol_notes(resolved, ins, pp, rs, fixed_preprocess=fixed_preprocess)}
+    fitted = [n for _, n, d in resolved if d.startswith("fitted on the train split")]
+    if fitted and split not in ("test", "val"):
+        config["notes"].append(f"{', '.join(dict.fromkeys(fitted))} fitted on the train split "
+                               f"and scored on split {split or 'all'}: the scores include "
+                               f"training scenes")
+    fb = [s for s in summary if s.get("restore_fallback")]
+    for s in fb:
+        config["notes"].append(
+            f"{s['model']} ({s['input'].upper()}, pre-proc. {s['preprocess']}): luminance "
+            f"restoration fell back to a flat spectrum (X+Y+Z ≤ 0) at {s['restore_fallback']} "
+            f"pixels ({100 * s['restore_fallback_fraction']:.1f} % of those scored)")
+    model_info = []
+    for m, n, d in resolved:
+        tf = trained_for(m)
+        model_info.append({"name": n, "description": d, "trained_for": tf.to_dict(),
+                           "trained_for_label": tf.label(),
+                           "wavelengths": np.asarray(m.wavelengths, dtype=float).tolist()})
+    tim = None
+    if timing:
+        seen: dict[str, Any] = {}
+        for m, n, _ in resolved:
+            seen.setdefault(n, m)  # one timing per row (the regression fits cost the same)
+        tim = time_models(list((m, n) for n, m in seen.items()), shape=timing_shape, seed=seed,
+                          devices=timing_devices)
+    res = EvaluationResult(rows=rows, summary=summary, config=config, models=model_info,
+                           timing=tim, skipped=skipped, figures=fig_ids)
+    if out is not None:
+        from mehs.ssr.results_io import write_npz, write_results
+
+        for path, fig in fig_pending:
+            write_npz(path, fig)
+        res.out = write_results(res, out, dataset=str(all_pairs.root))
+    return res
+
+
+def _spread(vals: list[float]) -> dict[str, float | None]:
+    if not vals:
+        return {"mean": None, "std": None, "median": None}
+    a = np.asarray(vals, dtype=np.float64)
+    return {"mean": float(a.mean()), "std": float(a.std(ddof=1)) if a.size > 1 else 0.0,
+            "median": float(np.median(a))}
+
+
+def summarise(rows: list[dict[str, Any]], band_acc: dict[str, list] | None = None) -> list[dict[str, Any]]:
+    """Summarise per-image rows into one entry per configuration.
+
+    Per metric: ``<m>`` (mean over the images where it is defined), ``<m>_std``
+    (sample std), ``<m>_median``, ``<m>_undefined``; never NaN. Also the excluded
+    counts, ``restore_fallback`` (sum; ``None`` if unknown for every image) and
+    its fraction of the scored pixels, and ``band_mrae`` (per band, mean over images).
+    """
+    groups: dict[tuple, list] = {}
+    for r in rows:
+        groups.setdefault((r["input"], r["preprocess"], r["restore"], r["model"]), []).append(r)
+    out = []
+    for (inp, p, rs, name), rs_rows in groups.items():
+        s: dict[str, Any] = {"input": inp, "preprocess": p, "restore": rs, "model": name,
+                             "n_images": len(rs_rows)}
+        for k in METRIC_NAMES:
+            vals = [r[k] for r in rs_rows if r.get(k) is not None and np.isfinite(r[k])]
+            sp = _spread(vals)
+            s[k], s[f"{k}_std"], s[f"{k}_median"] = sp["mean"], sp["std"], sp["median"]
+            s[f"{k}_undefined"] = len(rs_rows) - len(vals)
+        s["sam_excluded"] = int(sum(r.get("sam_excluded", 0) for r in rs_rows))
+        s["mrae_excluded"] = int(sum(r.get("mrae_excluded", 0) for r in rs_rows))
+        fbs = [r.get("restore_fallback") for r in rs_rows]
+        known = [f for f in fbs if f is not None]
+        s["restore_fallback"] = int(sum(known)) if known else None
+        npix = sum(r.get("n_pixels", 0) for r, f in zip(rs_rows, fbs) if f is not None)
+        s["restore_fallback_fraction"] = (s["restore_fallback"] / npix) if known and npix else None
+        s["seconds_per_image"] = float(np.mean([r["seconds"] for r in rs_rows]))
+        key = config_key(inp, p, rs, name)
+        if band_acc and key in band_acc:
+            bands = np.array([[np.nan if v is None else v for v in b] for b in band_acc[key]],
+                             dtype=float)
+            cnt = np.isfinite(bands).sum(0)
+            with np.errstate(invalid="ignore"):
+                mean = np.nansum(bands, 0) / np.maximum(cnt, 1)
+            s["band_mrae"] = [float(v) if c else None for v, c in zip(mean, cnt)]
+        out.append(s)
+    return out
+
+
+def _timing_image(shape: tuple[int, int], seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    base = rng.gamma(1.0, 1.0, (h // 16 + 1, w // 16 + 1, 3)).astype(np.float32)
+    rgb = np.repeat(np.repeat(base, 16, 0), 16, 1)[:h, :w] * np.float32(10.0)
+    return np.ascontiguousarray(rgb)
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+    except ImportError:
+        return False
+    return bool(torch.cuda.is_available())
+
+
+def time_models(models: Sequence, *, shape: tuple[int, int] = (1024, 2048), repeat: int = 1,
+                seed: int = 0, devices: Sequence[str] = ("cpu",),
+                rgb: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """Conversion time of each model on one HDR image of ``shape`` (paper Table 5).
+
+    ``models``: model objects or ``(model, name)`` pairs; ``rgb`` (optional) an
+    image from the dataset, else a synthetic one. Each model is warmed up on a
+    16×16 crop, then ``model(rgb)`` is timed ``repeat`` times (best kept) and
+    the whole pipeline with luminance restoration once. On ``"cuda"`` (when
+    available) models offering ``on_device(device)`` (torch networks) are timed
+    too (``cuda_seconds``; ``None`` otherwise).
+    """
+    rgb = _timing_image(shape, seed) if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32)
+    h, w = rgb.shape[:2]
+    use_cuda = "cuda" in devices and _cuda_available()
+
+    def clock(model) -> float:
+        model(rgb[:16, :16])
+        best = np.inf
+        for _ in range(max(1, repeat)):
+            t0 = time.perf_counter()
+            model(rgb)
+            best = min(best, time.perf_counter() - t0)
+        return best
+
+    out = []
+    for item in models:
+        model, name = item if isinstance(item, tuple) else (item, getattr(item, "name", "model"))
+        best = clock(model)
+        t0 = time.perf_counter()
+        predict(model, rgb, restore=trained_for(model).output != "spectra")
+        full = time.perf_counter() - t0
+        cuda = None
+        if use_cuda and callable(getattr(model, "on_device", None)):
+            cuda = clock(model.on_device("cuda"))
+        paper = PAPER_SECONDS.get(name.lower(), (None, None)) if (h, w) == (1024, 2048) else (None, None)
+        out.append({"model": name, "shape": [h, w], "seconds": best, "pipeline_seconds": full,
+                    "cuda_seconds": cuda, "megapixels_per_second": h * w / 1e6 / best,
+                    "paper_seconds": paper[0], "paper_gpu_seconds": paper[1]})
+    return out
