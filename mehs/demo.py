@@ -24,11 +24,22 @@ scenes are skipped by the dataset builder, the rest is recomputed (seconds).
 
 Response curve
 --------------
-By default the builder works as it would on a real camera: it recovers a
-Debevec–Malik curve from each bracket, checks the exposure ratios for
-linearity and, for this linear simulated sensor, merges with the exact linear
-curve. ``known_response=True`` skips the recovery and hands the builder the
-simulated sensor's known linear curve (``models/linear_response.json``).
+By default the demo works as a lab would with a real camera, once per camera:
+it captures a **response ladder** (a grey ramp, ≥ 5 exposures ×4 apart:
+``calibration/ladder``), lets ``response="auto"`` decide the curve from it (the
+linearity test has the power there that a ×30–×150 HDR bracket lacks, see
+:mod:`mehs.synthesis.response_check`) and saves it as ``models/response.json``,
+which every scene is fused with. ``known_response=True`` skips the ladder and
+hands the builder the simulated sensor's known linear curve
+(``models/linear_response.json``).
+
+Radiometric calibration
+-----------------------
+The simulated camera is calibrated on an integrating sphere with its
+certificate (``calibration/sphere``, :func:`calibrate_demo_camera`): the
+dataset is in W·sr⁻¹·m⁻²·nm⁻¹, and each cube's median spectral angle and
+relative error against the simulator's truth are printed and kept in
+``demo.json``.
 """
 
 from __future__ import annotations
@@ -55,6 +66,11 @@ DEMO_MODELS = ("smits", "mallett")
 #: Train/val/test fractions: a demo has too few scenes for a validation split, and the
 #: regression must not be scored on the scenes it was fitted on.
 DEMO_SPLITS = (0.5, 0.0, 0.5)
+
+#: Auto-exposure of the demo scenes: the longest exposure brings the darkest decile to
+#: 30× the dark noise (the default 10× leaves the darkest quarter of these dusk scenes
+#: ~1.8° from the truth, shot-noise limited).
+DEMO_AUTO_EXPOSURE = {"target_snr": 30.0, "n": 4}
 
 #: Sub-folders the demo owns inside its output folder (``--force`` removes them).
 SUBFOLDERS = ("captures", "calibration", "dataset", "models", "evaluation", "export")
@@ -121,7 +137,8 @@ def _scene_seed(seed: int, index: int) -> int:
 
 # --------------------------------------------------------------------------- capture
 def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, index: int,
-                       progress: bool = False, log: Callable[[str], None] = print) -> dict[str, Any]:
+                       progress: bool = False, log: Callable[[str], None] = print,
+                       auto_options: dict | None = None) -> dict[str, Any]:
     """Capture (or resume, or reuse) one demo scene through the serial drivers; returns scene.json.
 
     A folder whose ``scene.json`` was made for other scene parameters is an
@@ -152,14 +169,16 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
     sensor = SensorModel(seed=s_seed)
     try:
         return _capture(spec, folder, scene, sensor, resume=resume, seed=s_seed,
-                        demo_info=demo_info, progress=progress, log=log)
+                        demo_info=demo_info, progress=progress, log=log,
+                        auto_options=DEMO_AUTO_EXPOSURE if auto_options is None else auto_options)
     except DeviceError as exc:
         raise DeviceError(f"{exc.problem} — completed exposures are kept; run the same "
                           f"'mehs demo' again to resume", exc.path) from exc
 
 
 def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed: int,
-             demo_info: dict, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
+             demo_info: dict, progress: bool, log: Callable[[str], None],
+             auto_options: dict | None = None) -> dict[str, Any]:
     from mehs.capture.camera import LineCamera
     from mehs.capture.session import capture_scene
     from mehs.capture.simdevice import SimDevices
@@ -174,7 +193,7 @@ def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed
             try:
                 doc = capture_scene(stage, camera, folder, auto=not resume, resume=resume,
                                     lines=dev.scene_lines, scene_id=spec.scene_id, seed=s_seed,
-                                    progress=progress,
+                                    progress=progress, auto_options=auto_options,
                                     device_info={"simulated": True, "scene": scene.info,
                                                  "demo": demo_info},
                                     log=lambda m: log(f"  {spec.scene_id}: {m}"))
@@ -188,6 +207,33 @@ def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed
             write_truth(folder, doc, scene.radiance_at(phase), scene.wavelengths, fwhm=scene.fwhm,
                         dn_per_ms=sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
     return doc
+
+
+def demo_response_ladder(folder: Path, curve_path: Path, *, size: int, seed: int,
+                         progress: bool = False, log: Callable[[str], None] = print) -> Path:
+    """Capture a response ladder once (a static grey ramp, ≥ 5 exposures ×4 apart) and save its curve.
+
+    A 3-exposure HDR bracket ×30–×150 apart cannot tell a linear sensor from a
+    non-linear one (:mod:`mehs.synthesis.response_check`); the ladder can, and
+    every scene is then fused with its curve (``--response curve.json``).
+    """
+    import warnings
+
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import ResponseUndeterminedWarning, fuse_bracket
+
+    spec = DemoScene("response_ladder", "ramp", "D65", None, 0.0, False,
+                     "grey ramp over 4 decades, a x4 exposure ladder")
+    capture_demo_scene(spec, folder, size=size, seed=seed, index=98, progress=progress, log=log,
+                       auto_options={"n": 5, "max_step": 4.0})
+    if curve_path.is_file():     # made from this very capture (--force clears both)
+        return curve_path
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ResponseUndeterminedWarning)
+        res = fuse_bracket(load_bracket(folder), response="auto", ghosts="off")
+    res.response.parameters["ladder"] = str(folder)
+    res.response.save(curve_path)
+    return curve_path
 
 
 def calibrate_demo_camera(folder: Path, cal_path: Path, *, size: int, seed: int,
@@ -356,18 +402,24 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     say("  calibration: simulated integrating sphere + certificate -> "
         f"{model_dir / 'calibration.json'} (absolute radiance)")
     model_dir.mkdir(parents=True, exist_ok=True)
+    ladder_curve = None
+    if not known_response:
+        say(f"  response ladder: grey ramp, >= 5 exposures x4 apart -> {model_dir / 'response.json'}")
+        ladder_curve = demo_response_ladder(out / "calibration" / "ladder",
+                                            model_dir / "response.json", size=n_pix, seed=seed,
+                                            progress=bars, log=say)
     cal_path = calibrate_demo_camera(out / "calibration" / "sphere", model_dir / "calibration.json",
                                      size=n_pix, seed=seed, progress=bars, log=say)
     timings["capture"] = time.perf_counter() - t0
 
     # 2. build
     say(f"[2/6] build: the ME HS set in {ds_dir} (response: "
-        f"{'known linear curve' if known_response else 'recovered per scene, linearity checked'}; "
+        f"{'known linear curve' if known_response else 'the ladder curve'}; "
         f"radiometrically calibrated)")
     t0 = time.perf_counter()
     from mehs.dataset.build import build_dataset
 
-    response = None
+    response = ladder_curve
     if known_response:
         from mehs.synthesis.response import ResponseCurve
 

@@ -388,8 +388,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                     auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
                                  "linearity_deviation_max": lin["deviation_max"],
                                  "linearity_levels": lin["levels"],
+                                 "linearity_resolution": lin["resolution"],
                                  "linearity_test": "exposure ratio per signal level (p75)"}
-                    if dev < LINEARITY_TOLERANCE:
+                    inconclusive = lin["resolution"] > LINEARITY_TOLERANCE
+                    auto_info["linearity_conclusive"] = not inconclusive
+                    if dev < LINEARITY_TOLERANCE and not inconclusive:
                         curve = ResponseCurve.linear(bracket.bit_depth)
                 except InputError as exc:
                     # too little signal to tell: the linear curve is the safe choice
@@ -399,10 +402,18 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                          seed=seed, shared=shared_response, levels="raw",
                                          saturation=sat)
-                if check_response:
+                if check_response or auto_info.get("linearity_conclusive") is False:
                     auto_info["check"] = check_recovered_response(
                         bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
                         shared=shared_response, saturation=sat)
+                if (auto_info.get("linearity_conclusive") is False
+                        and not auto_info["check"].get("determined", False)):
+                    # neither test can tell: a linear sensor is the likelier (and the
+                    # smoother) guess, but the scene is flagged, never silently trusted
+                    curve = ResponseCurve.linear(bracket.bit_depth)
+                    auto_info["assumed_linear"] = ("linearity test inconclusive (resolution "
+                                                   f"{auto_info['linearity_resolution']:.1%}) and "
+                                                   "the recovered curve undetermined")
     else:
         curve = ResponseCurve.load(response)
     if curve.bit_depth != bracket.bit_depth:
@@ -499,8 +510,13 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                else chk.get("reason", "not checkable"))
         from mehs.synthesis.response_check import ADVICE
 
-        msg = (f"response curve undetermined by this bracket: {why}; the radiance is "
-               f"unreliable — {ADVICE}")
+        if auto_info.get("assumed_linear"):
+            msg = (f"response curve undetermined by this bracket: {auto_info['assumed_linear']} "
+                   f"({why}); merged with the linear curve, which may be wrong — {ADVICE}, or "
+                   "pass --response linear for a sensor known to be linear")
+        else:
+            msg = (f"response curve undetermined by this bracket: {why}; the radiance is "
+                   f"unreliable — {ADVICE}")
         summary.setdefault("warnings", []).append(msg)
         warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=2)
     timings["total_s"] = time.perf_counter() - t0

@@ -267,11 +267,12 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
     dict
         ``deviation``: the 75th percentile over the groups of |ratio − 1| (each
         group's ratio noise, 3 standard errors, subtracted in quadrature),
-        ``deviation_max``, ``levels`` (groups counted), ``ratios`` list of (level, ratio).
+        ``deviation_max``, ``levels`` (groups counted), ``ratios`` list of (level, ratio),
+        ``resolution`` (median over the groups of 3 standard errors of the ratio).
     """
     L = (1 << bit_depth) - 1
     P = probe.raw.shape[0]
-    dev, ratios = [], []
+    dev, ratios, res3 = [], [], []
     for j in range(P - 1):
         st = _pair_groups(probe, linearise, j, j + 1, groups, key)
         if st is None:
@@ -282,10 +283,14 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
             # noise of the ratio: std(d)/√n relative to y_k
             se = np.sqrt(st["var"][gi] / st["n"][gi]) / st["yk"][gi]
             dev.append(np.sqrt(max((ratio - 1.0) ** 2 - (3 * se) ** 2, 0.0)))
+            res3.append(3 * se)
             ratios.append((float(st["yk"][gi]), float(ratio)))
     if not dev:
         raise InputError("no well-exposed signal level seen by two exposures: linearity unknown")
     # the 75th percentile over levels, not the maximum: a moving object fills a
     # few signal levels with inconsistent exposures, a response non-linearity most
+    # ``resolution``: the smallest deviation the test could have seen (median 3 s.e.);
+    # brackets ×30–×150 apart on few pixels leave it far above a 2 % tolerance, and a
+    # deviation of 0 then means "could not tell", not "linear"
     return {"deviation": float(np.percentile(dev, 75)), "deviation_max": float(np.max(dev)),
-            "levels": len(dev), "ratios": ratios}
+            "levels": len(dev), "ratios": ratios, "resolution": float(np.median(res3))}

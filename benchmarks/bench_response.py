@@ -1,0 +1,114 @@
+"""Response recovery + merge accuracy against the simulator's truth, beside OpenCV, in one run.
+
+Sensors (linear, gamma 0.8, s-curve) × brackets (3 exposures ×4, ×30, ×140 apart,
+and a 7-exposure ×4 ladder) × methods:
+
+- ``mehs auto``     — ``response="auto"`` (linearity test → linear curve, else
+  Debevec–Malik with the self-consistency check), Poisson merge;
+- ``mehs ladder``   — the curve recovered from the ladder bracket of the same
+  sensor, reused (``--response curve.json``);
+- ``OpenCV Debevec``   — ``CalibrateDebevec`` + ``MergeDebevec``;
+- ``OpenCV Robertson`` — ``CalibrateRobertson`` + ``MergeRobertson``.
+
+OpenCV's calibration and merge take 8-bit images of 3 channels: the 12-bit,
+dark-subtracted data are shifted to 8 bits and processed 3 bands at a time,
+which is what a user of OpenCV has to do. Scores: median / p99 relative
+error after one global scale (the curves' gauge) and median SAM (°), over
+pixels unsaturated in the shortest exposure, and whether mehs flagged the curve
+as undetermined ("flag").
+
+Run: ``python benchmarks/bench_response.py [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+
+def scores(rad, truth, valid):
+    rad = np.asarray(rad, dtype=np.float64)
+    v = valid[..., None] & (truth > 0) & np.isfinite(rad) & (rad > 0)
+    s = np.median(rad[v] / truth[v])
+    rel = np.abs(rad / s - truth) / truth
+    cos = np.einsum("ijk,ijk->ij", rad, truth) / (np.linalg.norm(rad, axis=2)
+                                                  * np.linalg.norm(truth, axis=2) + 1e-300)
+    sam = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    return float(np.median(rel[v])), float(np.percentile(rel[v], 99)), float(np.median(sam[valid]))
+
+
+def opencv(kind, bracket, nb):
+    import cv2
+
+    cal = cv2.createCalibrateDebevec() if kind == "debevec" else cv2.createCalibrateRobertson()
+    merge = cv2.createMergeDebevec() if kind == "debevec" else cv2.createMergeRobertson()
+    t = (bracket.times_ms / 1000.0).astype(np.float32)
+    stacks = []
+    for e, d in zip(bracket.exposures, bracket.darks):
+        x = np.asarray(e.data, dtype=np.float32) - (0 if d is None else d[None])
+        stacks.append(np.clip(np.rint(x / 16.0), 0, 255).astype(np.uint8))
+    out = np.zeros(bracket.shape, np.float32)
+    for b0 in range(0, nb, 3):
+        idx = [min(b, nb - 1) for b in range(b0, b0 + 3)]
+        imgs = [np.ascontiguousarray(s[:, :, idx]) for s in stacks]
+        resp = cal.process(imgs, t)
+        out[:, :, idx] = merge.process(imgs, t, resp)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller scenes, fewer bands")
+    args = ap.parse_args()
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import ResponseUndeterminedWarning, fuse_bracket
+
+    size, step = (32, 8) if args.quick else (64, 4)
+    wl = SPECIM_IQ_WAVELENGTHS[::step]
+    scene = make_scene("lamp", lines=size, samples=size, wavelengths=wl, seed=1)
+    brackets = {"3 x4": (1.0, 4.0, 16.0), "3 x30": (0.1, 3.0, 90.0), "3 x140": (0.01, 1.4, 197.0),
+                "ladder 7 x4": tuple(0.05 * 4.0 ** k for k in range(7))}
+    print(os.popen("uptime").read().strip())
+    print(f"lamp scene {size}×{size}×{wl.size} bands; median rel. error / p99 / SAM° vs truth")
+    head = f"{'sensor':8s} {'bracket':12s} {'method':18s} {'median':>7s} {'p99':>7s} {'SAM°':>6s}  flag"
+    print(head)
+    print("-" * len(head))
+    for resp in ("linear", "gamma", "s-curve"):
+        sensor = SensorModel(response=resp, seed=2)
+        sims = {k: simulate_bracket(scene, sensor, list(t), seed=3) for k, t in brackets.items()}
+        brs = {k: Bracket([SpectralCube(e, wl) for e in s.exposures], list(s.darks),
+                          [None] * len(s.times_ms), s.times_ms, wl, bit_depth=12)
+               for k, s in sims.items()}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ResponseUndeterminedWarning)
+            ladder = fuse_bracket(brs["ladder 7 x4"], response="auto", ghosts="off").response
+            for name, br in brs.items():
+                sim = sims[name]
+                truth = sim.truth.astype(np.float64) * sim.truth_dn_per_ms
+                valid = (sim.exposures[0] < 0.98 * 4095).all(axis=2)
+                rows = []
+                res = fuse_bracket(br, response="auto", ghosts="off")
+                rows.append(("mehs auto", res.radiance.data,
+                             "UNDETERMINED" if res.summary["response_undetermined"] else ""))
+                if not ladder.is_linear and name != "ladder 7 x4":
+                    res = fuse_bracket(br, response=ladder, ghosts="off")
+                    rows.append(("mehs ladder curve", res.radiance.data, ""))
+                for kind in ("debevec", "robertson"):
+                    rows.append((f"OpenCV {kind}", opencv(kind, br, wl.size), ""))
+                for label, rad, flag in rows:
+                    m, p, a = scores(rad, truth, valid)
+                    print(f"{resp:8s} {name:12s} {label:18s} {m:7.4f} {p:7.3f} {a:6.2f}  {flag}")
+
+
+if __name__ == "__main__":
+    main()
