@@ -20,6 +20,9 @@ def configure(parser):
     parser.add_argument("--ridge", type=float, default=1e-6,
                         help="relative ridge regularisation (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
+    from mehs.cli._sources import add_source_arguments
+
+    add_source_arguments(parser)
 
 
 def run(args):
@@ -29,8 +32,14 @@ def run(args):
     from mehs.ssr.data import load_pairs
 
     check_model_path(args.out, RegressionModel.FORMAT)  # before the fit, not after
+    from mehs.cli._sources import apply_source_arguments
+
     root = Path(args.dataset)
-    split = None if args.split == "all" or not (root / "manifest.json").is_file() else args.split
+    apply_source_arguments(args, root)
+    split = None if args.split == "all" else args.split
+    if split is not None and not (root / "manifest.json").is_file() and \
+            split not in load_pairs(root).splits:
+        split = None  # a plain folder of pairs (or a public set without that split): all scenes
     pairs = load_pairs(root, split=split)
     model = fit_regression_baseline(pairs, degree=args.degree, n_samples=args.samples,
                                     input=args.input, ridge=args.ridge, seed=args.seed,

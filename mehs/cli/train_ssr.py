@@ -54,6 +54,9 @@ def configure(parser):
                         help="torch CPU threads (default 0: torch's choice); 1 is often "
                              "faster on a busy machine")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    from mehs.cli._sources import add_source_arguments
+
+    add_source_arguments(parser)
 
 
 def load_training_pairs(dataset, *, split: str | None, kind: str = "hdr"):
@@ -107,6 +110,9 @@ def run(args):
         raise InputError("--threads must be 0 (torch's choice) or more")
     if args.threads:
         torch.set_num_threads(args.threads)
+    from mehs.cli._sources import apply_source_arguments
+
+    apply_source_arguments(args, args.dataset)
     train_split, val_split = _splits(args.dataset)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []
