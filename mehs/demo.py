@@ -62,7 +62,13 @@ SUBFOLDERS = ("captures", "dataset", "models", "evaluation", "export")
 
 @dataclass(frozen=True)
 class DemoScene:
-    """One simulated scene of the demo (arguments of :func:`mehs.capture.scene.make_scene`)."""
+    """One simulated scene of the demo.
+
+    ``kind`` ``"natural"``: :func:`mehs.scenes.natural.make_natural_scene` with ``lighting``
+    (the pool, train or test, is chosen by :func:`run_demo` from the split the scene will fall
+    in); other kinds: :func:`mehs.capture.scene.make_scene` with ``illuminant`` and
+    ``light_source``.
+    """
 
     scene_id: str
     kind: str
@@ -71,23 +77,24 @@ class DemoScene:
     source_ratio: float
     motion: bool
     description: str
+    lighting: str | None = None
 
 
 _FEATURED = (
-    DemoScene("s01_sodium_lamp", "lamp", "D65", "HP1", 300.0, False,
-              "ColorChecker at dusk (D65) with a high-pressure sodium street lamp (HP1) in view"),
-    DemoScene("s02_moving_cloud", "colorchecker", "D65", "D65", 300.0, True,
-              "ColorChecker in daylight (D65) with a bright cloud drifting between exposures"),
-    DemoScene("s03_window", "window", "A", "D65", 300.0, False,
-              "ColorChecker under tungsten light (A) with a daylight window in view"),
-    DemoScene("s04_led", "colorchecker", "LED-B3", "A", 300.0, False,
-              "ColorChecker under a white LED (LED-B3) with a tungsten bulb (A) in view"),
-    DemoScene("s05_fluorescent", "colorchecker", "FL2", "LED-B3", 300.0, False,
-              "ColorChecker under a fluorescent tube (FL2) with an LED lamp (LED-B3) in view"),
-    DemoScene("s06_sodium_lit", "lamp", "HP1", "HP1", 300.0, False,
-              "ColorChecker lit by the high-pressure sodium lamp (HP1) in view"),
+    DemoScene("s01_sodium_lamp", "natural", None, None, 300.0, False,
+              "street at night lit by high-pressure sodium, the lamp in view", "sodium"),
+    DemoScene("s02_moving_cloud", "natural", None, None, 300.0, True,
+              "daylight scene with a bright cloud drifting between exposures", "daylight"),
+    DemoScene("s03_daylight", "natural", None, None, 1000.0, False,
+              "sun and sky (CIE D series), cast shadows, the sun's glare in view", "daylight"),
+    DemoScene("s04_window", "natural", None, None, 300.0, False,
+              "room under a lamp with daylight from a window in view", "mixed"),
+    DemoScene("s05_tungsten", "natural", None, None, 1000.0, False,
+              "room under tungsten light, the bulb in view", "tungsten"),
+    DemoScene("s06_fluorescent", "natural", None, None, 300.0, False,
+              "room under fluorescent tubes, a tube in view", "fluorescent"),
 )
-_MORE_ILLUMINANTS = ("D65", "FL11", "LED-B1", "A", "FL2", "D50", "LED-RGB1", "HP1")
+_MORE_LIGHTINGS = ("led", "daylight", "mixed", "sodium", "tungsten", "fluorescent")
 
 
 def demo_scenes(n: int) -> list[DemoScene]:
@@ -96,10 +103,25 @@ def demo_scenes(n: int) -> list[DemoScene]:
         raise InputError(f"--scenes must be at least 1, got {n}")
     out = list(_FEATURED[:n])
     for i in range(len(out), n):
-        ill = _MORE_ILLUMINANTS[(i - len(_FEATURED)) % len(_MORE_ILLUMINANTS)]
-        out.append(DemoScene(f"s{i + 1:02d}_{ill.lower().replace('-', '')}", "colorchecker", ill,
-                             ill, 300.0, False, f"ColorChecker under {ill} with the lamp in view"))
+        light = _MORE_LIGHTINGS[(i - len(_FEATURED)) % len(_MORE_LIGHTINGS)]
+        out.append(DemoScene(f"s{i + 1:02d}_{light}", "natural", None, None, 300.0, False,
+                             f"natural scene, {light} lighting", light))
     return out
+
+
+def demo_pools(specs: list[DemoScene], seed: int) -> dict[str, str]:
+    """The material/light pool of each scene: the split it will fall in.
+
+    The builder splits the *passing* scenes by :func:`mehs.dataset.splits.make_splits`; the
+    moving scene fails the ghost rule, so the split of the others is known before capture and
+    each is drawn from its split's pool (test scenes: materials and lights never trained on).
+    """
+    from mehs.dataset.splits import make_splits
+
+    still = [s.scene_id for s in specs if not s.motion]
+    split_of = {sid: name for name, ids in make_splits(still, DEMO_SPLITS, seed).items()
+                for sid in ids}
+    return {s.scene_id: ("val" if s.motion else split_of[s.scene_id]) for s in specs}
 
 
 def scene_size(size: str | int) -> int:
@@ -121,7 +143,8 @@ def _scene_seed(seed: int, index: int) -> int:
 
 # --------------------------------------------------------------------------- capture
 def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, index: int,
-                       progress: bool = False, log: Callable[[str], None] = print) -> dict[str, Any]:
+                       progress: bool = False, log: Callable[[str], None] = print,
+                       pool: str = "all") -> dict[str, Any]:
     """Capture (or resume, or reuse) one demo scene through the serial drivers; returns scene.json.
 
     A folder whose ``scene.json`` was made for other scene parameters is an
@@ -134,6 +157,8 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
 
     s_seed = _scene_seed(seed, index)
     demo_info = {**asdict(spec), "size": size, "seed": s_seed}
+    if spec.kind == "natural":
+        demo_info["pool"] = pool
     resume = False
     if (folder / sf.SCENE_JSON).is_file():
         doc = sf.read_scene_json(folder)
@@ -146,9 +171,15 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
             log(f"  {spec.scene_id}: already captured, kept")
             return doc
         resume = True
-    scene = make_scene(spec.kind, size, size, illuminant=spec.illuminant,
-                       light_source=spec.light_source, source_ratio=spec.source_ratio,
-                       motion=spec.motion, seed=s_seed)
+    if spec.kind == "natural":
+        from mehs.scenes.natural import make_natural_scene
+
+        scene = make_natural_scene(size, size, seed=s_seed, pool=pool, lighting=spec.lighting,
+                                   source_ratio=spec.source_ratio, motion=spec.motion)
+    else:
+        scene = make_scene(spec.kind, size, size, illuminant=spec.illuminant,
+                           light_source=spec.light_source, source_ratio=spec.source_ratio,
+                           motion=spec.motion, seed=s_seed)
     sensor = SensorModel(seed=s_seed)
     try:
         return _capture(spec, folder, scene, sensor, resume=resume, seed=s_seed,
@@ -248,7 +279,7 @@ def ssr_table(summary: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int = "small",
+def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 6, size: str | int = "small",
              seed: int = 0, workers: int | None = None, force: bool = False,
              known_response: bool = False, progress: bool | None = None,
              log: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -261,7 +292,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         same ``size``: completed work is reused.
     scenes
         Number of scenes (≥ 1): the sodium-lamp scene, the moving-cloud scene,
-        then other illuminants (:func:`demo_scenes`).
+        then natural scenes under other lighting (:func:`demo_scenes`); with the default 6 the
+        test split holds 3 scenes.
     size
         ``"small"`` (64×64 pixels × 204 bands), ``"full"`` (512×512×204, the
         Specim IQ format) or a number of pixels per side.
@@ -314,9 +346,11 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         f"serial drivers (simulated stage + camera on loopback TCP, auto-exposure)")
     t0 = time.perf_counter()
     captures: dict[str, dict] = {}
+    pools = demo_pools(specs, seed)
     for i, spec in enumerate(specs):
         captures[spec.scene_id] = capture_demo_scene(spec, cap_dir / spec.scene_id, size=n_pix,
-                                                     seed=seed, index=i, progress=bars, log=say)
+                                                     seed=seed, index=i, progress=bars, log=say,
+                                                     pool=pools[spec.scene_id])
     timings["capture"] = time.perf_counter() - t0
 
     # 2. build
@@ -338,6 +372,14 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     n_pass = sum(s["status"] == "pass" for s in manifest["scenes"])
     say(f"  {len(manifest['scenes'])} scenes, {n_pass} pass; splits " +
         ", ".join(f"{k} {len(v)}" for k, v in manifest["splits"].items()))
+    # a scene that failed unexpectedly moves the others between splits: say so, since a test
+    # scene drawn from the train pool no longer measures generalisation
+    built_split = {sid: k for k, v in manifest["splits"].items() for sid in v}
+    off_pool = sorted(s.scene_id for s in specs if s.kind == "natural" and
+                      s.scene_id in built_split and built_split[s.scene_id] != pools[s.scene_id])
+    if off_pool:
+        say(f"  note: {', '.join(off_pool)} fell in another split than the pool they were drawn "
+            "from (a scene failed unexpectedly)")
 
     # 3. train the regression baseline
     from mehs.ssr.baselines import fit_regression_baseline
@@ -423,7 +465,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
             "dynamic_range_stops": q.get("dynamic_range_stops"),
             "ghost_fraction": q.get("ghost_fraction"),
             "saturated_fraction": q.get("saturated_fraction"),
-            "split": next((k for k, v in manifest["splits"].items() if spec.scene_id in v), None)})
+            "split": next((k for k, v in manifest["splits"].items() if spec.scene_id in v), None),
+            "pool": pools[spec.scene_id] if spec.kind == "natural" else None})
     ssr = [] if res is None else [
         {k: s.get(k) for k in ("model", "input", "preprocess", "restore", "sam", "mrae", "rmse",
                                "psnr", "n_images")} for s in res.summary]
@@ -439,6 +482,7 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         "lamp_scene": specs[0].scene_id,
         "moving_scene": next((s.scene_id for s in specs if s.motion), None),
         "exported_scene": exported,
+        "off_pool_scenes": off_pool,
         "scenes": scene_rows,
         "ssr": ssr,
         "scene_table": scene_table(manifest, captures),

@@ -7,7 +7,7 @@ def configure(parser):
     parser.add_argument("--out", "-o", default="mehs-demo", metavar="DIR",
                         help="demo folder (default: %(default)s); re-running reuses its captures "
                              "and built scenes")
-    parser.add_argument("--scenes", type=int, default=4, metavar="N",
+    parser.add_argument("--scenes", type=int, default=6, metavar="N",
                         help="scenes to capture (default: %(default)s): a visible sodium lamp "
                              "(HP1), a moving cloud, then other illuminants")
     parser.add_argument("--size", default="small", metavar="small|full|N",

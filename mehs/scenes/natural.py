@@ -295,12 +295,15 @@ def _add_sources(radiance: np.ndarray, setting: str, ratio: float, e_dir: np.nda
     if setting == "fluorescent":
         # a tube: a bright bar
         y0, x0 = int(cy), int(max(0, cx - 0.2 * samples))
-        bar = (slice(y0, y0 + max(1, int(0.025 * lines))), slice(x0, x0 + max(3, int(0.4 * samples))))
+        # at least one auto-exposure probe line apart (16 probe lines): a source the probes
+        # miss saturates in every exposure
+        thick = max(2, int(np.ceil(lines / 16)) + 1, int(0.025 * lines))
+        bar = (slice(y0, y0 + thick), slice(x0, x0 + max(3, int(0.4 * samples))))
         radiance[bar] = (spd * ratio).astype(np.float32)
         info["source"] = "tube"
         info["source_pixels"] = int(radiance[bar].shape[0] * radiance[bar].shape[1])
         return
-    rad = max(1.5, 0.035 * size)
+    rad = max(1.5, 0.035 * size, (lines / 16 + 1) / 2)
     info["source"] = {"daylight": "sun", "sodium": "street lamp"}.get(setting, "lamp")
     info["source_pixels"] = _glow_disc(radiance, cy, cx, rad, spd, ratio)
 
