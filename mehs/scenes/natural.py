@@ -303,7 +303,7 @@ def _add_sources(radiance: np.ndarray, setting: str, ratio: float, e_dir: np.nda
         info["source"] = "tube"
         info["source_pixels"] = int(radiance[bar].shape[0] * radiance[bar].shape[1])
         return
-    rad = max(1.5, 0.035 * size, (lines / 16 + 1) / 2)
+    rad = max(1.5, 0.035 * size, (lines / 16 + 2) / 2)
     info["source"] = {"daylight": "sun", "sodium": "street lamp"}.get(setting, "lamp")
     info["source_pixels"] = _glow_disc(radiance, cy, cx, rad, spd, ratio)
 
