@@ -73,10 +73,12 @@ _NAMED_LIGHTS = {
     "led": ("LED-B1", "LED-B2", "LED-B3", "LED-B4", "LED-B5", "LED-BH1", "LED-RGB1", "LED-V1",
             "LED-V2", "3-LED-1 (457/540/605)", "3-LED-2 (473/545/616)", "4-LED Yellow",
             "4-LED-1 (461/526/576/624)", "PHOS-1", "PHOS-2", "PHOS-3", "Phosphor LED YAG"),
+    # high-pressure sodium only: low-pressure sodium puts all its power in the 589 nm doublet,
+    # which no 12-bit exposure of a lamp in view can hold (it is a discharge lamp below)
     "sodium": ("HP1", "HP2", "HPS", "Super HPS", "C100S54 (HPS)", "C100S54C (HPS)",
-               "SDW-T 100W/LV (Super HPS)", "LPS"),
+               "SDW-T 100W/LV (Super HPS)"),
     "discharge": ("HP3", "HP4", "HP5", "Mercury", "Metal Halide", "MHC100/U/MP/3K",
-                  "MHC100/U/MP/4K", "H38HT-100 (Mercury)"),
+                  "MHC100/U/MP/4K", "H38HT-100 (Mercury)", "LPS"),
 }
 
 
