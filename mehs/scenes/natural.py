@@ -173,14 +173,15 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
     # local lamps lighting parts of the scene (a shop window, a desk lamp, an LED street
     # light beside the sodium one): real scenes are rarely lit by one spectrum
     yy, xx = np.mgrid[0:lines, 0:samples].astype(np.float32)
-    d0 = 0.3 * min(lines, samples)
+    d0 = 0.15 * min(lines, samples)
     locals_ = []
     for fam in rng.permutation(_SECOND[setting])[:2]:
         lamp = draw_light(str(fam), pool, rng)
         py, px = rng.uniform(0, 1) * lines, rng.uniform(0, 1) * samples
-        level = float(rng.uniform(0.2, 0.6) if setting == "daylight" else rng.uniform(0.4, 1.2))
+        # in sunlight an artificial lamp only shows in the shade
+        level = float(rng.uniform(0.05, 0.2) if setting == "daylight" else rng.uniform(0.4, 1.2))
         bounce_w.append((level * (0.3 + 0.7 * lay.lambert) /
-                         (1 + ((yy - py) ** 2 + (xx - px) ** 2) / d0 ** 2)).astype(np.float32))
+                         (1 + ((yy - py) ** 2 + (xx - px) ** 2) / d0 ** 2) ** 1.5).astype(np.float32))
         bounce_spd.append(light_spectrum(lamp, wl).astype(np.float32))
         locals_.append({"role": "local", "family": lamp.family, "name": lamp.name,
                         "kelvin": lamp.kelvin, "level": level})

@@ -148,7 +148,7 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
                     seed: int = 0, *, splits: Sequence[float] = (0.6, 0.2, 0.2),
                     shading_stops: float = 6.0, source_gain: float = 1000.0,
                     illuminants: Sequence[str] = ILLUMINANTS,
-                    generator: str = "colorchecker") -> Path:
+                    generator: str = "colorchecker", pool: str | None = None) -> Path:
     """Write a small ME HS-style dataset (format 3) of ``n_scenes`` synthetic scenes.
 
     Scenes are assigned to train/val/test in the ratio ``splits`` (at least one
@@ -158,6 +158,7 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
     (:func:`mehs.scenes.natural.make_natural_scene`, each scene drawn from the material and
     light pool of its split, so the test scenes hold materials and lights never trained on;
     ``source_gain`` is the visible source's ratio, ``shading_stops``/``illuminants`` unused).
+    ``pool`` overrides the split's pool for every scene (``"all"``: no held-out materials).
     """
     if generator not in ("colorchecker", "natural"):
         raise ValueError(f"generator must be 'colorchecker' or 'natural', got {generator!r}")
@@ -183,7 +184,8 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
     for i, sid in enumerate(ids):
         split = next(k for k, v in split_ids.items() if sid in v)
         if generator == "natural":
-            spectra, mask, info = _natural_spectra(size, seed * 100_003 + i, split, source_gain)
+            spectra, mask, info = _natural_spectra(size, seed * 100_003 + i, pool or split,
+                                                   source_gain)
         else:
             spectra, mask, info = make_scene_spectra(size, seed * 100_003 + i,
                                                      shading_stops=shading_stops,
