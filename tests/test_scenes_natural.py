@@ -113,3 +113,18 @@ def test_dataset_diversity_held_out_split_is_farther_than_colorchecker(tmp_path,
     assert d_nat["nn_angle_median"] > 2 * d_cc["nn_angle_median"]
     assert main([str(nat), "--per-scene", "200"]) == 0
     assert "nearest training pixel, median angle" in capsys.readouterr().out
+
+
+def test_capture_simulate_natural_scene(tmp_path, capsys):
+    import json
+
+    from mehs.cli import main
+
+    out = tmp_path / "n1"
+    assert main(["capture", "--simulate", "--scene", "natural", "--lighting", "sodium",
+                 "--pool", "test", "--size", "16", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "scene.json").read_text())
+    info = doc["device"]["scene"]
+    assert info["kind"] == "natural" and info["pool"] == "test" and info["lighting"] == "sodium"
+    assert info["lights"][0]["family"] == "sodium" and doc["truth"] == "truth/radiance.hdr"
+    assert "3 of 3 exposures complete" in capsys.readouterr().out

@@ -233,3 +233,14 @@ def test_train_ssr_lists_arad1k_training_pairs(arad1k):
     assert _splits(root) == ("train", "val")
     pairs, wl = load_training_pairs(root, split="train")
     assert len(pairs) == 2 and wl.size == 31
+
+
+def test_detection_survives_one_truncated_file(arad1k):
+    root, _ = arad1k
+    first = sorted(root.rglob("*.mat"))[0]
+    first.write_bytes(first.read_bytes()[:600])  # a broken download, sorted first
+    assert detect_format(root) == "arad1k"
+    ps = load_source(root)
+    with pytest.raises(FormatError, match="truncated") as e:
+        next(p for p in ps if p.hs_path == first).hs_array()
+    assert str(first) in str(e.value)

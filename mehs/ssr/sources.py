@@ -43,28 +43,33 @@ def _cave_scene_dirs(root: Path) -> list[Path]:
     return sorted({p.parent for p in root.rglob("*_01.png") if len(_cave_pngs(p.parent)) >= 2})
 
 
+def _mat_keys(path: Path) -> set[str]:
+    """Variable names of a MATLAB file (v7.3 or v5); empty if it cannot be read."""
+    import h5py
+
+    try:
+        if h5py.is_hdf5(str(path)):
+            with h5py.File(path, "r") as h:
+                return set(h.keys())
+        import scipy.io
+
+        return {n for n, *_ in scipy.io.whosmat(path)}
+    except (ValueError, TypeError, OSError, NotImplementedError, EOFError):
+        return set()
+
+
 def detect_format(root: str | Path) -> str | None:
     """The public format of a dataset folder, or ``None`` (by file types and MATLAB variables)."""
     root = Path(root)
     mats = sorted(root.rglob("*.mat"))
-    if mats:
-        import h5py
-
-        f = mats[0]
-        if h5py.is_hdf5(str(f)):
-            with h5py.File(f, "r") as h:
-                keys = set(h.keys())
-        else:
-            import scipy.io
-
-            try:
-                keys = {n for n, *_ in scipy.io.whosmat(f)}
-            except (ValueError, TypeError, OSError, NotImplementedError):
-                keys = set()
+    # a few files, so one truncated download does not hide the format of the rest
+    for f in mats[:5]:
+        keys = _mat_keys(f)
         if "cube" in keys:
             return "arad1k"
         if "rad" in keys:
             return "arad" if f.stem.upper().startswith(("BGU", "ARAD")) else "icvl"
+    if mats:
         return None
     if next(root.rglob("*.h5"), None) is not None or next(root.rglob("*.hdf5"), None) is not None:
         return "kaust"
