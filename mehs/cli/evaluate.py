@@ -5,8 +5,9 @@ from __future__ import annotations
 
 def configure(parser):
     parser.add_argument("dataset", metavar="DATASET",
-                        help="dataset folder (manifest.json) or a plain folder of pairs "
-                             "(<stem>.hdr with <stem>.exr and/or <stem>.png)")
+                        help="dataset folder (manifest.json), a plain folder of pairs "
+                             "(<stem>.hdr with <stem>.exr and/or <stem>.png), or a public SSR "
+                             "dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--models", "-m", default="smits,mallett",
                         help="comma-separated models: built-in names (smits, mallett, "
                              "regression = fitted on the train split; see --list-models), "

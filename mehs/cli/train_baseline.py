@@ -5,7 +5,8 @@ from __future__ import annotations
 
 def configure(parser):
     parser.add_argument("dataset", metavar="DATASET",
-                        help="dataset folder (manifest.json) or a plain folder of pairs")
+                        help="dataset folder (manifest.json), a plain folder of pairs, or a "
+                             "public SSR dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--out", "-o", required=True, metavar="MODEL",
                         help="model file to write (.npz, or .json)")
     parser.add_argument("--split", default="train",

@@ -22,7 +22,8 @@ NET_SIZES = {
 
 
 def configure(parser):
-    parser.add_argument("dataset", help="dataset folder (manifest.json) or a plain folder of pairs")
+    parser.add_argument("dataset", help="dataset folder (manifest.json), a plain folder of pairs, or a "
+                             "public SSR dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--out", required=True, help="output folder for checkpoints and model.onnx")
     parser.add_argument("--variant", choices=("hdrssr", "fcdensenet"), default="hdrssr",
                         help="hdrssr: basis branches, learns spectral similarity (default); "
