@@ -20,11 +20,14 @@ setting         direct light (shading, cast shadows)          fill light / visib
 Radiance per pixel (neutral interface reflection: highlights carry the light's spectrum,
 Lee 1986 / Shafer 1985 dichromatic model)::
 
-    L = R ⊙ (k_d·(1 − shadow)·cos·E_direct + k_f·E_fill) · texture + k_s·spec·E_direct
+    L = R ⊙ (k_d·(1 − shadow)·cos·E_direct + k_f·E_fill + Σ_j b_j·E_j) · texture + k_s·spec·E_direct
 
-with ``R`` the region's reflectance (a measured sample, or a subtractive mixture of two of the
-pool's samples, ``R_a^(1−t)·R_b^t``) blended per pixel with a second pool material by a 1/f
-noise field (lichen on stone, grain in wood), and a multiplicative fine texture. A visible
+where the ``E_j`` are two local lamps of other families (a desk lamp, a shop window, an LED
+street light beside a sodium one; falling off around a point) and the light bounced off the
+four largest surfaces, ``R_k ⊙ E_direct`` (interreflection); ``R`` is the region's
+reflectance (a measured sample, or a subtractive mixture of two of the pool's samples,
+``R_a^(1−t)·R_b^t``) blended per pixel with a second pool material by a 1/f noise field
+(lichen on stone, grain in wood), times a multiplicative fine texture. A visible
 light source (a lamp core with a 1/r³ glow, or a window / the sky) reaches
 ``source_ratio`` × the diffuse white — up to 10⁴ (HDR).
 
@@ -127,6 +130,8 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
     if lines < 8 or samples < 8:
         raise InputError(f"a natural scene needs at least 8×8 pixels, got {lines}×{samples}")
     check_pool(pool)
+    if source_ratio is not None and not np.isfinite(source_ratio):  # before seconds of work
+        raise InputError(f"source_ratio must be finite, got {source_ratio}")
     if not density > 0:
         raise InputError(f"density must be > 0, got {density}")
     wl = SPECIM_IQ_WAVELENGTHS.copy() if wavelengths is None else np.asarray(wavelengths, np.float64)
@@ -169,7 +174,7 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
         u = np.linspace(0, 1, samples, dtype=np.float32)[None, :]
         side = u if rng.uniform() < 0.5 else 1 - u
         fill_w = (fill_level * (0.05 + 0.95 * side ** 2) * (0.6 + 0.4 * lay.lambert)).astype(np.float32)
-    bounce_w, bounce_spd = _interreflections(lab, base, e_dir, rng)
+    extra_w, extra_spd = _interreflections(lab, base, e_dir, rng)
     # local lamps lighting parts of the scene (a shop window, a desk lamp, an LED street
     # light beside the sodium one): real scenes are rarely lit by one spectrum
     yy, xx = np.mgrid[0:lines, 0:samples].astype(np.float32)
@@ -180,9 +185,9 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
         py, px = rng.uniform(0, 1) * lines, rng.uniform(0, 1) * samples
         # in sunlight an artificial lamp only shows in the shade
         level = float(rng.uniform(0.05, 0.2) if setting == "daylight" else rng.uniform(0.4, 1.2))
-        bounce_w.append((level * (0.3 + 0.7 * lay.lambert) /
+        extra_w.append((level * (0.3 + 0.7 * lay.lambert) /
                          (1 + ((yy - py) ** 2 + (xx - px) ** 2) / d0 ** 2) ** 1.5).astype(np.float32))
-        bounce_spd.append(light_spectrum(lamp, wl).astype(np.float32))
+        extra_spd.append(light_spectrum(lamp, wl).astype(np.float32))
         locals_.append({"role": "local", "family": lamp.family, "name": lamp.name,
                         "kelvin": lamp.kelvin, "level": level})
     del yy, xx
@@ -199,8 +204,8 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
         dye = np.exp((1 - wm) * logb32[lb] + wm * logs32[lb]) - 1e-4
         refl = lin + sub * (dye - lin)
         light = direct_w[sl][..., None] * ed32 + fill_w[sl][..., None] * ef32
-        for bw, bs in zip(bounce_w, bounce_spd):
-            light += bw[sl][..., None] * bs
+        for ew, es in zip(extra_w, extra_spd):
+            light += ew[sl][..., None] * es
         radiance[sl] = refl * light * texture[sl][..., None] + lay.specular[sl][..., None] * ed32
     info: dict[str, Any] = {
         "kind": "natural", "generator": "mehs.scenes.natural", "seed": int(seed), "pool": pool,
@@ -218,8 +223,6 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
     info["n_materials"] = len(keys)
     info["n_measured_materials"] = len(used)
     ratio = float(np.exp(rng.uniform(np.log(100), np.log(1e4)))) if source_ratio is None else float(source_ratio)
-    if not np.isfinite(ratio):
-        raise InputError(f"source_ratio must be finite, got {source_ratio}")
     _add_sources(radiance, setting, ratio, e_dir, e_fill, rng, info)
     info["source_ratio"] = ratio
     # the white reference tile lies in the open, facing the direct light
