@@ -48,10 +48,11 @@ import json
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable
 
+from mehs.demo_scenes import DemoScene, demo_pools, demo_scenes  # noqa: F401  (re-exported)
 from mehs.errors import InputError
 
 DEMO_FORMAT = "mehs-demo/1"
@@ -72,50 +73,12 @@ DEMO_SPLITS = (0.5, 0.0, 0.5)
 #: ~1.8° from the truth, shot-noise limited).
 DEMO_AUTO_EXPOSURE = {"target_snr": 30.0, "n": 4}
 
+#: Smits 1999 on the paper's real ME HS scenes (SAM °, HDR input, no pre-processing), printed
+#: beside the demo's figure on its natural test scenes (docs/scenes.md explains the gap).
+PAPER_SMITS_SAM_ME_HS = 6.392
+
 #: Sub-folders the demo owns inside its output folder (``--force`` removes them).
 SUBFOLDERS = ("captures", "calibration", "dataset", "models", "evaluation", "export")
-
-
-@dataclass(frozen=True)
-class DemoScene:
-    """One simulated scene of the demo (arguments of :func:`mehs.capture.scene.make_scene`)."""
-
-    scene_id: str
-    kind: str
-    illuminant: str | None
-    light_source: str | None
-    source_ratio: float
-    motion: bool
-    description: str
-
-
-_FEATURED = (
-    DemoScene("s01_sodium_lamp", "lamp", "D65", "HP1", 300.0, False,
-              "ColorChecker at dusk (D65) with a high-pressure sodium street lamp (HP1) in view"),
-    DemoScene("s02_moving_cloud", "colorchecker", "D65", "D65", 300.0, True,
-              "ColorChecker in daylight (D65) with a bright cloud drifting between exposures"),
-    DemoScene("s03_window", "window", "A", "D65", 300.0, False,
-              "ColorChecker under tungsten light (A) with a daylight window in view"),
-    DemoScene("s04_led", "colorchecker", "LED-B3", "A", 300.0, False,
-              "ColorChecker under a white LED (LED-B3) with a tungsten bulb (A) in view"),
-    DemoScene("s05_fluorescent", "colorchecker", "FL2", "LED-B3", 300.0, False,
-              "ColorChecker under a fluorescent tube (FL2) with an LED lamp (LED-B3) in view"),
-    DemoScene("s06_sodium_lit", "lamp", "HP1", "HP1", 300.0, False,
-              "ColorChecker lit by the high-pressure sodium lamp (HP1) in view"),
-)
-_MORE_ILLUMINANTS = ("D65", "FL11", "LED-B1", "A", "FL2", "D50", "LED-RGB1", "HP1")
-
-
-def demo_scenes(n: int) -> list[DemoScene]:
-    """The first ``n`` demo scenes: the sodium-lamp scene, the moving scene, then varied light."""
-    if n < 1:
-        raise InputError(f"--scenes must be at least 1, got {n}")
-    out = list(_FEATURED[:n])
-    for i in range(len(out), n):
-        ill = _MORE_ILLUMINANTS[(i - len(_FEATURED)) % len(_MORE_ILLUMINANTS)]
-        out.append(DemoScene(f"s{i + 1:02d}_{ill.lower().replace('-', '')}", "colorchecker", ill,
-                             ill, 300.0, False, f"ColorChecker under {ill} with the lamp in view"))
-    return out
 
 
 def scene_size(size: str | int) -> int:
@@ -138,7 +101,7 @@ def _scene_seed(seed: int, index: int) -> int:
 # --------------------------------------------------------------------------- capture
 def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, index: int,
                        progress: bool = False, log: Callable[[str], None] = print,
-                       auto_options: dict | None = None) -> dict[str, Any]:
+                       auto_options: dict | None = None, pool: str = "all") -> dict[str, Any]:
     """Capture (or resume, or reuse) one demo scene through the serial drivers; returns scene.json.
 
     A folder whose ``scene.json`` was made for other scene parameters is an
@@ -151,6 +114,8 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
 
     s_seed = _scene_seed(seed, index)
     demo_info = {**asdict(spec), "size": size, "seed": s_seed}
+    if spec.kind == "natural":
+        demo_info["pool"] = pool
     resume = False
     if (folder / sf.SCENE_JSON).is_file():
         doc = sf.read_scene_json(folder)
@@ -163,9 +128,15 @@ def capture_demo_scene(spec: DemoScene, folder: Path, *, size: int, seed: int, i
             log(f"  {spec.scene_id}: already captured, kept")
             return doc
         resume = True
-    scene = make_scene(spec.kind, size, size, illuminant=spec.illuminant,
-                       light_source=spec.light_source, source_ratio=spec.source_ratio,
-                       motion=spec.motion, seed=s_seed)
+    if spec.kind == "natural":
+        from mehs.scenes.natural import make_natural_scene
+
+        scene = make_natural_scene(size, size, seed=s_seed, pool=pool, lighting=spec.lighting,
+                                   source_ratio=spec.source_ratio, motion=spec.motion)
+    else:
+        scene = make_scene(spec.kind, size, size, illuminant=spec.illuminant,
+                           light_source=spec.light_source, source_ratio=spec.source_ratio,
+                           motion=spec.motion, seed=s_seed)
     sensor = SensorModel(seed=s_seed)
     try:
         return _capture(spec, folder, scene, sensor, resume=resume, seed=s_seed,
@@ -329,7 +300,7 @@ def ssr_table(summary: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int = "small",
+def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 6, size: str | int = "small",
              seed: int = 0, workers: int | None = None, force: bool = False,
              known_response: bool = False, progress: bool | None = None,
              log: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -342,7 +313,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         same ``size``: completed work is reused.
     scenes
         Number of scenes (≥ 1): the sodium-lamp scene, the moving-cloud scene,
-        then other illuminants (:func:`demo_scenes`).
+        then natural scenes under other lighting (:func:`demo_scenes`); with the default 6 the
+        test split holds 3 scenes.
     size
         ``"small"`` (64×64 pixels × 204 bands), ``"full"`` (512×512×204, the
         Specim IQ format) or a number of pixels per side.
@@ -395,9 +367,11 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         f"serial drivers (simulated stage + camera on loopback TCP, auto-exposure)")
     t0 = time.perf_counter()
     captures: dict[str, dict] = {}
+    pools = demo_pools(specs, seed, DEMO_SPLITS)
     for i, spec in enumerate(specs):
         captures[spec.scene_id] = capture_demo_scene(spec, cap_dir / spec.scene_id, size=n_pix,
-                                                     seed=seed, index=i, progress=bars, log=say)
+                                                     seed=seed, index=i, progress=bars, log=say,
+                                                     pool=pools[spec.scene_id])
 
     say("  calibration: simulated integrating sphere + certificate -> "
         f"{model_dir / 'calibration.json'} (absolute radiance)")
@@ -442,6 +416,14 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
     n_pass = sum(s["status"] == "pass" for s in manifest["scenes"])
     say(f"  {len(manifest['scenes'])} scenes, {n_pass} pass; splits " +
         ", ".join(f"{k} {len(v)}" for k, v in manifest["splits"].items()))
+    # a scene that failed unexpectedly moves the others between splits: say so, since a test
+    # scene drawn from the train pool no longer measures generalisation
+    built_split = {sid: k for k, v in manifest["splits"].items() for sid in v}
+    off_pool = sorted(s.scene_id for s in specs if s.kind == "natural" and
+                      s.scene_id in built_split and built_split[s.scene_id] != pools[s.scene_id])
+    if off_pool:
+        say(f"  note: {', '.join(off_pool)} fell in another split than the pool they were drawn "
+            "from (a scene failed unexpectedly)")
 
     # 3. train the regression baseline
     from mehs.ssr.baselines import fit_regression_baseline
@@ -541,7 +523,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
             "ghost_fraction": q.get("ghost_fraction"),
             "saturated_fraction": q.get("saturated_fraction"),
             "truth_accuracy": accuracy.get(spec.scene_id),
-            "split": next((k for k, v in manifest["splits"].items() if spec.scene_id in v), None)})
+            "split": next((k for k, v in manifest["splits"].items() if spec.scene_id in v), None),
+            "pool": pools[spec.scene_id] if spec.kind == "natural" else None})
     ssr = [] if res is None else [
         {k: s.get(k) for k in ("model", "input", "preprocess", "restore", "sam", "mrae", "rmse",
                                "psnr", "n_images")} for s in res.summary]
@@ -559,6 +542,7 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 4, size: str | int 
         "lamp_scene": specs[0].scene_id,
         "moving_scene": next((s.scene_id for s in specs if s.motion), None),
         "exported_scene": exported,
+        "off_pool_scenes": off_pool,
         "scenes": scene_rows,
         "ssr": ssr,
         "scene_table": scene_table(manifest, captures, accuracy),
@@ -584,6 +568,12 @@ def format_summary(doc: dict[str, Any]) -> str:
         out += ["", "SSR on the " + ("test split" if any(s["split"] == "test" for s in doc["scenes"])
                                      else "whole set") + " (luminance restoration on; "
                 "full tables in evaluation/tables.md):", doc["ssr_table"]]
+    smits = next((r for r in doc.get("ssr") or [] if r["model"] == "smits" and r["input"] == "hdr"
+                  and r["preprocess"] == "off" and r.get("restore", True)), None)
+    if smits and smits.get("sam") is not None:
+        out += ["", f"Smits 1999 on the {smits.get('n_images')} natural test scene(s), HDR input: "
+                    f"SAM {smits['sam']:.2f}° (the paper, real ME HS scenes: "
+                    f"{PAPER_SMITS_SAM_ME_HS:.2f}°; docs/scenes.md on the gap)"]
     t = doc["timings_s"]
     out += ["", "Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items() if k != "total") +
             f"; total {t['total']:.1f} s"]

@@ -7,9 +7,10 @@ def configure(parser):
     parser.add_argument("--out", "-o", default="mehs-demo", metavar="DIR",
                         help="demo folder (default: %(default)s); re-running reuses its captures "
                              "and built scenes")
-    parser.add_argument("--scenes", type=int, default=4, metavar="N",
-                        help="scenes to capture (default: %(default)s): a visible sodium lamp "
-                             "(HP1), a moving cloud, then other illuminants")
+    parser.add_argument("--scenes", type=int, default=6, metavar="N",
+                        help="scenes to capture (default: %(default)s): natural scenes from measured "
+                             "spectra — a visible high-pressure sodium lamp, a moving cloud, "
+                             "then daylight, window, tungsten, fluorescent, …")
     parser.add_argument("--size", default="small", metavar="small|full|N",
                         help="small = 64×64 pixels, full = 512×512 (Specim IQ), or N×N pixels; "
                              "always 204 bands (default: %(default)s)")

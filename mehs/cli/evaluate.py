@@ -5,8 +5,9 @@ from __future__ import annotations
 
 def configure(parser):
     parser.add_argument("dataset", metavar="DATASET",
-                        help="dataset folder (manifest.json) or a plain folder of pairs "
-                             "(<stem>.hdr with <stem>.exr and/or <stem>.png)")
+                        help="dataset folder (manifest.json), a plain folder of pairs "
+                             "(<stem>.hdr with <stem>.exr and/or <stem>.png), or a public SSR "
+                             "dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--models", "-m", default="smits,mallett",
                         help="comma-separated models, each optionally NAME=SPEC to name its "
                              "row: built-in names (smits, mallett, regression = fitted on the "
@@ -56,6 +57,9 @@ def configure(parser):
     parser.add_argument("--markdown", action="store_true",
                         help="print the Markdown tables instead of plain text")
     parser.add_argument("--seed", type=int, default=0)
+    from mehs.cli._sources import add_source_arguments
+
+    add_source_arguments(parser)
     parser.add_argument("--list-models", action="store_true",
                         help="list the registered model names and exit")
 
@@ -128,6 +132,9 @@ def run(args):
         raise InputError(f"--timing-size must be WxH, got {args.timing_size!r}") from None
     if w < 1 or h < 1:
         raise InputError(f"--timing-size must be at least 1x1 pixels, got {args.timing_size!r}")
+    from mehs.cli._sources import apply_source_arguments
+
+    apply_source_arguments(args, args.dataset)
     inputs = tuple(s.strip() for s in args.input.split(",") if s.strip())
     split = None if args.split == "all" else args.split
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,

@@ -14,7 +14,14 @@ from __future__ import annotations
 def add_scene_arguments(parser, *, geometry: bool = True) -> None:
     """Scene/sensor options shared by ``sim-device`` and ``capture --simulate``."""
     parser.add_argument("--scene", default="colorchecker",
-                        help="simulated scene kind: colorchecker, lamp, window, ramp; calibration targets sphere, panel (default colorchecker)")
+                        help="simulated scene kind: colorchecker, lamp, window, ramp, natural "
+                             "(measured materials and lights, mehs.scenes), or the calibration "
+                             "targets sphere and panel (default colorchecker)")
+    parser.add_argument("--pool", default="all", choices=["train", "val", "test", "all"],
+                        help="natural scenes: the disjoint material/light pool drawn from (default all)")
+    parser.add_argument("--lighting", default=None,
+                        choices=["daylight", "tungsten", "fluorescent", "led", "sodium", "mixed"],
+                        help="natural scenes: lighting setting (default: drawn from --seed)")
     parser.add_argument("--size", type=int, default=64,
                         help="scene size in lines and samples (default 64; 512 = Specim IQ)")
     if geometry:
@@ -40,8 +47,15 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool 
 
     lines = getattr(args, "scene_lines", None) or args.size
     samples = getattr(args, "scene_samples", None) or args.size
-    scene = make_scene(args.scene, lines=lines, samples=samples, source_ratio=args.source_ratio,
-                       motion=args.motion, seed=args.seed)
+    if args.scene == "natural":
+        from mehs.scenes.natural import make_natural_scene
+
+        scene = make_natural_scene(lines, samples, seed=args.seed, pool=args.pool,
+                                   lighting=args.lighting, source_ratio=args.source_ratio,
+                                   motion=args.motion)
+    else:
+        scene = make_scene(args.scene, lines=lines, samples=samples, source_ratio=args.source_ratio,
+                           motion=args.motion, seed=args.seed)
     sensor = SensorModel(seed=args.seed, response=args.response)
     if genicam:
         from mehs.capture.genicam_sim import SimGenicamDevices

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 def configure(parser):
     parser.add_argument("dataset", metavar="DATASET",
-                        help="dataset folder (manifest.json) or a plain folder of pairs")
+                        help="dataset folder (manifest.json), a plain folder of pairs, or a "
+                             "public SSR dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--out", "-o", required=True, metavar="MODEL",
                         help="model file to write (.npz, or .json)")
     parser.add_argument("--split", default="train",
@@ -27,6 +28,9 @@ def configure(parser):
 
     add_preprocessing_args(parser, "with --preprocess on")
     parser.add_argument("--seed", type=int, default=0)
+    from mehs.cli._sources import add_source_arguments
+
+    add_source_arguments(parser)
 
 
 def run(args):
@@ -36,8 +40,14 @@ def run(args):
     from mehs.ssr.data import load_pairs
 
     check_model_path(args.out, RegressionModel.FORMAT)  # before the fit, not after
+    from mehs.cli._sources import apply_source_arguments
+
     root = Path(args.dataset)
-    split = None if args.split == "all" or not (root / "manifest.json").is_file() else args.split
+    apply_source_arguments(args, root)
+    split = None if args.split == "all" else args.split
+    if split is not None and not (root / "manifest.json").is_file() and \
+            split not in load_pairs(root).splits:
+        split = None  # a plain folder of pairs (or a public set without that split): all scenes
     pairs = load_pairs(root, split=split)
     from mehs.cli.evaluate import preprocessing_from_args
 

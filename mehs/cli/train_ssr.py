@@ -23,7 +23,8 @@ ARCH_HELP = "hdrssr (the paper's), mikamoto, galliani, hscnnd, awan, mstpp"
 
 
 def configure(parser):
-    parser.add_argument("dataset", help="dataset folder (manifest.json) or a plain folder of pairs")
+    parser.add_argument("dataset", help="dataset folder (manifest.json), a plain folder of pairs, or a "
+                             "public SSR dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
     parser.add_argument("--out", required=True, help="output folder for checkpoints and model.onnx")
     parser.add_argument("--arch", default="hdrssr",
                         help=f"architecture: {ARCH_HELP} (default hdrssr; "
@@ -65,6 +66,9 @@ def configure(parser):
                         help="torch CPU threads (default 0: torch's choice); 1 is often "
                              "faster on a busy machine")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    from mehs.cli._sources import add_source_arguments
+
+    add_source_arguments(parser)
 
 
 def parse_params(items) -> dict:
@@ -149,6 +153,9 @@ def run(args):
     arch.params(args.preset, params)  # refuse a bad --param before reading the data
     if args.threads:
         torch.set_num_threads(args.threads)
+    from mehs.cli._sources import apply_source_arguments
+
+    apply_source_arguments(args, args.dataset)
     train_split, val_split = _splits(args.dataset)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []

@@ -1,6 +1,6 @@
 """Paired HS/RGB sets for SSR evaluation, loaded lazily scene by scene.
 
-Two layouts are accepted by :func:`load_pairs`:
+Three layouts are accepted by :func:`load_pairs`:
 
 1. A **dataset folder** (format 3 of the working agreement): ``manifest.json``
    lists scenes with ``files`` ``hs`` (ENVI), ``hdr_rgb`` (EXR), ``ldr_rgb``
@@ -9,6 +9,8 @@ Two layouts are accepted by :func:`load_pairs`:
 2. A **plain folder of pairs**: ``<stem>.hdr`` (ENVI HS cube) with
    ``<stem>.exr`` (HDR-RGB) and/or ``<stem>.png`` (LDR-RGB) and an optional
    ``<stem>_mask.png``. There are no splits.
+3. A **public SSR dataset** folder (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST), format
+   detected or set by :func:`mehs.ssr.sources.remember_source`: see :mod:`mehs.ssr.sources`.
 
 LDR-RGB is linearised with the sRGB EOTF (IEC 61966-2-1) and divided by the
 exposure that made it (``ldr = encode(clip(exposure · hdr))``) so it is on the
@@ -270,6 +272,17 @@ def _load_plain(root: Path) -> PairSet:
     return PairSet(pairs, root=root)
 
 
+def _public_format(root: Path) -> bool:
+    """A public SSR dataset (ARAD, ICVL, CAVE, KAUST: :mod:`mehs.ssr.sources`), not pairs?"""
+    from mehs.ssr.sources import detect_format, remembered
+
+    if remembered(root):
+        return True
+    if any(root.glob("*.hdr")):
+        return False
+    return detect_format(root) is not None
+
+
 def load_pairs(path: str | Path, *, split: str | None = None,
                include_failed: bool = False) -> PairSet:
     """List the paired scenes of a dataset folder or a plain folder of pairs.
@@ -289,6 +302,10 @@ def load_pairs(path: str | Path, *, split: str | None = None,
         raise InputError("no such dataset folder", root)
     if (root / "manifest.json").is_file():
         pairs = _load_manifest(root, split=split, include_failed=include_failed)
+    elif _public_format(root):
+        from mehs.ssr.sources import load_source
+
+        return load_source(root, split=split)
     else:
         if split is not None:
             raise InputError(f"a plain folder of pairs has no split {split!r} (no manifest.json)", root)

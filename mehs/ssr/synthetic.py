@@ -113,6 +113,23 @@ def make_scene_spectra(size: int | tuple[int, int] = 64, seed: int = 0, *,
     return spectra.astype(np.float32), mask, info
 
 
+def _natural_spectra(size, seed: int, pool: str, source_gain: float, n_invalid: int = 5):
+    """A natural scene at 400:700:10 from ``pool``; the same invalid-pixel trap as above."""
+    from mehs.scenes.natural import make_natural_scene
+
+    h, w = (size, size) if np.isscalar(size) else tuple(int(s) for s in size)
+    scene = make_natural_scene(h, w, wavelengths=WAVELENGTHS_31, seed=seed, pool=pool,
+                               source_ratio=source_gain)
+    spectra = scene.radiance
+    mask = np.zeros((h, w), dtype=np.uint8)
+    flat = np.random.default_rng(seed).choice(h * w, size=min(n_invalid, h * w), replace=False)
+    mask.reshape(-1)[flat] = 2
+    spectra.reshape(-1, WAVELENGTHS_31.size)[flat] = 0.0
+    info = {k: scene.info[k] for k in ("generator", "pool", "lighting", "lights", "source_ratio",
+                                       "n_materials")}
+    return spectra, mask, info
+
+
 def _write_png(path: Path, img: np.ndarray) -> Path:
     import cv2
 
@@ -130,12 +147,21 @@ def _write_png(path: Path, img: np.ndarray) -> Path:
 def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[int, int] = 64,
                     seed: int = 0, *, splits: Sequence[float] = (0.6, 0.2, 0.2),
                     shading_stops: float = 6.0, source_gain: float = 1000.0,
-                    illuminants: Sequence[str] = ILLUMINANTS) -> Path:
+                    illuminants: Sequence[str] = ILLUMINANTS,
+                    generator: str = "colorchecker", pool: str | None = None) -> Path:
     """Write a small ME HS-style dataset (format 3) of ``n_scenes`` synthetic scenes.
 
     Scenes are assigned to train/val/test in the ratio ``splits`` (at least one
     test scene). Deterministic for a given ``seed``. Returns ``out_dir``.
+
+    ``generator``: ``"colorchecker"`` (:func:`make_scene_spectra`) or ``"natural"``
+    (:func:`mehs.scenes.natural.make_natural_scene`, each scene drawn from the material and
+    light pool of its split, so the test scenes hold materials and lights never trained on;
+    ``source_gain`` is the visible source's ratio, ``shading_stops``/``illuminants`` unused).
+    ``pool`` overrides the split's pool for every scene (``"all"``: no held-out materials).
     """
+    if generator not in ("colorchecker", "natural"):
+        raise ValueError(f"generator must be 'colorchecker' or 'natural', got {generator!r}")
     from mehs import __version__
     from mehs.cube import SpectralCube
     from mehs.io.atomic import write_json_atomic
@@ -156,10 +182,15 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
                  "test": ids[n_train + n_val:]}
     scenes, rows = [], []
     for i, sid in enumerate(ids):
-        spectra, mask, info = make_scene_spectra(size, seed * 100_003 + i,
-                                                 shading_stops=shading_stops,
-                                                 source_gain=source_gain,
-                                                 illuminants=illuminants)
+        split = next(k for k, v in split_ids.items() if sid in v)
+        if generator == "natural":
+            spectra, mask, info = _natural_spectra(size, seed * 100_003 + i, pool or split,
+                                                   source_gain)
+        else:
+            spectra, mask, info = make_scene_spectra(size, seed * 100_003 + i,
+                                                     shading_stops=shading_stops,
+                                                     source_gain=source_gain,
+                                                     illuminants=illuminants)
         d = out / "scenes" / sid
         d.mkdir(parents=True, exist_ok=True)
         cube = SpectralCube(spectra, WAVELENGTHS_31, units="relative radiance",
@@ -173,7 +204,6 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
         files = {"hs": f"scenes/{sid}/hs.hdr", "hs_data": f"scenes/{sid}/hs.dat",
                  "hdr_rgb": f"scenes/{sid}/hdr_rgb.exr",
                  "ldr_rgb": f"scenes/{sid}/ldr_rgb.png", "mask": f"scenes/{sid}/mask.png"}
-        split = next(k for k, v in split_ids.items() if sid in v)
         scenes.append({"id": sid, "status": "pass", "reasons": [], "files": files,
                        "sha256": {},
                        "quality": {"invalid_fraction": float(np.mean(mask != 0)),

@@ -1,0 +1,57 @@
+"""``--format`` and the reading options of public SSR datasets, shared by the SSR commands."""
+
+from __future__ import annotations
+
+FORMAT_CHOICES = ("auto", "arad1k", "arad", "icvl", "cave", "kaust")
+
+
+def add_source_arguments(parser) -> None:
+    """Options for reading ARAD-1K, ARAD/BGU-HS, ICVL, CAVE and KAUST folders directly."""
+    parser.add_argument("--format", dest="source_format", choices=FORMAT_CHOICES, default="auto",
+                        help="dataset layout: auto (a mehs dataset, a folder of pairs, or a public "
+                             "SSR dataset detected by its files) or a public format "
+                             "(default: %(default)s)")
+    parser.add_argument("--hs-bands", default="visible", metavar="BANDS",
+                        help="public datasets: bands kept, 'visible' (400–700 nm), 'all', or "
+                             "start:stop:step / a list in nm (default: %(default)s)")
+    parser.add_argument("--hs-crop", default=None, metavar="HxW",
+                        help="public datasets: central crop of every scene, e.g. 256x256")
+    parser.add_argument("--hs-scale", type=float, default=1.0,
+                        help="public datasets: multiply the stored values (default 1: as stored)")
+
+
+def apply_source_arguments(args, dataset) -> None:
+    """Record the chosen format and options for ``dataset`` (before it is listed)."""
+    import math
+
+    from mehs.errors import InputError
+    from mehs.io.ssr_datasets import SourceOptions
+
+    explicit = (args.source_format != "auto" or args.hs_bands != "visible" or args.hs_crop
+                or args.hs_scale != 1.0)
+    if not explicit:
+        return
+    if not (math.isfinite(args.hs_scale) and args.hs_scale > 0):
+        raise InputError(f"--hs-scale must be positive and finite, got {args.hs_scale}")
+    bands = args.hs_bands
+    if bands not in ("visible", "all"):
+        from mehs.synthesis.resample import parse_bands
+
+        bands = tuple(float(b) for b in parse_bands(bands))
+    crop = None
+    if args.hs_crop:
+        try:
+            crop = tuple(int(v) for v in args.hs_crop.lower().split("x"))
+            if len(crop) != 2 or min(crop) < 1:
+                raise ValueError
+        except ValueError:
+            raise InputError(f"--hs-crop must be HxW pixels, e.g. 256x256, got {args.hs_crop!r}") from None
+    from mehs.ssr.sources import detect_format, remember_source
+
+    fmt = args.source_format
+    if fmt == "auto":
+        fmt = detect_format(dataset)
+        if fmt is None:
+            raise InputError("--hs-bands/--hs-crop/--hs-scale apply to public SSR datasets, and "
+                             "this folder is not one (give --format)", dataset)
+    remember_source(dataset, fmt, SourceOptions(bands=bands, crop=crop, scale=float(args.hs_scale)))

@@ -1,0 +1,301 @@
+"""Readers for the public spectral super-resolution (SSR) datasets.
+
+=========  ==========================================================  ======================
+format     layout                                                      bands
+=========  ==========================================================  ======================
+``arad1k`` NTIRE 2022 ARAD-1K: ``*.mat`` (MATLAB v7.3 = HDF5) with       ``bands`` (31, 400–700)
+           ``cube`` (482×512×31 in MATLAB, stored ``(31, W, H)``),
+           ``bands``, ``norm_factor``; RGB ``<stem>.jpg``; split lists
+           ``train_list.txt`` / ``valid_list.txt`` (or Train_/Valid_ folders)
+``arad``   ARAD / BGU-HS, NTIRE 2018–2020: ``*.mat`` with ``rad`` and   ``bands``
+           ``bands`` (v7.3 or v5); RGB ``<stem>_clean.png`` / ``.jpg``
+``icvl``   ICVL (Arad & Ben-Shahar 2016): ``*.mat`` v7.3, ``rad``,      ``bands``
+           ``bands``
+``cave``   CAVE (Yasuma et al. 2010): one folder per scene of 31        400–700 nm, 10 nm
+           16-bit PNGs ``<name>_ms_01.png`` … ``_31.png``; RGB
+           ``<name>_RGB.bmp``
+``kaust``  KAUST-HS (Li et al. 2021): ``*.h5`` / ``*.hdf5`` with one     ``bands`` /
+           3-D dataset (``img``, ``cube``, ``rad``, ``data`` or the      ``wavelengths`` if
+           only one)                                                   stored, else 400–730
+=========  ==========================================================  ======================
+
+MATLAB files are read with :mod:`h5py` (v7.3: HDF5 behind a 512-byte MATLAB userblock; arrays
+are stored column-major, so every axis order is reversed: a MATLAB ``H×W×B`` cube reads as
+``(B, W, H)`` and is transposed back) or :func:`scipy.io.loadmat` (v5). No hand-written parser.
+
+Every cube becomes float32 ``(H, W, B)`` (``H`` = MATLAB rows) and goes through the explicit,
+recorded options of :class:`SourceOptions`: band selection (default: the bands in 400–700 nm),
+central crop, scale (default 1: values as stored, relative units). The HDR-RGB input is the
+pseudo-HDR-RGB of the cube (:func:`mehs.rgb.spectra_to_linear_sRGB`, rounded to half float like
+``mehs build``'s EXR); the LDR input is the dataset's own RGB image when it ships one (ARAD JPG,
+CAVE BMP), else :func:`mehs.rgb.ldr_rgb` of the HDR-RGB.
+
+References
+----------
+- Arad et al. (2022), "NTIRE 2022 spectral recovery challenge and data set", CVPRW.
+- Arad & Ben-Shahar (2016), "Sparse recovery of hyperspectral signal from natural RGB
+  images", ECCV (ICVL / BGU-HS).
+- Yasuma, Mitsunaga, Iso & Nayar (2010), "Generalized assorted pixel camera", IEEE TIP (CAVE).
+- Li, Fu, Heidrich et al. (2021), "Multispectral illumination estimation using deep
+  unrolling network", ICCV (KAUST-HS).
+- MathWorks, "MAT-file versions" (v7.3 is HDF5 with a 512-byte header).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mehs.errors import FormatError, InputError
+
+#: Public dataset formats read here.
+FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust")
+
+_CAVE_BANDS = np.arange(400.0, 701.0, 10.0)
+_KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
+_KAUST_KEYS = ("img", "cube", "rad", "data", "hsi", "reflectance")
+_RGB_EXT = (".jpg", ".jpeg", ".png", ".bmp")
+_SPLIT_WORDS = {"train": "train", "valid": "val", "val": "val", "test": "test"}
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """Explicit reading options, recorded with every result.
+
+    Attributes
+    ----------
+    bands
+        ``"visible"`` (bands within 400–700 nm, default), ``"all"``, or band centres (nm)
+        to keep (each must exist within 0.5 nm).
+    crop
+        ``(height, width)`` of a central crop, or ``None``.
+    scale
+        Multiplies the stored values (1 = as stored).
+    """
+
+    bands: Any = "visible"
+    crop: tuple[int, int] | None = None
+    scale: float = 1.0
+
+    def record(self) -> dict:
+        d = asdict(self)
+        if isinstance(self.bands, np.ndarray):
+            d["bands"] = self.bands.tolist()
+        return d
+
+
+# --------------------------------------------------------------------------- MATLAB / HDF5
+def _is_hdf5(path: Path) -> bool:
+    import h5py
+
+    try:
+        return bool(h5py.is_hdf5(str(path)))
+    except OSError as exc:
+        raise FormatError(f"cannot open ({exc})", path) from None
+
+
+def read_mat_variables(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Read ``keys`` from a MATLAB file (v7.3 via h5py, v5 via scipy.io) in MATLAB axis order.
+
+    Raises
+    ------
+    FormatError
+        Unreadable or truncated file, or a key missing (the message names the key and lists
+        the variables present).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such file", path)
+    out: dict[str, np.ndarray] = {}
+    if _is_hdf5(path):
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                for k in keys:
+                    if k not in f:
+                        raise FormatError(f"no variable {k!r} in the MATLAB v7.3 file "
+                                          f"(variables: {', '.join(sorted(f.keys())) or 'none'})", path)
+                    # column-major on disk: reversing the axes gives MATLAB's order
+                    out[k] = np.asarray(f[k][()]).transpose()
+        except FormatError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            raise FormatError(f"unreadable or truncated MATLAB v7.3 (HDF5) file ({exc})", path) from None
+        return out
+    import scipy.io
+
+    try:
+        mat = scipy.io.loadmat(path, variable_names=list(keys))
+        present = [n for n, *_ in scipy.io.whosmat(path)]
+    except NotImplementedError as exc:
+        raise FormatError(f"MATLAB file version not supported ({exc})", path) from None
+    except (ValueError, TypeError, OSError, EOFError, AssertionError) as exc:
+        raise FormatError(f"unreadable or truncated MATLAB file ({exc})", path) from None
+    for k in keys:
+        if k not in mat:
+            raise FormatError(f"no variable {k!r} in the MATLAB file (variables: "
+                              f"{', '.join(sorted(present)) or 'none'})", path)
+        out[k] = np.asarray(mat[k])
+    return out
+
+
+def _mat_cube(path: Path, cube_key: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    v = read_mat_variables(path, (cube_key, "bands"))
+    cube, bands = v[cube_key], np.asarray(v["bands"], dtype=np.float64).reshape(-1)
+    if cube.ndim != 3:
+        raise FormatError(f"{cube_key!r} must be 3-D (rows × columns × bands), got shape "
+                          f"{cube.shape}", path)
+    if cube.shape[2] != bands.size:
+        raise FormatError(f"{cube_key!r} has {cube.shape[2]} bands but 'bands' lists "
+                          f"{bands.size}", path)
+    info: dict[str, Any] = {"variable": cube_key}
+    if cube_key == "cube":
+        try:
+            nf = read_mat_variables(path, ("norm_factor",))["norm_factor"]
+            info["norm_factor"] = float(np.asarray(nf).reshape(-1)[0])
+        except FormatError:
+            pass  # optional in ARAD-1K
+    return cube, bands, info
+
+
+# --------------------------------------------------------------------------- CAVE, KAUST
+_CAVE_PNG = re.compile(r"^(.*?)_?(\d{2})\.png$", re.IGNORECASE)
+
+
+def _cave_pngs(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.glob("*.png") if _CAVE_PNG.match(p.name))
+
+
+def read_cave(folder: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A CAVE scene folder of 31 PNGs → ``(cube (H, W, 31) in [0, 1], bands, info)``."""
+    import cv2
+
+    folder = Path(folder)
+    pngs = _cave_pngs(folder)
+    nums = sorted(int(_CAVE_PNG.match(p.name).group(2)) for p in pngs)
+    if nums != list(range(1, 32)):
+        missing = sorted(set(range(1, 32)) - set(nums))
+        raise FormatError(f"a CAVE scene needs 31 band PNGs _01 … _31; missing "
+                          f"{', '.join(f'_{m:02d}' for m in missing) or 'none'}"
+                          f"{'' if len(nums) <= 31 else f' ({len(nums)} found)'}", folder)
+    planes, depth = [], None
+    for p in sorted(pngs, key=lambda q: int(_CAVE_PNG.match(q.name).group(2))):
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise FormatError("not a readable PNG (truncated?)", p)
+        if img.ndim == 3:  # a few CAVE PNGs are stored with identical colour channels
+            img = img[..., 0]
+        if depth is None:
+            depth = img.dtype
+        if img.dtype != depth or img.dtype not in (np.uint8, np.uint16):
+            raise FormatError(f"band PNGs must all be 8- or 16-bit, got {img.dtype}", p)
+        if planes and img.shape != planes[0].shape:
+            raise FormatError(f"band is {img.shape}, the first band {planes[0].shape}", p)
+        planes.append(img)
+    full = 65535.0 if depth == np.uint16 else 255.0
+    cube = np.stack(planes, axis=-1).astype(np.float32) / np.float32(full)
+    return cube, _CAVE_BANDS.copy(), {"bit_depth": 16 if full > 255 else 8, "divided_by": full}
+
+
+def read_kaust(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A KAUST-HS ``.h5`` file → ``(cube (H, W, B), bands, info)`` (see module notes)."""
+    import h5py
+
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            sets = {k: f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}
+            name = next((k for k in _KAUST_KEYS if k in sets and sets[k].ndim == 3), None)
+            three = [k for k, d in sets.items() if d.ndim == 3]
+            if name is None and len(three) == 1:
+                name = three[0]
+            if name is None:
+                raise FormatError(f"no 3-D image dataset (looked for {', '.join(_KAUST_KEYS)}; "
+                                  f"datasets: {', '.join(sorted(sets)) or 'none'})", path)
+            ds = sets[name]
+            data = np.asarray(ds[()])
+            matlab = "MATLAB_class" in ds.attrs or f.userblock_size >= 128
+            bkey = next((k for k in ("bands", "wavelengths", "wavelength") if k in sets), None)
+            bands = None if bkey is None else np.asarray(sets[bkey][()], np.float64).reshape(-1)
+            if bands is None:
+                attr = next((ds.attrs[k] for k in ("bands", "wavelengths") if k in ds.attrs), None)
+                bands = None if attr is None else np.asarray(attr, np.float64).reshape(-1)
+    except FormatError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise FormatError(f"unreadable or truncated HDF5 file ({exc})", path) from None
+    if matlab:
+        data = data.transpose()
+    n_b = bands.size if bands is not None else _KAUST_DEFAULT.size
+    axes = [i for i, s in enumerate(data.shape) if s == n_b]
+    if not axes:
+        raise FormatError(f"dataset {name!r} has shape {data.shape}: no axis of {n_b} bands"
+                          + ("" if bands is not None else " (no 'bands' stored; KAUST-HS has 34, "
+                             "400–730 nm)"), path)
+    data = np.moveaxis(data, axes[-1], -1)
+    info = {"dataset": name, "matlab_order": bool(matlab),
+            "bands_from": bkey or ("attribute" if bands is not None else "KAUST default 400:730:10")}
+    return data, (bands if bands is not None else _KAUST_DEFAULT.copy()), info
+
+
+# --------------------------------------------------------------------------- options
+def apply_options(cube: np.ndarray, bands: np.ndarray, opts: SourceOptions,
+                  path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Band selection, central crop and scale; float32 ``(H, W, B')`` and ``(B',)``."""
+    if isinstance(opts.bands, str):
+        if opts.bands == "visible":
+            keep = np.flatnonzero((bands >= 399.5) & (bands <= 700.5))
+        elif opts.bands == "all":
+            keep = np.arange(bands.size)
+        else:
+            raise InputError(f"bands must be 'visible', 'all' or a list of nm, got {opts.bands!r}")
+    else:
+        want = np.asarray(opts.bands, np.float64).reshape(-1)
+        d = np.abs(bands[None, :] - want[:, None])
+        if want.size == 0 or np.any(d.min(axis=1) > 0.5):
+            missing = want[d.min(axis=1) > 0.5] if want.size else want
+            raise InputError(f"bands {missing.tolist()} nm are not in the file (it has "
+                             f"{bands.min():g}–{bands.max():g} nm, {bands.size} bands)", path)
+        keep = d.argmin(axis=1)
+    if keep.size == 0:
+        raise InputError(f"no band in 400–700 nm (the file has {bands.min():g}–{bands.max():g} nm)",
+                         path)
+    h, w = cube.shape[:2]
+    rows, cols = slice(None), slice(None)
+    if opts.crop is not None:
+        ch, cw = (int(v) for v in opts.crop)
+        if not (0 < ch <= h and 0 < cw <= w):
+            raise InputError(f"crop {ch}×{cw} does not fit the {h}×{w} image", path)
+        rows, cols = slice((h - ch) // 2, (h - ch) // 2 + ch), slice((w - cw) // 2, (w - cw) // 2 + cw)
+    out = np.asarray(cube[rows, cols][..., keep], dtype=np.float32)
+    if opts.scale != 1.0:
+        out = out * np.float32(opts.scale)
+    if not np.all(np.isfinite(out)):
+        raise InputError("the cube contains NaN or inf", path)
+    return np.ascontiguousarray(out), bands[keep].astype(np.float64)
+
+
+def read_source_cube(fmt: str, path: str | Path, opts: SourceOptions = SourceOptions()):
+    """Read one scene of a public dataset: ``(cube float32 (H, W, B), bands (B,), info)``."""
+    path = Path(path)
+    if fmt not in READERS:
+        raise InputError(f"unknown dataset format {fmt!r}; use one of {', '.join(FORMATS)}")
+    cube, bands, info = READERS[fmt](path)
+    data, wl = apply_options(cube, bands, opts, path)
+    info.update({"format": fmt, "stored_shape": list(cube.shape), "options": opts.record()})
+    return data, wl, info
+
+
+#: Dispatcher: format → reader of one scene (path → raw cube (H, W, B), bands, info).
+READERS = {
+    "arad1k": lambda p: _mat_cube(p, "cube"),
+    "arad": lambda p: _mat_cube(p, "rad"),
+    "icvl": lambda p: _mat_cube(p, "rad"),
+    "cave": read_cave,
+    "kaust": read_kaust,
+}

@@ -1,0 +1,1 @@
+"""Natural scenes for SSR work (measured materials and lights, disjoint pools)."""

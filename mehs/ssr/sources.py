@@ -1,0 +1,232 @@
+"""Public SSR datasets (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST) as :class:`PairSet` s.
+
+:func:`load_source` lists a dataset folder's scenes (format detected, or given), with their
+splits when the dataset defines them (ARAD-1K ``train_list.txt`` / ``valid_list.txt``, or
+``Train_*`` / ``Valid_*`` / ``Test_*`` folders), as :class:`SourcePair` objects that read their
+cube on demand through :mod:`mehs.io.ssr_datasets`. ``mehs.ssr.data.load_pairs`` calls it for a
+folder that is neither a mehs dataset nor a folder of pairs, so ``mehs evaluate``,
+``mehs train-baseline`` and ``mehs train-ssr`` accept these folders directly.
+
+An explicitly chosen format and options (:func:`remember_source`, the CLIs' ``--format``) hold
+for that folder for the rest of the process, because the evaluator re-lists a folder per split.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
+                                  read_source_cube)
+from mehs.ssr.data import Pair, PairSet, srgb_decode_8bit
+
+_HINTS: dict[Path, tuple[str, SourceOptions]] = {}
+_LAST: dict[str, Any] = {}
+
+
+def remember_source(root: str | Path, fmt: str, opts: SourceOptions = SourceOptions()) -> None:
+    """Read ``root`` as ``fmt`` with ``opts`` from now on (this process)."""
+    if fmt not in FORMATS:
+        raise InputError(f"unknown dataset format {fmt!r}; use one of {', '.join(FORMATS)}")
+    _HINTS[Path(root).resolve()] = (fmt, opts)
+
+
+def remembered(root: str | Path) -> tuple[str, SourceOptions] | None:
+    return _HINTS.get(Path(root).resolve())
+
+
+def _cave_scene_dirs(root: Path) -> list[Path]:
+    return sorted({p.parent for p in root.rglob("*_01.png") if len(_cave_pngs(p.parent)) >= 2})
+
+
+def _mat_keys(path: Path) -> set[str]:
+    """Variable names of a MATLAB file (v7.3 or v5); empty if it cannot be read."""
+    import h5py
+
+    try:
+        if h5py.is_hdf5(str(path)):
+            with h5py.File(path, "r") as h:
+                return set(h.keys())
+        import scipy.io
+
+        return {n for n, *_ in scipy.io.whosmat(path)}
+    except (ValueError, TypeError, OSError, NotImplementedError, EOFError):
+        return set()
+
+
+def detect_format(root: str | Path) -> str | None:
+    """The public format of a dataset folder, or ``None`` (by file types and MATLAB variables)."""
+    root = Path(root)
+    mats = sorted(root.rglob("*.mat"))
+    # a few files, so one truncated download does not hide the format of the rest
+    for f in mats[:5]:
+        keys = _mat_keys(f)
+        if "cube" in keys:
+            return "arad1k"
+        if "rad" in keys:
+            return "arad" if f.stem.upper().startswith(("BGU", "ARAD")) else "icvl"
+    if mats:
+        return None
+    if next(root.rglob("*.h5"), None) is not None or next(root.rglob("*.hdf5"), None) is not None:
+        return "kaust"
+    if _cave_scene_dirs(root):
+        return "cave"
+    return None
+
+
+def _scene_files(root: Path, fmt: str) -> list[tuple[str, Path]]:
+    if fmt == "cave":
+        out = []
+        for d in _cave_scene_dirs(root):
+            sid = d.name[:-3] if d.name.lower().endswith("_ms") else d.name
+            out.append((sid, d))
+        return out
+    pats = ("*.h5", "*.hdf5") if fmt == "kaust" else ("*.mat",)
+    return sorted((p.stem, p) for pat in pats for p in root.rglob(pat))
+
+
+def _rgb_index(root: Path) -> dict[str, Path]:
+    idx: dict[str, Path] = {}
+    for p in sorted(root.rglob("*")):
+        if p.suffix.lower() in _RGB_EXT and p.is_file() and not p.name.lower().endswith(
+                tuple(f"_{i:02d}.png" for i in range(1, 41))):
+            idx.setdefault(p.stem, p)
+    return idx
+
+
+def _rgb_for(sid: str, idx: dict[str, Path]) -> Path | None:
+    for stem in (sid, f"{sid}_clean", f"{sid}_camera", f"{sid}_RGB", f"{sid}_rgb"):
+        if stem in idx:
+            return idx[stem]
+    return None
+
+
+def _splits(root: Path, entries: list[tuple[str, Path]]) -> dict[str, list[str]]:
+    ids = {sid for sid, _ in entries}
+    splits: dict[str, list[str]] = {}
+    for lst in sorted(root.rglob("*_list.txt")):
+        word = lst.stem[:-5].lower()
+        name = _SPLIT_WORDS.get(word)
+        if name is None:
+            continue
+        listed = [Path(s.strip()).stem for s in lst.read_text(encoding="utf-8", errors="replace").splitlines()
+                  if s.strip()]
+        splits.setdefault(name, []).extend(s for s in listed if s in ids)
+    if splits:
+        return {k: sorted(set(v)) for k, v in splits.items()}
+    for sid, p in entries:
+        for part in p.relative_to(root).parts[:-1]:
+            word = part.lower().split("_")[0]
+            if word in _SPLIT_WORDS:
+                splits.setdefault(_SPLIT_WORDS[word], []).append(sid)
+                break
+    return {k: sorted(v) for k, v in splits.items()}
+
+
+@dataclass
+class SourcePair(Pair):
+    """A scene of a public dataset; the cube is read (and the RGB rendered) on demand."""
+
+    fmt: str = "arad1k"
+    options: SourceOptions = field(default_factory=SourceOptions)
+
+    def _read(self):
+        key = (str(self.hs_path), self.fmt, self.options)
+        if _LAST.get("key") != key:  # one scene cached: evaluate reads the cube, then its RGB
+            _LAST.clear()
+            _LAST["key"] = key
+            _LAST["value"] = read_source_cube(self.fmt, self.hs_path, self.options)
+        return _LAST["value"]
+
+    def hs(self):
+        from mehs.cube import SpectralCube
+
+        data, wl, info = self._read()
+        self.info["source"] = info
+        return SpectralCube(data, wl, units="as stored × scale")
+
+    def hs_array(self) -> tuple[np.ndarray, np.ndarray]:
+        data, wl, info = self._read()
+        self.info["source"] = info
+        return data, wl
+
+    def has(self, kind: str) -> bool:
+        return kind in ("hdr", "ldr")
+
+    def hdr_rgb(self) -> np.ndarray:
+        from mehs.rgb import spectra_to_linear_sRGB
+
+        data, wl, _ = self._read()
+        rgb = spectra_to_linear_sRGB(data, wl).astype(np.float32)
+        # the same half-float rounding as the EXR that mehs build writes
+        return np.minimum(rgb, 65504.0).astype(np.float16).astype(np.float32)
+
+    def ldr_rgb(self) -> np.ndarray:
+        from mehs.rgb import ldr_rgb
+
+        hdr = self.hdr_rgb()
+        if self.ldr_path is not None:
+            from mehs.ssr.data import read_png
+
+            img = read_png(self.ldr_path)
+            if self.options.crop is not None:  # the same central crop as the cube
+                ch, cw = self.options.crop
+                h, w = img.shape[:2]
+                img = img[(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
+            lin = srgb_decode_8bit(img)
+            exposure = self._estimate_exposure(lin) if lin.shape == hdr.shape else None
+            self.info.update({"ldr_source": "dataset RGB image", "ldr_exposure_used": exposure})
+            if exposure is None:
+                raise InputError(f"the RGB image is {img.shape[:2]} (or too dark to match), the "
+                                 f"cube {hdr.shape[:2]}", self.ldr_path)
+            return lin / np.float32(exposure)
+        ldr, exposure = ldr_rgb(hdr)
+        self.info.update({"ldr_source": "mehs.rgb.ldr_rgb of the pseudo-HDR-RGB",
+                          "ldr_exposure_used": float(exposure)})
+        return srgb_decode_8bit(np.asarray(ldr, dtype=np.uint8)) / np.float32(exposure)
+
+    def mask(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        if shape is None:
+            shape = self.hs_array()[0].shape[:2]
+        return np.zeros(shape, dtype=np.uint8)
+
+
+def load_source(root: str | Path, fmt: str | None = None, *, split: str | None = None,
+                options: SourceOptions | None = None) -> PairSet:
+    """List a public dataset folder as a :class:`PairSet` of :class:`SourcePair`.
+
+    ``fmt`` ``None``: remembered for this folder, else :func:`detect_format`. The set's
+    ``manifest`` records the format, options and splits (so a fitted baseline and an evaluation
+    say what was read).
+    """
+    root = Path(root)
+    hint = remembered(root)
+    opts = options or (hint[1] if hint else SourceOptions())
+    fmt = fmt or (hint[0] if hint else None) or detect_format(root)
+    if fmt is None:
+        raise InputError(f"not a recognised SSR dataset folder (formats: {', '.join(FORMATS)}; "
+                         "or give --format)", root)
+    if fmt not in FORMATS:
+        raise InputError(f"unknown dataset format {fmt!r}; use one of {', '.join(FORMATS)}")
+    entries = _scene_files(root, fmt)
+    if not entries:
+        raise InputError(f"no {fmt} scenes found", root)
+    splits = _splits(root, entries)
+    if split is not None and split not in splits:
+        raise InputError(f"no split {split!r} in this {fmt} dataset (has "
+                         f"{sorted(splits) or 'none'})", root)
+    wanted = None if split is None else set(splits[split])
+    split_of = {sid: name for name, ids in splits.items() for sid in ids}
+    rgbs = _rgb_index(root) if fmt in ("arad1k", "arad", "cave") else {}
+    pairs = [SourcePair(id=sid, hs_path=p, hdr_path=p, ldr_path=_rgb_for(sid, rgbs),
+                        split=split_of.get(sid), fmt=fmt, options=opts)
+             for sid, p in entries if wanted is None or sid in wanted]
+    manifest = {"format": f"public:{fmt}", "source_format": fmt, "options": opts.record(),
+                "splits": splits, "hdr_rgb": "pseudo-HDR-RGB of the cube (half float)",
+                "ldr_rgb": "dataset RGB image when shipped, else mehs.rgb.ldr_rgb"}
+    return PairSet(pairs, root=root, manifest=manifest, splits=splits)
+
