@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mehs.capture import pixfmt
-from mehs.capture.genicam import polynomial_wavelengths, read_calibration
+from mehs.capture.spectral_cal import polynomial_wavelengths, read_calibration
 from mehs.capture.scan import assign_frames
 from mehs.errors import InputError
 

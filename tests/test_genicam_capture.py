@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from mehs.capture.genicam import aravis_available
+from mehs.capture.aravis import aravis_available
 
 _why = aravis_available()
 pytestmark = pytest.mark.skipif(_why is not None, reason=f"Aravis unavailable: {_why}")
@@ -99,7 +99,7 @@ def test_gige_capture_both_scan_modes_fuse_like_serial(tmp_path, serial_scene):
         step = capture(urls, tmp_path / "step", "--times", ",".join(map(str, TIMES)))
         assert step.returncode == 0, step.stderr
         cont = capture(urls, tmp_path / "cont", "--times", ",".join(map(str, TIMES)),
-                       "--scan", "continuous", "--oversample", "4")
+                       "--scan", "continuous")
         assert cont.returncode == 0, cont.stderr
     finally:
         stop(proc)

@@ -131,7 +131,9 @@ def _prompt(state: str) -> None:
 
 def open_camera(url: str, args):
     """The camera driver for ``url``: GenICam (``aravis://``, ``genicam://``) or the serial line camera."""
-    from mehs.capture.genicam import GenicamCamera, is_genicam_url, read_calibration
+    from mehs.capture.aravis import is_genicam_url
+    from mehs.capture.genicam import GenicamCamera
+    from mehs.capture.spectral_cal import read_calibration
 
     if is_genicam_url(url):
         cal = read_calibration(args.wavelengths) if args.wavelengths else None
@@ -143,7 +145,7 @@ def open_camera(url: str, args):
 
 
 def _list_cameras() -> int:
-    from mehs.capture.genicam import list_cameras
+    from mehs.capture.aravis import list_cameras
 
     cams = list_cameras()
     if not cams:
