@@ -195,7 +195,8 @@ class GenicamSimCamera:
     def start(self) -> "GenicamSimCamera":
         # The fill callback needs the GIL within a frame period; CPython's default 5 ms
         # switch interval would make a busy host thread skip frames of the simulated camera.
-        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch, 0.0005))
         gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial, str(self.xml_path))
         if gv is None or not gv.is_running():
             raise DeviceError("cannot serve the simulated GigE Vision camera: is another one "
@@ -242,6 +243,9 @@ class GenicamSimCamera:
 
     def close(self) -> None:
         self.stop()
+        if getattr(self, "_switch", None) is not None:
+            sys.setswitchinterval(self._switch)
+            self._switch = None
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def __enter__(self):
