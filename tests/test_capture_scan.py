@@ -112,3 +112,19 @@ def test_serial_continuous_scan_matches_step_truth(tmp_path):
         good = (ra < 4000) & (rb < 4000)
         assert abs(np.median(rb[good] - ra[good])) < 2.0
         assert np.corrcoef(ra[good], rb[good])[0, 1] > 0.99
+
+
+# ------------------------------------------------------------------ without Aravis
+def test_missing_aravis_names_the_install_steps(monkeypatch, tmp_path):
+    import sys
+
+    from mehs.capture import aravis
+    from mehs.errors import DeviceError
+
+    monkeypatch.setitem(sys.modules, "gi", None)              # `import gi` fails
+    monkeypatch.setattr(aravis, "_DEBIAN_GI", tmp_path / "no-gi")
+    with pytest.raises(aravis.AravisUnavailable, match=r"gir1\.2-aravis-0\.8.*mehs\[aravis\]"):
+        aravis.import_aravis()
+    assert "apt-get install" in aravis.aravis_available()
+    assert issubclass(aravis.AravisUnavailable, DeviceError)
+    assert aravis.is_genicam_url("genicam://X") and not aravis.is_genicam_url("socket://h:1")

@@ -283,3 +283,13 @@ def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
     assert [e["status"] for e in doc["exposures"]] == ["complete"] * 2
     assert sha256_file(raw0) == sha0 and sf.verify_exposure(out, doc["exposures"][0]) == []
     assert doc["exposures"][1]["stage"]["scan"]["missing_lines"] == 0
+
+
+def test_unknown_camera_and_empty_url_are_clear_errors():
+    from mehs.capture.genicam import GenicamCamera
+    from mehs.errors import InputError
+
+    with pytest.raises(DeviceError, match=r"aravis://NoSuchCam: cannot open GenICam camera .*--list-cameras"):
+        GenicamCamera.open("aravis://NoSuchCam")
+    with pytest.raises(InputError, match="names no device"):
+        GenicamCamera.open("genicam://")
