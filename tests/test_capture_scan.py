@@ -41,9 +41,10 @@ def test_packed_12bit_matches_the_standards_bit_layout(layout):
 
 def test_known_bytes_unpack_per_standard():
     # p0 = 0xABC, p1 = 0x123
-    assert pixfmt.unpack(bytes([0xAB, 0x3C, 0x12]), pixfmt.PIXEL_FORMATS["Mono12Packed"], 2, 1).tolist() == [[0xABC, 0x123]]
-    assert pixfmt.unpack(bytes([0xBC, 0x3A, 0x12]), pixfmt.PIXEL_FORMATS["Mono12p"], 2, 1).tolist() == [[0xABC, 0x123]]
-    assert pixfmt.unpack(bytes([0xBC, 0x0A, 0x23, 0x01]), pixfmt.PIXEL_FORMATS["Mono16"], 2, 1).tolist() == [[0xABC, 0x123]]
+    for name, data in (("Mono12Packed", [0xAB, 0x3C, 0x12]), ("Mono12p", [0xBC, 0x3A, 0x12]),
+                       ("Mono16", [0xBC, 0x0A, 0x23, 0x01])):
+        px = pixfmt.unpack(bytes(data), pixfmt.PIXEL_FORMATS[name], 2, 1)
+        assert px.tolist() == [[0xABC, 0x123]], name
 
 
 def test_bad_frames_are_value_errors():

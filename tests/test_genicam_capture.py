@@ -114,7 +114,8 @@ def test_gige_capture_both_scan_modes_fuse_like_serial(tmp_path, serial_scene):
             assert sf.verify_exposure(tmp_path / name, rec) == []
             assert raw_of(tmp_path / name, rec).shape == (SIZE, SIZE, 204)
             assert raw_of(tmp_path / name, rec, "DARKREF_").mean() < 200      # shutter closed
-            assert raw_of(tmp_path / name, rec, "WHITEREF_").mean() > raw_of(tmp_path / name, rec, "DARKREF_").mean() + 10
+            dark = raw_of(tmp_path / name, rec, "DARKREF_").mean()
+            assert raw_of(tmp_path / name, rec, "WHITEREF_").mean() > dark + 10
     # stop-and-go over GigE Vision = the serial path, byte for byte (same sensor, same noise keys)
     step_doc = sf.read_scene_json(tmp_path / "step")
     for a, b in zip(step_doc["exposures"], ser["exposures"]):

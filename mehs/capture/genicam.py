@@ -52,7 +52,10 @@ from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputErr
 
 @dataclass
 class Frame:
-    """One received spectral frame: ``line`` uint16 ``(samples, bands)``; ``t`` host time (s) of mid-exposure."""
+    """One received spectral frame.
+
+    ``line``: uint16 ``(samples, bands)``; ``t``: host time (s) of mid-exposure.
+    """
 
     line: np.ndarray
     t: float
@@ -166,8 +169,8 @@ class GenicamCamera:
         self._gi(f"setting {f}={v}", lambda: self.dev.set_string_feature_value(f, v))
 
     def _configure(self) -> None:
-        fmts = list(self._gi("PixelFormat entries",
-                             lambda: self.dev.dup_available_enumeration_feature_values_as_strings("PixelFormat")) or [])
+        entries = self.dev.dup_available_enumeration_feature_values_as_strings
+        fmts = list(self._gi("PixelFormat entries", lambda: entries("PixelFormat")) or [])
         current = self._str("PixelFormat")
         usable = [f for f in pixfmt.PREFERRED if f in fmts]
         if current in pixfmt.PREFERRED:
@@ -248,7 +251,8 @@ class GenicamCamera:
 
     def set_integration_time(self, ms: float) -> float:
         """Set ``ExposureTime``; returns the time the camera uses (ms)."""
-        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", float(ms) * 1000.0))
+        us = float(ms) * 1000.0
+        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", us))
         self._t_ms = self.integration_time()
         return self._t_ms
 
@@ -348,7 +352,7 @@ class GenicamCamera:
         return np.ascontiguousarray(pixfmt.unpack(data, code, w, h).T)
 
     def _pop(self, timeout_us: int):
-        """Next buffer, or ``None`` on timeout; failed buffers are counted, re-queued and reported as ``False``."""
+        """Next buffer; ``None`` on timeout, ``False`` for a failed buffer (counted and re-queued)."""
         if timeout_us > 0:
             b = self._gi("waiting for a frame", lambda: self._stream.timeout_pop_buffer(timeout_us))
         else:

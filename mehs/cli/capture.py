@@ -7,8 +7,9 @@ def configure(parser):
     from mehs.cli.sim_device import add_scene_arguments
 
     parser.add_argument("--stage", help="stage port: /dev/ttyUSB0, socket://host:port, …")
-    parser.add_argument("--camera", help="camera: serial port (/dev/ttyUSB1, socket://host:port, …) or a "
-                                         "GenICam camera through Aravis (aravis://DEVICE-ID, genicam://DEVICE-ID)")
+    parser.add_argument("--camera", help="camera: serial port (/dev/ttyUSB1, socket://host:port, …) "
+                                         "or a GenICam camera through Aravis (aravis://DEVICE-ID, "
+                                         "genicam://DEVICE-ID)")
     parser.add_argument("--out", help="scene folder to create (or to finish with --resume)")
     parser.add_argument("--list-cameras", action="store_true",
                         help="list the GenICam cameras (GigE Vision, USB3 Vision) Aravis finds, and exit")
