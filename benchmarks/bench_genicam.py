@@ -77,7 +77,7 @@ def main() -> int:
     args = ap.parse_args()
     size = args.size or (32 if args.quick else 128)
 
-    from mehs.capture.genicam import aravis_available
+    from mehs.capture.aravis import aravis_available
 
     rows = []
     proc, urls = start_sim(size)

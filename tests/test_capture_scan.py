@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mehs.capture import pixfmt
-from mehs.capture.genicam import polynomial_wavelengths, read_calibration
+from mehs.capture.spectral_cal import polynomial_wavelengths, read_calibration
 from mehs.capture.scan import assign_frames
 from mehs.errors import InputError
 
@@ -41,9 +41,10 @@ def test_packed_12bit_matches_the_standards_bit_layout(layout):
 
 def test_known_bytes_unpack_per_standard():
     # p0 = 0xABC, p1 = 0x123
-    assert pixfmt.unpack(bytes([0xAB, 0x3C, 0x12]), pixfmt.PIXEL_FORMATS["Mono12Packed"], 2, 1).tolist() == [[0xABC, 0x123]]
-    assert pixfmt.unpack(bytes([0xBC, 0x3A, 0x12]), pixfmt.PIXEL_FORMATS["Mono12p"], 2, 1).tolist() == [[0xABC, 0x123]]
-    assert pixfmt.unpack(bytes([0xBC, 0x0A, 0x23, 0x01]), pixfmt.PIXEL_FORMATS["Mono16"], 2, 1).tolist() == [[0xABC, 0x123]]
+    for name, data in (("Mono12Packed", [0xAB, 0x3C, 0x12]), ("Mono12p", [0xBC, 0x3A, 0x12]),
+                       ("Mono16", [0xBC, 0x0A, 0x23, 0x01])):
+        px = pixfmt.unpack(bytes(data), pixfmt.PIXEL_FORMATS[name], 2, 1)
+        assert px.tolist() == [[0xABC, 0x123]], name
 
 
 def test_bad_frames_are_value_errors():
@@ -112,3 +113,19 @@ def test_serial_continuous_scan_matches_step_truth(tmp_path):
         good = (ra < 4000) & (rb < 4000)
         assert abs(np.median(rb[good] - ra[good])) < 2.0
         assert np.corrcoef(ra[good], rb[good])[0, 1] > 0.99
+
+
+# ------------------------------------------------------------------ without Aravis
+def test_missing_aravis_names_the_install_steps(monkeypatch, tmp_path):
+    import sys
+
+    from mehs.capture import aravis
+    from mehs.errors import DeviceError
+
+    monkeypatch.setitem(sys.modules, "gi", None)              # `import gi` fails
+    monkeypatch.setattr(aravis, "_DEBIAN_GI", tmp_path / "no-gi")
+    with pytest.raises(aravis.AravisUnavailable, match=r"gir1\.2-aravis-0\.8.*mehs\[aravis\]"):
+        aravis.import_aravis()
+    assert "apt-get install" in aravis.aravis_available()
+    assert issubclass(aravis.AravisUnavailable, DeviceError)
+    assert aravis.is_genicam_url("genicam://X") and not aravis.is_genicam_url("socket://h:1")

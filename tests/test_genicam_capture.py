@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from mehs.capture.genicam import aravis_available
+from mehs.capture.aravis import aravis_available
 
 _why = aravis_available()
 pytestmark = pytest.mark.skipif(_why is not None, reason=f"Aravis unavailable: {_why}")
@@ -30,8 +30,8 @@ TIMES = [1.0, 4.0, 16.0]
 MEHS = [sys.executable, "-m", "mehs"]
 
 
-def start_sim(*extra):
-    proc = subprocess.Popen(MEHS + ["sim-device", "--genicam", "--size", str(SIZE), "--seed", str(SEED),
+def start_sim(*extra, size=SIZE):
+    proc = subprocess.Popen(MEHS + ["sim-device", "--genicam", "--size", str(size), "--seed", str(SEED),
                                     *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     urls, deadline = {}, time.monotonic() + 60
     while time.monotonic() < deadline:
@@ -55,9 +55,9 @@ def stop(proc):
         proc.wait()
 
 
-def capture(urls, out, *extra):
+def capture(urls, out, *extra, size=SIZE):
     return subprocess.run(MEHS + ["capture", "--stage", urls["stage"], "--camera", urls["camera"],
-                                  "--out", str(out), "--lines", str(SIZE), "--no-progress",
+                                  "--out", str(out), "--lines", str(size), "--no-progress",
                                   "--timeout", "1", *extra], capture_output=True, text=True, timeout=180)
 
 
@@ -99,7 +99,7 @@ def test_gige_capture_both_scan_modes_fuse_like_serial(tmp_path, serial_scene):
         step = capture(urls, tmp_path / "step", "--times", ",".join(map(str, TIMES)))
         assert step.returncode == 0, step.stderr
         cont = capture(urls, tmp_path / "cont", "--times", ",".join(map(str, TIMES)),
-                       "--scan", "continuous", "--oversample", "4")
+                       "--scan", "continuous")
         assert cont.returncode == 0, cont.stderr
     finally:
         stop(proc)
@@ -114,7 +114,8 @@ def test_gige_capture_both_scan_modes_fuse_like_serial(tmp_path, serial_scene):
             assert sf.verify_exposure(tmp_path / name, rec) == []
             assert raw_of(tmp_path / name, rec).shape == (SIZE, SIZE, 204)
             assert raw_of(tmp_path / name, rec, "DARKREF_").mean() < 200      # shutter closed
-            assert raw_of(tmp_path / name, rec, "WHITEREF_").mean() > raw_of(tmp_path / name, rec, "DARKREF_").mean() + 10
+            dark = raw_of(tmp_path / name, rec, "DARKREF_").mean()
+            assert raw_of(tmp_path / name, rec, "WHITEREF_").mean() > dark + 10
     # stop-and-go over GigE Vision = the serial path, byte for byte (same sensor, same noise keys)
     step_doc = sf.read_scene_json(tmp_path / "step")
     for a, b in zip(step_doc["exposures"], ser["exposures"]):
@@ -187,7 +188,8 @@ def test_unplugged_camera_stops_clearly_and_resume_keeps_completed_bytes(tmp_pat
         np.testing.assert_array_equal(raw_of(out, a), raw_of(serial_scene, b))
 
 
-def test_lost_packets_are_counted_and_the_line_triggered_again(tmp_path, serial_scene):
+@pytest.mark.parametrize("scan", ["step", "continuous"])
+def test_lost_packets_are_counted_and_recovered(tmp_path, serial_scene, scan):
     from mehs.capture.genicam import GenicamCamera
     from mehs.capture.session import capture_scene
     from mehs.capture.zaber import ZaberStage
@@ -195,12 +197,18 @@ def test_lost_packets_are_counted_and_the_line_triggered_again(tmp_path, serial_
     out = tmp_path / "scene"
     dev, _ = _sim(faults="camera:incomplete@40x2")   # two frames of exposure 0's scan lose their data
     with dev, ZaberStage.open(dev.stage_url) as stage, GenicamCamera.open(dev.camera_url, timeout=0.5) as cam:
-        doc = capture_scene(stage, cam, out, times_ms=TIMES[:1], lines=SIZE, progress=False)
+        doc = capture_scene(stage, cam, out, times_ms=TIMES[:1], lines=SIZE, progress=False, scan=scan)
         assert dev.camera._relay.dropped_frames == [40, 41]
-    events = doc["exposures"][0]["device_events"]
-    assert sum("lost / incomplete" in e for e in events) == 2, events
-    ser = sf.read_scene_json(serial_scene)
-    np.testing.assert_array_equal(raw_of(out, doc["exposures"][0]), raw_of(serial_scene, ser["exposures"][0]))
+    rec = doc["exposures"][0]
+    assert rec["status"] == "complete"
+    assert sum("lost / incomplete" in e for e in rec["device_events"]) == 2, rec["device_events"]
+    if scan == "step":   # the line is triggered again at the same position: nothing differs
+        ser = sf.read_scene_json(serial_scene)
+        np.testing.assert_array_equal(raw_of(out, rec), raw_of(serial_scene, ser["exposures"][0]))
+    else:                # a lost frame is a frame fewer (or a rescan), never a filled line
+        info = rec["stage"]["scan"]
+        assert info["missing_lines"] == 0
+        assert info["lost_buffers"] == 2 or any("2 frames lost" in r for r in info["rejected_passes"])
 
 
 def test_wrong_pixel_format_mid_scan_is_a_clear_error(tmp_path):
@@ -251,10 +259,12 @@ def test_list_cameras_finds_the_simulated_camera(capsys):
 
 def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
     out = tmp_path / "scene"
-    # exposure 0: 32 stop-and-go reference frames + ≈ 2 frames/line over 32 lines of travel
-    proc, urls = start_sim("--faults", "camera:unplug@130")
+    # exposure 0: 8 stop-and-go reference frames + ≈ 2 frames/line over 16 lines of travel
+    # (≈ 45 frames); exposure 1's scan starts near frame 55
+    proc, urls = start_sim("--faults", "camera:unplug@70", size=12)
     try:
-        r = capture(urls, out, "--times", "1,4", "--scan", "continuous")
+        r = capture(urls, out, "--times", "1,4", "--scan", "continuous", "--dark-lines", "4",
+                    "--white-lines", "4", size=12)
     finally:
         stop(proc)
     assert r.returncode == 2, r.stderr
@@ -264,9 +274,9 @@ def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
     rec0 = doc["exposures"][0]
     raw0 = out / rec0["folder"] / "capture" / (rec0["folder"].split("/")[-1] + ".raw")
     sha0 = sha256_file(raw0)
-    proc, urls = start_sim()
+    proc, urls = start_sim(size=12)
     try:
-        r = capture(urls, out, "--resume")
+        r = capture(urls, out, "--resume", size=12)
     finally:
         stop(proc)
     assert r.returncode == 0, r.stderr
@@ -274,3 +284,13 @@ def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
     assert [e["status"] for e in doc["exposures"]] == ["complete"] * 2
     assert sha256_file(raw0) == sha0 and sf.verify_exposure(out, doc["exposures"][0]) == []
     assert doc["exposures"][1]["stage"]["scan"]["missing_lines"] == 0
+
+
+def test_unknown_camera_and_empty_url_are_clear_errors():
+    from mehs.capture.genicam import GenicamCamera
+    from mehs.errors import InputError
+
+    with pytest.raises(DeviceError, match=r"aravis://NoSuchCam: cannot open GenICam camera .*--list-cameras"):
+        GenicamCamera.open("aravis://NoSuchCam")
+    with pytest.raises(InputError, match="names no device"):
+        GenicamCamera.open("genicam://")

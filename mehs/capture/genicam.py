@@ -38,143 +38,24 @@ https://aravisproject.github.io/aravis/.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import threading
-import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
 from mehs.capture import pixfmt
+from mehs.capture.aravis import SCHEMES, import_aravis
+from mehs.capture.spectral_cal import polynomial_wavelengths
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputError
-
-#: URL schemes this driver opens: ``aravis://DEVICE-ID`` or ``genicam://DEVICE-ID``.
-SCHEMES = ("aravis://", "genicam://")
-
-#: Where Debian's ``python3-gi`` lives (used only when no ``gi`` is importable).
-_DEBIAN_GI = Path("/usr/lib/python3/dist-packages/gi")
-
-INSTALL_HINT = ("Aravis is not installed: apt-get install gir1.2-aravis-0.8 aravis-tools "
-                "libgirepository1.0-dev libcairo2-dev pkg-config, then "
-                "pip install 'mehs[aravis]' (see README, 'GenICam cameras')")
-
-
-class AravisUnavailable(DeviceError):
-    """PyGObject or the Aravis 0.8 typelib is missing."""
-
-
-def is_genicam_url(url: str | None) -> bool:
-    return bool(url) and str(url).startswith(SCHEMES)
-
-
-def _load_debian_gi():
-    # Debian's python3-gi is compiled for the system CPython; load only the `gi`
-    # package from it (not the whole dist-packages, whose numpy etc. would shadow ours).
-    init = _DEBIAN_GI / "__init__.py"
-    abi = f"cpython-{sys.version_info.major}{sys.version_info.minor}"
-    if not init.exists() or not any(abi in p.name for p in _DEBIAN_GI.glob("_gi*.so")):
-        raise ImportError("no Debian python3-gi for this Python")
-    spec = importlib.util.spec_from_file_location("gi", init, submodule_search_locations=[str(_DEBIAN_GI)])
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["gi"] = mod
-    try:
-        spec.loader.exec_module(mod)
-    except Exception:
-        del sys.modules["gi"]
-        raise
-    return mod
-
-
-def import_aravis():
-    """``(Aravis, GLib)`` from PyGObject (pip ``PyGObject``, else Debian's ``python3-gi``).
-
-    Raises
-    ------
-    AravisUnavailable
-        With the install steps, when either is missing.
-    """
-    try:
-        try:
-            import gi
-        except ImportError:
-            gi = _load_debian_gi()
-        gi.require_version("Aravis", "0.8")
-        from gi.repository import Aravis, GLib
-    except (ImportError, ValueError) as exc:
-        raise AravisUnavailable(f"{INSTALL_HINT} ({exc})") from None
-    return Aravis, GLib
-
-
-def aravis_available() -> str | None:
-    """``None`` when Aravis can be used, else the reason it cannot."""
-    try:
-        import_aravis()
-    except AravisUnavailable as exc:
-        return str(exc)
-    return None
-
-
-def list_cameras() -> list[dict[str, str]]:
-    """The GenICam devices Aravis discovers (GigE Vision on every interface, USB3 Vision)."""
-    Aravis, _ = import_aravis()
-    Aravis.update_device_list()
-    out = []
-    for i in range(Aravis.get_n_devices()):
-        out.append({"id": Aravis.get_device_id(i), "vendor": Aravis.get_device_vendor(i) or "",
-                    "model": Aravis.get_device_model(i) or "",
-                    "serial": Aravis.get_device_serial_nbr(i) or "",
-                    "address": Aravis.get_device_address(i) or "",
-                    "protocol": Aravis.get_device_protocol(i) or ""})
-    return out
-
-
-def read_calibration(path: str | Path) -> np.ndarray:
-    """Band centres (nm) from a calibration file: one wavelength per band, whitespace/comma separated.
-
-    Raises
-    ------
-    InputError
-        Unreadable file, non-numbers, non-finite or non-increasing values.
-    """
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise InputError(f"cannot read the wavelength calibration ({exc.strerror or exc})", p) from None
-    try:
-        wl = np.array([float(v) for v in text.replace(",", " ").split()], dtype=np.float64)
-    except ValueError:
-        raise InputError("wavelength calibration must hold numbers only (one per band, nm)", p) from None
-    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
-        raise InputError(f"wavelength calibration must be ≥ 2 increasing finite numbers (nm), "
-                         f"got {wl.size} values", p)
-    return wl
-
-
-def polynomial_wavelengths(coeffs: Sequence[float], bands: int, binning: int = 1,
-                           offset: int = 0) -> np.ndarray:
-    """λ = A·x² + B·x + C at the centre of each (binned) band; ``coeffs = (A, B, C)``.
-
-    ``x`` is the unbinned sensor row: band ``b`` of a camera binning ``binning``
-    rows starting at row ``offset`` covers rows ``offset + b·binning …`` and its
-    centre is ``offset + b·binning + (binning − 1)/2``. Shape ``(bands,)``.
-
-    References
-    ----------
-    Resonon, *Pika cameras: spectral calibration* (the ``A, B, C`` calibration
-    coefficients shipped with every camera).
-    """
-    a, b, c = (float(v) for v in coeffs)
-    x = int(offset) + np.arange(int(bands), dtype=np.float64) * int(binning) + (int(binning) - 1) / 2.0
-    return (a * x + b) * x + c
 
 
 @dataclass
 class Frame:
-    """One received spectral frame: ``line`` uint16 ``(samples, bands)``; ``t`` host time (s) of mid-exposure."""
+    """One received spectral frame.
+
+    ``line``: uint16 ``(samples, bands)``; ``t``: host time (s) of mid-exposure.
+    """
 
     line: np.ndarray
     t: float
@@ -288,8 +169,8 @@ class GenicamCamera:
         self._gi(f"setting {f}={v}", lambda: self.dev.set_string_feature_value(f, v))
 
     def _configure(self) -> None:
-        fmts = list(self._gi("PixelFormat entries",
-                             lambda: self.dev.dup_available_enumeration_feature_values_as_strings("PixelFormat")) or [])
+        entries = self.dev.dup_available_enumeration_feature_values_as_strings
+        fmts = list(self._gi("PixelFormat entries", lambda: entries("PixelFormat")) or [])
         current = self._str("PixelFormat")
         usable = [f for f in pixfmt.PREFERRED if f in fmts]
         if current in pixfmt.PREFERRED:
@@ -306,6 +187,10 @@ class GenicamCamera:
         self.width, self.height = self._int("Width"), self._int("Height")
         if self._has("AcquisitionMode"):
             self._set_str("AcquisitionMode", "Continuous")
+        for auto in ("ExposureAuto", "GainAuto"):
+            # a bracket needs the integration times it asks for, and a fixed gain
+            if self._has(auto):
+                self._set_str(auto, "Off")
         self.payload = self._int("PayloadSize") if self._has("PayloadSize") else \
             pixfmt.frame_bytes(self.pixel_code, self.width, self.height)
         self._stream = self._gi("creating the stream", lambda: self.cam.create_stream(None, None))
@@ -366,7 +251,8 @@ class GenicamCamera:
 
     def set_integration_time(self, ms: float) -> float:
         """Set ``ExposureTime``; returns the time the camera uses (ms)."""
-        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", float(ms) * 1000.0))
+        us = float(ms) * 1000.0
+        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", us))
         self._t_ms = self.integration_time()
         return self._t_ms
 
@@ -466,7 +352,7 @@ class GenicamCamera:
         return np.ascontiguousarray(pixfmt.unpack(data, code, w, h).T)
 
     def _pop(self, timeout_us: int):
-        """Next buffer, or ``None`` on timeout; failed buffers are counted, re-queued and reported as ``False``."""
+        """Next buffer; ``None`` on timeout, ``False`` for a failed buffer (counted and re-queued)."""
         if timeout_us > 0:
             b = self._gi("waiting for a frame", lambda: self._stream.timeout_pop_buffer(timeout_us))
         else:
@@ -557,6 +443,9 @@ class FrameStream:
     def __enter__(self) -> "FrameStream":
         c = self.cam
         c._stop()
+        if c._has("AcquisitionFrameRateEnable"):   # SFNC: the rate applies only when enabled
+            c._gi("AcquisitionFrameRateEnable",
+                  lambda: c.dev.set_boolean_feature_value("AcquisitionFrameRateEnable", True))
         c._gi("setting AcquisitionFrameRate",
               lambda: c.dev.set_float_feature_value("AcquisitionFrameRate", self.requested))
         self.rate = c.frame_rate()

@@ -12,9 +12,9 @@ simulated Zaber stage on TCP).
 
 A stationary stage gives the frame :func:`~mehs.capture.simulate.simulate_bracket`
 gives (same noise keys), so a step-mode capture over GigE Vision equals the
-serial one byte for byte. While the stage moves, a frame integrates the
-radiance the slit sweeps during its exposure (linear interpolation between
-world lines, five sub-samples), as a real pushbroom camera does.
+serial one byte for byte. While the stage moves, a frame integrates over its
+exposure the world lines the slit passes (the world being a raster of lines
+one pitch apart, as for the serial simulator; five sub-intervals).
 
 Facts this module relies on (Aravis 0.8): the fill-pattern callback must be
 installed through ctypes with a kept-alive ``CFUNCTYPE`` (PyGObject frees a
@@ -47,7 +47,7 @@ import numpy as np
 
 from mehs.capture import genicam_xml as gx
 from mehs.capture import pixfmt
-from mehs.capture.genicam import import_aravis
+from mehs.capture.aravis import import_aravis
 from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
 from mehs.capture.simdevice import DeviceServer, SimStage, SimWorld
@@ -101,14 +101,15 @@ def _position_at(w: SimWorld, t_mono: float) -> float:
 
 
 def _swept_radiance(scene: Scene, u0: float, u1: float, phase: float) -> np.ndarray:
-    """Mean radiance ``(samples, bands)`` the slit sees sweeping world lines ``u0 → u1``."""
+    """Mean radiance ``(samples, bands)`` the slit sees while it sweeps from line ``u0`` to ``u1``.
+
+    The world is a raster of lines one pitch apart (as for the serial simulator,
+    which shows the line nearest the stage position): the exposure is split into
+    five equal sub-intervals, each seeing the line nearest the slit then.
+    """
     acc = None
     for u in np.linspace(u0, u1, 5):
-        lo = int(np.floor(u))
-        f = float(u - lo)
-        r = world_radiance_line(scene, lo, phase).astype(np.float64)
-        if f > 1e-9:
-            r = (1 - f) * r + f * world_radiance_line(scene, lo + 1, phase)
+        r = world_radiance_line(scene, int(np.floor(u + 0.5)), phase).astype(np.float64)
         acc = r if acc is None else acc + r
     return (acc / 5.0).astype(np.float32)
 
@@ -194,7 +195,8 @@ class GenicamSimCamera:
     def start(self) -> "GenicamSimCamera":
         # The fill callback needs the GIL within a frame period; CPython's default 5 ms
         # switch interval would make a busy host thread skip frames of the simulated camera.
-        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch, 0.0005))
         gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial, str(self.xml_path))
         if gv is None or not gv.is_running():
             raise DeviceError("cannot serve the simulated GigE Vision camera: is another one "
@@ -241,6 +243,9 @@ class GenicamSimCamera:
 
     def close(self) -> None:
         self.stop()
+        if getattr(self, "_switch", None) is not None:
+            sys.setswitchinterval(self._switch)
+            self._switch = None
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def __enter__(self):

@@ -30,7 +30,8 @@ REG_TL_LOCKED = 0xF30
 _HEAD = """<?xml version="1.0" encoding="utf-8"?>
 <RegisterDescription ModelName="{model}" VendorName="MEHS" StandardNameSpace="None"
   SchemaMajorVersion="1" SchemaMinorVersion="0" SchemaSubMinorVersion="1"
-  MajorVersion="1" MinorVersion="0" SubMinorVersion="0" ToolTip="mehs simulated line-scan hyperspectral camera"
+  MajorVersion="1" MinorVersion="0" SubMinorVersion="0"
+  ToolTip="mehs simulated line-scan hyperspectral camera"
   ProductGuid="0" VersionGuid="0" xmlns="http://www.genicam.org/GenApi/Version_1_0"
   xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance"
   xsi:schemaLocation="http://www.genicam.org/GenApi/Version_1_0 GenApiSchema.xsd">
@@ -113,12 +114,14 @@ def genicam_xml(*, samples: int, bands: int, pixel_formats: Sequence[str] = ("Mo
     x.append('<Float Name="DeviceTemperature" NameSpace="Standard"><pValue>DeviceTemperatureReg</pValue>'
              '<Unit>C</Unit></Float>\n' + _floatreg("DeviceTemperatureReg", REG_TEMPERATURE))
     x.append(_integer("SensorWidth", "SensorWidthReg") + _intreg("SensorWidthReg", REG_SENSOR_WIDTH, "RO"))
-    x.append(_integer("SensorHeight", "SensorHeightReg") + _intreg("SensorHeightReg", REG_SENSOR_HEIGHT, "RO"))
+    x.append(_integer("SensorHeight", "SensorHeightReg")
+             + _intreg("SensorHeightReg", REG_SENSOR_HEIGHT, "RO"))
     # the simulated sensor has a fixed geometry: Width/Height read-only, no binning
     x.append(_integer("Width", "WidthReg") + _intreg("WidthReg", REG_WIDTH, "RO"))
     x.append(_integer("Height", "HeightReg") + _intreg("HeightReg", REG_HEIGHT, "RO"))
-    x.append('<Integer Name="OffsetY" NameSpace="Standard"><Value>0</Value><Min>0</Min><Max>0</Max></Integer>\n')
-    x.append('<Integer Name="BinningVertical" NameSpace="Standard"><Value>1</Value><Min>1</Min><Max>1</Max></Integer>\n')
+    for name, v in (("OffsetY", 0), ("BinningVertical", 1)):
+        x.append(f'<Integer Name="{name}" NameSpace="Standard"><Value>{v}</Value>'
+                 f'<Min>{v}</Min><Max>{v}</Max></Integer>\n')
     x.append(_enum("PixelFormat", "PixelFormatReg", [(f, PIXEL_FORMATS[f]) for f in pixel_formats],
                    locked=True) + _intreg("PixelFormatReg", REG_PIXEL_FORMAT))
     x.append(_integer("PixelDynamicRangeMax", "PixelDynamicRangeMaxReg")
@@ -130,10 +133,12 @@ def genicam_xml(*, samples: int, bands: int, pixel_formats: Sequence[str] = ("Mo
     x.append(_enum("AcquisitionMode", "AcquisitionModeReg", [("Continuous", 1), ("SingleFrame", 2),
                                                              ("MultiFrame", 3)])
              + _intreg("AcquisitionModeReg", 0x12C))
-    x.append(f'<Float Name="AcquisitionFrameRate" NameSpace="Standard"><pValue>AcquisitionFrameRateConv</pValue>'
+    x.append('<Float Name="AcquisitionFrameRate" NameSpace="Standard">'
+             f'<pValue>AcquisitionFrameRateConv</pValue>'
              f'<Min>1.0</Min><Max>{float(max_frame_rate)}</Max><Unit>Hz</Unit></Float>\n'
-             '<Converter Name="AcquisitionFrameRateConv" NameSpace="Custom"><FormulaTo>(1000000 / FROM)</FormulaTo>'
-             '<FormulaFrom>(1000000 / TO)</FormulaFrom><pValue>FramePeriodReg</pValue></Converter>\n'
+             '<Converter Name="AcquisitionFrameRateConv" NameSpace="Custom">'
+             '<FormulaTo>(1000000 / FROM)</FormulaTo><FormulaFrom>(1000000 / TO)</FormulaFrom>'
+             '<pValue>FramePeriodReg</pValue></Converter>\n'
              + _intreg("FramePeriodReg", REG_FRAME_PERIOD_US))
     x.append('<Float Name="ExposureTime" NameSpace="Standard"><pValue>ExposureTimeConv</pValue>'
              '<Min>10.0</Min><Max>10000000.0</Max><Unit>us</Unit></Float>\n'
@@ -150,7 +155,8 @@ def genicam_xml(*, samples: int, bands: int, pixel_formats: Sequence[str] = ("Mo
     x.append('<Command Name="TriggerSoftware" NameSpace="Standard"><pValue>TriggerSoftwareReg</pValue>'
              '<CommandValue>1</CommandValue></Command>\n' + _intreg("TriggerSoftwareReg", 0x30C, "WO"))
     if shutter:
-        x.append(_enum("Shutter", "ShutterReg", [("Closed", 0), ("Open", 1)]) + _intreg("ShutterReg", REG_SHUTTER))
+        x.append(_enum("Shutter", "ShutterReg", [("Closed", 0), ("Open", 1)])
+                 + _intreg("ShutterReg", REG_SHUTTER))
     for n, a in (("A", REG_WL_A), ("B", REG_WL_B), ("C", REG_WL_C)):
         x.append(f'<Float Name="WavelengthCoefficient{n}" NameSpace="Custom">'
                  f'<pValue>WavelengthCoefficient{n}Reg</pValue></Float>\n'

@@ -387,7 +387,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
 
 def _scan_exposure(scanner: Scanner, k: int, t: float, *, lines: int, samples: int, bands: int,
                    dark_lines: int, white_lines: int, white_start_line: int, progress: bool,
-                   rec: dict, scan: str = "step", scan_options: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+                   rec: dict, scan: str = "step", scan_options: dict | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     cam, stage = scanner.camera, scanner.stage
     # Dark reference at this time: shutter closed, stepping so each line is a new frame.
     cam.set_shutter(False)
@@ -404,8 +405,9 @@ def _scan_exposure(scanner: Scanner, k: int, t: float, *, lines: int, samples: i
                                         pitch=scanner.pitch, start_position=scanner.start_position,
                                         t_ms=t, on_line=bar.update, **(scan_options or {}))
         rec["lines_done"] = lines
-        return raw, dark, white, {"start_position": scanner.start_position, "end_position": stage.position(),
-                                  "warnings": stage.warnings(), "scan": info}
+        return raw, dark, white, {"start_position": scanner.start_position,
+                                  "end_position": stage.position(), "warnings": stage.warnings(),
+                                  "scan": info}
     raw = np.empty((lines, samples, bands), dtype=np.uint16)
     with _progress(lines, f"exposure {k} ({sf.format_time_ms(t)} ms)", progress) as bar:
         start = scanner.goto(0)

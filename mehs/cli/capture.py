@@ -7,8 +7,9 @@ def configure(parser):
     from mehs.cli.sim_device import add_scene_arguments
 
     parser.add_argument("--stage", help="stage port: /dev/ttyUSB0, socket://host:port, …")
-    parser.add_argument("--camera", help="camera: serial port (/dev/ttyUSB1, socket://host:port, …) or a "
-                                         "GenICam camera through Aravis (aravis://DEVICE-ID, genicam://DEVICE-ID)")
+    parser.add_argument("--camera", help="camera: serial port (/dev/ttyUSB1, socket://host:port, …) "
+                                         "or a GenICam camera through Aravis (aravis://DEVICE-ID, "
+                                         "genicam://DEVICE-ID)")
     parser.add_argument("--out", help="scene folder to create (or to finish with --resume)")
     parser.add_argument("--list-cameras", action="store_true",
                         help="list the GenICam cameras (GigE Vision, USB3 Vision) Aravis finds, and exit")
@@ -143,7 +144,9 @@ def _prompt(state: str) -> None:
 
 def open_camera(url: str, args):
     """The camera driver for ``url``: GenICam (``aravis://``, ``genicam://``) or the serial line camera."""
-    from mehs.capture.genicam import GenicamCamera, is_genicam_url, read_calibration
+    from mehs.capture.aravis import is_genicam_url
+    from mehs.capture.genicam import GenicamCamera
+    from mehs.capture.spectral_cal import read_calibration
 
     if is_genicam_url(url):
         cal = read_calibration(args.wavelengths) if args.wavelengths else None
@@ -155,7 +158,7 @@ def open_camera(url: str, args):
 
 
 def _list_cameras() -> int:
-    from mehs.capture.genicam import list_cameras
+    from mehs.capture.aravis import list_cameras
 
     cams = list_cameras()
     if not cams:
