@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mehs.cli import main
+from mehs.demo import DEMO_AUTO_EXPOSURE
 
 SIZE = 32
 SCENES = 3
@@ -77,7 +78,7 @@ def test_captures_went_through_the_drivers_with_auto_exposure(demo):
         assert doc["device"]["camera"]["url"].startswith("socket://127.0.0.1:")
         assert doc["plan"]["auto_exposure"] is not None
         exps = doc["exposures"]
-        assert [e["status"] for e in exps] == ["complete"] * 3
+        assert [e["status"] for e in exps] == ["complete"] * DEMO_AUTO_EXPOSURE["n"]
         times = [e["integration_time_ms"] for e in exps]
         assert times == sorted(times) and times[-1] / times[0] >= 4
         cap = read_specim_folder(scene / exps[0]["folder"])
@@ -190,7 +191,8 @@ def test_rerun_reuses_captures_and_gives_the_same_numbers(demo):
     out, runs = demo
     rc, stdout, _ = runs["again"]
     assert rc == 0
-    assert stdout.count("already captured, kept") == SCENES
+    # the scenes, the response ladder and the calibration sphere
+    assert stdout.count("already captured, kept") == SCENES + 2
     assert runs["again_raw"] == runs["first_raw"]  # no capture file rewritten
     assert _stable(runs["again_doc"]) == _stable(runs["first_doc"])
 
@@ -248,7 +250,7 @@ def test_an_interrupted_demo_resumes(tmp_path, monkeypatch):
     so = io.StringIO()
     with contextlib.redirect_stdout(so):
         assert main(args) == 0
-    assert so.getvalue().count("already captured, kept") == 2
+    assert so.getvalue().count("already captured, kept") == 2 + 2   # + ladder, sphere
     assert _raw_files(out) == before
     doc = json.loads((out / "demo.json").read_text())
     assert doc["status"] == "complete" and (out / "dataset" / "manifest.json").is_file()
