@@ -117,3 +117,43 @@ def response_uncertainty(recover: Callable[..., ResponseCurve],
     if not out["determined"]:
         out["advice"] = ADVICE
     return out
+
+
+def split_exposure_consistency(bracket, *, fuse_kwargs: dict | None = None) -> dict[str, Any]:
+    """Curve + merge from the even and from the odd exposures: do they agree?
+
+    Each half of a bracket (exposures 0, 2, 4, … and 1, 3, 5, …) recovers its own
+    response curve and is merged on its own; where both halves have a usable
+    estimate, ``|Δ ln E|`` (one global scale removed: each curve has its own
+    gauge) measures how well the bracket determines radiance. Needs ≥ 4 exposures.
+
+    Returns
+    -------
+    dict
+        ``median`` and ``p99`` of ``|Δ ln E|``, ``pixels`` compared, and each
+        half's exposure times.
+    """
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    P = len(bracket.exposures)
+    if P < 4:
+        from mehs.errors import InputError
+
+        raise InputError(f"the split test needs >= 4 exposures, the bracket has {P}",
+                         bracket.source)
+    kw = {"response": "debevec", "ghosts": "off", "check_response": False, **(fuse_kwargs or {})}
+    maps, masks, times = [], [], []
+    for start in (0, 1):
+        idx = list(range(start, P, 2))
+        half = Bracket([bracket.exposures[i] for i in idx], [bracket.darks[i] for i in idx],
+                       [bracket.white[i] for i in idx], bracket.times_ms[idx],
+                       bracket.wavelengths, bit_depth=bracket.bit_depth, source=bracket.source)
+        res = fuse_bracket(half, **kw)
+        maps.append(np.asarray(res.radiance.data, dtype=np.float64))
+        masks.append(res.mask == 0)
+        times.append(half.times_ms.tolist())
+    ok = (masks[0] & masks[1])[..., None] & (maps[0] > 0) & (maps[1] > 0)
+    d = _gauge_free_log_ratio(maps[0][ok], maps[1][ok])
+    return {"median": float(np.median(d)), "p99": float(np.percentile(d, 99)),
+            "pixels": int(ok.sum()), "times_even_ms": times[0], "times_odd_ms": times[1]}
