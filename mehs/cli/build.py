@@ -45,6 +45,13 @@ def configure(parser):
                    help="max other-invalid fraction (default 0.05)")
     q.add_argument("--min-dr", type=float, default=None, metavar="STOPS",
                    help="min dynamic range in stops (default 4; off with --from-hs)")
+    parser.add_argument("--verify", action="store_true",
+                        help="hash every output of a scene before reusing it (default: only "
+                             "outputs whose size or mtime changed; damaged scenes are rebuilt)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="fuse scenes whose capture did not finish from their complete "
+                             "exposures (refused by default; 'mehs capture --resume' finishes "
+                             "them)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
@@ -62,12 +69,13 @@ def run(args):
                          min_dynamic_range_stops=min_dr)
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
-                  scheduler=args.scheduler, progress=not args.quiet)
+                  scheduler=args.scheduler, progress=not args.quiet, verify=args.verify)
     if args.from_hs:
         manifest = build_from_hs(args.scenes, args.out, **common)
     else:
         manifest = build_dataset(args.scenes, args.out, response=args.response,
-                                 method=args.method, ghosts=args.ghosts, **common)
+                                 method=args.method, ghosts=args.ghosts,
+                                 allow_partial=args.allow_partial, **common)
     scenes = manifest["scenes"]
     n_pass = sum(s["status"] == "pass" for s in scenes)
     print(f"{args.out}: {len(scenes)} scenes, {n_pass} pass, {len(scenes) - n_pass} fail; "

@@ -39,7 +39,12 @@ def configure(parser):
                         help="also write DIR/report.html")
     parser.add_argument("--markdown", action="store_true",
                         help="print the Markdown tables instead of plain text")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the regression baseline's pixel sampling and of the "
+                             "figures' pixel picks (default: %(default)s)")
+    parser.add_argument("--verify", action="store_true",
+                        help="hash every dataset file against manifest.json before scoring "
+                             "(default: only files whose size or mtime changed)")
     parser.add_argument("--list-models", action="store_true",
                         help="list the registered model names and exit")
 
@@ -61,6 +66,10 @@ def run(args):
         raise InputError(f"--timing-size must be WxH, got {args.timing_size!r}") from None
     if w < 1 or h < 1:
         raise InputError(f"--timing-size must be at least 1x1 pixels, got {args.timing_size!r}")
+    if args.verify:
+        from mehs.ssr.data import load_pairs
+
+        load_pairs(args.dataset, verify="full")
     inputs = tuple(s.strip() for s in args.input.split(",") if s.strip())
     split = None if args.split == "all" else args.split
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,

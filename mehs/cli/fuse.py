@@ -31,6 +31,9 @@ def configure(parser):
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="fuse the complete exposures of a scene whose capture did not "
+                             "finish (refused by default; 'mehs capture --resume' finishes it)")
 
 
 def run(args) -> int:
@@ -43,7 +46,7 @@ def run(args) -> int:
 
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
-    bracket = load_bracket(paths, verify=args.verify)
+    bracket = load_bracket(paths, verify=args.verify, allow_partial=args.allow_partial)
     from mehs.errors import InputError
 
     try:

@@ -74,6 +74,8 @@ class BuildParams:
         Resampling method to 31 bands (``"gaussian"``, ``"linear"``, ``"box"``).
     fwhm
         Target band FWHM in nm for Gaussian/box resampling.
+    allow_partial
+        Fuse a scene whose capture did not finish from its complete exposures.
     """
 
     method: str = "poisson"
@@ -82,6 +84,7 @@ class BuildParams:
     seed: int = 0
     resample: str = "gaussian"
     fwhm: float = 10.0
+    allow_partial: bool = False
 
     def __post_init__(self):
         # a bad value would otherwise fail every scene one by one and still
@@ -150,6 +153,8 @@ def input_files(source: SceneSource) -> dict[str, Path]:
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
     p = asdict(task.params)
     p["response"] = task.response_sha256  # the curve's content, not where it lives
+    if not p.get("allow_partial"):
+        p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if task.source.kind == "hs":
         for k in ("method", "response", "ghosts"):
             p.pop(k)
@@ -274,7 +279,8 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
             # the inputs were just hashed for the key: check those hashes against the ones
             # recorded at capture instead of letting load_bracket hash 300 MB again
             _check_recorded_hashes(Path(task.source.paths[0]), hashes)
-            bracket = load_bracket(task.source.load_arg, verify="size")
+            bracket = load_bracket(task.source.load_arg, verify="size",
+                                   allow_partial=p.allow_partial)
         else:
             bracket = load_bracket(task.source.load_arg)
     report_stage(sid, "fuse")
@@ -498,9 +504,33 @@ def _rgb_block() -> dict[str, str]:
             "cmfs": rgb.CMFS_NAME}
 
 
-def _outputs_present(dataset: Path, entry: dict) -> bool:
-    files = entry.get("files") or {}
-    return all((dataset / rel).is_file() for rel in files.values())
+def _outputs_intact(dataset: Path, entry: dict, *, full: bool) -> bool:
+    """True when every output file of ``entry`` still has its recorded SHA-256.
+
+    Cheap for files whose ``[size, mtime_ns]`` (``provenance.run.output_stat``)
+    is unchanged; hashed otherwise or with ``full``. A damaged scene is named
+    on stderr and rebuilt, never reused.
+    """
+    from mehs.io.filecheck import verify_files
+
+    run = (entry.get("provenance") or {}).get("run")
+    try:
+        stats = verify_files(dataset, entry.get("files") or {}, entry.get("sha256") or {},
+                             stats=(run or {}).get("output_stat"), full=full,
+                             what=f"scene {entry['id']!r}")
+    except MehsError as exc:
+        print(f"mehs build: {exc}; rebuilding the scene", file=sys.stderr)
+        return False
+    if isinstance(run, dict):
+        run["output_stat"] = stats
+    return True
+
+
+def _record_output_stat(dataset: Path, entry: dict) -> None:
+    from mehs.io.filecheck import file_stat
+
+    entry["provenance"]["run"]["output_stat"] = {
+        rel: file_stat(dataset / rel) for rel in sorted((entry.get("files") or {}).values())}
 
 
 def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *,
@@ -510,7 +540,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
                   splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
                   rules: QualityRules | None = None, resample: str = "gaussian",
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
-                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+                  on_commit: Callable[[dict], None] | None = None,
+                  verify: bool = False, allow_partial: bool = False) -> dict[str, Any]:
     """Build (or resume, or extend) the dataset folder ``out``.
 
     Parameters
@@ -541,6 +572,13 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     on_commit
         Called with each scene entry right after the manifest holding it was
         written (progress hooks, tests).
+    verify
+        Hash every output of a scene before reusing it; by default only outputs
+        whose size or mtime changed since they were written are hashed. A scene
+        whose outputs no longer match their recorded SHA-256 is rebuilt.
+    allow_partial
+        Fuse scenes whose ``scene.json`` marks an exposure incomplete from the
+        complete ones (otherwise such a scene fails, naming the exposure).
 
     Returns
     -------
@@ -561,7 +599,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     rules = rules or QualityRules()
     fractions = parse_fractions(splits)
     params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,
-                         ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm))
+                         ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm),
+                         allow_partial=bool(allow_partial))
     response_sha = None
     if response:
         if not Path(response).is_file():
@@ -572,7 +611,7 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,
-                      progress=progress, on_commit=on_commit)
+                      progress=progress, on_commit=on_commit, verify=verify)
 
 
 def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
@@ -580,7 +619,8 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
                   splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
                   rules: QualityRules | None = None, resample: str = "gaussian",
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
-                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+                  on_commit: Callable[[dict], None] | None = None,
+                  verify: bool = False) -> dict[str, Any]:
     """Make a paired set from existing ENVI HS cubes (any band set covering 400..700 nm).
 
     Each cube (``.hdr`` file, or every ``*.hdr`` of a folder; id = file stem) is
@@ -594,11 +634,11 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
     params = BuildParams(seed=int(seed), resample=resample, fwhm=float(fwhm))
     return _run_build(srcs, Path(out), params, None, workers=workers, force=force,
                       fractions=parse_fractions(splits), rules=rules, scheduler=scheduler,
-                      progress=progress, on_commit=on_commit)
+                      progress=progress, on_commit=on_commit, verify=verify)
 
 
 def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fractions,
-               rules, scheduler, progress, on_commit) -> dict[str, Any]:
+               rules, scheduler, progress, on_commit, verify=False) -> dict[str, Any]:
     import json
 
     from mehs.io.atomic import make_output_dir
@@ -630,7 +670,8 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         for s in srcs:
             old = entries.get(s.scene_id)
             prev = None
-            if old and not force and old.get("key") and _outputs_present(dataset, old):
+            if (old and not force and old.get("key")
+                    and _outputs_intact(dataset, old, full=verify)):
                 prev = old["key"]
             tasks.append((s.scene_id, SceneTask(s, str(dataset), params, prev, response_sha)))
 
@@ -670,6 +711,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                     continue
                 entry = res["entry"]
                 _place(scenes_dir, sid, built=res["outcome"] == "built")
+                _record_output_stat(dataset, entry)
                 entry["status"], entry["reasons"] = judge(entry["quality"], rules,
                                                           entry.get("error"))
                 entries[sid] = entry
