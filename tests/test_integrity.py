@@ -185,3 +185,21 @@ def test_build_refuses_a_partial_bracket_unless_allowed(scenes, curve, tmp_path,
                  "--min-dr", "0", "--allow-partial"]) == 0
     (e,) = mf.read_manifest(ds)["scenes"]
     assert e["status"] == "pass" and e["quality"]["n_exposures"] == 2
+
+
+# ------------------------------------------------------------------ model files (defect 4)
+
+@pytest.mark.parametrize("name,content,says", [
+    ("empty.npz", b"", "not a regression model file (EOFError"),
+    ("zip.npz", b"PK\x03\x04garbage", "not a regression model file (BadZipFile"),
+    ("user.py:f", b"x\n", "running"),
+    ("syntax.py:f", b"def f(:\n", "SyntaxError"),
+])
+def test_broken_model_file_is_a_named_error(built, tmp_path, capsys, name, content, says):
+    fname = name.split(":")[0]
+    (tmp_path / fname).write_bytes(content)
+    model = str(tmp_path / name)
+    rc = main(["evaluate", str(built), "--models", model, "--out", str(tmp_path / "res"),
+               "--split", "all"])
+    err = capsys.readouterr().err
+    assert rc == 2 and says in err and fname in err
