@@ -247,7 +247,9 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
             from mehs.io.filecheck import verify_files
 
             run = (sc.get("provenance") or {}).get("run") or {}
-            verify_files(root, files, sc["sha256"], stats=run.get("output_stat"),
+            # the recorded hashes (sets made by other tools may record none)
+            hashed = {k: v for k, v in files.items() if k in sc["sha256"]}
+            verify_files(root, hashed, sc["sha256"], stats=run.get("output_stat"),
                          full=verify == "full", what=f"scene {sid!r}")
         exposure = next((d["ldr_exposure"] for d in (sc.get("quality"), sc.get("rgb"), sc)
                          if isinstance(d, dict) and d.get("ldr_exposure") is not None), None)
