@@ -157,6 +157,22 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
         Naming the folder: fewer than 2 exposures, times not positive or not
         distinct, shapes or wavelengths that differ, a file that fails verification.
     """
+    import warnings
+
+    from mehs.io.plausibility import ByteOrderWarning
+
+    # a mislabelled byte order would be fused into a plausible-looking wrong cube
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ByteOrderWarning)
+        try:
+            return _load_bracket(path_or_paths, verify=verify, bit_depth=bit_depth,
+                                 allow_partial=allow_partial)
+        except ByteOrderWarning as w:
+            raise FormatError(f"{w}; refusing to fuse it") from None
+
+
+def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
+                  allow_partial: bool) -> Bracket:
     from mehs.io.specim import read_specim_folder
 
     if isinstance(path_or_paths, (str, Path)):
