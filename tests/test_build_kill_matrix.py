@@ -1,4 +1,4 @@
-"""`mehs build --workers 2` killed with SIGKILL at several points (issue 17, defect 1).
+"""`mehs build --workers 2` killed with SIGKILL at several points (issue 17, defects 1 and 2).
 
 Each kill leaves no process behind (the pool workers die with their parent instead of
 writing ``scenes/.tmp-*`` as orphans and holding the caller's pipe), and re-running the
@@ -22,7 +22,8 @@ from mehs.dataset.quality import QualityRules
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="reads process sessions from /proc")
 
-SIZE = 40
+# 136 lines: two chunks of the merge kernel (128 lines each), so chunking is exercised
+LINES, SAMPLES = 136, 6
 TIMES_MS = (0.05, 0.4, 3.2)
 
 
@@ -36,13 +37,13 @@ def setup(tmp_path_factory):
     root = tmp_path_factory.mktemp("kill")
     scenes = []
     for i, kind in enumerate(("colorchecker", "window", "colorchecker")):
-        sim = simulate_bracket(make_scene(kind, SIZE, SIZE, seed=i), SensorModel(seed=3),
+        sim = simulate_bracket(make_scene(kind, LINES, SAMPLES, seed=i), SensorModel(seed=3),
                                TIMES_MS, seed=i)
         scenes.append(write_simulated_scene(sim, root / f"s{i}", scene_id=f"s{i}"))
     curve = ResponseCurve.linear(12).save(root / "linear.json")
+    # the reference: in-process, BLAS free to use every core, the response recovered
     ref = root / "ref"
-    build_dataset(scenes, ref, workers=1, seed=5, progress=False, response=curve,
-                  rules=QualityRules())
+    build_dataset(scenes, ref, workers=1, seed=5, progress=False, rules=QualityRules())
     return scenes, curve, ref
 
 
@@ -87,8 +88,9 @@ def _state(ds: Path) -> set[str]:
 
 
 # lock: before any worker started; worker: workers started a scene; writing: a worker is
-# writing a scene's files; committed: one scene in the manifest, others in flight
-KILL_POINTS = ("lock", "worker", "writing", "committed")
+# writing a scene's files; committed: one scene in the manifest, others in flight;
+# None: not killed — two workers must give the bytes of the in-process reference (defect 2)
+KILL_POINTS = ("lock", "worker", "writing", "committed", None)
 
 
 @pytest.mark.parametrize("point", KILL_POINTS)
@@ -96,12 +98,19 @@ def test_killed_build_leaves_nothing_running_and_resumes_identically(setup, tmp_
     scenes, curve, ref = setup
     ds = tmp_path / "ds"
     cmd = [sys.executable, "-m", "mehs", "build", *map(str, scenes), "--out", str(ds),
-           "--workers", "2", "--seed", "5", "--response", str(curve), "--quiet"]
+           "--workers", "2", "--seed", "5", "--quiet"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     # its own session: every process it starts (workers, resource tracker) is findable
     proc = subprocess.Popen(cmd, start_new_session=True, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT)
     t0 = time.monotonic()
+    if point is None:
+        out, _ = proc.communicate(timeout=300)
+        assert proc.returncode == 0, out.decode(errors="replace")
+        a, b = _snapshot(ref), _snapshot(ds)
+        assert sorted(a) == sorted(b) and [k for k in a if a[k] != b[k]] == []
+        assert not _session_members(proc.pid)
+        return
     while point not in _state(ds):
         assert proc.poll() is None, f"build ended before kill point {point!r}"
         assert time.monotonic() - t0 < 240, f"kill point {point!r} never reached"
@@ -123,9 +132,31 @@ def test_killed_build_leaves_nothing_running_and_resumes_identically(setup, tmp_
         m = mf.read_manifest(ds) if (ds / mf.MANIFEST_NAME).exists() else {"scenes": []}
         for e in m["scenes"]:  # whatever is listed is complete
             assert all((ds / rel).is_file() for rel in e["files"].values())
-    build_dataset(scenes, ds, workers=1, seed=5, progress=False, response=curve,
-                  rules=QualityRules())
+    build_dataset(scenes, ds, workers=1, seed=5, progress=False, rules=QualityRules())
     assert not [p.name for p in (ds / "scenes").iterdir() if p.name.startswith(".")]
     a, b = _snapshot(ref), _snapshot(ds)
     assert sorted(a) == sorted(b)
     assert [k for k in a if a[k] != b[k]] == []
+
+
+# ------------------------------------------------------- determinism across workers (defect 2)
+
+def test_scene_builds_use_one_blas_thread(setup, tmp_path, monkeypatch):
+    """Why the bytes cannot depend on --workers: inside a scene build BLAS has one thread,
+    whatever the process's default (the CPU count when built in-process)."""
+    from threadpoolctl import threadpool_info
+
+    import mehs.synthesis.resample as rs
+
+    seen = []
+    real = rs.apply_matrix
+
+    def spy(*a, **k):
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+        return real(*a, **k)
+
+    monkeypatch.setattr(rs, "apply_matrix", spy)
+    scenes, curve, _ = setup
+    build_dataset(scenes[:1], tmp_path / "d", workers=1, progress=False, response=curve,
+                  rules=QualityRules())
+    assert seen and set(seen) == {1}

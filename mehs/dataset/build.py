@@ -164,6 +164,12 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
 def build_scene(task: SceneTask) -> dict[str, Any]:
     """Build one scene into ``scenes/.tmp-<id>/`` (worker entry point; never raises).
 
+    BLAS runs single-threaded here: a multi-threaded BLAS splits a product
+    differently for different thread counts (which follow ``--workers``), and
+    the last bits of ``hs.dat`` changed with them. The compiled kernels
+    parallelise over lines/bands without cross-thread reductions, so with one
+    BLAS thread the bytes are the same for any ``--workers`` or ``--scheduler``.
+
     Returns
     -------
     dict
@@ -173,6 +179,13 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         (``"input"`` for a :class:`MehsError`, deterministic and not retried;
         ``"internal"`` otherwise, retried on the next run).
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _build_scene(task)
+
+
+def _build_scene(task: SceneTask) -> dict[str, Any]:
     sid = task.source.scene_id
     run: dict[str, Any] = {"started": _now(), "stage_seconds": {}}
     t_all = time.perf_counter()
