@@ -19,7 +19,8 @@ def configure(parser):
                         help="RGB the baseline learns from (default: %(default)s)")
     parser.add_argument("--ridge", type=float, default=1e-6,
                         help="relative ridge regularisation (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the training-pixel sampling (default: %(default)s)")
 
 
 def run(args):

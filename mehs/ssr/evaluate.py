@@ -410,7 +410,7 @@ def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sa
 
     One table per input × restoration setting: rows are models, columns are
     (pre-processing off / on) × ``metrics``; ``bold[i][j]`` marks the best
-    value of column j (ties included). With ``timing`` a Table-5-like
+    value of column j (ties included, unless every model ties). With ``timing`` a Table-5-like
     conversion-time table is appended.
     """
     blocks = []
@@ -433,6 +433,11 @@ def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sa
         bold = [[v is not None and best[j] is not None and
                  _FMT[cols[j][1]].format(v) == _FMT[cols[j][1]].format(best[j])
                  for j, v in enumerate(row)] for row in vals]
+        for j in range(len(cols)):  # a column where every model ties has no "best"
+            marks = [b[j] for b, row in zip(bold, vals) if row[j] is not None]
+            if len(marks) > 1 and all(marks):
+                for b in bold:
+                    b[j] = False
         title = (f"{inp.upper()}-RGB input, luminance restoration {'on' if rs else 'off'}"
                  f" ({max(s['n_images'] for s in sub)} images)")
         blocks.append((title, header, body, bold))
