@@ -111,7 +111,7 @@ def test_same_mtime_corruption_needs_verify(dataset, capsys):
     common = [str(dataset), "--models", "smits", "--preprocess", "off", "--split", "all"]
     assert main(["evaluate", *common, "--out", str(res)]) == 0  # documented limit of the cache
     capsys.readouterr()
-    assert main(["evaluate", *common, "--out", str(res), "--verify"]) == 2
+    assert main(["evaluate", *common, "--out", str(res), "--verify", "--force"]) == 2
     assert "scenes/s1/hs.dat" in capsys.readouterr().err
 
 
@@ -203,3 +203,29 @@ def test_broken_model_file_is_a_named_error(built, tmp_path, capsys, name, conte
                "--split", "all"])
     err = capsys.readouterr().err
     assert rc == 2 and says in err and fname in err
+
+
+# ------------------------------------------------------------------ one overwrite rule (10)
+
+def test_derived_output_commands_share_one_overwrite_rule(built, scenes, tmp_path, capsys):
+    fused, res, hs = tmp_path / "fused", tmp_path / "res", tmp_path / "hs.hdr"
+    runs = {
+        "fuse": ["fuse", str(scenes[0]), "--out", str(fused), "--response", "linear"],
+        "evaluate": ["evaluate", str(built), "--models", "smits", "--out", str(res),
+                     "--preprocess", "off", "--split", "all"],
+    }
+    for argv in runs.values():
+        assert main(argv) == 0
+    runs["resample"] = ["resample", str(fused / "radiance.hdr"), str(hs)]
+    runs["rgb"] = ["rgb", str(hs), "--out", str(tmp_path / "rgb"), "--float"]
+    runs["export"] = ["export", str(hs), "--out", str(tmp_path / "exr"), "--format", "spectral"]
+    for name in ("resample", "rgb", "export"):
+        assert main(runs[name]) == 0, name
+    for name, argv in runs.items():
+        before = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
+        capsys.readouterr()
+        assert main(argv) == 2, name
+        assert "use --force to replace it" in capsys.readouterr().err, name
+        after = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
+        assert after == before, name  # refused before anything was written
+        assert main(argv + ["--force"]) == 0, name

@@ -42,6 +42,9 @@ def configure(parser):
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the regression baseline's pixel sampling and of the "
                              "figures' pixel picks (default: %(default)s)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the results of an earlier evaluation in --out "
+                             "(refused without it)")
     parser.add_argument("--verify", action="store_true",
                         help="hash every dataset file against manifest.json before scoring "
                              "(default: only files whose size or mtime changed)")
@@ -66,6 +69,11 @@ def run(args):
         raise InputError(f"--timing-size must be WxH, got {args.timing_size!r}") from None
     if w < 1 or h < 1:
         raise InputError(f"--timing-size must be at least 1x1 pixels, got {args.timing_size!r}")
+    from pathlib import Path
+
+    from mehs.cli._overwrite import refuse_existing
+
+    refuse_existing([Path(args.out) / "evaluation.json"], args.force)
     if args.verify:
         from mehs.ssr.data import load_pairs
 
