@@ -229,3 +229,28 @@ def test_derived_output_commands_share_one_overwrite_rule(built, scenes, tmp_pat
         after = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
         assert after == before, name  # refused before anything was written
         assert main(argv + ["--force"]) == 0, name
+
+
+# ------------------------------------------------------------------ splits (10)
+
+def test_adding_scenes_names_the_scenes_that_change_split(scenes, curve, tmp_path, capsys):
+    from mehs.dataset.splits import make_splits, parse_fractions
+
+    fr = parse_fractions("0.5,0,0.5")
+
+    def split(ids, seed):
+        return {i: n for n, v in make_splits(ids, fr, seed).items() for i in v}
+
+    # a seed under which adding s1 moves s0 (the cut at round(n/2) moves with n)
+    seed = next(k for k in range(100) if split(["s0"], k)["s0"] != split(["s0", "s1"], k)["s0"])
+    ds = tmp_path / "ds"
+    kw = dict(workers=1, seed=seed, rules=RULES, progress=False, response=curve, splits=fr)
+    build_dataset(scenes[:1], ds, **kw)
+    before = split(["s0"], seed)["s0"]
+    capsys.readouterr()
+    m = build_dataset(scenes, ds, **kw)
+    after = next(n for n, v in m["splits"].items() if "s0" in v)
+    assert after != before
+    assert f"s0 {before} → {after}" in capsys.readouterr().err
+    build_dataset(scenes, ds, **kw)  # nothing moves: nothing said
+    assert "changed split" not in capsys.readouterr().err

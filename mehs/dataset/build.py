@@ -44,6 +44,8 @@ from mehs import __version__
 from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import default_workers, report_stage, run_tasks
 from mehs.dataset.quality import QualityRules, judge
+from mehs.dataset.reuse import (moved_between_splits, outputs_intact, record_output_stat,
+                                split_of)
 from mehs.dataset.scene_list import SceneSource, collect_hs_cubes, collect_scenes
 from mehs.dataset.splits import make_splits, parse_fractions, write_split_files
 from mehs.errors import InputError, MehsError
@@ -517,35 +519,6 @@ def _rgb_block() -> dict[str, str]:
             "cmfs": rgb.CMFS_NAME}
 
 
-def _outputs_intact(dataset: Path, entry: dict, *, full: bool) -> bool:
-    """True when every output file of ``entry`` still has its recorded SHA-256.
-
-    Cheap for files whose ``[size, mtime_ns]`` (``provenance.run.output_stat``)
-    is unchanged; hashed otherwise or with ``full``. A damaged scene is named
-    on stderr and rebuilt, never reused.
-    """
-    from mehs.io.filecheck import verify_files
-
-    run = (entry.get("provenance") or {}).get("run")
-    try:
-        stats = verify_files(dataset, entry.get("files") or {}, entry.get("sha256") or {},
-                             stats=(run or {}).get("output_stat"), full=full,
-                             what=f"scene {entry['id']!r}")
-    except MehsError as exc:
-        print(f"mehs build: {exc}; rebuilding the scene", file=sys.stderr)
-        return False
-    if isinstance(run, dict):
-        run["output_stat"] = stats
-    return True
-
-
-def _record_output_stat(dataset: Path, entry: dict) -> None:
-    from mehs.io.filecheck import file_stat
-
-    entry["provenance"]["run"]["output_stat"] = {
-        rel: file_stat(dataset / rel) for rel in sorted((entry.get("files") or {}).values())}
-
-
 def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *,
                   workers: int | None = None, force: bool = False,
                   response: str | Path | None = None, method: str = "poisson",
@@ -674,6 +647,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
             manifest = mf.new_manifest(software_version=__version__,
                                        wavelengths=WAVELENGTHS_31, rgb=_rgb_block())
         before = json.dumps(manifest, sort_keys=True, default=str)
+        old_split = split_of(manifest)
         manifest["software_version"] = __version__
         manifest["quality_rules"] = rules.to_dict()
         entries = mf.scene_map(manifest)
@@ -684,7 +658,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
             old = entries.get(s.scene_id)
             prev = None
             if (old and not force and old.get("key")
-                    and _outputs_intact(dataset, old, full=verify)):
+                    and outputs_intact(dataset, old, full=verify)):
                 prev = old["key"]
             tasks.append((s.scene_id, SceneTask(s, str(dataset), params, prev, response_sha)))
 
@@ -724,7 +698,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                     continue
                 entry = res["entry"]
                 _place(scenes_dir, sid, built=res["outcome"] == "built")
-                _record_output_stat(dataset, entry)
+                record_output_stat(dataset, entry)
                 entry["status"], entry["reasons"] = judge(entry["quality"], rules,
                                                           entry.get("error"))
                 entries[sid] = entry
@@ -740,6 +714,13 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         if (json.dumps(manifest, sort_keys=True, default=str) != before
                 or not (dataset / "splits").is_dir()):
             commit()
+    moved = moved_between_splits(old_split, split_of(manifest))
+    if moved:
+        # cuts follow the number of passing scenes: adding scenes shifts them; say so, since
+        # a model trained on the old train split may now be scored on its own scenes
+        print(f"mehs build: {len(moved)} existing scene(s) changed split (the split cuts "
+              f"follow the number of passing scenes): "
+              + ", ".join(f"{sid} {a} → {b}" for sid, a, b in moved), file=sys.stderr)
     for res in failures:
         tb = res["entry"]["provenance"]["run"].get("traceback")
         print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)
