@@ -18,7 +18,7 @@ from mehs.cli import main
 from mehs.dataset import manifest as mf
 from mehs.dataset.build import build_dataset
 from mehs.dataset.quality import QualityRules
-from mehs.errors import FormatError, InputError
+from mehs.errors import FormatError
 
 SIZE = 24
 RULES = QualityRules(min_dynamic_range_stops=0.0)
