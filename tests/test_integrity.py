@@ -254,3 +254,13 @@ def test_adding_scenes_names_the_scenes_that_change_split(scenes, curve, tmp_pat
     assert f"s0 {before} → {after}" in capsys.readouterr().err
     build_dataset(scenes, ds, **kw)  # nothing moves: nothing said
     assert "changed split" not in capsys.readouterr().err
+
+
+def test_rebuild_removes_temp_files_of_killed_atomic_writes(dataset, scenes, curve):
+    """A SIGKILL between an atomic write and its rename leaves ``.<name>.*.part*``."""
+    left = [dataset / ".manifest.json.k1ll.part.json", dataset / "splits" / ".test.txt.k1ll.part.txt"]
+    for f in left:
+        f.write_text("half")
+    build_dataset(scenes, dataset, workers=1, seed=1, rules=RULES, progress=False,
+                  response=curve, splits="0,0,1")
+    assert not [f for f in left if f.exists()]

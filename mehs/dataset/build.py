@@ -45,7 +45,7 @@ from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import default_workers, report_stage, run_tasks
 from mehs.dataset.quality import QualityRules, judge
 from mehs.dataset.reuse import (moved_between_splits, outputs_intact, record_output_stat,
-                                split_of)
+                                remove_stale_temp_files, split_of)
 from mehs.dataset.scene_list import SceneSource, collect_hs_cubes, collect_scenes
 from mehs.dataset.splits import make_splits, parse_fractions, write_split_files
 from mehs.errors import InputError, MehsError
@@ -638,6 +638,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         for d in scenes_dir.iterdir():  # leftovers of an interrupted build
             if d.name.startswith((TMP_PREFIX, OLD_PREFIX)):
                 shutil.rmtree(d, ignore_errors=True)
+        remove_stale_temp_files(dataset)
         if (dataset / mf.MANIFEST_NAME).exists():
             manifest = mf.read_manifest(dataset)
             if manifest.get("wavelengths") != [float(w) for w in WAVELENGTHS_31]:

@@ -1,4 +1,4 @@
-"""What a rebuild may reuse, and what it tells the user it changed.
+"""What a rebuild may reuse, what it must remove, and what it tells the user it changed.
 
 A scene already in the manifest is reused only when its outputs still match the
 SHA-256 recorded for them (cheaply via their recorded ``[size, mtime_ns]``,
@@ -52,3 +52,20 @@ def split_of(manifest: dict) -> dict[str, str]:
 def moved_between_splits(old: dict[str, str], new: dict[str, str]) -> list[tuple[str, str, str]]:
     """``(id, old split, new split)`` of scenes in a split before and after, sorted by id."""
     return [(sid, old[sid], new[sid]) for sid in sorted(old) if sid in new and new[sid] != old[sid]]
+
+
+def remove_stale_temp_files(dataset: Path) -> list[str]:
+    """Remove temporary files of atomic writes (``.<name>.*.part*``) a killed build left.
+
+    :func:`mehs.io.atomic.write_text_atomic` and friends write ``.<name>.<random>.part<ext>``
+    beside the target and rename it; a SIGKILL between the two leaves it behind, in the
+    dataset folder (manifest, index) or ``splits/``. Call it with the build lock held.
+    """
+    gone = []
+    for folder in (dataset, dataset / "splits"):
+        if folder.is_dir():
+            for f in sorted(folder.glob(".*.part*")):
+                if f.is_file():
+                    f.unlink(missing_ok=True)
+                    gone.append(f.relative_to(dataset).as_posix())
+    return gone
