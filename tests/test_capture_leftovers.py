@@ -42,12 +42,14 @@ def test_resume_removes_a_killed_exposure_write(captured, capsys):
     part = final.with_name(f".{final.name}.part-k1ll3d")
     os.replace(final, part)
     (part / "capture" / "partial.bin").write_bytes(b"\0" * 4096)
+    tmp_json = captured / ".scene.json.k1ll.part.json"
+    tmp_json.write_text("{")
     rec.update(status="incomplete", files={})
     (captured / "scene.json").write_text(json.dumps(doc))
     capsys.readouterr()
     assert main(["capture", *SIM, "--resume", "--out", str(captured)]) == 0
     assert f"removed an unfinished exposure write {part.name}" in capsys.readouterr().err
-    assert not part.exists()
+    assert not part.exists() and not tmp_json.exists()
     assert sorted(p.name for p in (captured / "exposures").iterdir()) == \
         sorted(e["folder"].split("/")[1] for e in
                json.loads((captured / "scene.json").read_text())["exposures"])

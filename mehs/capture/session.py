@@ -189,7 +189,8 @@ def _default_hint(out: Path) -> str:
 
 
 def remove_partial_writes(scene_dir: Path) -> list[str]:
-    """Remove ``exposures/.<name>.part-*`` folders left by a kill during an exposure write.
+    """Remove ``exposures/.<name>.part-*`` folders (and ``.scene.json.*.part*`` files) left
+    by a kill during an exposure write.
 
     They are never complete (an exposure folder is renamed into place only when
     written), so nothing of value is lost; returns the removed names.
@@ -200,6 +201,9 @@ def remove_partial_writes(scene_dir: Path) -> list[str]:
         for p in sorted(exp.glob(".*.part-*")):
             shutil.rmtree(p, ignore_errors=True)
             gone.append(p.name)
+    for p in sorted(Path(scene_dir).glob(f".{sf.SCENE_JSON}.*.part*")):  # atomic-write temps
+        p.unlink(missing_ok=True)
+        gone.append(p.name)
     return gone
 
 
