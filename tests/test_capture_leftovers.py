@@ -9,6 +9,9 @@ works; ``--simulate --resume`` with other scene options is refused.
 import json
 import os
 import shutil
+import subprocess
+import sys
+import textwrap
 
 import pytest
 
@@ -53,6 +56,38 @@ def test_resume_removes_a_killed_exposure_write(captured, capsys):
     assert sorted(p.name for p in (captured / "exposures").iterdir()) == \
         sorted(e["folder"].split("/")[1] for e in
                json.loads((captured / "scene.json").read_text())["exposures"])
+
+
+_KILL_MID_WRITE = textwrap.dedent("""
+    import os, signal, sys
+    import mehs.io.specim as sp
+    from mehs.cli import main
+
+    real = sp._write_contents
+
+    def write_then_die(root, cap, cid, *, overwrite):
+        real(root, cap, cid, overwrite=overwrite)
+        if cid.startswith("2_"):  # exposure 2 written under its temporary name, not renamed
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    sp._write_contents = write_then_die
+    sys.exit(main(sys.argv[1:]))
+""")
+
+
+def test_resume_after_a_real_kill_during_an_exposure_write(tmp_path, capsys):
+    out = tmp_path / "k"
+    proc = subprocess.run([sys.executable, "-c", _KILL_MID_WRITE, "capture", *SIM, "--times",
+                           "0.5,4,32", "--out", str(out)], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert proc.returncode == -9, proc.stderr
+    parts = list((out / "exposures").glob(".2_*.part-*"))
+    assert len(parts) == 1 and any(p.is_file() for p in parts[0].rglob("*"))
+    assert main(["capture", *SIM, "--resume", "--out", str(out)]) == 0
+    assert "removed an unfinished exposure write" in capsys.readouterr().err
+    assert not parts[0].exists()
+    doc = json.loads((out / "scene.json").read_text())
+    assert [e["status"] for e in doc["exposures"]] == ["complete"] * 3
 
 
 def test_capture_folders_follow_the_umask(tmp_path):
