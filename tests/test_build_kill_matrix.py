@@ -160,3 +160,4 @@ def test_scene_builds_use_one_blas_thread(setup, tmp_path, monkeypatch):
     build_dataset(scenes[:1], tmp_path / "d", workers=1, progress=False, response=curve,
                   rules=QualityRules())
     assert seen and set(seen) == {1}
+

@@ -166,9 +166,10 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
 def build_scene(task: SceneTask) -> dict[str, Any]:
     """Build one scene into ``scenes/.tmp-<id>/`` (worker entry point; never raises).
 
-    BLAS runs single-threaded here: a multi-threaded BLAS splits a product
-    differently for different thread counts (which follow ``--workers``), and
-    the last bits of ``hs.dat`` changed with them. The compiled kernels
+    BLAS runs single-threaded here (:mod:`mehs.dataset.threads`): a
+    multi-threaded BLAS splits a product differently for different thread
+    counts (which follow ``--workers``), and the last bits of ``hs.dat``
+    changed with them. The compiled kernels
     parallelise over lines/bands without cross-thread reductions, so with one
     BLAS thread the bytes are the same for any ``--workers`` or ``--scheduler``.
 
@@ -181,9 +182,9 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         (``"input"`` for a :class:`MehsError`, deterministic and not retried;
         ``"internal"`` otherwise, retried on the next run).
     """
-    from threadpoolctl import threadpool_limits
+    from mehs.dataset.threads import one_blas_thread
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _build_scene(task)
 
 
