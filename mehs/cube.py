@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from mehs.bandmeta import check_band_metadata, permute_band_metadata
 from mehs.errors import InputError
 
 
@@ -123,6 +124,7 @@ class SpectralCube:
             if any(b < 0 or b >= nb for b in db):
                 raise InputError(f"default bands {db} outside 0..{nb - 1}", src)
             self.default_bands = db
+        self.metadata = check_band_metadata(self.metadata or {}, nb, src)
         order = np.argsort(self.wavelengths, kind="stable")
         if np.any(order != np.arange(nb)):
             warnings.warn(
@@ -132,6 +134,7 @@ class SpectralCube:
             self.wavelengths = self.wavelengths[order]
             if self.fwhm is not None:
                 self.fwhm = self.fwhm[order]
+            self.metadata = permute_band_metadata(self.metadata, order)  # bbl, band names, …
             if self.default_bands is not None:
                 inv = np.empty_like(order)
                 inv[order] = np.arange(nb)

@@ -1,5 +1,6 @@
 """`mehs report` on a dataset: static HTML with images beside it, all loading in Chromium."""
 
+import os
 import re
 import shutil
 import sys
@@ -75,6 +76,8 @@ def test_report_renders_in_headless_chromium(dataset):
     finally:
         sys.path.pop(0)
     if chk.find_chromium() is None:
+        if os.environ.get("MEHS_REQUIRE_CHROMIUM"):  # set by .ci/run: CI must not skip this
+            pytest.fail("chromium is not installed but MEHS_REQUIRE_CHROMIUM is set")
         pytest.skip("chromium is not installed")
     out = write_report(dataset)
     res = chk.check_report(out)

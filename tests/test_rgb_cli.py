@@ -86,7 +86,8 @@ def test_rgb_cli_writes_the_pair(tmp_path, hs31_hdr, capsys):
     assert meta["resampled_to_31_bands"] is False
     assert read_png(out / "preview.png").shape == (9, 11, 3)
 
-    assert main(["rgb", str(hs31_hdr), "--out", str(out), "--ldr-exposure", "0.5"]) == 0
+    assert main(["rgb", str(hs31_hdr), "--out", str(out), "--ldr-exposure", "0.5",
+                 "--force"]) == 0
     np.testing.assert_array_equal(read_png(out / "ldr_rgb.png"), ldr_rgb(want, exposure=0.5)[0])
 
 

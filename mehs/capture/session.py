@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -177,6 +178,44 @@ def _check_times(times: Sequence[float]) -> list[float]:
     return t
 
 
+def _check_times_on_camera(camera, times: Sequence[float]) -> None:
+    """Ask the camera to accept each planned time before anything is written.
+
+    A time the camera refuses (e.g. 99999 ms) would otherwise stop the capture after the
+    first exposures, leaving a scene whose plan can never be finished by ``--resume``.
+    """
+    for t in times:
+        try:
+            camera.set_integration_time(t)
+        except DeviceError as exc:
+            raise InputError(f"the camera does not accept an integration time of "
+                             f"{sf.format_time_ms(t)} ms ({exc.problem}); nothing was "
+                             "captured or written") from None
+
+
+def _default_hint(out: Path) -> str:
+    return f"mehs capture --resume --out {out} --stage PORT --camera PORT"
+
+
+def remove_partial_writes(scene_dir: Path) -> list[str]:
+    """Remove ``exposures/.<name>.part-*`` folders (and ``.scene.json.*.part*`` files) left
+    by a kill during an exposure write.
+
+    They are never complete (an exposure folder is renamed into place only when
+    written), so nothing of value is lost; returns the removed names.
+    """
+    gone = []
+    exp = Path(scene_dir) / "exposures"
+    if exp.is_dir():
+        for p in sorted(exp.glob(".*.part-*")):
+            shutil.rmtree(p, ignore_errors=True)
+            gone.append(p.name)
+    for p in sorted(Path(scene_dir).glob(f".{sf.SCENE_JSON}.*.part*")):  # atomic-write temps
+        p.unlink(missing_ok=True)
+        gone.append(p.name)
+    return gone
+
+
 def _move_aside(path: Path) -> Path:
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
     dest = path.with_name(f".orphan-{path.name}-{stamp}")
@@ -190,6 +229,7 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                   white_start_line: int | None = None, scene_id: str | None = None,
                   resume: bool = False, progress: bool = True, seed: int | None = None,
                   device_info: dict | None = None, auto_options: dict | None = None,
+                  resume_hint: str | None = None,
                   log: Callable[[str], None] | None = None, scan: str = "step",
                   scan_options: dict | None = None) -> dict[str, Any]:
     """Capture (or finish, with ``resume=True``) a bracketed scene into ``out_dir``.
@@ -208,6 +248,9 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         Reference sizes; the white tile starts at scan line ``white_start_line``
         (default ``lines + 4``, where the simulator puts it); ``white_lines=0``
         skips the white reference.
+    resume_hint
+        The command that resumes this capture, quoted in error messages (default:
+        ``mehs capture --resume --out OUT`` plus placeholders for the device options).
     resume
         Finish an interrupted scene: completed exposures are verified (SHA-256)
         and kept, the plan (times, geometry, scan mode) is read from ``scene.json``.
@@ -241,6 +284,8 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                 if bad:
                     raise InputError(f"completed exposure {rec['folder']} no longer matches its "
                                      f"SHA-256 ({', '.join(bad[:3])}); refusing to resume over it", out)
+        for name in remove_partial_writes(out):
+            say(f"removed an unfinished exposure write {name}")
         lines, pitch, start_position = plan["lines"], plan["pitch"], plan["start_position"]
         dark_lines, white_lines = plan["dark_lines"], plan["white_lines"]
         white_start_line = plan["white_start_line"]
@@ -311,6 +356,7 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
             say(f"auto-exposure: {', '.join(sf.format_time_ms(t) for t in times)} ms")
         else:
             times = _check_times(times_ms)
+            _check_times_on_camera(camera, times)  # before scene.json exists, not half-way
         doc = sf.new_scene_doc(scene_id or out.name, wavelengths, seed=seed,
                                device={"stage": {"url": stage.name}, "camera": {
                                    "url": camera.name, "id": camera.identify(),
@@ -376,7 +422,7 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                 raise
             raise DeviceError(f"exposure {k} ({sf.format_time_ms(t_act)} ms) stopped after "
                               f"{rec['lines_done']} of {lines} lines: {exc}. Completed exposures "
-                              f"are kept; finish with 'mehs capture --resume --out {out}'",
+                              f"are kept; finish with '{resume_hint or _default_hint(out)}'",
                               None) from exc
         doc["exposures"][by_index[k]] = final
         sf.write_scene_json(out, doc)

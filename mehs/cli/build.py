@@ -53,6 +53,13 @@ def configure(parser):
                         "curve (default 0.02; see mehs fuse's response check)")
     q.add_argument("--require-calibration", action="store_true",
                    help="fail scenes that are not radiometrically calibrated")
+    parser.add_argument("--verify", action="store_true",
+                        help="hash every output of a scene before reusing it (default: only "
+                             "outputs whose size or mtime changed; damaged scenes are rebuilt)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="fuse scenes whose capture did not finish from their complete "
+                             "exposures (refused by default; 'mehs capture --resume' finishes "
+                             "them)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
@@ -72,13 +79,14 @@ def run(args):
                          require_calibration=args.require_calibration)
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
-                  scheduler=args.scheduler, progress=not args.quiet)
+                  scheduler=args.scheduler, progress=not args.quiet, verify=args.verify)
     if args.from_hs:
         manifest = build_from_hs(args.scenes, args.out, **common)
     else:
         manifest = build_dataset(args.scenes, args.out, response=args.response,
                                  method=args.method, ghosts=args.ghosts,
-                                 calibration=args.calibration, **common)
+                                 calibration=args.calibration,
+                                 allow_partial=args.allow_partial, **common)
     scenes = manifest["scenes"]
     n_pass = sum(s["status"] == "pass" for s in scenes)
     print(f"{args.out}: {len(scenes)} scenes, {n_pass} pass, {len(scenes) - n_pass} fail; "

@@ -75,6 +75,15 @@ def run(args):
             times = [float(v) for v in args.times.replace(" ", "").split(",") if v]
         except ValueError:
             raise InputError(f"--times must be comma-separated numbers, got {args.times!r}") from None
+    if not args.resume:  # the id `mehs build` will use: refuse now what it would refuse later
+        from pathlib import Path
+
+        from mehs.dataset.scene_list import check_scene_id
+
+        check_scene_id(args.scene_id or Path(args.out).resolve().name)
+    sim_options = _sim_options(args) if args.simulate else None
+    if args.resume and args.simulate:
+        _check_same_simulated_scene(args.out, sim_options)
     dev = None
     if args.simulate:
         from mehs.cli.sim_device import build_devices
@@ -94,6 +103,7 @@ def run(args):
         info = {"simulated": bool(args.simulate)}
         if args.simulate:
             info["scene"] = dev.world.scene.info
+            info["sim_options"] = sim_options
         doc = capture_scene(
             stage, camera, args.out, times_ms=times, auto=times is None and not args.resume,
             lines=lines, pitch=args.pitch, start_position=args.start_position,
@@ -103,7 +113,7 @@ def run(args):
             progress=not args.no_progress and sys.stderr.isatty(),
             seed=args.seed if args.simulate else None, device_info=info,
             auto_options={"n": 5, "max_step": 4.0} if args.ladder else None,
-            log=lambda m: print(m, file=sys.stderr))
+            log=lambda m: print(m, file=sys.stderr), resume_hint=_resume_hint(args))
         if args.simulate and doc["truth"] is None and all(
                 e["status"] == "complete" for e in doc["exposures"]):
             from mehs.capture.simulate import motion_phase, write_truth
@@ -168,3 +178,49 @@ def _list_cameras() -> int:
         print(f"aravis://{c['id']}  {c['vendor']} {c['model']}  serial {c['serial']}  "
               f"{c['protocol']} {c['address']}")
     return 0
+
+
+#: Options of --simulate that decide what the simulated scene looks like.
+_SIM_KEYS = ("scene", "size", "seed", "motion", "source_ratio", "response")
+
+
+def _sim_options(args) -> dict:
+    return {k: getattr(args, k, None) for k in _SIM_KEYS}
+
+
+def _check_same_simulated_scene(out, options: dict) -> None:
+    """Refuse to finish a simulated scene with another simulated scene's exposures."""
+    from pathlib import Path
+
+    from mehs.capture.scenefolder import read_scene_json
+    from mehs.errors import InputError
+
+    if not (Path(out) / "scene.json").is_file():
+        return  # capture_scene says there is nothing to resume
+    recorded = (read_scene_json(out).get("device") or {}).get("sim_options")
+    if recorded is None:
+        return  # captured before the options were recorded (or on real devices)
+    differ = {k: (recorded.get(k), options.get(k)) for k in _SIM_KEYS
+              if recorded.get(k) != options.get(k)}
+    if differ:
+        was = " ".join(f"--{k.replace('_', '-')} {v[0]}" for k, v in differ.items())
+        raise InputError(f"this scene was simulated with other options ({was}); resuming "
+                         "with these would mix two scenes in one bracket", out)
+
+
+def _resume_hint(args) -> str:
+    """The command that finishes this capture: the same devices or simulated scene."""
+    import shlex
+
+    parts = ["mehs", "capture", "--resume", "--out", str(args.out)]
+    if args.simulate:
+        parts.append("--simulate")
+        defaults = {"scene": "colorchecker", "size": 64, "seed": 0, "motion": False,
+                    "source_ratio": 1000.0, "response": "linear"}
+        for k, v in _sim_options(args).items():
+            if v != defaults.get(k) and v is not None:
+                flag = f"--{k.replace('_', '-')}"
+                parts += [flag] if v is True else [flag, str(v)]
+    else:
+        parts += ["--stage", str(args.stage), "--camera", str(args.camera)]
+    return " ".join(shlex.quote(p) for p in parts)

@@ -56,7 +56,15 @@ def configure(parser):
                         help="also write DIR/report.html")
     parser.add_argument("--markdown", action="store_true",
                         help="print the Markdown tables instead of plain text")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the regression baseline's pixel sampling and of the "
+                             "figures' pixel picks (default: %(default)s)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the results of an earlier evaluation in --out "
+                             "(refused without it)")
+    parser.add_argument("--verify", action="store_true",
+                        help="hash every dataset file against manifest.json before scoring "
+                             "(default: only files whose size or mtime changed)")
     from mehs.cli._sources import add_source_arguments
 
     add_source_arguments(parser)
@@ -135,6 +143,15 @@ def run(args):
     from mehs.cli._sources import apply_source_arguments
 
     apply_source_arguments(args, args.dataset)
+    from pathlib import Path
+
+    from mehs.cli._overwrite import refuse_existing
+
+    refuse_existing([Path(args.out) / "evaluation.json"], args.force)
+    if args.verify:
+        from mehs.ssr.data import load_pairs
+
+        load_pairs(args.dataset, verify="full")
     inputs = tuple(s.strip() for s in args.input.split(",") if s.strip())
     split = None if args.split == "all" else args.split
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,

@@ -23,6 +23,9 @@ def configure(parser) -> None:
                         help="resample first (Gaussian, 10 nm FWHM) to these centres, "
                              "e.g. 400:700:10 (default: keep the cube's bands)")
     parser.add_argument("--half", action="store_true", help="store half floats")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the EXR files of an earlier export in --out (refused "
+                             "without it)")
 
 
 def run(args) -> int:
@@ -36,6 +39,11 @@ def run(args) -> int:
     valid_prefix(args.prefix)
     if out.exists() and not out.is_dir():
         raise InputError("--out exists and is not a folder", out)
+    from mehs.cli._overwrite import refuse_existing
+
+    if out.is_dir():
+        refuse_existing(sorted(out.glob(f"{args.prefix}_*.exr")) + [out / f"{args.prefix}.exr"],
+                        args.force)
     cube = load_cube(args.hs)
     if args.bands:
         from mehs.synthesis.resample import parse_bands, resample_cube

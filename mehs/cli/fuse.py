@@ -32,10 +32,21 @@ def configure(parser):
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the outputs of an earlier fusion in --out (refused "
+                             "without it)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="fuse the complete exposures of a scene whose capture did not "
+                             "finish (refused by default; 'mehs capture --resume' finishes it)")
+
+
+#: Files ``mehs fuse`` writes into ``--out`` (see :func:`mehs.synthesis.fuse.write_fusion`).
+FUSION_FILES = ("radiance.hdr", "mask.png", "confidence.exr", "response.json", "summary.json")
 
 
 def run(args) -> int:
     import json
+    from pathlib import Path
 
     from mehs.synthesis.bracket import load_bracket
     from mehs.synthesis.fuse import fuse_bracket, write_fusion
@@ -43,6 +54,9 @@ def run(args) -> int:
     from mehs.io.atomic import check_output_dir
 
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
+    from mehs.cli._overwrite import refuse_existing
+
+    refuse_existing([Path(args.out) / n for n in FUSION_FILES], args.force)
     cal = args.calibration
     if cal is not None:
         try:
@@ -52,7 +66,7 @@ def run(args) -> int:
 
             cal = Calibration.load(cal)   # a bad file fails before the fusion
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
-    bracket = load_bracket(paths, verify=args.verify)
+    bracket = load_bracket(paths, verify=args.verify, allow_partial=args.allow_partial)
     from mehs.errors import InputError
 
     try:

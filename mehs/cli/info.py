@@ -31,8 +31,14 @@ def configure(parser) -> None:
 
 
 def run(args) -> int:
-    info = describe(args.path, max_lines=args.lines, saturation=args.saturation,
-                    require_dark=not args.allow_missing_dark)
+    import warnings
+
+    from mehs.io.plausibility import ByteOrderWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ByteOrderWarning)  # shown as a line of the summary
+        info = describe(args.path, max_lines=args.lines, saturation=args.saturation,
+                        require_dark=not args.allow_missing_dark)
     if args.json:
         print(json.dumps(info, indent=2, default=_json_default))
     else:
@@ -166,6 +172,10 @@ def _describe_envi(path: Path, max_lines: int, saturation: float | None) -> dict
     sf = hdr.fields.get("reflectance scale factor")
     if sf is not None:
         info["reflectance_scale_factor"] = float(str(sf))
+    from mehs.io.plausibility import byte_order_message, byte_order_suspicion
+
+    why = byte_order_suspicion(hdr.open_memmap())
+    info["byte_order_warning"] = None if why is None else byte_order_message(why, hdr.byte_order)
     idx, sampled = _sample_lines(hdr.lines, max_lines)
     sample = np.asarray(hdr.open_memmap()[idx])
     if sf is not None and float(str(sf)) not in (0.0, 1.0):
@@ -283,6 +293,8 @@ def format_text(info: dict[str, Any], indent: str = "") -> str:
         f"{indent}  shape         {' × '.join(map(str, info['shape']))} ({info['shape_axes']})",
         f"{indent}  dtype         {info['dtype']}, interleave {info['interleave']}, "
         f"byte order {info['byte_order']}",
+        *([f"{indent}  WARNING       {info['byte_order_warning']}"]
+          if info.get("byte_order_warning") else []),
         f"{indent}  wavelengths   {w['count']} bands, {_fmt(w['min_nm'])}–{_fmt(w['max_nm'])} nm"
         f"{'' if w['sorted'] else ' (NOT sorted in the file)'}, {w['in_400_700']} in 400–700 nm",
     ]

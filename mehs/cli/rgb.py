@@ -24,6 +24,8 @@ def configure(parser) -> None:
                              "resampling to 400:700:10")
     parser.add_argument("--key", type=float, default=0.18,
                         help="Reinhard key for preview.png (default 0.18)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the images of an earlier run in --out (refused without it)")
     parser.add_argument("--float", dest="half", action="store_false",
                         help="store hdr_rgb.exr as 32-bit float instead of half")
 
@@ -41,6 +43,10 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         from mehs.errors import InputError
         raise InputError("--out exists and is not a folder", out)
+    from mehs.cli._overwrite import refuse_existing
+
+    refuse_existing([out / n for n in ("hdr_rgb.exr", "ldr_rgb.png", "preview.png", "rgb.json")],
+                    args.force)
     cube = load_cube(args.hs)
     resampled = False
     if not args.no_resample and not (cube.bands == WAVELENGTHS_31.size

@@ -27,7 +27,8 @@ def configure(parser):
     from mehs.cli.evaluate import add_preprocessing_args
 
     add_preprocessing_args(parser, "with --preprocess on")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the training-pixel sampling (default: %(default)s)")
     from mehs.cli._sources import add_source_arguments
 
     add_source_arguments(parser)

@@ -16,6 +16,8 @@ from the best checkpoint.
 
 from __future__ import annotations
 
+import sys
+
 from mehs.errors import InputError
 
 #: Zoo names, for the help text only (the zoo itself needs torch to import).
@@ -182,7 +184,18 @@ def run(args):
     if best is not None:
         print(f"evaluate: mehs evaluate {args.dataset} --models smits,mallett,{best}")
     if args.onnx and best is not None:
-        onnx_path = export_onnx(best, Path(args.out) / "model.onnx")
+        from mehs.errors import MehsError
+
+        try:
+            onnx_path = export_onnx(best, Path(args.out) / "model.onnx")
+        except MehsError as exc:
+            # training succeeded and its checkpoints are kept: say what was skipped and how
+            # to get it, instead of ending a long run with an exporter traceback
+            print(f"note: ONNX export skipped: {exc.problem}. The checkpoints above are "
+                  f"complete; export later with: python -c \"from mehs.ssr.net.export import "
+                  f"export_onnx; export_onnx('{best}', '{Path(args.out) / 'model.onnx'}')\"",
+                  file=sys.stderr)
+            return 0
         # the graph applies its own Reinhard step: the evaluation must not add another
         print(f"ONNX model: {onnx_path} (self-contained: linear RGB in; score it with "
               f"--preprocess off)")

@@ -44,6 +44,8 @@ from mehs import __version__
 from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import default_workers, report_stage, run_tasks
 from mehs.dataset.quality import QualityRules, judge
+from mehs.dataset.reuse import (moved_between_splits, outputs_intact, record_output_stat,
+                                remove_stale_temp_files, split_of)
 from mehs.dataset.scene_list import SceneSource, collect_hs_cubes, collect_scenes
 from mehs.dataset.splits import make_splits, parse_fractions, write_split_files
 from mehs.errors import InputError, MehsError
@@ -77,6 +79,8 @@ class BuildParams:
     calibration
         Path of a radiometric calibration (``mehs calibrate``): cubes in
         radiance instead of DN/ms.
+    allow_partial
+        Fuse a scene whose capture did not finish from its complete exposures.
     """
 
     method: str = "poisson"
@@ -86,6 +90,7 @@ class BuildParams:
     resample: str = "gaussian"
     fwhm: float = 10.0
     calibration: str | None = None
+    allow_partial: bool = False
 
     def __post_init__(self):
         # a bad value would otherwise fail every scene one by one and still
@@ -156,6 +161,8 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
     p["response"] = task.response_sha256  # the curve's content, not where it lives
     if p.get("calibration"):
         p["calibration"] = sha256_file(p["calibration"])
+    if not p.get("allow_partial"):
+        p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if task.source.kind == "hs":
         for k in ("method", "response", "ghosts"):
             p.pop(k)
@@ -164,6 +171,13 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
 
 def build_scene(task: SceneTask) -> dict[str, Any]:
     """Build one scene into ``scenes/.tmp-<id>/`` (worker entry point; never raises).
+
+    BLAS runs single-threaded here (:mod:`mehs.dataset.threads`): a
+    multi-threaded BLAS splits a product differently for different thread
+    counts (which follow ``--workers``), and the last bits of ``hs.dat``
+    changed with them. The compiled kernels
+    parallelise over lines/bands without cross-thread reductions, so with one
+    BLAS thread the bytes are the same for any ``--workers`` or ``--scheduler``.
 
     Returns
     -------
@@ -174,6 +188,13 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         (``"input"`` for a :class:`MehsError`, deterministic and not retried;
         ``"internal"`` otherwise, retried on the next run).
     """
+    from mehs.dataset.threads import one_blas_thread
+
+    with one_blas_thread():
+        return _build_scene(task)
+
+
+def _build_scene(task: SceneTask) -> dict[str, Any]:
     sid = task.source.scene_id
     run: dict[str, Any] = {"started": _now(), "stage_seconds": {}}
     t_all = time.perf_counter()
@@ -280,7 +301,8 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
             # the inputs were just hashed for the key: check those hashes against the ones
             # recorded at capture instead of letting load_bracket hash 300 MB again
             _check_recorded_hashes(Path(task.source.paths[0]), hashes)
-            bracket = load_bracket(task.source.load_arg, verify="size")
+            bracket = load_bracket(task.source.load_arg, verify="size",
+                                   allow_partial=p.allow_partial)
         else:
             bracket = load_bracket(task.source.load_arg)
     report_stage(sid, "fuse")
@@ -508,11 +530,6 @@ def _rgb_block() -> dict[str, str]:
             "cmfs": rgb.CMFS_NAME}
 
 
-def _outputs_present(dataset: Path, entry: dict) -> bool:
-    files = entry.get("files") or {}
-    return all((dataset / rel).is_file() for rel in files.values())
-
-
 def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *,
                   workers: int | None = None, force: bool = False,
                   response: str | Path | None = None, method: str = "poisson",
@@ -521,7 +538,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
                   rules: QualityRules | None = None, resample: str = "gaussian",
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
                   on_commit: Callable[[dict], None] | None = None,
-                  calibration: str | Path | None = None) -> dict[str, Any]:
+                  calibration: str | Path | None = None, verify: bool = False,
+                  allow_partial: bool = False) -> dict[str, Any]:
     """Build (or resume, or extend) the dataset folder ``out``.
 
     Parameters
@@ -556,6 +574,13 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     on_commit
         Called with each scene entry right after the manifest holding it was
         written (progress hooks, tests).
+    verify
+        Hash every output of a scene before reusing it; by default only outputs
+        whose size or mtime changed since they were written are hashed. A scene
+        whose outputs no longer match their recorded SHA-256 is rebuilt.
+    allow_partial
+        Fuse scenes whose ``scene.json`` marks an exposure incomplete from the
+        complete ones (otherwise such a scene fails, naming the exposure).
 
     Returns
     -------
@@ -577,7 +602,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     fractions = parse_fractions(splits)
     params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,
                          ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm),
-                         calibration=str(Path(calibration).resolve()) if calibration else None)
+                         calibration=str(Path(calibration).resolve()) if calibration else None,
+                         allow_partial=bool(allow_partial))
     radiometric = {"radiance_unit": "DN/ms (uncalibrated)", "calibration": None}
     if calibration:
         from mehs.calibration import Calibration
@@ -594,7 +620,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,
-                      progress=progress, on_commit=on_commit, radiometric=radiometric)
+                      progress=progress, on_commit=on_commit, radiometric=radiometric,
+                      verify=verify)
 
 
 def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
@@ -602,7 +629,8 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
                   splits: str | tuple[float, float, float] = (0.7, 0.15, 0.15),
                   rules: QualityRules | None = None, resample: str = "gaussian",
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
-                  on_commit: Callable[[dict], None] | None = None) -> dict[str, Any]:
+                  on_commit: Callable[[dict], None] | None = None,
+                  verify: bool = False) -> dict[str, Any]:
     """Make a paired set from existing ENVI HS cubes (any band set covering 400..700 nm).
 
     Each cube (``.hdr`` file, or every ``*.hdr`` of a folder; id = file stem) is
@@ -616,12 +644,12 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
     params = BuildParams(seed=int(seed), resample=resample, fwhm=float(fwhm))
     return _run_build(srcs, Path(out), params, None, workers=workers, force=force,
                       fractions=parse_fractions(splits), rules=rules, scheduler=scheduler,
-                      progress=progress, on_commit=on_commit)
+                      progress=progress, on_commit=on_commit, verify=verify)
 
 
 def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fractions,
                rules, scheduler, progress, on_commit,
-               radiometric: dict | None = None) -> dict[str, Any]:
+               radiometric: dict | None = None, verify=False) -> dict[str, Any]:
     import json
 
     from mehs.io.atomic import make_output_dir
@@ -635,6 +663,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         for d in scenes_dir.iterdir():  # leftovers of an interrupted build
             if d.name.startswith((TMP_PREFIX, OLD_PREFIX)):
                 shutil.rmtree(d, ignore_errors=True)
+        remove_stale_temp_files(dataset)
         if (dataset / mf.MANIFEST_NAME).exists():
             manifest = mf.read_manifest(dataset)
             if manifest.get("wavelengths") != [float(w) for w in WAVELENGTHS_31]:
@@ -644,6 +673,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
             manifest = mf.new_manifest(software_version=__version__,
                                        wavelengths=WAVELENGTHS_31, rgb=_rgb_block())
         before = json.dumps(manifest, sort_keys=True, default=str)
+        old_split = split_of(manifest)
         manifest["software_version"] = __version__
         manifest["quality_rules"] = rules.to_dict()
         if radiometric is not None:
@@ -655,7 +685,8 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         for s in srcs:
             old = entries.get(s.scene_id)
             prev = None
-            if old and not force and old.get("key") and _outputs_present(dataset, old):
+            if (old and not force and old.get("key")
+                    and outputs_intact(dataset, old, full=verify)):
                 prev = old["key"]
             tasks.append((s.scene_id, SceneTask(s, str(dataset), params, prev, response_sha)))
 
@@ -695,6 +726,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                     continue
                 entry = res["entry"]
                 _place(scenes_dir, sid, built=res["outcome"] == "built")
+                record_output_stat(dataset, entry)
                 entry["status"], entry["reasons"] = judge(entry["quality"], rules,
                                                           entry.get("error"))
                 entries[sid] = entry
@@ -710,6 +742,13 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         if (json.dumps(manifest, sort_keys=True, default=str) != before
                 or not (dataset / "splits").is_dir()):
             commit()
+    moved = moved_between_splits(old_split, split_of(manifest))
+    if moved:
+        # cuts follow the number of passing scenes: adding scenes shifts them; say so, since
+        # a model trained on the old train split may now be scored on its own scenes
+        print(f"mehs build: {len(moved)} existing scene(s) changed split (the split cuts "
+              f"follow the number of passing scenes): "
+              + ", ".join(f"{sid} {a} → {b}" for sid, a, b in moved), file=sys.stderr)
     for res in failures:
         tb = res["entry"]["provenance"]["run"].get("traceback")
         print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)

@@ -71,8 +71,11 @@ def read_manifest(dataset: str | Path) -> dict[str, Any]:
     for i, s in enumerate(manifest["scenes"]):
         if not isinstance(s, dict) or not isinstance(s.get("id"), str) or not s["id"]:
             raise FormatError(f"scene entry #{i + 1} is not an object with an 'id'", path)
-        if not isinstance(s.get("files", {}), dict):
-            raise FormatError(f"scene {s['id']!r}: 'files' must be an object", path)
+        for key in ("files", "sha256"):  # without them nothing of the scene can be verified
+            if not isinstance(s.get(key), dict):
+                what = "is missing" if key not in s else "must be an object"
+                raise FormatError(f"scene {s['id']!r}: '{key}' {what} (damaged entry; "
+                                  "rebuild the scene with 'mehs build ... --force')", path)
     splits = manifest.get("splits", {})
     if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
         raise FormatError("'splits' must map split names to lists of scene ids", path)

@@ -7,7 +7,9 @@ number of scenes. Workers report their current stage through
 
 Process workers are started with the ``spawn`` method (safe with threads,
 numba and OpenEXR; the same on every OS), so the task function and its
-argument must be importable/picklable. Each worker's BLAS/OpenMP/numba thread
+argument must be importable/picklable. Workers die with the process that
+started them (:mod:`mehs.dataset.lifetime`), and an interrupted run kills
+them instead of waiting for their scenes. Each worker's BLAS/OpenMP/numba thread
 count is set to ``cpu_count // workers`` (unless already set in the
 environment) to avoid oversubscribing the cores.
 """
@@ -19,6 +21,7 @@ import os
 import queue as queue_mod
 from typing import Any, Callable, Iterable, Iterator
 
+from mehs.dataset.lifetime import die_with_parent, kill_processes
 from mehs.errors import MehsError
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
@@ -36,8 +39,10 @@ def report_stage(task_id: str, stage: str) -> None:
             sink(task_id, stage)
 
 
-def _init_worker(q) -> None:
+def _init_worker(q, parent: int | None = None) -> None:
     global _STAGE_SINK
+    if parent is not None:
+        die_with_parent(parent)  # an orphan would write scenes/.tmp-* behind the next build
     _STAGE_SINK = lambda tid, stage: q.put_nowait((tid, stage))  # noqa: E731
 
 
@@ -122,7 +127,8 @@ def _run_processes(fn, tasks, workers, on_stage):
     todo = list(reversed(tasks))
     with _thread_limits(workers):
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                   initializer=_init_worker, initargs=(q,))
+                                   initializer=_init_worker, initargs=(q, os.getpid()))
+    finished = False
     try:
         pending = set()
         while todo or pending:
@@ -140,7 +146,10 @@ def _run_processes(fn, tasks, workers, on_stage):
                 except BrokenProcessPool as exc:
                     raise MehsError(f"a build worker process died ({exc}); re-run to "
                                     "resume (out of memory? try fewer --workers)") from None
+        finished = True
     finally:
+        if not finished:  # Ctrl-C, an error, or the caller stopped iterating
+            kill_processes((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=True, cancel_futures=True)
         q.close()
 

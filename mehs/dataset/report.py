@@ -80,7 +80,7 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
 
     n_pass = sum(s["status"] == "pass" for s in scenes)
     page = _PAGE.format(
-        title=html.escape(f"mehs dataset {dataset.name}"),
+        title=html.escape(f"ME HS dataset report: {dataset.resolve().name}"),
         n=len(scenes), n_pass=n_pass, n_fail=len(scenes) - n_pass,
         version=html.escape(str(manifest.get("software_version", ""))),
         splits=html.escape(", ".join(f"{k}: {len(v)}" for k, v in manifest.get("splits", {}).items())),
@@ -273,6 +273,8 @@ def _overview_figure(scenes: list[dict], out: Path) -> None:
     b.set_xlabel("saturated-in-all fraction")
     b.set_ylabel("ghost fraction")
     b.set_title("saturation vs ghosts")
+    b.set_xlim(left=0)  # fractions: autoscale's margin around all-zero data went negative
+    b.set_ylim(bottom=0)
     _save(fig, out)
 
 
@@ -299,6 +301,17 @@ def _fmt(v: Any, pct: bool = False) -> str:
     return html.escape(str(v))
 
 
+def _fmt_ratios(ratios: Any) -> str:
+    """``1 : 70.7 : 5000`` — three significant digits, never scientific notation."""
+    import numpy as np
+
+    if not isinstance(ratios, list) or not ratios:
+        return "–"
+    return " : ".join(np.format_float_positional(float(r), precision=3, unique=True,
+                                                 fractional=False, trim="-")
+                      for r in ratios if isinstance(r, (int, float)))
+
+
 def _card(s: dict, thumb: str | None) -> str:
     sid = html.escape(s["id"])
     img = (f'<img src="{html.escape(thumb)}" alt="preview of {sid}">' if thumb
@@ -315,7 +328,7 @@ def _row(s: dict, split: str) -> str:
         id=html.escape(s["id"]), st=s["status"], split=html.escape(split),
         dr=_fmt(q.get("dynamic_range_stops")), sat=_fmt(q.get("saturated_fraction"), True),
         gh=_fmt(q.get("ghost_fraction"), True), inv=_fmt(q.get("invalid_fraction"), True),
-        ratios=_fmt(q.get("exposure_ratios")),
+        ratios=_fmt_ratios(q.get("exposure_ratios")),
         reasons=html.escape("; ".join(s.get("reasons", []))))
 
 

@@ -52,6 +52,7 @@ import numpy as np
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path
+from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
 
 __all__ = ["EnviHeader", "read_envi_header", "read_envi", "write_envi",
            "find_data_file", "find_header_file", "parse_acquisition_date",
@@ -581,6 +582,10 @@ def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
     kw = _cube_fields(hdr)
     h, hp = hdr.fields, hdr.header_path
     data = hdr.open_memmap()
+    why = byte_order_suspicion(data)  # a mislabelled byte order reads without any error
+    if why:
+        warnings.warn(f"{hp}: {byte_order_message(why, hdr.byte_order)}", ByteOrderWarning,
+                      stacklevel=2)
     sf = None
     if "reflectance scale factor" in h:
         try:

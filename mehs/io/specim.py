@@ -371,6 +371,10 @@ def write_specim_folder(path: str | Path, capture: SpecimCapture, *,
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.part-", dir=dest.parent))
     try:
+        # mkdtemp makes it 0700; a capture folder gets the mode any new folder would get
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)
         _write_contents(tmp, capture, cid, overwrite=False)
         if dest.is_dir():
             dest.rmdir()  # empty (checked above); os.replace needs it gone

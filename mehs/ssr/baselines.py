@@ -51,6 +51,7 @@ References
 from __future__ import annotations
 
 import json
+import zipfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Iterable
@@ -322,8 +323,10 @@ class RegressionModel(SSRModel):
                 with np.load(path, allow_pickle=False) as z:
                     matrix, wl = z["matrix"], z["wavelengths"]
                     meta = json.loads(str(z["meta"]))
-        except (OSError, ValueError, KeyError) as exc:
-            raise FormatError(f"not a regression model file ({exc})", path) from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            # an empty .npz raises EOFError, a damaged one BadZipFile: both are bad input
+            raise FormatError(f"not a regression model file ({type(exc).__name__}: {exc})",
+                              path) from None
         if meta.get("format") != cls.FORMAT:
             raise FormatError(f"format is {meta.get('format')!r}, expected {cls.FORMAT!r}", path)
         try:

@@ -204,7 +204,8 @@ def _inside(root: Path, rel: str | None, what: str, scene: str) -> Path | None:
     return p
 
 
-def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> PairSet:
+def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
+                   verify: str = "stat") -> PairSet:
     mpath = root / "manifest.json"
     try:
         manifest = json.loads(mpath.read_text(encoding="utf-8"))
@@ -244,6 +245,14 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool) -> Pa
             f = _inside(root, files.get(key), key, sid)
             if f is not None and not f.is_file():
                 raise FormatError(f"scene {sid!r}: {key} file listed in manifest.json is missing", f)
+        if verify != "none" and isinstance(sc.get("sha256"), dict):
+            from mehs.io.filecheck import verify_files
+
+            run = (sc.get("provenance") or {}).get("run") or {}
+            # the recorded hashes (sets made by other tools may record none)
+            hashed = {k: v for k, v in files.items() if k in sc["sha256"]}
+            verify_files(root, hashed, sc["sha256"], stats=run.get("output_stat"),
+                         full=verify == "full", what=f"scene {sid!r}")
         exposure = next((d["ldr_exposure"] for d in (sc.get("quality"), sc.get("rgb"), sc)
                          if isinstance(d, dict) and d.get("ldr_exposure") is not None), None)
         pairs.append(Pair(
@@ -284,11 +293,14 @@ def _public_format(root: Path) -> bool:
 
 
 def load_pairs(path: str | Path, *, split: str | None = None,
-               include_failed: bool = False) -> PairSet:
+               include_failed: bool = False, verify: str = "stat") -> PairSet:
     """List the paired scenes of a dataset folder or a plain folder of pairs.
 
     Nothing is read but the manifest: each :class:`Pair` loads its files when
-    asked. ``split`` (``"train"``, ``"val"``, ``"test"``) needs a manifest.
+    asked. ``split`` (``"train"``, ``"val"``, ``"test"``) needs a manifest. Files of
+    a manifest that records their SHA-256 are verified (``verify``: ``"stat"``
+    hashes only files whose size/mtime changed since the build, ``"full"``
+    hashes all, ``"none"`` skips), so a damaged scene is never scored.
 
     Raises
     ------
@@ -301,7 +313,7 @@ def load_pairs(path: str | Path, *, split: str | None = None,
     if not root.is_dir():
         raise InputError("no such dataset folder", root)
     if (root / "manifest.json").is_file():
-        pairs = _load_manifest(root, split=split, include_failed=include_failed)
+        pairs = _load_manifest(root, split=split, include_failed=include_failed, verify=verify)
     elif _public_format(root):
         from mehs.ssr.sources import load_source
 

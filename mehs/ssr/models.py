@@ -82,7 +82,13 @@ def _import_object(spec: str) -> Any:
                 raise InputError("no such Python file", path)
             mspec = importlib.util.spec_from_file_location(f"_mehs_user_{path.stem}", path)
             module = importlib.util.module_from_spec(mspec)
-            mspec.loader.exec_module(module)  # type: ignore[union-attr]
+            try:
+                mspec.loader.exec_module(module)  # type: ignore[union-attr]
+            except ImportError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - the user's file failed: say which
+                raise InputError(f"model {spec!r}: running {path} failed "
+                                 f"({type(exc).__name__}: {exc})", path) from None
         else:
             module = importlib.import_module(mod_name)
     except ImportError as exc:

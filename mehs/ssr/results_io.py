@@ -82,7 +82,8 @@ def row_label(s: dict[str, Any]) -> str:
 
 
 def _best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
-    """Bold the best value of each column as displayed (ties included)."""
+    """Bold the best value of each column as displayed (ties included, unless every model ties:
+    such a column has no "best")."""
     marks = [[False] * len(metrics) for _ in vals]
     for j, m in enumerate(metrics):
         col = [(i, v[j]) for i, v in enumerate(vals) if v[j] is not None]
@@ -92,6 +93,9 @@ def _best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
         shown = _FMT[m].format(best)
         for i, v in col:
             marks[i][j] = _FMT[m].format(v) == shown
+        if len(col) > 1 and all(marks[i][j] for i, _ in col):
+            for i, _ in col:
+                marks[i][j] = False
     return marks
 
 

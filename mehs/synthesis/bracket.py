@@ -130,7 +130,7 @@ def _guess_bit_depth(cube: SpectralCube, meta: dict) -> int:
 
 
 def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: str = "sha256",
-                 bit_depth: int | None = None) -> Bracket:
+                 bit_depth: int | None = None, allow_partial: bool = False) -> Bracket:
     """Load a bracket from a scene folder (``scene.json``) or a list of Specim IQ folders.
 
     Parameters
@@ -146,6 +146,10 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
     bit_depth
         Override the ADC bit depth (default: ``scene.json`` device sensor, else
         12 for 12-bit-range uint16 data).
+    allow_partial
+        Scene folders: use the complete exposures of a bracket whose capture
+        did not finish (an exposure marked ``incomplete``, or planned and never
+        started). Without it such a scene is refused, naming the exposure.
 
     Raises
     ------
@@ -153,6 +157,22 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
         Naming the folder: fewer than 2 exposures, times not positive or not
         distinct, shapes or wavelengths that differ, a file that fails verification.
     """
+    import warnings
+
+    from mehs.io.plausibility import ByteOrderWarning
+
+    # a mislabelled byte order would be fused into a plausible-looking wrong cube
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ByteOrderWarning)
+        try:
+            return _load_bracket(path_or_paths, verify=verify, bit_depth=bit_depth,
+                                 allow_partial=allow_partial)
+        except ByteOrderWarning as w:
+            raise FormatError(f"{w}; refusing to fuse it") from None
+
+
+def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
+                  allow_partial: bool) -> Bracket:
     from mehs.io.specim import read_specim_folder
 
     if isinstance(path_or_paths, (str, Path)):
@@ -162,7 +182,8 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
     if not paths:
         raise InputError("no bracket given")
     if len(paths) == 1 and (paths[0] / "scene.json").is_file():
-        return _load_scene(paths[0], verify=verify, bit_depth=bit_depth)
+        return _load_scene(paths[0], verify=verify, bit_depth=bit_depth,
+                           allow_partial=allow_partial)
     if len(paths) == 1:
         if not paths[0].exists():
             raise InputError("does not exist", paths[0])
@@ -182,7 +203,34 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
                    bit_depth=bd, source=paths[0], metadata=meta)
 
 
-def _load_scene(root: Path, *, verify: str, bit_depth: int | None) -> Bracket:
+def unfinished_exposures(doc: dict[str, Any]) -> list[str]:
+    """Exposures of a ``scene.json`` document that its capture plan wanted but did not finish.
+
+    Returns one description per exposure, e.g. ``"2 (242 ms, exposures/2_242ms)"``:
+    records marked ``incomplete`` and indices of ``plan.times_ms`` with no record.
+    """
+    recs = [e for e in doc.get("exposures", []) if isinstance(e, dict)]
+    out = [f"{e.get('index')} ({e.get('integration_time_ms')} ms, {e.get('folder')})"
+           for e in recs if e.get("status") != "complete"]
+    plan = doc.get("plan")
+    times = plan.get("times_ms") if isinstance(plan, dict) else None
+    if isinstance(times, list):
+        seen = {e.get("index") for e in recs}
+        out += [f"{k} ({t} ms, not started)" for k, t in enumerate(times) if k not in seen]
+    return out
+
+
+def partial_bracket_error(root: Path, missing: list[str]) -> InputError:
+    """The refusal of a partial bracket: which exposure, and the two ways forward."""
+    return InputError(
+        f"the capture of this scene did not finish: exposure {', '.join(missing)} "
+        f"{'is' if len(missing) == 1 else 'are'} incomplete. Finish it with 'mehs capture "
+        f"--resume --out {root}' (plus the --stage/--camera or --simulate options it was "
+        "captured with), or pass --allow-partial to fuse the complete exposures only", root)
+
+
+def _load_scene(root: Path, *, verify: str, bit_depth: int | None,
+                allow_partial: bool = False) -> Bracket:
     import json
 
     from mehs.io.atomic import sha256_file
@@ -196,6 +244,9 @@ def _load_scene(root: Path, *, verify: str, bit_depth: int | None) -> Bracket:
         raise FormatError(f"unreadable scene.json ({exc})", sj) from None
     if not isinstance(doc, dict) or doc.get("format") != "mehs-scene/1":
         raise FormatError("not a mehs-scene/1 file", sj)
+    missing = unfinished_exposures(doc)
+    if missing and not allow_partial:
+        raise partial_bracket_error(root, missing)
     recs = [e for e in doc.get("exposures", []) if isinstance(e, dict)
             and e.get("status") == "complete"]
     if len(recs) < 2:

@@ -41,6 +41,7 @@ from typing import Callable
 
 import numpy as np
 
+from mehs.bandmeta import resampled_band_metadata
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import InputError, MehsError
 from mehs.rgb import WAVELENGTHS_31
@@ -306,7 +307,8 @@ def resample_cube(cube: SpectralCube, target=WAVELENGTHS_31, *, method: str = "g
         default = tuple(int(np.argmin(np.abs(dst - cube.wavelengths[b])))
                         for b in cube.default_bands)
     dst_f = None if method == "linear" else _per_band(fwhm, dst.size, "target FWHM")
-    meta = dict(cube.metadata)
+    # bbl recomputed from the weights; names/gains/offsets of the source bands dropped
+    meta = resampled_band_metadata(cube.metadata, m)
     # Flat text/number keys so ENVI headers can carry them.
     meta["resampling method"] = method
     meta.pop("resampling fwhm", None)

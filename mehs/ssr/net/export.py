@@ -206,6 +206,7 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
         tf_arch = getattr(cfg, "variant", type(model).__name__.lower())
     if not hasattr(model, "spectra"):
         raise InputError(f"cannot export {type(model).__name__}: not an SSR network")
+    _require_onnx()
     net = model.to("cpu").eval()
     graph = _ContractGraph(net).eval()
     example = torch.rand(1, 3, *example_size)
@@ -226,6 +227,23 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
             "mehs_version": __version__,
         })
     return path
+
+
+ONNX_HINT = 'pip install "mehs[onnx]"'
+
+
+def _require_onnx() -> None:
+    """Refuse before exporting: torch's exporter needs the ``onnx`` package (torch extra alone
+    lacks it) and would otherwise fail with its own ``OnnxExporterError`` after the trace."""
+    import importlib.util
+
+    try:
+        found = importlib.util.find_spec("onnx") is not None
+    except ValueError:  # a module set to None in sys.modules (tests) or half-imported
+        found = False
+    if not found:
+        raise InputError(f"ONNX export needs the onnx package, which is not installed "
+                         f"({ONNX_HINT})")
 
 
 def _add_metadata(path: Path, props: dict[str, str]) -> None:

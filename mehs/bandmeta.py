@@ -1,0 +1,113 @@
+"""Per-band metadata that must follow its bands: reordered, checked, or rebuilt on resampling.
+
+ENVI headers carry lists with one value per band besides ``wavelength`` and
+``fwhm`` (which :class:`mehs.cube.SpectralCube` holds as arrays): the bad-band
+list ``bbl``, ``band names``, and the per-band gains and offsets. When a cube's
+unsorted wavelengths are sorted, these lists must be permuted with the bands,
+or a flag on one band is written back on another; when the band set changes
+(resampling), lists of the old length must not be written with the new bands.
+
+All functions return new dicts; metadata values are the header's items (strings)
+or numbers, kept as they are.
+
+References
+----------
+ENVI header format, "bbl", "band names", "data gain values", "data offset values",
+"data reflectance gain values", "data reflectance offset values" — NV5 Geospatial,
+*ENVI Header Files* (docs.nv5geospatialsoftware.com).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, Mapping
+
+import numpy as np
+
+#: Header keys holding exactly one value per band (other than wavelength and fwhm).
+PER_BAND_KEYS = frozenset({"bbl", "band names", "data gain values", "data offset values",
+                           "data reflectance gain values", "data reflectance offset values"})
+
+#: A resampled band is flagged bad when more than this share of its weight comes from
+#: source bands flagged bad.
+BAD_WEIGHT_SHARE = 0.01
+
+
+class BandMetadataWarning(UserWarning):
+    """Per-band metadata whose length does not match the band count was dropped."""
+
+
+def _items(value: Any) -> list | None:
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    return list(value) if isinstance(value, (list, tuple)) else None
+
+
+def permute_band_metadata(meta: Mapping[str, Any], order: np.ndarray) -> dict[str, Any]:
+    """``meta`` with each per-band list reordered as ``new[i] = old[order[i]]``.
+
+    Parameters
+    ----------
+    meta
+        Metadata dict (header keys, lower case).
+    order
+        int ``(bands,)`` permutation applied to the bands (e.g. ``argsort(wavelengths)``).
+    """
+    order = np.asarray(order, dtype=np.intp)
+    out = dict(meta)
+    for key in PER_BAND_KEYS & out.keys():
+        items = _items(out[key])
+        if items is not None and len(items) == order.size:
+            out[key] = [items[i] for i in order]
+    return out
+
+
+def check_band_metadata(meta: Mapping[str, Any], n_bands: int,
+                        source: Any = None) -> dict[str, Any]:
+    """``meta`` without per-band lists whose length is not ``n_bands`` (with a warning).
+
+    A header whose ``bbl`` has another length than ``bands`` cannot say which band a
+    flag belongs to; keeping it would attach flags to the wrong bands on writing.
+    """
+    out = dict(meta)
+    for key in sorted(PER_BAND_KEYS & out.keys()):
+        items = _items(out[key])
+        n = len(items) if items is not None else 1
+        if n != n_bands:
+            warnings.warn(f"{source or 'cube'}: {key!r} has {n} values for {n_bands} bands; "
+                          "dropped", BandMetadataWarning, stacklevel=3)
+            del out[key]
+    return out
+
+
+def bad_bands(meta: Mapping[str, Any], n_bands: int) -> np.ndarray | None:
+    """bool ``(n_bands,)``: True where ``bbl`` flags a band bad (0); None without a usable bbl."""
+    items = _items(meta.get("bbl"))
+    if items is None or len(items) != n_bands:
+        return None
+    try:
+        return np.asarray([float(str(v).strip()) == 0.0 for v in items], dtype=bool)
+    except ValueError:
+        return None
+
+
+def resampled_band_metadata(meta: Mapping[str, Any], matrix: np.ndarray) -> dict[str, Any]:
+    """Per-band metadata for bands made as ``dst = matrix @ src``.
+
+    Names, gains and offsets describe the source bands and are dropped; a ``bbl``
+    is recomputed: a target band is bad (0) when more than :data:`BAD_WEIGHT_SHARE`
+    of its absolute weight comes from source bands flagged bad.
+
+    Parameters
+    ----------
+    matrix
+        ``(n_dst, n_src)`` resampling matrix.
+    """
+    matrix = np.abs(np.asarray(matrix, dtype=np.float64))
+    bad = bad_bands(meta, matrix.shape[1])
+    out = {k: v for k, v in meta.items() if k not in PER_BAND_KEYS}
+    if bad is not None:
+        total = matrix.sum(axis=1)
+        share = matrix[:, bad].sum(axis=1) / np.where(total > 0, total, 1.0)
+        out["bbl"] = [0 if s > BAD_WEIGHT_SHARE else 1 for s in share]
+    return out
