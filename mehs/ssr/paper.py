@@ -106,7 +106,7 @@ def _pick_preset(arch, quick: bool, preset: str | None) -> str | None:
 
 
 def _train_cli(dataset, out_dir: Path, run: Run, *, preset, preprocessing, input, epochs, device,
-               seed, progress, options) -> Path:
+               seed, progress, options, learning=None) -> Path:
     """Fallback for architectures without a ``train`` hook: ``mehs train-ssr --arch``."""
     from mehs.cli import main
 
