@@ -123,15 +123,19 @@ def timing_block(timing: list[dict[str, Any]]) -> tuple:
     h, w = timing[0]["shape"]
     header = ["Method", "CPU (s)", "CUDA (s)", "CPU with restoration (s)", "× fastest CPU",
               "paper CPU (s)", "paper GPU (s)"]
-    fastest = min(t["seconds"] for t in timing)
+    done = [t["seconds"] for t in timing if t.get("seconds") is not None]
+    fastest = min(done) if done else None
 
     def f(v, spec="{:.3f}"):
         return "–" if v is None else spec.format(v)
 
-    body = [[t["model"], f(t["seconds"]), f(t.get("cuda_seconds")), f(t["pipeline_seconds"]),
-             f(t["seconds"] / fastest, "{:.1f}"), f(t.get("paper_seconds")),
-             f(t.get("paper_gpu_seconds"))] for t in timing]
-    bold = [[t["seconds"] == fastest] + [False] * 5 for t in timing]
+    body = [[t["model"] + (f" (CPU: {t['error']})" if t.get("error") else "")
+             + (f" (CUDA: {t['cuda_error']})" if t.get("cuda_error") else ""),
+             f(t.get("seconds")), f(t.get("cuda_seconds")), f(t.get("pipeline_seconds")),
+             "–" if t.get("seconds") is None else f(t["seconds"] / fastest, "{:.1f}"),
+             f(t.get("paper_seconds")), f(t.get("paper_gpu_seconds"))] for t in timing]
+    bold = [[t.get("seconds") is not None and t["seconds"] == fastest] + [False] * 5
+            for t in timing]
     return (f"Conversion time on a {w}×{h} image", header, body, bold)
 
 

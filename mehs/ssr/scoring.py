@@ -504,18 +504,34 @@ def time_models(models: Sequence, *, shape: tuple[int, int] = (1024, 2048), repe
             best = min(best, time.perf_counter() - t0)
         return best
 
+    def attempt(fn):
+        """``(seconds, None)``, or ``(None, why)`` when the device runs out of memory: one
+        network too large for the image must not cost the other methods their row."""
+        try:
+            return fn(), None
+        except (MemoryError, RuntimeError) as exc:  # torch reports allocation failures so
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if isinstance(exc, RuntimeError) and "memory" not in msg.lower():
+                raise
+            return None, msg[:160]
+
+    def pipeline(model) -> float:
+        t0 = time.perf_counter()
+        predict(model, rgb, restore=trained_for(model).output != "spectra")
+        return time.perf_counter() - t0
+
     out = []
     for item in models:
         model, name = item if isinstance(item, tuple) else (item, getattr(item, "name", "model"))
-        best = clock(model)
-        t0 = time.perf_counter()
-        predict(model, rgb, restore=trained_for(model).output != "spectra")
-        full = time.perf_counter() - t0
-        cuda = None
+        best, why = attempt(lambda: clock(model))
+        full = None if best is None else attempt(lambda: pipeline(model))[0]
+        cuda, why_cuda = None, None
         if use_cuda and callable(getattr(model, "on_device", None)):
-            cuda = clock(model.on_device("cuda"))
+            cuda, why_cuda = attempt(lambda: clock(model.on_device("cuda")))
         paper = PAPER_SECONDS.get(name.lower(), (None, None)) if (h, w) == (1024, 2048) else (None, None)
         out.append({"model": name, "shape": [h, w], "seconds": best, "pipeline_seconds": full,
-                    "cuda_seconds": cuda, "megapixels_per_second": h * w / 1e6 / best,
-                    "paper_seconds": paper[0], "paper_gpu_seconds": paper[1]})
+                    "cuda_seconds": cuda,
+                    "megapixels_per_second": None if best is None else h * w / 1e6 / best,
+                    "paper_seconds": paper[0], "paper_gpu_seconds": paper[1],
+                    "error": why, "cuda_error": why_cuda})
     return out
