@@ -39,7 +39,7 @@ from mehs.errors import InputError
 from mehs.ssr.metrics import HIGHER_IS_BETTER, METRIC_NAMES
 
 EVALUATION_FORMAT = "mehs-evaluation/1"
-_FMT = {"sam": "{:.3f}", "mrae": "{:.4f}", "rmse": "{:.4g}", "psnr": "{:.2f}"}
+FMT = {"sam": "{:.3f}", "mrae": "{:.4f}", "rmse": "{:.4g}", "psnr": "{:.2f}"}
 _LABEL = {"sam": "SAM (°)", "mrae": "MRAE", "rmse": "RMSE", "psnr": "PSNR (dB)"}
 _PP_ORDER = ("on", "off")  # the paper's column order: with, then without
 
@@ -52,7 +52,7 @@ def write_npz(path: Path, arrays: dict[str, Any]) -> None:
             np.savez_compressed(fh, **arrays)
 
 
-def _render(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]],
+def render_block(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]],
             fmt: str) -> str:
     if fmt == "markdown":
         lines = [f"### {title}", "", "| " + " | ".join(header) + " |",
@@ -81,7 +81,7 @@ def row_label(s: dict[str, Any]) -> str:
     return f"{s['model']} (restoration {'on' if s['restore'] else 'off'})"
 
 
-def _best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
+def best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
     """Bold the best value of each column as displayed (ties included)."""
     marks = [[False] * len(metrics) for _ in vals]
     for j, m in enumerate(metrics):
@@ -89,9 +89,9 @@ def _best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
         if not col:
             continue
         best = (max if HIGHER_IS_BETTER[m] else min)(v for _, v in col)
-        shown = _FMT[m].format(best)
+        shown = FMT[m].format(best)
         for i, v in col:
-            marks[i][j] = _FMT[m].format(v) == shown
+            marks[i][j] = FMT[m].format(v) == shown
     return marks
 
 
@@ -108,8 +108,8 @@ def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sa
                                for p, m in cols]
         look = {(row_label(s), s["preprocess"]): s for s in sub}
         vals = [[(look.get((lab, p)) or {}).get(m) for p, m in cols] for lab in labels]
-        bold = _best_marks(vals, [m for _, m in cols])
-        body = [[lab] + ["–" if v is None else _FMT[m].format(v) for v, (p, m) in zip(row, cols)]
+        bold = best_marks(vals, [m for _, m in cols])
+        body = [[lab] + ["–" if v is None else FMT[m].format(v) for v, (p, m) in zip(row, cols)]
                 for lab, row in zip(labels, vals)]
         title = f"{inp.upper()}-RGB input ({max(s['n_images'] for s in sub)} images)"
         blocks.append((title, header, body, bold))
@@ -148,7 +148,7 @@ def spread_block(summary: list[dict[str, Any]], metrics: Sequence[str] = ("sam",
     for s in summary:
         row = [row_label(s), s["input"].upper(), s["preprocess"]]
         for m in metrics:
-            fm = _FMT[m]
+            fm = FMT[m]
             row.append("–" if s.get(m) is None else
                        f"{fm.format(s[m])} ± {fm.format(s.get(f'{m}_std') or 0.0)}")
             row.append("–" if s.get(f"{m}_median") is None else fm.format(s[f"{m}_median"]))
@@ -182,9 +182,9 @@ def per_scene_blocks(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
         for v in vals:  # best per scene (per row)
             ok = [x for x in v if x is not None]
             best = None if not ok else (max if HIGHER_IS_BETTER[metric] else min)(ok)
-            bold.append([x is not None and _FMT[metric].format(x) == _FMT[metric].format(best)
+            bold.append([x is not None and FMT[metric].format(x) == FMT[metric].format(best)
                          for x in v])
-        body = [[sc] + ["–" if x is None else _FMT[metric].format(x) for x in v]
+        body = [[sc] + ["–" if x is None else FMT[metric].format(x) for x in v]
                 for sc, v in zip(scenes, vals)]
         blocks.append((f"Per scene, {_LABEL[metric]}, {inp.upper()}-RGB input", header, body, bold))
     return blocks
@@ -199,7 +199,7 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
     """
     if fmt not in ("markdown", "text"):
         raise InputError(f"table format must be 'markdown' or 'text', got {fmt!r}")
-    return "\n".join(_render(*b, fmt) for b in table_blocks(summary, metrics=metrics,
+    return "\n".join(render_block(*b, fmt) for b in table_blocks(summary, metrics=metrics,
                                                              timing=timing))
 
 
@@ -222,10 +222,10 @@ def write_results(res, out: str | Path, *, dataset: str | None = None) -> Path:
     md = ("# SSR evaluation\n\n" + res.tables("markdown") + "\n## All metrics\n\n" +
           res.tables("markdown", metrics=METRIC_NAMES).replace("### ", "#### ") +
           "\n## Spread and per scene\n\n" +
-          "\n".join(_render(*b, "markdown") for b in extra).replace("### ", "#### "))
+          "\n".join(render_block(*b, "markdown") for b in extra).replace("### ", "#### "))
     write_text_atomic(out / "tables.md", md)
     write_text_atomic(out / "tables.txt", res.tables("text", metrics=METRIC_NAMES) + "\n" +
-                      "\n".join(_render(*b, "text") for b in extra))
+                      "\n".join(render_block(*b, "text") for b in extra))
     return out
 
 
