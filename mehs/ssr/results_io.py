@@ -82,7 +82,8 @@ def row_label(s: dict[str, Any]) -> str:
 
 
 def best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
-    """Bold the best value of each column as displayed (ties included)."""
+    """Bold the best value of each column as displayed (ties included), except where
+    every value of the column ties: then nothing is best (e.g. PSNR at its 120 dB cap)."""
     marks = [[False] * len(metrics) for _ in vals]
     for j, m in enumerate(metrics):
         col = [(i, v[j]) for i, v in enumerate(vals) if v[j] is not None]
@@ -90,8 +91,11 @@ def best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
             continue
         best = (max if HIGHER_IS_BETTER[m] else min)(v for _, v in col)
         shown = FMT[m].format(best)
-        for i, v in col:
-            marks[i][j] = FMT[m].format(v) == shown
+        hit = [FMT[m].format(v) == shown for _, v in col]
+        if len(col) > 1 and all(hit):
+            continue
+        for (i, _), h in zip(col, hit):
+            marks[i][j] = h
     return marks
 
 
@@ -178,12 +182,9 @@ def per_scene_blocks(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
         header = ["Scene"] + [f"{natural.get((inp, p, rs, m), m)} {'w/' if p == 'on' else 'w/o'} pp"
                               for p, rs, m in cols]
         vals = [[look.get((sc, *c)) for c in cols] for sc in scenes]
-        bold = []
-        for v in vals:  # best per scene (per row)
-            ok = [x for x in v if x is not None]
-            best = None if not ok else (max if HIGHER_IS_BETTER[metric] else min)(ok)
-            bold.append([x is not None and FMT[metric].format(x) == FMT[metric].format(best)
-                         for x in v])
+        # best per scene: the rows of this table are the columns of best_marks
+        bold = [list(r) for r in zip(*best_marks([list(c) for c in zip(*vals)],
+                                                 [metric] * len(scenes)))] if vals else []
         body = [[sc] + ["–" if x is None else FMT[metric].format(x) for x in v]
                 for sc, v in zip(scenes, vals)]
         blocks.append((f"Per scene, {_LABEL[metric]}, {inp.upper()}-RGB input", header, body, bold))
