@@ -79,7 +79,7 @@ def test_paper_rejects_unknown_names(tmp_path):
 def test_table5_keeps_a_row_for_a_network_out_of_memory():
     from mehs.ssr.baselines import Smits1999
     from mehs.ssr.results_io import timing_block
-    from mehs.ssr.scoring import time_models
+    from mehs.ssr.timing import time_models
 
     class Huge(Smits1999):
         name = "huge"

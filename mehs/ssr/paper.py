@@ -246,7 +246,8 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
     """
     from mehs.io.atomic import check_output_dir, make_output_dir
     from mehs.ssr.registry import list_architectures
-    from mehs.ssr.scoring import evaluate, time_models
+    from mehs.ssr.scoring import evaluate
+    from mehs.ssr.timing import time_models
 
     out = Path(out)
     check_output_dir(out, inputs=[dataset] + ([real] if real else []))
