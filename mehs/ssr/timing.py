@@ -7,6 +7,7 @@ available, on CUDA for models that can move there (torch networks).
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Any, Sequence
 
@@ -75,7 +76,9 @@ def time_models(models: Sequence, *, shape: tuple[int, int] = (1024, 2048), repe
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             if isinstance(exc, RuntimeError) and "memory" not in msg.lower():
                 raise
-            return None, msg[:160]
+            asked = re.search(r"allocate (\d+) bytes", msg)
+            return None, ("out of memory" + (f" ({int(asked.group(1)) / 2**30:.3g} GiB asked)"
+                                             if asked else ""))
 
     out = []
     for item in models:
