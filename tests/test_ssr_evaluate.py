@@ -117,6 +117,17 @@ def test_report_html(full_eval, tmp_path):
     html = write_evaluation_report(full_eval.out, tmp_path / "r.html").read_text()
     assert html.count("data:image/png;base64,") >= 5
     assert "<b>" in html and "SAM" in html and "http" not in html.replace("http-equiv", "")
+    for part in ("Spread across images", "Per scene, SAM", "Per scene, MRAE", "(log axis)",
+                 "lowest SAM per pixel", "Models and what they were trained for",
+                 "MRAE element rule", "smits</b>: fixed"):
+        assert part in html, part
+    # spread: the summary's std and median are those of the per-image rows
+    rows = [r["sam"] for r in full_eval.rows if r["model"] == "smits" and r["input"] == "hdr"
+            and r["preprocess"] == "off" and r["restore"]]
+    s = next(s for s in full_eval.summary if s["model"] == "smits" and s["input"] == "hdr"
+             and s["restore"])
+    assert s["sam_std"] == pytest.approx(np.std(rows, ddof=1)) and s["sam_median"] == pytest.approx(np.median(rows))
+    assert f"{s['sam']:.3f} ± {s['sam_std']:.3f}" in html
 
 
 def test_plain_folder_of_pairs(dataset, tmp_path):

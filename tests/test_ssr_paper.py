@@ -74,3 +74,33 @@ def test_paper_rejects_unknown_names(tmp_path):
 
         run_paper(ds, tmp_path / "o", archs=["nope"])
     assert main(["paper", str(ds), "--out", str(tmp_path / "o"), "--checkpoint", "x"]) == 2
+
+
+def test_table5_keeps_a_row_for_a_network_out_of_memory():
+    from mehs.ssr.baselines import Smits1999
+    from mehs.ssr.results_io import timing_block
+    from mehs.ssr.timing import time_models
+
+    class Huge(Smits1999):
+        name = "huge"
+
+        def predict(self, rgb):  # like AWAN's image-wide attention on a 2048×1024 image
+            if rgb.shape[0] > 16:
+                raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to "
+                                   "allocate 1099511627776 bytes")
+            return super().predict(rgb)
+
+    t = time_models([Smits1999(), Huge()], shape=(32, 64))
+    assert t[0]["seconds"] > 0 and t[1]["seconds"] is None
+    assert t[1]["error"] == "out of memory (1.02e+03 GiB asked)"
+    body = timing_block(t)[2]
+    assert body[1][0] == "huge (CPU: out of memory (1.02e+03 GiB asked))" and body[1][1] == "–"
+
+    class Broken(Smits1999):
+        name = "broken"
+
+        def predict(self, rgb):
+            raise RuntimeError("index out of range: a bug")
+
+    with pytest.raises(RuntimeError, match="a bug"):
+        time_models([Broken()], shape=(32, 64))

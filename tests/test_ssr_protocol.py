@@ -204,3 +204,17 @@ def test_mrae_rule_and_pixels_are_recorded(ds, tmp_path):
         evaluate(ds, "smits", preprocess="off", pixels=["oops"])
     with pytest.raises(InputError, match="not among the scored scenes"):
         evaluate(ds, "smits", preprocess="off", split=None, pixels=["nope:1,1"])
+
+
+def test_a_column_where_every_model_ties_marks_no_best():
+    from mehs.ssr.results_io import best_marks, per_scene_blocks
+
+    # PSNR at its 120 dB cap for the two models scored: no "best"; SAM still marked
+    assert best_marks([[1.0, 120.0], [2.0, 120.0], [None, None]], ["sam", "psnr"]) == \
+        [[True, False], [False, False], [False, False]]
+    assert best_marks([[1.0004], [1.0001]], ["sam"]) == [[False], [False]]   # tie as shown
+    assert best_marks([[1.0]], ["sam"]) == [[True]]                           # alone is best
+    rows = [{"scene": sc, "input": "hdr", "preprocess": "off", "restore": True, "model": m,
+             "sam": v} for sc, m, v in (("a", "x", 1.0), ("a", "y", 2.0), ("b", "x", 3.0),
+                                       ("b", "y", 3.0))]
+    assert per_scene_blocks(rows, [])[0][3] == [[True, False], [False, False]]

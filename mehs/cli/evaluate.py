@@ -46,8 +46,9 @@ def configure(parser):
     parser.add_argument("--out", "-o", default="evaluation", metavar="DIR",
                         help="results folder (evaluation.json, results.csv, tables.md, "
                              "figures/) (default: %(default)s)")
-    parser.add_argument("--figures", default="2", metavar="N|all",
-                        help="scenes kept for the report's figures (default: %(default)s)")
+    parser.add_argument("--figures", default="all", metavar="N|all",
+                        help="scenes kept for the report's figures: best-method and SAM maps, "
+                             "spectra (default: %(default)s)")
     parser.add_argument("--timing", action="store_true",
                         help="also time each model on a 2048×1024 image (paper Table 5)")
     parser.add_argument("--timing-size", default="2048x1024", metavar="WxH",

@@ -12,7 +12,8 @@ metrics     SAM (degrees), MRAE, RMSE, PSNR per image
 data        paired HS/RGB sets (dataset folder or plain folder of pairs)
 pipeline    input RGB → (pre-processing) → model → (restoration) → cube
 protocol    which settings each model is scored under (its trained input)
-scoring     :func:`evaluate`: per-image metrics, summaries, timing
+scoring     :func:`evaluate`: per-image metrics, summaries
+timing      conversion time on a 2048×1024 image (Table 5), CPU and CUDA
 results_io  tables and the results folder; ``evaluate`` re-exports all three
 report      HTML report with the tables and figures
 paper       ``mehs paper``: Tables 1–5 and Figures 9/10 for every registered method

@@ -1,7 +1,8 @@
 """SSR evaluation, one import for the three concerns it is split into.
 
 - :mod:`mehs.ssr.protocol` — which settings each model is scored under;
-- :mod:`mehs.ssr.scoring` — :func:`evaluate`, :func:`summarise`, :func:`time_models`;
+- :mod:`mehs.ssr.scoring` — :func:`evaluate`, :func:`summarise`;
+- :mod:`mehs.ssr.timing` — :func:`time_models` (Table 5);
 - :mod:`mehs.ssr.results_io` — tables and the results folder (format ``mehs-evaluation/1``).
 """
 
@@ -11,8 +12,9 @@ from mehs.ssr.protocol import PREPROCESS_CHOICES, allowed, model_settings  # noq
 from mehs.ssr.results_io import (EVALUATION_FORMAT, format_tables, is_evaluation_folder,  # noqa: F401
                                  load_results, per_scene_blocks, spread_block, table_blocks,
                                  write_results)
-from mehs.ssr.scoring import (PAPER_SECONDS, EvaluationResult, config_key, evaluate,  # noqa: F401
-                              parse_key, parse_pixels, summarise, time_models)
+from mehs.ssr.scoring import (EvaluationResult, config_key, evaluate, parse_key,  # noqa: F401
+                              parse_pixels, summarise)
+from mehs.ssr.timing import PAPER_SECONDS, time_models  # noqa: F401
 
 __all__ = ["EVALUATION_FORMAT", "EvaluationResult", "PAPER_SECONDS", "PREPROCESS_CHOICES",
            "allowed", "config_key", "evaluate", "format_tables", "is_evaluation_folder",

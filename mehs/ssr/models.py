@@ -46,6 +46,11 @@ from mehs.ssr.contract import (FunctionModel, SSRModel, SSRModelProtocol, all_fi
                                check_output, check_rgb)
 from mehs.ssr.registry import MODELS, ModelEntry, load_providers, register_model  # noqa: F401
 
+#: Re-exported from the contract and the registry, where they live.
+__all__ = ["MODELS", "FunctionModel", "ModelEntry", "OnnxModel", "SSRModel", "SSRModelProtocol",
+           "all_finite", "check_output", "check_rgb", "list_models", "load_model",
+           "register_model", "split_named_spec"]
+
 
 def _load_builtins() -> None:
     import mehs.ssr.baselines  # noqa: F401  (registers the built-ins)

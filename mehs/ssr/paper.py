@@ -106,7 +106,7 @@ def _pick_preset(arch, quick: bool, preset: str | None) -> str | None:
 
 
 def _train_cli(dataset, out_dir: Path, run: Run, *, preset, preprocessing, input, epochs, device,
-               seed, progress, options) -> Path:
+               seed, progress, options, learning=None) -> Path:
     """Fallback for architectures without a ``train`` hook: ``mehs train-ssr --arch``."""
     from mehs.cli import main
 
@@ -166,7 +166,7 @@ def _fig_pngs(results_dir: Path, fig_dir: Path, prefix: str, input: str = "hdr")
     import matplotlib.pyplot as plt
 
     from mehs.io.atomic import write_bytes_atomic
-    from mehs.ssr.report import _scene_figures
+    from mehs.ssr.report import scene_figures
     from mehs.ssr.results_io import load_results
 
     doc = load_results(results_dir)
@@ -175,7 +175,7 @@ def _fig_pngs(results_dir: Path, fig_dir: Path, prefix: str, input: str = "hdr")
         npz = results_dir / "figures" / f"{sid}.npz"
         if not npz.is_file():
             continue
-        for i, (cap, uri) in enumerate(_scene_figures(npz, plt)):
+        for i, (cap, uri) in enumerate(scene_figures(npz, plt)):
             if f"{input.upper()}-RGB" not in cap:
                 continue
             path = fig_dir / f"{prefix}_{sid}_{i}.png"
@@ -185,7 +185,7 @@ def _fig_pngs(results_dir: Path, fig_dir: Path, prefix: str, input: str = "hdr")
 
 
 def _table1(main_sum: list, real_sum: list | None, runs: list[Run]) -> tuple:
-    from mehs.ssr.results_io import _FMT, _best_marks
+    from mehs.ssr.results_io import FMT, best_marks
 
     rows, vals = [], []
     for run in runs:
@@ -199,10 +199,10 @@ def _table1(main_sum: list, real_sum: list | None, runs: list[Run]) -> tuple:
     metrics = ["sam", "mrae"] * (2 if real_sum else 1)
     header = ["Method", "DATASET SAM (°)", "DATASET MRAE"] + (
         ["real SAM (°)", "real MRAE"] if real_sum else [])
-    body = [[r] + ["–" if v is None else _FMT[m].format(v) for v, m in zip(vs, metrics)]
+    body = [[r] + ["–" if v is None else FMT[m].format(v) for v, m in zip(vs, metrics)]
             for r, vs in zip(rows, vals)]
     return ("Table 1. Learning methods (◇ spectral similarity, e2e end to end), HDR input, "
-            "with pre-processing", header, body, _best_marks(vals, metrics))
+            "with pre-processing", header, body, best_marks(vals, metrics))
 
 
 def _paper_block(summary: list, input: str, title: str, rows: Sequence[str]) -> tuple | None:
@@ -246,7 +246,8 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
     """
     from mehs.io.atomic import check_output_dir, make_output_dir
     from mehs.ssr.registry import list_architectures
-    from mehs.ssr.scoring import evaluate, time_models
+    from mehs.ssr.scoring import evaluate
+    from mehs.ssr.timing import time_models
 
     out = Path(out)
     check_output_dir(out, inputs=[dataset] + ([real] if real else []))
@@ -354,7 +355,7 @@ def write_paper(out: Path, *, runs: list[Run], main_rows: list[str], main_sum: l
     """Write ``paper.md`` and ``paper.html`` (tables and figure files); returns ``paper.md``."""
     from mehs.io.atomic import write_text_atomic
     from mehs.ssr.report import _CSS, html_table
-    from mehs.ssr.results_io import _render, timing_block
+    from mehs.ssr.results_io import render_block, timing_block
 
     no_real = "(no --real dataset given: Table 3 and Figure 10 need the real HDR-HS set)"
     blocks: list[tuple[str, tuple | None, str]] = [
@@ -390,7 +391,7 @@ def write_paper(out: Path, *, runs: list[Run], main_rows: list[str], main_sum: l
             md += [f"### {name}", "", missing or "(nothing to show)", ""]
             ht.append(f"<h3>{name}</h3><p>{html.escape(missing or '(nothing to show)')}</p>")
             continue
-        md.append(_render(*blk, "markdown"))
+        md.append(render_block(*blk, "markdown"))
         ht.append(html_table(*blk))
     for label, figs, missing in (("Figure 9 (DATASET)", figs9, "(no figures)"),
                                  ("Figure 10 (real set)", figs10, no_real)):

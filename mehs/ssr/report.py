@@ -86,7 +86,7 @@ def _best_method_map(sams: dict[str, np.ndarray], keys: list[str]) -> tuple[list
     return models, best
 
 
-def _scene_figures(npz_path: Path, plt) -> list[tuple[str, str]]:
+def scene_figures(npz_path: Path, plt) -> list[tuple[str, str]]:
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
@@ -256,7 +256,7 @@ def write_evaluation_report(results_dir: str | Path, out_html: str | Path | None
         if npz.is_file():
             with np.load(npz, allow_pickle=False) as z:
                 wl = z["wavelengths"]
-            figs += _scene_figures(npz, plt)
+            figs += scene_figures(npz, plt)
     if wl is None and doc.get("models"):
         wl = np.asarray(doc["models"][0]["wavelengths"])
     parts.append("<h2>Figures</h2>")

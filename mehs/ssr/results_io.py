@@ -39,7 +39,7 @@ from mehs.errors import InputError
 from mehs.ssr.metrics import HIGHER_IS_BETTER, METRIC_NAMES
 
 EVALUATION_FORMAT = "mehs-evaluation/1"
-_FMT = {"sam": "{:.3f}", "mrae": "{:.4f}", "rmse": "{:.4g}", "psnr": "{:.2f}"}
+FMT = {"sam": "{:.3f}", "mrae": "{:.4f}", "rmse": "{:.4g}", "psnr": "{:.2f}"}
 _LABEL = {"sam": "SAM (°)", "mrae": "MRAE", "rmse": "RMSE", "psnr": "PSNR (dB)"}
 _PP_ORDER = ("on", "off")  # the paper's column order: with, then without
 
@@ -52,7 +52,7 @@ def write_npz(path: Path, arrays: dict[str, Any]) -> None:
             np.savez_compressed(fh, **arrays)
 
 
-def _render(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]],
+def render_block(title: str, header: list[str], body: list[list[str]], bold: list[list[bool]],
             fmt: str) -> str:
     if fmt == "markdown":
         lines = [f"### {title}", "", "| " + " | ".join(header) + " |",
@@ -81,21 +81,21 @@ def row_label(s: dict[str, Any]) -> str:
     return f"{s['model']} (restoration {'on' if s['restore'] else 'off'})"
 
 
-def _best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
-    """Bold the best value of each column as displayed (ties included, unless every model ties:
-    such a column has no "best")."""
+def best_marks(vals: list[list[Any]], metrics: list[str]) -> list[list[bool]]:
+    """Bold the best value of each column as displayed (ties included), except where
+    every value of the column ties: then nothing is best (e.g. PSNR at its 120 dB cap)."""
     marks = [[False] * len(metrics) for _ in vals]
     for j, m in enumerate(metrics):
         col = [(i, v[j]) for i, v in enumerate(vals) if v[j] is not None]
         if not col:
             continue
         best = (max if HIGHER_IS_BETTER[m] else min)(v for _, v in col)
-        shown = _FMT[m].format(best)
-        for i, v in col:
-            marks[i][j] = _FMT[m].format(v) == shown
-        if len(col) > 1 and all(marks[i][j] for i, _ in col):
-            for i, _ in col:
-                marks[i][j] = False
+        shown = FMT[m].format(best)
+        hit = [FMT[m].format(v) == shown for _, v in col]
+        if len(col) > 1 and all(hit):
+            continue
+        for (i, _), h in zip(col, hit):
+            marks[i][j] = h
     return marks
 
 
@@ -112,8 +112,8 @@ def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sa
                                for p, m in cols]
         look = {(row_label(s), s["preprocess"]): s for s in sub}
         vals = [[(look.get((lab, p)) or {}).get(m) for p, m in cols] for lab in labels]
-        bold = _best_marks(vals, [m for _, m in cols])
-        body = [[lab] + ["–" if v is None else _FMT[m].format(v) for v, (p, m) in zip(row, cols)]
+        bold = best_marks(vals, [m for _, m in cols])
+        body = [[lab] + ["–" if v is None else FMT[m].format(v) for v, (p, m) in zip(row, cols)]
                 for lab, row in zip(labels, vals)]
         title = f"{inp.upper()}-RGB input ({max(s['n_images'] for s in sub)} images)"
         blocks.append((title, header, body, bold))
@@ -123,19 +123,23 @@ def table_blocks(summary: list[dict[str, Any]], *, metrics: Sequence[str] = ("sa
 
 
 def timing_block(timing: list[dict[str, Any]]) -> tuple:
-    """Table 5: conversion time per method, CPU and CUDA (when measured), paper beside it."""
+    """Table 5: conversion time (model + its restoration) per method, CPU and CUDA (when
+    measured), the paper's i9-11900 / RTX 3090 figures beside it."""
     h, w = timing[0]["shape"]
-    header = ["Method", "CPU (s)", "CUDA (s)", "CPU with restoration (s)", "× fastest CPU",
-              "paper CPU (s)", "paper GPU (s)"]
-    fastest = min(t["seconds"] for t in timing)
+    header = ["Method", "CPU (s)", "CUDA (s)", "× fastest CPU", "paper CPU (s)", "paper GPU (s)"]
+    done = [t["seconds"] for t in timing if t.get("seconds") is not None]
+    fastest = min(done) if done else None
 
     def f(v, spec="{:.3f}"):
         return "–" if v is None else spec.format(v)
 
-    body = [[t["model"], f(t["seconds"]), f(t.get("cuda_seconds")), f(t["pipeline_seconds"]),
-             f(t["seconds"] / fastest, "{:.1f}"), f(t.get("paper_seconds")),
-             f(t.get("paper_gpu_seconds"))] for t in timing]
-    bold = [[t["seconds"] == fastest] + [False] * 5 for t in timing]
+    body = [[t["model"] + (f" (CPU: {t['error']})" if t.get("error") else "")
+             + (f" (CUDA: {t['cuda_error']})" if t.get("cuda_error") else ""),
+             f(t.get("seconds")), f(t.get("cuda_seconds")),
+             "–" if t.get("seconds") is None else f(t["seconds"] / fastest, "{:.1f}"),
+             f(t.get("paper_seconds")), f(t.get("paper_gpu_seconds"))] for t in timing]
+    bold = [[t.get("seconds") is not None and t["seconds"] == fastest] + [False] * 4
+            for t in timing]
     return (f"Conversion time on a {w}×{h} image", header, body, bold)
 
 
@@ -148,7 +152,7 @@ def spread_block(summary: list[dict[str, Any]], metrics: Sequence[str] = ("sam",
     for s in summary:
         row = [row_label(s), s["input"].upper(), s["preprocess"]]
         for m in metrics:
-            fm = _FMT[m]
+            fm = FMT[m]
             row.append("–" if s.get(m) is None else
                        f"{fm.format(s[m])} ± {fm.format(s.get(f'{m}_std') or 0.0)}")
             row.append("–" if s.get(f"{m}_median") is None else fm.format(s[f"{m}_median"]))
@@ -178,13 +182,10 @@ def per_scene_blocks(rows: list[dict[str, Any]], summary: list[dict[str, Any]],
         header = ["Scene"] + [f"{natural.get((inp, p, rs, m), m)} {'w/' if p == 'on' else 'w/o'} pp"
                               for p, rs, m in cols]
         vals = [[look.get((sc, *c)) for c in cols] for sc in scenes]
-        bold = []
-        for v in vals:  # best per scene (per row)
-            ok = [x for x in v if x is not None]
-            best = None if not ok else (max if HIGHER_IS_BETTER[metric] else min)(ok)
-            bold.append([x is not None and _FMT[metric].format(x) == _FMT[metric].format(best)
-                         for x in v])
-        body = [[sc] + ["–" if x is None else _FMT[metric].format(x) for x in v]
+        # best per scene: the rows of this table are the columns of best_marks
+        bold = [list(r) for r in zip(*best_marks([list(c) for c in zip(*vals)],
+                                                 [metric] * len(scenes)))] if vals else []
+        body = [[sc] + ["–" if x is None else FMT[metric].format(x) for x in v]
                 for sc, v in zip(scenes, vals)]
         blocks.append((f"Per scene, {_LABEL[metric]}, {inp.upper()}-RGB input", header, body, bold))
     return blocks
@@ -199,7 +200,7 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
     """
     if fmt not in ("markdown", "text"):
         raise InputError(f"table format must be 'markdown' or 'text', got {fmt!r}")
-    return "\n".join(_render(*b, fmt) for b in table_blocks(summary, metrics=metrics,
+    return "\n".join(render_block(*b, fmt) for b in table_blocks(summary, metrics=metrics,
                                                              timing=timing))
 
 
@@ -222,10 +223,10 @@ def write_results(res, out: str | Path, *, dataset: str | None = None) -> Path:
     md = ("# SSR evaluation\n\n" + res.tables("markdown") + "\n## All metrics\n\n" +
           res.tables("markdown", metrics=METRIC_NAMES).replace("### ", "#### ") +
           "\n## Spread and per scene\n\n" +
-          "\n".join(_render(*b, "markdown") for b in extra).replace("### ", "#### "))
+          "\n".join(render_block(*b, "markdown") for b in extra).replace("### ", "#### "))
     write_text_atomic(out / "tables.md", md)
     write_text_atomic(out / "tables.txt", res.tables("text", metrics=METRIC_NAMES) + "\n" +
-                      "\n".join(_render(*b, "text") for b in extra))
+                      "\n".join(render_block(*b, "text") for b in extra))
     return out
 
 

@@ -32,13 +32,6 @@ from mehs.ssr.preprocess import Preprocessing
 from mehs.ssr.protocol import (PREPROCESS_CHOICES, model_settings, preprocessing_for,
                                protocol_notes)
 
-#: Paper Table 5 (CPU i9-11900 / GPU RTX 3090, 2048×1024), by row name.
-PAPER_SECONDS = {"smits": (0.788, None), "hdrssr": (16.338, 1.066), "ours": (16.338, 1.066),
-                 "mikamoto": (14.766, 0.948), "galliani": (6.337, 0.946),
-                 "hscnn-d": (51.998, 2.344), "hscnnd": (51.998, 2.344),
-                 "awan": (324.586, 7.110)}
-
-
 def config_key(input: str, preprocess: str, restore: bool, model: str) -> str:
     """A file-name-safe key of one configuration, e.g. ``hdr-pp_on-lr_on-smits``."""
     return f"{input}-pp_{preprocess}-lr_{'on' if restore else 'off'}-{model}"
@@ -402,6 +395,8 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
         seen: dict[str, Any] = {}
         for m, n, _ in resolved:
             seen.setdefault(n, m)  # one timing per row (the regression fits cost the same)
+        from mehs.ssr.timing import time_models
+
         tim = time_models(list((m, n) for n, m in seen.items()), shape=timing_shape, seed=seed,
                           devices=timing_devices)
     res = EvaluationResult(rows=rows, summary=summary, config=config, models=model_info,
@@ -460,62 +455,4 @@ def summarise(rows: list[dict[str, Any]], band_acc: dict[str, list] | None = Non
                 mean = np.nansum(bands, 0) / np.maximum(cnt, 1)
             s["band_mrae"] = [float(v) if c else None for v, c in zip(mean, cnt)]
         out.append(s)
-    return out
-
-
-def _timing_image(shape: tuple[int, int], seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    h, w = shape
-    base = rng.gamma(1.0, 1.0, (h // 16 + 1, w // 16 + 1, 3)).astype(np.float32)
-    rgb = np.repeat(np.repeat(base, 16, 0), 16, 1)[:h, :w] * np.float32(10.0)
-    return np.ascontiguousarray(rgb)
-
-
-def _cuda_available() -> bool:
-    try:
-        import torch
-    except ImportError:
-        return False
-    return bool(torch.cuda.is_available())
-
-
-def time_models(models: Sequence, *, shape: tuple[int, int] = (1024, 2048), repeat: int = 1,
-                seed: int = 0, devices: Sequence[str] = ("cpu",),
-                rgb: np.ndarray | None = None) -> list[dict[str, Any]]:
-    """Conversion time of each model on one HDR image of ``shape`` (paper Table 5).
-
-    ``models``: model objects or ``(model, name)`` pairs; ``rgb`` (optional) an
-    image from the dataset, else a synthetic one. Each model is warmed up on a
-    16×16 crop, then ``model(rgb)`` is timed ``repeat`` times (best kept) and
-    the whole pipeline with luminance restoration once. On ``"cuda"`` (when
-    available) models offering ``on_device(device)`` (torch networks) are timed
-    too (``cuda_seconds``; ``None`` otherwise).
-    """
-    rgb = _timing_image(shape, seed) if rgb is None else np.ascontiguousarray(rgb, dtype=np.float32)
-    h, w = rgb.shape[:2]
-    use_cuda = "cuda" in devices and _cuda_available()
-
-    def clock(model) -> float:
-        model(rgb[:16, :16])
-        best = np.inf
-        for _ in range(max(1, repeat)):
-            t0 = time.perf_counter()
-            model(rgb)
-            best = min(best, time.perf_counter() - t0)
-        return best
-
-    out = []
-    for item in models:
-        model, name = item if isinstance(item, tuple) else (item, getattr(item, "name", "model"))
-        best = clock(model)
-        t0 = time.perf_counter()
-        predict(model, rgb, restore=trained_for(model).output != "spectra")
-        full = time.perf_counter() - t0
-        cuda = None
-        if use_cuda and callable(getattr(model, "on_device", None)):
-            cuda = clock(model.on_device("cuda"))
-        paper = PAPER_SECONDS.get(name.lower(), (None, None)) if (h, w) == (1024, 2048) else (None, None)
-        out.append({"model": name, "shape": [h, w], "seconds": best, "pipeline_seconds": full,
-                    "cuda_seconds": cuda, "megapixels_per_second": h * w / 1e6 / best,
-                    "paper_seconds": paper[0], "paper_gpu_seconds": paper[1]})
     return out

@@ -141,7 +141,14 @@ class TorchSSRModel(SSRModel):
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
         x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
-        return self.network(x)[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
+        if getattr(self.network, "receptive_radius", None) is not None:
+            # a purely local network: exact overlapping tiles bound the memory (model zoo)
+            from mehs.ssr.net.infer import predict_tiled
+
+            y = predict_tiled(self.network, x, spectra=False)
+        else:
+            y = self.network(x)
+        return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         """``rgb`` float32 ``(H, W, 3)`` linear → float32 ``(H, W, B)`` spectra."""
