@@ -65,8 +65,9 @@ class TorchSSRModel(SSRModel):
         """``rgb`` float32 ``(H, W, 3)`` linear → float32 ``(H, W, B)``."""
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
-        x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
-        y = self.network(x)[0].permute(1, 2, 0).cpu().numpy()
+        from mehs.ssr.tiling import tiled_torch_call
+
+        y = tiled_torch_call(self, rgb)  # whole image, or tiles when it would not fit in memory
         if self.restores_luminance:
             from mehs.ssr.luminance import restore_luminance
 
