@@ -640,3 +640,25 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     m2 = (ne >= two) & (nv[i] > f0)
                     chi2_l[i] += sy[i] if m2 else f0
                     dof_l[i] += int(ne) - 1 if m2 else 0
+
+
+def _cold_cache_notice() -> None:
+    """One line on stderr when the merge kernel has never been compiled here.
+
+    A first-ever ``mehs fuse`` spends ~13 s compiling (cached afterwards, then
+    ~0.4 s to load); without a word it looks like a hang (issue 16).
+    """
+    import sys
+
+    try:
+        index = merge_chunk._cache._cache_file._index_path   # numba internals: best effort
+    except AttributeError:
+        return
+    import os
+
+    if not os.path.exists(index):
+        print("mehs: compiling the merge kernels once (10-20 s); later runs load them "
+              "from numba's cache", file=sys.stderr)
+
+
+_cold_cache_notice()
