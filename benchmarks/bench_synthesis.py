@@ -91,7 +91,7 @@ def bench_colour_hdri(t: np.ndarray, n_pix: int = 256) -> list[tuple[str, float,
     Z = Z.astype(np.int32)                                             # (pixels, exposures)
     w = lambda z: np.minimum(z, 255 - z) / 127.5                       # noqa: E731
     t_c, (g_c, _) = best(lambda: g_solve(Z, np.log(t), 100.0, w, 256), 3)
-    zs = Z.T[:, :, None]                                               # (P, pixels, 1)
+    zs = Z[:, :, None]                                                 # (pixels, P, 1)
     recover_response_Debevec1997(zs, np.log(t), bit_depth=8, smoothness=100.0)   # warm
     t_m, curve = best(lambda: recover_response_Debevec1997(zs, np.log(t), bit_depth=8,
                                                             smoothness=100.0), 3)
