@@ -47,7 +47,7 @@ def _model(net, **tiling):
     return SimpleNamespace(network=net.eval(), device="cpu", tiling=tiling or "off")
 
 
-@pytest.mark.parametrize("shape", [(150, 230), (128, 96)])
+@pytest.mark.parametrize("shape", [(150, 230), (96, 128)])
 def test_torch_tiles_equal_whole_image(shape):
     from mehs.ssr.tiling import tiled_torch_call
 
@@ -118,8 +118,7 @@ def test_onnx_tiles_equal_whole_image(tmp_path):
     model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 224 ** 2}
     tiled = model.predict(rgb)
     assert model._tiling_probe["margin"] == 64
-    tiles = calls[1:]  # the first call is the memory probe (256×256)
-    assert len(tiles) >= 4 and max(max(c) for c in tiles) <= 224
+    assert len(calls) >= 4 and max(max(c) for c in calls) <= 224
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
 
 
@@ -158,3 +157,18 @@ def test_per_pixel_function_is_reproduced_exactly_by_the_blend():
 def test_budget_too_small_is_a_clear_error():
     with pytest.raises(InputError, match="budget"):
         plan_tiles((2048, 1024), 4000.0, margin=60, max_bytes=10 * 2**20)
+
+
+def test_small_images_and_roomy_budgets_skip_the_probes():
+    from mehs.ssr.tiling import tiled_network_call
+
+    called = []
+    probes = {k: (lambda k=k: called.append(k) or 100.0)
+              for k in ("bytes_per_pixel", "margin", "align")}
+    model = SimpleNamespace(tiling="auto")
+    fn = lambda x: x[:, :, :2]                                         # noqa: E731
+    tiled_network_call(model, fn, _rgb(200, 300), probes)              # ≤ 256²: no probe at all
+    assert called == []
+    model.tiling = {"max_bytes": 10**9}
+    tiled_network_call(model, fn, _rgb(300, 400), probes)              # fits: memory probe only
+    assert called == ["bytes_per_pixel"]

@@ -297,33 +297,49 @@ def env_max_bytes() -> int | None:
         raise InputError(f"MEHS_TILE_MEMORY must be a number of MiB, got {v!r}") from None
 
 
+#: Images up to this many pixels always run whole, without a probe (any SSR
+#: network of a sensible size converts 256×256 in well under the budget).
+SMALL_IMAGE = 256 * 256
+
+
 def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
-                       probe: Callable[[], dict]) -> np.ndarray:
+                       probes: dict[str, Callable[[], float]]) -> np.ndarray:
     """The hook of the torch / ONNX SSR models: run ``fn`` whole or in tiles.
 
     ``model.tiling`` selects: ``"auto"`` (the default; tiles only when the image
     would exceed the memory budget), ``"off"`` (always whole), or a dict of
     :func:`plan_tiles` keywords (``bytes_per_pixel``, ``margin``, ``blend``,
-    ``align``, ``max_bytes``; missing ones come from ``probe()``, called once
-    per model and cached on it). ``MEHS_TILE_MEMORY`` (MiB) caps the budget.
+    ``align``, ``max_bytes``). Missing ones come from ``probes[name]()``, each
+    called at most once per model (cached in ``model._tiling_probe``) and only
+    when needed: the memory probe for images above :data:`SMALL_IMAGE`, the
+    margin and grid probes only when the image is actually tiled.
+    ``MEHS_TILE_MEMORY`` (MiB) caps the budget.
     """
     mode = getattr(model, "tiling", "auto")
     if mode == "off" or mode is None:
         return fn(rgb)
-    opts = dict(mode) if isinstance(mode, dict) else {}
     if mode != "auto" and not isinstance(mode, dict):
         raise InputError(f"tiling must be 'auto', 'off' or a dict of options, got {mode!r}")
+    opts = dict(mode) if isinstance(mode, dict) else {}
+    if mode == "auto" and rgb.shape[0] * rgb.shape[1] <= SMALL_IMAGE:
+        return fn(rgb)
     if "max_bytes" not in opts and env_max_bytes() is not None:
         opts["max_bytes"] = env_max_bytes()
-    need = {"bytes_per_pixel", "margin", "align"} - opts.keys()
-    if need:
-        cache = getattr(model, "_tiling_probe", None)
-        if cache is None:
-            cache = probe()
-            model._tiling_probe = cache
-        opts = {**{k: cache[k] for k in need}, **opts}
-    bpp = opts.pop("bytes_per_pixel")
-    plan = plan_tiles(rgb.shape[:2], bpp, **opts)
+    cache = model.__dict__.setdefault("_tiling_probe", {})
+
+    def get(name):
+        if name in opts:
+            return opts.pop(name)
+        if name not in cache:
+            cache[name] = probes[name]()
+        return cache[name]
+
+    bpp = get("bytes_per_pixel")
+    budget = {"max_bytes": opts["max_bytes"]} if "max_bytes" in opts else {}
+    if plan_tiles(rgb.shape[:2], bpp, margin=0, **budget).tile is None:
+        return fn(rgb)
+    margin, align = get("margin"), get("align")
+    plan = plan_tiles(rgb.shape[:2], bpp, margin=margin, align=align, **opts)
     return predict_tiled(fn, rgb, plan)
 
 
@@ -341,15 +357,15 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
 
-    def probe() -> dict:
-        net = model.network
+    def margin() -> int:
         with torch.enable_grad():
-            radius = torch_receptive_radius(net)
-        net.zero_grad(set_to_none=True)
-        return {"bytes_per_pixel": torch_bytes_per_pixel(net), "margin": radius + 1,
-                "align": torch_align(net)}
+            radius = torch_receptive_radius(model.network)
+        model.network.zero_grad(set_to_none=True)
+        return radius + 1
 
-    return tiled_network_call(model, run, rgb, probe)
+    return tiled_network_call(model, run, rgb, {
+        "bytes_per_pixel": lambda: torch_bytes_per_pixel(model.network),
+        "margin": margin, "align": lambda: torch_align(model.network)})
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the
@@ -365,15 +381,15 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
     memory over a 256×256 probe run (onnxruntime's arena keeps its peak), with
     a floor of 1 kB per pixel in case the arena was already grown by earlier calls.
     """
-    def probe() -> dict:
+    def memory() -> float:
         n = 256
         before = _rss()
         fn(np.zeros((n, n, 3), dtype=np.float32))
-        grown = max(0, _rss() - before)
-        return {"bytes_per_pixel": max(1024.0, 1.25 * grown / n ** 2),
-                "margin": ONNX_DEFAULT_MARGIN, "align": ONNX_DEFAULT_ALIGN}
+        return max(1024.0, 1.25 * max(0, _rss() - before) / n ** 2)
 
-    return tiled_network_call(model, fn, rgb, probe)
+    return tiled_network_call(model, fn, rgb, {
+        "bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
+        "align": lambda: ONNX_DEFAULT_ALIGN})
 
 
 def _rss() -> int:
