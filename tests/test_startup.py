@@ -49,3 +49,17 @@ def test_fuse_imports_no_heavy_optional_modules(tmp_path):
                        timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "LOADED [] 0" in r.stdout, r.stdout + r.stderr[-2000:]
+
+
+def test_uncached_kernel_notice(tmp_path, capsys):
+    from types import SimpleNamespace
+
+    from mehs.synthesis._numba_cache import notice_if_uncached
+
+    idx = tmp_path / "k.nbi"
+    disp = SimpleNamespace(_cache=SimpleNamespace(_cache_file=SimpleNamespace(_index_path=str(idx))))
+    assert notice_if_uncached(disp) is True
+    assert "compiling the merge kernels once" in capsys.readouterr().err
+    idx.write_bytes(b"")
+    assert notice_if_uncached(disp) is False
+    assert notice_if_uncached(object()) is False

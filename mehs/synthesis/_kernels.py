@@ -642,23 +642,8 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     dof_l[i] += int(ne) - 1 if m2 else 0
 
 
-def _cold_cache_notice() -> None:
-    """One line on stderr when the merge kernel has never been compiled here.
 
-    A first-ever ``mehs fuse`` spends ~13 s compiling (cached afterwards, then
-    ~0.4 s to load); without a word it looks like a hang (issue 16).
-    """
-    import sys
+# a first-ever run compiles for 10-20 s: say so instead of looking hung (issue 16)
+from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
 
-    try:
-        index = merge_chunk._cache._cache_file._index_path   # numba internals: best effort
-    except AttributeError:
-        return
-    import os
-
-    if not os.path.exists(index):
-        print("mehs: compiling the merge kernels once (10-20 s); later runs load them "
-              "from numba's cache", file=sys.stderr)
-
-
-_cold_cache_notice()
+notice_if_uncached(merge_chunk)
