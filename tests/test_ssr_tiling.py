@@ -172,3 +172,20 @@ def test_small_images_and_roomy_budgets_skip_the_probes():
     model.tiling = {"max_bytes": 10**9}
     tiled_network_call(model, fn, _rgb(300, 400), probes)              # fits: memory probe only
     assert called == ["bytes_per_pixel"]
+
+
+def test_global_operation_gets_the_fallback_margin():
+    from mehs.ssr.tiling import GLOBAL_MARGIN, torch_receptive_radius
+
+    class GlobalNet(nn.Module):      # every output sees every input pixel
+        def __init__(self):
+            super().__init__()
+            self.c = nn.Conv2d(3, 4, 1)
+
+        def forward(self, x):
+            y = self.c(x)
+            return y + y.mean(dim=(2, 3), keepdim=True)
+
+    assert torch_receptive_radius(GlobalNet(), probe=32, max_probe=64) == GLOBAL_MARGIN
+    torch.manual_seed(0)
+    assert 5 <= torch_receptive_radius(LocalUNet(), probe=64) <= 40

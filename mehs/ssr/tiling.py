@@ -251,14 +251,22 @@ def _global_pools_detached(network):
     return ctx()
 
 
-def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 2048) -> int:
+#: Margin used when a network's gradient reaches the whole probe (a global
+#: operation such as spectral-wise attention over all pixels, or a field wider
+#: than the largest probe): tiles are then approximate whatever the margin.
+GLOBAL_MARGIN = 64
+
+
+def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512) -> int:
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
 
     The gradient of the centre pixel's output w.r.t. the input is non-zero
     exactly inside the receptive field. A global average (the channel attention
     of :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
     mean is detached during the probe: the radius is that of the convolutions,
-    poolings and up-samplings. The probe doubles until the field fits inside it.
+    poolings and up-samplings. The probe doubles until the field fits inside it;
+    a field still filling a ``max_probe`` probe (another global operation)
+    gives :data:`GLOBAL_MARGIN`.
     """
     import torch
 
@@ -274,8 +282,10 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 2048) 
         if ys.size == 0:
             return 0
         r = int(max(c - ys.min(), ys.max() - c, c - xs.min(), xs.max() - c))
-        if r < c - 1 or probe >= max_probe:
+        if r < c - 1:
             return r
+        if probe >= max_probe:
+            return GLOBAL_MARGIN
         probe *= 2
 
 
