@@ -52,19 +52,24 @@ AVAILABLE_SHARE = 0.5
 class TilingPlan:
     """Tile size and overlap for one image; ``tile = None`` means "run the image whole".
 
-    ``tile`` and every tile origin are multiples of ``align``; ``margin``
-    pixels at each edge shared with a neighbour get zero weight, then a
-    ``blend``-pixel linear ramp.
+    ``tile`` (height) and ``tile_w`` (width; default ``tile``) and every tile
+    origin are multiples of ``align``; ``margin`` pixels at each edge shared
+    with a neighbour get zero weight, then a ``blend``-pixel linear ramp.
     """
 
     tile: int | None
     margin: int
     blend: int
     align: int
+    tile_w: int | None = None
 
     @property
     def overlap(self) -> int:
         return 2 * self.margin + self.blend
+
+    @property
+    def width(self) -> int | None:
+        return self.tile_w if self.tile_w is not None else self.tile
 
 
 def available_memory() -> int:
@@ -91,7 +96,12 @@ def _round_up(n: int, a: int) -> int:
 
 def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, blend: int = 16,
                align: int = 8, max_bytes: int | None = None) -> TilingPlan:
-    """Choose the largest square tile whose inference fits the memory budget.
+    """Choose the tile shape that fits the memory budget and computes the fewest pixels.
+
+    Every tile recomputes its neighbours' overlap, so the shape matters: for a
+    2048×1024 image, a budget of ~0.5 M pixels and a 55-px margin, 584×896
+    tiles compute 1.27× the image's pixels, 720×720 squares 1.34×. All aligned
+    heights are tried, each with the widest tile the budget allows.
 
     Parameters
     ----------
@@ -115,14 +125,30 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, b
     h, w = shape
     if h * w * bytes_per_pixel <= max_bytes:
         return TilingPlan(None, margin, blend, align)
-    side = int(np.sqrt(max_bytes / bytes_per_pixel)) // align * align
+    max_px = max_bytes / bytes_per_pixel
     # a tile must keep some weighted core beyond its two margins and the ramp
     smallest = _round_up(2 * margin + blend + align, align)
-    if side < smallest:
+    if smallest * smallest > max_px:
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
                          f"{smallest ** 2 * bytes_per_pixel / 2**20:.0f} MiB, more than the "
                          f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or more memory")
-    return TilingPlan(side, margin, blend, align)
+    overlap = 2 * margin + blend
+    best = None
+    for th in range(smallest, _round_up(h, align) + 1, align):
+        tw = min(int(max_px // th) // align * align, _round_up(w, align))
+        if tw < smallest:
+            break
+        cost = (_covered(h, th, overlap, align) * _covered(w, tw, overlap, align), -th * tw)
+        if best is None or cost < best[0]:
+            best = (cost, th, tw)
+    _, th, tw = best
+    return TilingPlan(th, margin, blend, align, tw)
+
+
+def _covered(n: int, tile: int, overlap: int, align: int) -> int:
+    """Pixels computed along one axis: the summed lengths of its tiles."""
+    starts = tile_starts(n, tile, overlap, align)
+    return sum(min(tile, n - s) for s in starts[:-1]) + (n - starts[-1])
 
 
 def tile_starts(n: int, tile: int, overlap: int, align: int) -> list[int]:
@@ -174,14 +200,14 @@ def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan:
         return np.asarray(fn(rgb), dtype=np.float32)
     h, w = rgb.shape[:2]
     ys = tile_starts(h, plan.tile, plan.overlap, plan.align)
-    xs = tile_starts(w, plan.tile, plan.overlap, plan.align)
+    xs = tile_starts(w, plan.width, plan.overlap, plan.align)
     out = None
     wsum = np.zeros((h, w), dtype=np.float32)
     for iy, y0 in enumerate(ys):
         y1 = h if iy == len(ys) - 1 else y0 + plan.tile
         wy = _ramp(y1 - y0, iy > 0, iy < len(ys) - 1, plan.margin, plan.blend)
         for ix, x0 in enumerate(xs):
-            x1 = w if ix == len(xs) - 1 else x0 + plan.tile
+            x1 = w if ix == len(xs) - 1 else x0 + plan.width
             wx = _ramp(x1 - x0, ix > 0, ix < len(xs) - 1, plan.margin, plan.blend)
             y = np.asarray(fn(np.ascontiguousarray(rgb[y0:y1, x0:x1])), dtype=np.float32)
             if y.shape[:2] != (y1 - y0, x1 - x0):
