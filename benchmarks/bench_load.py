@@ -145,7 +145,8 @@ def main(argv=None) -> int:
             tag = ("scheduler floor" if label.startswith("floor") else
                    "mehs" if mode == "1 thread" else "reference (before issue 16)")
             print(f"{label:<46} {mode:<13} {a:10.4f} {b:9.4f} {b / a:8.2f}×  {tag}")
-    print("target (issue 16): mehs slowdown with one competing busy process ≤ 1.5×; the floor row is\n"
+    print("target (issue 16): mehs slowdown with one competing busy process ≤ 1.5×; "
+          "the floor row is\n"
           "what the same competition does to a single-threaded pass that uses no BLAS at all")
     del view, cube
     os.unlink(path)

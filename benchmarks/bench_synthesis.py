@@ -154,7 +154,8 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
         t_m, _ = best(lambda: merge_bracket(stack, t, method=method, darks=[dark] * P,
                                             consistency=consistency), 5)
         mehs_t[method, consistency] = t_m
-        what = "radiance + χ² ghost statistic + SNR + mask" if consistency else "radiance (+ SNR, mask)"
+        what = ("radiance + χ² ghost statistic + SNR + mask" if consistency
+                else "radiance (+ SNR, mask)")
         rows.append((f"mehs {method} {nl}×{ns}×{nb}×{P}: {what}", t_m,
                      f"{t_m / t_read:.2f}× read pass"))
     tracemalloc.start()

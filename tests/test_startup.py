@@ -57,7 +57,8 @@ def test_uncached_kernel_notice(tmp_path, capsys):
     from mehs.synthesis._numba_cache import notice_if_uncached
 
     idx = tmp_path / "k.nbi"
-    disp = SimpleNamespace(_cache=SimpleNamespace(_cache_file=SimpleNamespace(_index_path=str(idx))))
+    cache_file = SimpleNamespace(_index_path=str(idx))
+    disp = SimpleNamespace(_cache=SimpleNamespace(_cache_file=cache_file))
     assert notice_if_uncached(disp) is True
     assert "compiling the merge kernels once" in capsys.readouterr().err
     idx.write_bytes(b"")

@@ -131,7 +131,8 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, b
     if smallest * smallest > max_px:
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
                          f"{smallest ** 2 * bytes_per_pixel / 2**20:.0f} MiB, more than the "
-                         f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or more memory")
+                         f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or "
+                         "more memory")
     overlap = 2 * margin + blend
     best = None
     for th in range(smallest, _round_up(h, align) + 1, align):
@@ -169,7 +170,7 @@ def tile_starts(n: int, tile: int, overlap: int, align: int) -> list[int]:
 
 
 def _ramp(length: int, lo_inner: bool, hi_inner: bool, margin: int, blend: int) -> np.ndarray:
-    """float32 ``(length,)`` weights: 0 in the margin at an inner edge, then a ``blend`` ramp to 1."""
+    """float32 ``(length,)``: 0 in the margin at an inner edge, then a ``blend`` ramp to 1."""
     w = np.ones(length, dtype=np.float32)
     ramp = np.clip((np.arange(length, dtype=np.float32) - margin + 1) / (blend + 1), 0, 1)
     if lo_inner:

@@ -642,7 +642,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     dof_l[i] += int(ne) - 1 if m2 else 0
 
 
-
 # a first-ever run compiles for 10-20 s: say so instead of looking hung (issue 16)
 from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
 
