@@ -215,4 +215,9 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from _load import load_line  # the load this run saw (issue 16)
+
+    print("before:", load_line(), flush=True)
+    rc = main()
+    print("after: ", load_line())
+    sys.exit(rc)

@@ -105,4 +105,9 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from _load import load_line  # the load this run saw (issue 16)
+
+    print("before:", load_line(), flush=True)
+    rc = main()
+    print("after: ", load_line())
+    raise SystemExit(rc)

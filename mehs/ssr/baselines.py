@@ -58,6 +58,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from mehs._blas import single_thread_blas
 from mehs.errors import FormatError, InputError
 from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.contract import SSRModel, TrainedFor
@@ -133,11 +134,12 @@ def RGB_to_spectra_Smits1999(rgb: np.ndarray,
     n = flat.shape[0]
     out = np.empty((n, basis.shape[1]), dtype=dtype)
     coef = np.empty((min(n, _SMITS_CHUNK), 7), dtype=dtype)
-    for s in range(0, n, _SMITS_CHUNK):
-        x = flat[s:s + _SMITS_CHUNK]
-        c = coef[:x.shape[0]]
-        _smits_coefficients_into(x, c)
-        np.matmul(c, basis, out=out[s:s + x.shape[0]])
+    with single_thread_blas():  # small memory-bound products: see mehs._blas
+        for s in range(0, n, _SMITS_CHUNK):
+            x = flat[s:s + _SMITS_CHUNK]
+            c = coef[:x.shape[0]]
+            _smits_coefficients_into(x, c)
+            np.matmul(c, basis, out=out[s:s + x.shape[0]])
     return out.reshape(*rgb.shape[:-1], basis.shape[1])
 
 
@@ -163,7 +165,8 @@ def RGB_to_spectra_Mallett2019(rgb: np.ndarray,
     if rgb.shape[-1] != 3:
         raise InputError(f"Mallett 2019 needs (..., 3) RGB, got shape {rgb.shape}")
     dtype = np.float32 if rgb.dtype == np.float32 else np.float64
-    return rgb.astype(dtype, copy=False) @ mallett_basis(wavelengths).astype(dtype)
+    with single_thread_blas():  # a (pixels, 3) @ (3, B) product is memory-bound
+        return rgb.astype(dtype, copy=False) @ mallett_basis(wavelengths).astype(dtype)
 
 
 def root_polynomial_features(rgb: np.ndarray, degree: int = 2) -> np.ndarray:

@@ -248,6 +248,11 @@ class OnnxModel(SSRModel):
         self.description = f"ONNX model {path.name} ({self.layout})"
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
+        from mehs.ssr.tiling import tiled_onnx_call
+
+        return tiled_onnx_call(self, self._predict_whole, rgb)  # tiles when memory is short
+
+    def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
         x = rgb[None]
         if self.layout == "NCHW":
             x = x.transpose(0, 3, 1, 2)

@@ -665,3 +665,9 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut,
                     m2 = (ne >= two) & (nv[i] > f0)
                     chi2_l[i] += sy[i] if m2 else f0
                     dof_l[i] += int(ne) - 1 if m2 else 0
+
+
+# a first-ever run compiles for 10-20 s: say so instead of looking hung (issue 16)
+from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
+
+notice_if_uncached(merge_chunk)

@@ -42,6 +42,7 @@ from typing import Callable
 import numpy as np
 
 from mehs.bandmeta import resampled_band_metadata
+from mehs._blas import single_thread_blas
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import InputError, MehsError
 from mehs.rgb import WAVELENGTHS_31
@@ -252,7 +253,9 @@ def apply_matrix(data: np.ndarray, matrix: np.ndarray, *, chunk_lines: int | Non
     m_band = np.ascontiguousarray(mt.T)
     # NaN/Inf are reported once, below, as an InputError naming the lines; numpy's
     # per-block RuntimeWarning before it would only be noise.
-    with np.errstate(invalid="ignore", over="ignore"):
+    # one BLAS thread: hundreds of small products, which 2+ spin-waiting threads
+    # stall on whenever another process holds a core (mehs._blas)
+    with np.errstate(invalid="ignore", over="ignore"), single_thread_blas():
         for l0 in range(0, lines, chunk_lines):
             l1 = min(lines, l0 + chunk_lines)
             block = np.asarray(data[l0:l1, :, sel])

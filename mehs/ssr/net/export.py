@@ -140,15 +140,18 @@ class TorchSSRModel(SSRModel):
         rgb = np.asarray(rgb, dtype=np.float32)
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
-        x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
         if getattr(self.network, "receptive_radius", None) is not None:
             # a purely local network: exact overlapping tiles bound the memory (model zoo)
             from mehs.ssr.net.infer import predict_tiled
 
+            x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
             y = predict_tiled(self.network, x, spectra=False)
-        else:
-            y = self.network(x)
-        return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
+            return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
+        # global operations (channel attention): the whole image, or tiles with a margin
+        # when it would not fit in memory (mehs.ssr.tiling)
+        from mehs.ssr.tiling import tiled_torch_call
+
+        return np.asarray(tiled_torch_call(self, rgb), dtype=np.float32)
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         """``rgb`` float32 ``(H, W, 3)`` linear → float32 ``(H, W, B)`` spectra."""

@@ -1,0 +1,100 @@
+"""Wall time of `mehs fuse` on one 512×512×204×3 scene, as a user runs it (issue 16).
+
+    python benchmarks/bench_fuse_startup.py [--quick] [--size S] [--repeat N]
+
+Rows, each a fresh ``python -m mehs`` process (median of ``--repeat``):
+
+- ``python -c "import numpy"`` — the interpreter's own start-up (reference);
+- ``mehs fuse`` with a warm numba cache (the usual case);
+- ``mehs fuse`` with an empty numba cache (``NUMBA_CACHE_DIR`` pointing at a new
+  folder: a first-ever run, which compiles the kernels), once;
+- the in-process stages of one warm run (imports, load + verify, fuse, write),
+  from ``-X importtime`` and a timer around ``fuse_bracket``.
+
+Targets: warm ≤ 1.2 s, first-ever ≤ 6 s. The load is printed before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+
+def wall(cmd: list[str], env: dict) -> float:
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    dt = time.perf_counter() - t0
+    if r.returncode:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{r.stderr[-2000:]}")
+    return dt
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a 128×128 scene")
+    ap.add_argument("--size", type=int, default=None)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+    from _load import load_line
+    from bench_build import make_scene
+
+    size = args.size or (128 if args.quick else 512)
+    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_fuse_"))
+    scene = make_scene(tmp / "scene", size)
+    env = dict(os.environ, PYTHONPATH=str(HERE.parent))
+    py = sys.executable
+    print("before:", load_line(), flush=True)
+
+    def fuse(out: str, e=env) -> float:
+        shutil.rmtree(tmp / out, ignore_errors=True)
+        return wall([py, "-m", "mehs", "fuse", str(scene), "--out", str(tmp / out)], e)
+
+    fuse("warmup")                                   # fills the numba cache
+    t_py = statistics.median(wall([py, "-c", "import numpy"], env) for _ in range(args.repeat))
+    t_warm = statistics.median(fuse(f"w{i}") for i in range(args.repeat))
+    cold_env = dict(env, NUMBA_CACHE_DIR=str(tmp / "numba_cache_empty"))
+    t_cold = fuse("cold", cold_env)
+    # in-process breakdown of one warm run
+    code = (
+        "import time, sys; t0 = time.perf_counter()\n"
+        "from mehs.synthesis.bracket import load_bracket\n"
+        "from mehs.synthesis.fuse import fuse_bracket, write_fusion\n"
+        "import mehs.synthesis._kernels, mehs.synthesis.ghost, scipy.special, scipy.ndimage\n"
+        "t1 = time.perf_counter(); br = load_bracket(sys.argv[1])\n"
+        "t2 = time.perf_counter(); res = fuse_bracket(br)\n"
+        "t3 = time.perf_counter(); write_fusion(res, sys.argv[2])\n"
+        "t4 = time.perf_counter()\n"
+        "print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, res.summary.get('timings', ''))\n")
+    shutil.rmtree(tmp / "bd", ignore_errors=True)
+    r = subprocess.run([py, "-c", code, str(scene), str(tmp / "bd")], capture_output=True,
+                       text=True, env=env)
+    parts = r.stdout.split(maxsplit=4) if r.returncode == 0 else ["nan"] * 4
+    print(f"`mehs fuse` of one {size}×{size}×204×3 scene (median of {args.repeat})")
+    print(f"{'what':<54} {'seconds':>8} {'× python+numpy':>15}")
+    for label, sec in (("python -c 'import numpy' (reference)", t_py),
+                       ("mehs fuse, warm numba cache", t_warm),
+                       ("mehs fuse, first-ever run (empty numba cache)", t_cold),
+                       ("  in process: imports (mehs, numba kernels, scipy)", float(parts[0])),
+                       ("  in process: load bracket + sha256 verify", float(parts[1])),
+                       ("  in process: fuse_bracket", float(parts[2])),
+                       ("  in process: write_fusion", float(parts[3]))):
+        print(f"{label:<54} {sec:8.2f} {sec / t_py:14.1f}×")
+    print("targets (issue 16, 512²): warm ≤ 1.2 s; first-ever ≤ 6 s")
+    print("after: ", load_line())
+    shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

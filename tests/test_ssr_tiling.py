@@ -1,0 +1,207 @@
+"""Tiled network inference equals whole-image inference for local networks (issue 16)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mehs.errors import InputError
+from mehs.ssr.tiling import TilingPlan, plan_tiles, predict_tiled, tile_starts
+
+torch = pytest.importorskip("torch")
+
+from mehs.ssr.tiling import torch_bytes_per_pixel  # noqa: E402
+nn = torch.nn
+
+
+class LocalUNet(nn.Module):
+    """A tiny fully convolutional U-Net (2 poolings, no global operation): tile-invariant."""
+
+    depth = 2
+
+    def __init__(self, bands: int = 5):
+        super().__init__()
+        self.a = nn.Conv2d(3, 6, 3, padding=1)
+        self.b = nn.Conv2d(6, 6, 3, padding=1)
+        self.c = nn.Conv2d(6, 6, 3, padding=1)
+        self.up = nn.ConvTranspose2d(6, 6, 3, stride=2, padding=1, output_padding=1)
+        self.out = nn.Conv2d(12, bands, 3, padding=1)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        x = nn.functional.pad(x, (0, (-w) % 4, 0, (-h) % 4), mode="replicate")
+        s = torch.relu(self.a(x))
+        y = torch.relu(self.b(nn.functional.max_pool2d(s, 2)))
+        y = torch.relu(self.c(nn.functional.max_pool2d(y, 2)))
+        y = self.up(nn.functional.interpolate(y, scale_factor=2.0, mode="nearest"))
+        y = nn.functional.interpolate(y, size=s.shape[-2:], mode="nearest")
+        return self.out(torch.cat([s, y], 1))[..., :h, :w]
+
+
+def _rgb(h, w, seed=0):
+    return np.random.default_rng(seed).gamma(1.0, 1.0, (h, w, 3)).astype(np.float32)
+
+
+def _model(net, **tiling):
+    torch.manual_seed(0)
+    return SimpleNamespace(network=net.eval(), device="cpu", tiling=tiling or "off")
+
+
+@pytest.mark.parametrize("shape", [(150, 230), (96, 128)])
+def test_torch_tiles_equal_whole_image(shape):
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(1)
+    net = LocalUNet()
+    rgb = _rgb(*shape)
+    whole = tiled_torch_call(_model(net), rgb)
+    # a budget of a 72×72 tile forces several tiles in both directions
+    budget = int(torch_bytes_per_pixel(net) * 72 ** 2)
+    m = _model(net, max_bytes=budget)
+    tiled = tiled_torch_call(m, rgb)
+    probe = m._tiling_probe
+    assert probe["align"] == 8 and 5 <= probe["margin"] <= 40
+    plan = plan_tiles(shape, probe["bytes_per_pixel"], margin=probe["margin"],
+                      align=probe["align"], max_bytes=budget)
+    assert plan.tile is not None and (plan.tile < shape[0] or plan.width < shape[1])
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+def test_mehs_network_tiles_equal_whole_image_when_local():
+    # the real FC-DenseNet architecture (3 poolings, dense skips, replicate padding);
+    # its channel attention is made local (constant scale) so exact equality is expected
+    from mehs.ssr.net import build_network
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(2)
+    net = build_network(variant="fcdensenet", first_channels=8, down_layers=(1, 1, 1),
+                        bottleneck_layers=1, growth=4)
+    for mod in net.modules():
+        if type(mod).__name__ == "ChannelAttention":
+            nn.init.zeros_(mod.excite.weight)
+            nn.init.zeros_(mod.excite.bias)
+    rgb = _rgb(120, 176, seed=3)
+    whole = tiled_torch_call(_model(net), rgb)
+    budget = int(torch_bytes_per_pixel(net) * 112 ** 2)
+    m = _model(net, max_bytes=budget)
+    tiled = tiled_torch_call(m, rgb)
+    assert m._tiling_probe["align"] == 8
+    plan = plan_tiles((120, 176), m._tiling_probe["bytes_per_pixel"],
+                      margin=m._tiling_probe["margin"], max_bytes=budget)
+    assert plan.tile is not None and (plan.tile < 120 or plan.width < 176)
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+def test_onnx_tiles_equal_whole_image(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from mehs.ssr.models import OnnxModel
+
+    torch.manual_seed(4)
+    net = LocalUNet(bands=31).eval()
+    path = tmp_path / "local.onnx"
+    torch.onnx.export(net, (torch.rand(1, 3, 64, 64),), str(path), dynamo=False,
+                      input_names=["rgb"], output_names=["spectra"],
+                      dynamic_axes={"rgb": {2: "h", 3: "w"}, "spectra": {2: "h", 3: "w"}})
+    model = OnnxModel(path)
+    rgb = _rgb(300, 260, seed=5)
+    model.tiling = "off"
+    whole = model.predict(rgb)
+    calls = []
+    whole_fn = model._predict_whole
+
+    def spy(x):
+        calls.append(x.shape[:2])
+        return whole_fn(x)
+
+    model._predict_whole = spy
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 224 ** 2}
+    tiled = model.predict(rgb)
+    assert model._tiling_probe["margin"] == 64
+    assert len(calls) >= 4 and max(max(c) for c in calls) <= 224
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+def test_image_within_budget_runs_whole():
+    calls = []
+
+    def fn(x):
+        calls.append(x.shape)
+        return np.repeat(x[:, :, :1], 4, axis=2)
+
+    rgb = _rgb(40, 50)
+    plan = plan_tiles((40, 50), 100.0, margin=4, max_bytes=40 * 50 * 100)
+    assert plan.tile is None
+    out = predict_tiled(fn, rgb, plan)
+    assert calls == [(40, 50, 3)]
+    np.testing.assert_array_equal(out, np.repeat(rgb[:, :, :1], 4, axis=2))
+
+
+def test_tile_grid_covers_axis_on_the_pooling_grid():
+    for n, tile, overlap, align in [(1000, 256, 80, 32), (257, 64, 24, 8), (64, 64, 8, 8)]:
+        starts = tile_starts(n, tile, overlap, align)
+        assert all(s % align == 0 for s in starts)
+        assert starts[-1] + tile >= n and starts[-1] < n
+        for a, b in zip(starts, starts[1:]):
+            assert b - a >= align and a + tile - b >= overlap   # neighbours share the overlap
+
+
+def test_per_pixel_function_is_reproduced_exactly_by_the_blend():
+    # weights sum to the blend's normaliser: a per-pixel map comes back bit-for-bit close
+    rgb = _rgb(97, 131)
+    plan = TilingPlan(tile=48, margin=4, blend=8, align=8)
+    out = predict_tiled(lambda x: x * np.float32(2), rgb, plan)
+    np.testing.assert_allclose(out, rgb * 2, rtol=1e-6)
+
+
+def test_budget_too_small_is_a_clear_error():
+    with pytest.raises(InputError, match="budget"):
+        plan_tiles((2048, 1024), 4000.0, margin=60, max_bytes=10 * 2**20)
+
+
+def test_small_images_and_roomy_budgets_skip_the_probes():
+    from mehs.ssr.tiling import tiled_network_call
+
+    called = []
+    probes = {k: (lambda k=k: called.append(k) or 100.0)
+              for k in ("bytes_per_pixel", "margin", "align")}
+    model = SimpleNamespace(tiling="auto")
+    fn = lambda x: x[:, :, :2]                                         # noqa: E731
+    tiled_network_call(model, fn, _rgb(200, 300), probes)              # ≤ 256²: no probe at all
+    assert called == []
+    model.tiling = {"max_bytes": 10**9}
+    tiled_network_call(model, fn, _rgb(300, 400), probes)              # fits: memory probe only
+    assert called == ["bytes_per_pixel"]
+
+
+def test_global_operation_gets_the_fallback_margin():
+    from mehs.ssr.tiling import GLOBAL_MARGIN, torch_receptive_radius
+
+    class GlobalNet(nn.Module):      # every output sees every input pixel
+        def __init__(self):
+            super().__init__()
+            self.c = nn.Conv2d(3, 4, 1)
+
+        def forward(self, x):
+            y = self.c(x)
+            return y + y.mean(dim=(2, 3), keepdim=True)
+
+    assert torch_receptive_radius(GlobalNet(), probe=32, max_probe=64) == GLOBAL_MARGIN
+    torch.manual_seed(0)
+    assert 5 <= torch_receptive_radius(LocalUNet(), probe=64) <= 40
+
+
+def test_tile_shape_minimises_recomputed_pixels():
+    from mehs.ssr.tiling import _covered
+
+    # 2048×1024 at ~0.5 M pixels per tile: the square is one of the candidates
+    plan = plan_tiles((1024, 2048), 3000.0, margin=55, max_bytes=int(3000 * 523_000))
+    assert plan.tile * plan.width * 3000.0 <= 3000 * 523_000
+    cost = _covered(1024, plan.tile, plan.overlap, 8) * _covered(2048, plan.width, plan.overlap, 8)
+    side = int((523_000) ** 0.5) // 8 * 8
+    square = _covered(1024, side, plan.overlap, 8) * _covered(2048, side, plan.overlap, 8)
+    assert cost <= square and cost < 1.3 * 1024 * 2048
+    # blending with a non-square plan still reproduces a per-pixel map
+    rgb = _rgb(97, 131)
+    out = predict_tiled(lambda x: x + np.float32(1), rgb, TilingPlan(48, 4, 8, 8, tile_w=80))
+    np.testing.assert_allclose(out, rgb + 1, rtol=1e-6)
