@@ -39,7 +39,6 @@ References
 from __future__ import annotations
 
 import datetime as _dt
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -180,15 +179,10 @@ class Calibration:
         """Read a calibration written by :meth:`save` (errors name the file)."""
         from mehs.io.atomic import sha256_file
 
+        from mehs.io.jsondoc import read_json_document
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError("calibration file not found", path) from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise FormatError(f"not a readable JSON calibration ({exc})", path) from None
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise FormatError(f"not a {FORMAT} file", path)
+        d = read_json_document(path, FORMAT, "calibration")
         try:
             shape = tuple(int(v) for v in d["responsivity_shape"])
             r = np.asarray(d["responsivity"], dtype=np.float64).reshape(shape)

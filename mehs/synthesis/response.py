@@ -32,7 +32,6 @@ References
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -223,15 +222,10 @@ class ResponseCurve:
     @classmethod
     def load(cls, path: str | Path) -> "ResponseCurve":
         """Read a curve written by :meth:`save`."""
+        from mehs.io.jsondoc import read_json_document
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError("response curve file not found", path) from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise FormatError(f"not a readable JSON response curve ({exc})", path) from None
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise FormatError(f"not a {FORMAT} file (format = {d.get('format') if isinstance(d, dict) else None!r})", path)
+        d = read_json_document(path, FORMAT, "response curve")
         try:
             return cls(np.asarray(d["g"], dtype=np.float64), int(d["bit_depth"]),
                        method=str(d.get("method", "debevec1997")),
