@@ -53,12 +53,12 @@ def test_no_dark_reference_subtracts_nothing():
     assert mr.info["dark_reference"] == [False] * 4
 
 
-def _lamp(times, size=48, response="gamma"):
+def _lamp(times, size=48, response="gamma", step=4):
     from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
     from mehs.capture.sensor import SensorModel
     from mehs.capture.simulate import simulate_bracket
 
-    wl = SPECIM_IQ_WAVELENGTHS[::4]
+    wl = SPECIM_IQ_WAVELENGTHS[::step]
     sc = make_scene("lamp", lines=size, samples=size, wavelengths=wl, seed=1)
     sen = SensorModel(response=response, seed=2)
     sim = simulate_bracket(sc, sen, list(times), seed=3)
@@ -105,13 +105,26 @@ def test_wide_bracket_curve_is_flagged_and_a_ladder_curve_fixes_it(tmp_path):
 
 
 def test_linear_sensor_auto_is_not_checked_and_unchanged():
-    br, truth = _lamp((0.02, 1.0, 50.0), response="linear")
+    # all 204 bands: enough samples for the linearity test to resolve 2 % on a x50 bracket
+    br, truth = _lamp((0.02, 1.0, 50.0), response="linear", step=1)
     res = fuse_bracket(br, response="auto", method="inverse-variance", ghosts="off")
-    assert res.response.is_linear
-    assert res.summary["response_undetermined"] is False
-    # 0.050 here before and after the robust-recovery work (51 bands, short
-    # bracket): the linear path must not get worse
+    resp = res.summary["response"]
+    print(f"linearity resolution {resp['linearity_resolution']:.4f}")
+    assert res.response.is_linear and resp["linearity_conclusive"] is True
+    assert "check" not in resp and res.summary["response_undetermined"] is False
+    # the linear path must not get worse than before the robust-recovery work
     assert _median_rel(res, truth) <= 0.055
+
+
+def test_linear_sensor_on_too_little_data_is_flagged_not_trusted():
+    # 51 bands of 48×48 pixels, x50 steps: the exposure-ratio test cannot resolve 2 %,
+    # and a curve recovered from the bracket is undetermined: linear is assumed, and said
+    br, truth = _lamp((0.02, 1.0, 50.0), response="linear")
+    with pytest.warns(ResponseUndeterminedWarning, match="linearity test inconclusive"):
+        res = fuse_bracket(br, response="auto", ghosts="off")
+    resp = res.summary["response"]
+    assert resp["linearity_conclusive"] is False and "assumed_linear" in resp
+    assert res.response.is_linear and res.summary["response_undetermined"] is True
 
 
 def _film_hdr_bracket(n=12, size=64, seed=0):

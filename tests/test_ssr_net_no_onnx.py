@@ -21,7 +21,7 @@ def test_train_ssr_without_onnx_keeps_checkpoints_and_says_what_was_skipped(
     ds = make_paired_set(tmp_path / "ds", n_scenes=3, size=16, seed=3)
     monkeypatch.setitem(sys.modules, "onnx", None)  # `import onnx` fails as if not installed
     out = tmp_path / "run"
-    rc = main(["train-ssr", str(ds), "--out", str(out), "--size", "tiny", "--patch", "16",
+    rc = main(["train-ssr", str(ds), "--out", str(out), "--preset", "tiny", "--patch", "16",
                "--batch", "2", "--patches-per-image", "1", "--epochs", "1", "--quiet"])
     err = capsys.readouterr().err
     assert rc == 0, err
