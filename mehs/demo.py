@@ -373,8 +373,6 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 6, size: str | int 
                                                      seed=seed, index=i, progress=bars, log=say,
                                                      pool=pools[spec.scene_id])
 
-    say("  calibration: simulated integrating sphere + certificate -> "
-        f"{model_dir / 'calibration.json'} (absolute radiance)")
     model_dir.mkdir(parents=True, exist_ok=True)
     ladder_curve = None
     if not known_response:
@@ -382,6 +380,8 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 6, size: str | int 
         ladder_curve = demo_response_ladder(out / "calibration" / "ladder",
                                             model_dir / "response.json", size=n_pix, seed=seed,
                                             progress=bars, log=say)
+    say("  calibration: simulated integrating sphere + certificate -> "
+        f"{model_dir / 'calibration.json'} (absolute radiance)")
     cal_path = calibrate_demo_camera(out / "calibration" / "sphere", model_dir / "calibration.json",
                                      size=n_pix, seed=seed, progress=bars, log=say)
     timings["capture"] = time.perf_counter() - t0
