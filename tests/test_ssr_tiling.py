@@ -205,3 +205,21 @@ def test_tile_shape_minimises_recomputed_pixels():
     rgb = _rgb(97, 131)
     out = predict_tiled(lambda x: x + np.float32(1), rgb, TilingPlan(48, 4, 8, 8, tile_w=80))
     np.testing.assert_allclose(out, rgb + 1, rtol=1e-6)
+
+
+def test_awan_tiles_bound_its_quadratic_attention(monkeypatch):
+    # AWAN's non-local block attends over each quarter of its input: memory grows with the
+    # square of the tile, which the per-pixel probe cannot see (a 2048×1024 image at once
+    # asks ~1 TiB and the OOM killer ends the process). The network's own cap sets the tile.
+    pytest.importorskip("torch")
+    from mehs.ssr.net.zoo import build_network
+    from mehs.ssr.tiling import plan_tiles, torch_bytes_per_pixel
+
+    net = build_network(arch="awan", preset="tiny")
+    budget = 256 << 20
+    cap = net.max_tile_pixels(budget)
+    quarter = cap / 4
+    assert 3 * 4 * quarter ** 2 <= 1.01 * budget          # the affinity matrices fit
+    bpp = max(torch_bytes_per_pixel(net, probe=32), budget / cap)
+    plan = plan_tiles((1024, 2048), bpp, margin=net.TILING_MARGIN, max_bytes=budget)
+    assert plan.tile is not None and plan.tile * plan.width <= cap

@@ -400,9 +400,24 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         model.network.zero_grad(set_to_none=True)
         return radius + 1
 
+    net = model.network
+    cap = getattr(net, "max_tile_pixels", None)
+
+    def bytes_per_pixel() -> float:
+        bpp = torch_bytes_per_pixel(net)
+        if cap is not None:
+            # memory super-linear in the tile (global attention): the network says how
+            # large a tile fits the budget; the per-pixel figure is raised to match
+            budget = env_max_bytes() or int(min(DEFAULT_MAX_BYTES,
+                                                AVAILABLE_SHARE * available_memory()))
+            bpp = max(bpp, budget / cap(budget))
+        return bpp
+
+    fixed_margin = getattr(net, "TILING_MARGIN", None)
     return tiled_network_call(model, run, rgb, {
-        "bytes_per_pixel": lambda: torch_bytes_per_pixel(model.network),
-        "margin": margin, "align": lambda: torch_align(model.network)})
+        "bytes_per_pixel": bytes_per_pixel,
+        "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
+        "align": lambda: torch_align(net)})
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the

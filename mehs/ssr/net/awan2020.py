@@ -33,6 +33,7 @@ References
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 import torch.nn.functional as F
@@ -135,6 +136,20 @@ class AWAN2020(SSRNetwork):
     }
     #: The paper trains AWAN with a lower cosine-annealing range (η_max 2e-4, η_min 1e-5).
     RECIPE = dict(lr_max=2e-4, lr_min=1e-5)
+    #: Tiled inference (mehs.ssr.tiling): the non-local block is global, so no receptive
+    #: radius can be probed (the probe itself would run out of memory); a fixed margin
+    TILING_MARGIN = 32
+
+    @staticmethod
+    def max_tile_pixels(max_bytes: int) -> int:
+        """Largest tile (pixels) whose non-local attention fits ``max_bytes``.
+
+        PSNL attends over each quarter of its input: an ``(n/4)²`` float32 affinity
+        matrix, about three copies alive (scores, softmax, its product) — memory
+        grows with the *square* of the tile, which a per-pixel probe cannot see
+        (a 2048×1024 image at once would ask ~1 TiB).
+        """
+        return max(64 * 64, int(4 * np.sqrt(max_bytes / 12.0)))
 
     def __init__(self, config: NetConfig, *, channels: int = 96, n_blocks: int = 8):
         super().__init__(config)
