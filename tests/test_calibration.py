@@ -141,3 +141,38 @@ def test_certificate_round_trip(tmp_path):
     s = load_spectrum(p)
     assert s.wavelengths[0] == 350 and s.wavelengths[-1] == 1100
     assert s.uncertainty is not None and np.allclose(s.uncertainty, 0.01)
+
+
+def test_panel_under_a_colour_science_illuminant_calibrates_the_covered_bands(captures, tmp_path,
+                                                                               capsys):
+    # colour-science's CIE A ends at 780 nm; a 1000 nm camera is refused unless --partial,
+    # then calibrated over what the illuminant covers, and its cubes hold those bands
+    from mehs.io.envi import read_envi
+
+    cap = captures["window"]                          # white tile: 99 % panel under A
+    out = tmp_path / "p.json"
+    assert main(["calibrate", str(cap), "--panel", "0.99", "--illuminant", "A",
+                 "--out", str(out)]) == 2
+    assert "--partial" in capsys.readouterr().err and not out.exists()
+    assert main(["calibrate", str(cap), "--panel", "0.99", "--illuminant", "A", "--partial",
+                 "--out", str(out)]) == 0
+    assert "calibrated 1" in capsys.readouterr().out
+    cal = Calibration.load(out)
+    assert not cal.complete and cal.calibrated_wavelengths[-1] < 780
+    assert cal.calibrated_wavelengths[0] < 400
+    assert main(["fuse", str(cap), "--out", str(tmp_path / "f"), "--calibration", str(out)]) == 0
+    rad = read_envi(tmp_path / "f" / "radiance.hdr")
+    assert rad.units == UNIT_RELATIVE and rad.bands == cal.bands.size
+    assert np.allclose(rad.wavelengths, cal.calibrated_wavelengths)
+    # the shape of the calibrated spectra against the truth (one scale: relative radiance)
+    truth = read_envi(cap / "truth" / "radiance.hdr")
+    t = np.asarray(truth.data, dtype=np.float64)[..., cal.bands]
+    r = np.asarray(rad.data, dtype=np.float64)
+    vis = (cal.calibrated_wavelengths >= 420) & (cal.calibrated_wavelengths <= 700)
+    from mehs.calibration.accuracy import radiance_accuracy
+    import cv2
+
+    mask = cv2.imread(str(tmp_path / "f" / "mask.png"), cv2.IMREAD_UNCHANGED)
+    acc = radiance_accuracy(r[..., vis], t[..., vis], mask, absolute=False)
+    print(f"relative calibration from the white tile: {acc}")
+    assert acc["rel_error_median"] < 0.05

@@ -79,6 +79,11 @@ class Calibration:
         ``[{"role", "path", "sha256"}]``: every input file.
     created
         ISO 8601 UTC time.
+    bands
+        int ``(k,)`` indices (into ``wavelengths``) of the calibrated bands — all of
+        them, or those the reference spectrum covers (a colour-science illuminant ends
+        at 780 nm; a 1000 nm camera is calibrated over 397–774 nm then). Calibrated
+        cubes hold these bands only; ``responsivity`` has one column per calibrated band.
     """
 
     responsivity: np.ndarray
@@ -93,6 +98,7 @@ class Calibration:
     created: str = ""
     parameters: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+    bands: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.responsivity = np.atleast_2d(np.asarray(self.responsivity, dtype=np.float64))
@@ -100,15 +106,23 @@ class Calibration:
         self.wavelengths = np.asarray(self.wavelengths, dtype=np.float64).reshape(-1)
         r = self.responsivity
         where = f" ({self.path})" if self.path else ""
-        if r.ndim != 2 or r.shape[1] != self.wavelengths.size:
-            raise InputError(f"responsivity must be (samples, {self.wavelengths.size}), got "
+        nw = self.wavelengths.size
+        self.bands = (np.arange(nw) if self.bands is None
+                      else np.asarray(self.bands, dtype=np.int64).reshape(-1))
+        if (self.bands.size == 0 or np.any(np.diff(self.bands) <= 0) or self.bands[0] < 0
+                or self.bands[-1] >= nw):
+            raise InputError(f"calibrated bands must be ascending indices into the {nw} "
+                             f"wavelengths{where}")
+        if r.ndim != 2 or r.shape[1] != self.bands.size:
+            raise InputError(f"responsivity must be (samples, {self.bands.size}), got "
                              f"{r.shape}{where}")
         bad = ~np.isfinite(r) | (r <= 0)
         if bad.any():
             b = np.flatnonzero(bad.any(axis=0))
             raise InputError(f"responsivity is NaN, zero or negative in {b.size} band(s), first "
-                             f"{self.wavelengths[b[0]]:.2f} nm{where}: the reference had no usable "
-                             "signal there (saturated, too dark, or no power at those wavelengths)")
+                             f"{self.wavelengths[self.bands[b[0]]]:.2f} nm{where}: the reference had "
+                             "no usable signal there (saturated, too dark, or no power at those "
+                             "wavelengths)")
         if self.uncertainty.shape != r.shape:
             raise InputError(f"uncertainty shape {self.uncertainty.shape} != responsivity "
                              f"shape {r.shape}{where}")
@@ -138,12 +152,24 @@ class Calibration:
         if mb is not None and binning is not None and list(np.atleast_1d(mb)) != list(np.atleast_1d(binning)):
             raise InputError(f"{me} was made at binning {mb}, the data at {binning}", source)
 
+    @property
+    def complete(self) -> bool:
+        """True when every band of the camera is calibrated."""
+        return self.bands.size == self.wavelengths.size
+
+    @property
+    def calibrated_wavelengths(self) -> np.ndarray:
+        return self.wavelengths[self.bands]
+
     def apply(self, dn_per_ms: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
-        """Radiance ``(lines, samples, bands)`` from linearised DN/ms of the same shape."""
+        """Radiance ``(lines, samples, k)`` of the calibrated bands from linearised DN/ms
+        ``(lines, samples, bands)``; ``out`` (in place) only when every band is calibrated."""
         x = np.asarray(dn_per_ms)
         if x.ndim != 3 or x.shape[2] != self.wavelengths.size:
             raise InputError(f"calibrate needs (lines, samples, {self.wavelengths.size}), got {x.shape}")
         inv = (1.0 / self.responsivity).astype(np.float32)
+        if not self.complete:
+            return (x[..., self.bands] * inv[None]).astype(np.float32)
         if out is None:
             return (x * inv[None]).astype(np.float32)
         np.multiply(x, inv[None], out=out)
@@ -155,7 +181,9 @@ class Calibration:
                 "path": None if self.path is None else str(self.path),
                 "sha256": self.parameters.get("file_sha256"),
                 "median_uncertainty": float(np.median(self.uncertainty)),
-                "created": self.created}
+                "calibrated_nm": [float(self.calibrated_wavelengths[0]),
+                                  float(self.calibrated_wavelengths[-1])],
+                "bands": int(self.bands.size), "created": self.created}
 
     # -------------------------------------------------------------- storage
     def to_dict(self) -> dict[str, Any]:
@@ -164,6 +192,7 @@ class Calibration:
                 "sources": self.sources, "parameters": self.parameters,
                 "wavelengths": self.wavelengths.tolist(),
                 "fwhm": None if self.fwhm is None else np.asarray(self.fwhm).tolist(),
+                "bands": None if self.complete else self.bands.tolist(),
                 "responsivity_shape": list(self.responsivity.shape),
                 "responsivity": [float(f"{v:.9g}") for v in self.responsivity.ravel()],
                 "uncertainty": [float(f"{v:.4g}") for v in self.uncertainty.ravel()]}
@@ -192,7 +221,8 @@ class Calibration:
             return cls(r, u, d["wavelengths"], str(d["unit"]), str(d["method"]),
                        fwhm=d.get("fwhm"), camera=d.get("camera") or {},
                        response=d.get("response") or {}, sources=d.get("sources") or [],
-                       created=str(d.get("created", "")), parameters=params, path=path)
+                       created=str(d.get("created", "")), parameters=params, path=path,
+                       bands=d.get("bands"))
         except (KeyError, TypeError, ValueError) as exc:
             raise FormatError(f"bad calibration file ({exc})", path) from None
         except InputError as exc:
@@ -277,9 +307,9 @@ def _frame_dn_per_ms(bracket, response, region: str, saturation) -> tuple[np.nda
     return mean, rel
 
 
-def _reference_bands(bracket, spectrum: Spectrum, what: str) -> np.ndarray:
+def _reference_bands(bracket, spectrum: Spectrum, what: str, partial: bool) -> np.ndarray:
     fw = bracket.exposures[0].fwhm
-    return band_average(spectrum, bracket.wavelengths, fw, what=what)
+    return band_average(spectrum, bracket.wavelengths, fw, what=what, partial=partial)
 
 
 def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, method: str,
@@ -307,10 +337,16 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
     if not per_column:
         rel = np.sqrt(np.mean(rel ** 2, axis=0) / dn.shape[0])[None]
         dn = dn.mean(axis=0, keepdims=True)
+    keep = np.flatnonzero(np.isfinite(l_ref))
+    if keep.size == 0:
+        raise InputError("the reference spectrum covers none of the camera's bands")
+    if np.any(np.diff(keep) != 1):
+        raise InputError("the reference spectrum leaves a gap inside the camera's bands")
+    dn, rel, l_ref, ref_unc = dn[:, keep], rel[:, keep], l_ref[keep], ref_unc[keep]
     zero = l_ref <= 0
     if zero.any():
         k = int(np.flatnonzero(zero)[0])
-        raise InputError(f"the reference radiance is zero at {bracket.wavelengths[k]:.2f} nm "
+        raise InputError(f"the reference radiance is zero at {bracket.wavelengths[keep[k]]:.2f} nm "
                          f"({int(zero.sum())} band(s)): it cannot calibrate those bands")
     resp = dn / l_ref[None, :]
     unc = np.sqrt(rel ** 2 + ref_unc[None, :] ** 2)
@@ -318,6 +354,7 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
     cam = {"id": camera_id or bracket_camera_id(bracket), "binning": e0.binning,
            "samples": int(bracket.shape[1]), "bit_depth": int(bracket.bit_depth)}
     return Calibration(resp, unc, bracket.wavelengths, unit, method, fwhm=e0.fwhm, camera=cam,
+                       bands=keep,
                        response=resp_info, sources=sources,
                        created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                        parameters={"region": region, "per_column": per_column,
@@ -349,18 +386,20 @@ def _spec_source(role: str, spec: Spectrum) -> dict:
 
 def calibrate_panel_relative(bracket, panel: Spectrum, illuminant: Spectrum, *,
                              region: str = "white", response: Any = None, per_column: bool = True,
-                             camera_id: str | None = None,
+                             camera_id: str | None = None, partial: bool = False,
                              saturation: float | np.ndarray | None = None) -> Calibration:
     """Relative calibration from a diffuse panel ``ρ(λ)`` under an illuminant of relative SPD ``S(λ)``.
 
     ``L_ref = ρ·S/π`` per band (band-averaged over the camera's spectral
     response), with ``S`` scaled to a mean of 1 over 400–700 nm (the absolute
-    level is unknown, so calibrated data are in :data:`UNIT_RELATIVE`).
+    level is unknown, so calibrated data are in :data:`UNIT_RELATIVE`). ``partial``:
+    calibrate the bands the spectra cover (a contiguous range) instead of refusing.
     """
-    rho = _reference_bands(bracket, panel, "panel reflectance")
-    s = _reference_bands(bracket, illuminant, "illuminant SPD")
+    rho = _reference_bands(bracket, panel, "panel reflectance", partial)
+    s = _reference_bands(bracket, illuminant, "illuminant SPD", partial)
     vis = (bracket.wavelengths >= 400) & (bracket.wavelengths <= 700)
-    norm = s[vis].mean() if vis.any() else s.mean()
+    vis &= np.isfinite(s)
+    norm = s[vis].mean() if vis.any() else np.nanmean(s)
     if not norm > 0:
         raise InputError(f"illuminant ({illuminant.source}) has no power in 400-700 nm")
     l_ref = rho * (s / norm) / np.pi
@@ -376,13 +415,14 @@ def calibrate_panel_relative(bracket, panel: Spectrum, illuminant: Spectrum, *,
 
 def calibrate_source_absolute(bracket, source: Spectrum, *, region: str = "frame",
                               response: Any = None, per_column: bool = True,
-                              camera_id: str | None = None,
+                              camera_id: str | None = None, partial: bool = False,
                               saturation: float | np.ndarray | None = None) -> Calibration:
     """Absolute calibration from a source of known spectral radiance (W·sr⁻¹·m⁻²·nm⁻¹).
 
-    The certificate's relative uncertainty (third column) is propagated.
+    The certificate's relative uncertainty (third column) is propagated. ``partial``:
+    calibrate the bands the certificate covers instead of refusing.
     """
-    l_ref = _reference_bands(bracket, source, "source radiance")
+    l_ref = _reference_bands(bracket, source, "source radiance", partial)
     unc = np.zeros_like(l_ref)
     if source.uncertainty is not None:
         unc = np.interp(bracket.wavelengths, source.wavelengths, source.uncertainty)

@@ -115,29 +115,32 @@ def load_spectrum(spec: str | Path, *, what: str = "spectrum") -> Spectrum:
 
 
 def band_average(spectrum: Spectrum, centres: np.ndarray, fwhm: np.ndarray | float | None, *,
-                 what: str = "spectrum") -> np.ndarray:
+                 what: str = "spectrum", partial: bool = False) -> np.ndarray:
     """float64 ``(bands,)``: the spectrum seen by Gaussian bands of ``centres`` and ``fwhm`` (nm).
 
     Every band's ±1 FWHM window must lie inside the table (no extrapolation: a
     panel file ending at 780 nm cannot calibrate a 1000 nm band); otherwise an
-    :class:`InputError` names the first uncovered band. Without ``fwhm`` the
-    table is interpolated at the centres.
+    :class:`InputError` names the first uncovered band — or, with ``partial``,
+    uncovered bands are NaN. Without ``fwhm`` the table is interpolated at the centres.
     """
     c = np.asarray(centres, dtype=np.float64).reshape(-1)
     wl, v = spectrum.wavelengths, spectrum.values
     fw = None if fwhm is None else np.broadcast_to(np.asarray(fwhm, dtype=np.float64), c.shape)
     half = np.zeros_like(c) if fw is None else fw
     bad = (c - half < wl[0] - 1e-9) | (c + half > wl[-1] + 1e-9)
-    if bad.any():
+    if bad.any() and not partial:
         k = int(np.flatnonzero(bad)[0])
         raise InputError(f"{what} ({spectrum.source}) covers {wl[0]:g}..{wl[-1]:g} nm, not band "
                          f"{k + 1} at {c[k]:.2f} nm (±{half[k]:g} nm) — {int(bad.sum())} of "
-                         f"{c.size} bands uncovered; give a spectrum over the camera's range")
+                         f"{c.size} bands uncovered; give a spectrum over the camera's range, or "
+                         "calibrate the covered bands only (mehs calibrate --partial)")
     if fw is None:
-        return np.interp(c, wl, v)
+        return np.where(bad, np.nan, np.interp(c, wl, v))
     step = min(0.5, float(np.min(np.diff(wl))) / 2)
-    out = np.empty_like(c)
+    out = np.full_like(c, np.nan)
     for i, (ci, fi) in enumerate(zip(c, fw)):
+        if bad[i]:
+            continue
         sig = fi / (2 * np.sqrt(2 * np.log(2)))
         x = np.arange(max(wl[0], ci - 3 * sig), min(wl[-1], ci + 3 * sig) + step, step)
         w = np.exp(-0.5 * ((x - ci) / sig) ** 2)

@@ -28,6 +28,10 @@ def configure(parser):
                         help="camera id to record (default: the one in scene.json)")
     parser.add_argument("--no-flat-field", action="store_true",
                         help="one responsivity per band (mean over columns) instead of per column")
+    parser.add_argument("--partial", action="store_true",
+                        help="calibrate only the contiguous bands the reference spectra cover "
+                             "(e.g. a colour-science illuminant ends at 780 nm); calibrated "
+                             "cubes then hold those bands only")
     parser.add_argument("--force", action="store_true", help="replace an existing --out file")
 
 
@@ -53,7 +57,7 @@ def run(args) -> int:
         raise InputError("--illuminant goes with --panel, not --source")
     bracket = load_bracket(args.capture if len(args.capture) > 1 else args.capture[0])
     common = dict(response=args.response, per_column=not args.no_flat_field,
-                  camera_id=args.camera_id)
+                  camera_id=args.camera_id, partial=args.partial)
     if args.source:
         spec = load_spectrum(args.source, what="source radiance")
         cal = calibrate_source_absolute(bracket, spec, region=args.region or "frame", **common)
@@ -70,6 +74,10 @@ def run(args) -> int:
         cal = calibrate_panel_relative(bracket, panel, ill, region=args.region or "white", **common)
     cal.save(out)
     r = cal.responsivity
+    cw = cal.calibrated_wavelengths
+    if not cal.complete:
+        print(f"calibrated {cw.size} of {cal.wavelengths.size} bands ({cw[0]:.2f}-{cw[-1]:.2f} nm, "
+              "what the reference covers); calibrated cubes hold these bands only")
     print(f"{out}: {cal.method}, unit {cal.unit}, {r.shape[1]} bands × {r.shape[0]} column(s), "
           f"responsivity {np.median(r):.4g} DN/ms per unit (median), uncertainty "
           f"{np.median(cal.uncertainty):.2%} (median), {np.percentile(cal.uncertainty, 95):.2%} (p95)")

@@ -481,17 +481,23 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 reference=reference)
         timings["ghosts_s"] = time.perf_counter() - t2
 
+    e0 = bracket.exposures[0]
+    wavelengths, fwhm = bracket.wavelengths, e0.fwhm
     if radiometric is not None:
         # after the merge and any deghosting: per column and band, DN/ms → radiance
-        radiometric.apply(radiance, out=radiance)
+        # (only the bands the calibration covers remain)
+        radiance = radiometric.apply(radiance, out=radiance if radiometric.complete else None)
+        wavelengths = radiometric.calibrated_wavelengths
+        if fwhm is not None and not radiometric.complete:
+            fwhm = np.asarray(fwhm)[radiometric.bands]
         units = radiometric.unit
     else:
         units = "DN/ms" if calibration is None else "radiance"
-    e0 = bracket.exposures[0]
-    cube = SpectralCube(radiance, bracket.wavelengths, fwhm=e0.fwhm, units=units,
+    cube = SpectralCube(radiance, wavelengths, fwhm=fwhm, units=units,
                         integration_time_ms=None, acquisition_date=e0.acquisition_date,
                         binning=e0.binning, dark_subtracted=True, source=bracket.source,
-                        default_bands=e0.default_bands,
+                        default_bands=(e0.default_bands if radiometric is None
+                                       or radiometric.complete else None),
                         metadata={"mehs merge method": method,
                                   "mehs response": curve.method,
                                   "mehs exposure times ms": [float(t) for t in bracket.times_ms]})
@@ -500,6 +506,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     summary["units"] = units
     if radiometric is not None:
         summary["calibration"] = radiometric.summary()
+        summary["shape"] = list(radiance.shape)
+        summary["wavelength_range_nm"] = [float(wavelengths[0]), float(wavelengths[-1])]
         summary["dynamic_range_definition"] += " (in DN/ms, before radiometric calibration)"
     summary["noise"].update(noise_info)
     chk = auto_info.get("check")
