@@ -34,6 +34,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 def scores(rad, truth, valid):
     rad = np.asarray(rad, dtype=np.float64)
+    # OpenCV's Robertson merge writes NaN where a band had no weighted sample: a zero there
+    rad = np.where(np.isfinite(rad), rad, 0.0)
     v = valid[..., None] & (truth > 0) & np.isfinite(rad) & (rad > 0)
     s = np.median(rad[v] / truth[v])
     rel = np.abs(rad / s - truth) / truth
