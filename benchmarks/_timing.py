@@ -15,3 +15,14 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
         fn()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
+
+
+def best_time(fn: Callable[[object], object], x, repeat: int, *, warm: int = 32) -> float:
+    """Best of ``repeat`` calls ``fn(x)`` in seconds, after a warm-up on a ``warm``-pixel crop."""
+    fn(x[:warm, :warm])
+    best = float("inf")
+    for _ in range(max(1, repeat)):
+        t0 = time.perf_counter()
+        fn(x)
+        best = min(best, time.perf_counter() - t0)
+    return best

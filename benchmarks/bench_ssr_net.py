@@ -13,28 +13,14 @@ not depend on them. ``--quick`` uses a 512×256 image.
 from __future__ import annotations
 
 import argparse
-import time
-
-import numpy as np
-
-PAPER_SECONDS = {"smits": 0.788, "hdrssr": 16.3}
 
 
-def test_image(h: int, w: int, seed: int = 0) -> np.ndarray:
-    """Piecewise-constant HDR linear RGB with gamma-distributed blocks (as mehs.ssr.evaluate times models)."""
-    rng = np.random.default_rng(seed)
-    base = rng.gamma(1.0, 1.0, (h // 16 + 1, w // 16 + 1, 3)).astype(np.float32)
-    return np.ascontiguousarray(np.repeat(np.repeat(base, 16, 0), 16, 1)[:h, :w] * np.float32(10))
+from _timing import best_time
+from mehs.ssr.timing import PAPER_SECONDS as _PAPER, synthetic_timing_image
 
+#: Paper Table 5, CPU column (i9-11900, 2048×1024)
+PAPER_SECONDS = {name: cpu for name, (cpu, _gpu) in _PAPER.items()}
 
-def best_time(fn, x, repeat: int) -> float:
-    fn(x[:16, :16])
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn(x)
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def main(argv=None) -> int:
@@ -59,7 +45,7 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     h, w = (256, 512) if args.quick else (1024, 2048)
-    rgb = test_image(h, w)
+    rgb = synthetic_timing_image((h, w))
     torch.manual_seed(0)
     rows = [("smits", "Smits 1999 (vectorised numpy)", Smits1999())]
     nets = {}

@@ -40,14 +40,13 @@ def child(args) -> None:
 
     import torch
 
-    from bench_ssr_net import test_image
-    from mehs.cli.train_ssr import NET_SIZES
-    from mehs.ssr.net import build_network
+    from mehs.ssr.net.zoo import build_network
+    from mehs.ssr.timing import synthetic_timing_image
     from mehs.ssr.net.export import TorchSSRModel, export_onnx
 
     h, w = args.shape
     torch.manual_seed(0)
-    net = build_network(variant=args.variant, **NET_SIZES[args.size])
+    net = build_network(arch=args.variant, preset=args.size)
     if args.onnx:
         from mehs.ssr.models import OnnxModel
 
@@ -56,7 +55,7 @@ def child(args) -> None:
         model = TorchSSRModel(net)
     opts = {} if args.budget is None else {"max_bytes": int(args.budget * 2**20)}
     model.tiling = "off" if args.mode == "whole" else (opts or "auto")
-    rgb = test_image(h, w)
+    rgb = synthetic_timing_image((h, w))
     model(rgb[:64, :64])
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
@@ -72,8 +71,8 @@ def child(args) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="1024×512 instead of 2048×1024")
-    ap.add_argument("--variant", default="hdrssr", choices=("hdrssr", "fcdensenet"))
-    ap.add_argument("--size", default="small", help="network size preset of mehs train-ssr")
+    ap.add_argument("--variant", default="hdrssr", help="zoo architecture (--arch of mehs train-ssr)")
+    ap.add_argument("--size", default="small", help="zoo preset (--preset of mehs train-ssr)")
     ap.add_argument("--onnx", action="store_true", help="run the exported ONNX graph instead")
     ap.add_argument("--budget", type=float, default=None,
                     help="MiB for one tile (default: the library's choice from free memory)")
