@@ -3,7 +3,6 @@
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -13,36 +12,14 @@ import pytest
 from mehs.capture import scenefolder as sf
 from mehs.capture.scene import make_scene
 from mehs.capture.sensor import SensorModel
+from _simdevice import MEHS, start_sim_device, stop
 
 SIZE = 32
 TIMES = [1.0, 4.0, 16.0]
-MEHS = [sys.executable, "-m", "mehs"]
 
 
 def start_sim(*extra):
-    proc = subprocess.Popen(MEHS + ["sim-device", "--size", str(SIZE), "--seed", "3", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    urls = {}
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            raise AssertionError(f"sim-device exited: {proc.stderr.read()}")
-        key, _, val = line.strip().partition(": ")
-        if key == "ready":
-            return proc, urls
-        urls[key] = val
-    proc.kill()
-    raise AssertionError("sim-device did not become ready")
-
-
-def stop(proc):
-    proc.terminate()
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+    return start_sim_device(["--size", str(SIZE), "--seed", "3", *extra])
 
 
 def capture(urls, out, *extra, timeout=120):

@@ -7,8 +7,6 @@ on 127.0.0.1), so these tests never run their simulators concurrently.
 
 import json
 import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -24,35 +22,14 @@ from mehs.capture.sensor import SensorModel, exposure_seed_for  # noqa: E402
 from mehs.capture.simulate import simulate_bracket, world_radiance_line  # noqa: E402
 from mehs.errors import DeviceError  # noqa: E402
 from mehs.io.atomic import sha256_file  # noqa: E402
+from _simdevice import MEHS, start_sim_device, stop  # noqa: E402
 
 SIZE, SEED = 24, 3
 TIMES = [1.0, 4.0, 16.0]
-MEHS = [sys.executable, "-m", "mehs"]
 
 
 def start_sim(*extra, size=SIZE):
-    proc = subprocess.Popen(MEHS + ["sim-device", "--genicam", "--size", str(size), "--seed", str(SEED),
-                                    *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    urls, deadline = {}, time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            raise AssertionError(f"sim-device --genicam exited: {proc.stderr.read()}")
-        key, _, val = line.strip().partition(": ")
-        if key == "ready":
-            return proc, urls
-        urls[key] = val
-    proc.kill()
-    raise AssertionError("sim-device --genicam did not become ready")
-
-
-def stop(proc):
-    proc.terminate()
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+    return start_sim_device(["--genicam", "--size", str(size), "--seed", str(SEED), *extra])
 
 
 def capture(urls, out, *extra, size=SIZE):
