@@ -12,27 +12,17 @@ ratio to that reference. Target (issue 3): a 512×512×204 bracket in < 60 s.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _simdevice import start_sim  # noqa: E402
 
 TIMES = [0.05, 0.8, 12.8]
 
 
-def start_sim(size: int):
-    proc = subprocess.Popen([sys.executable, "-m", "mehs", "sim-device", "--size", str(size)],
-                            stdout=subprocess.PIPE, text=True)
-    urls = {}
-    for line in proc.stdout:
-        key, _, val = line.strip().partition(": ")
-        if key == "ready":
-            return proc, urls
-        urls[key] = val
-    raise SystemExit("sim-device did not start")
 
 
 def main() -> int:

@@ -16,24 +16,14 @@ frames per line; a real camera free-runs at hundreds of Hz.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _simdevice import start_sim  # noqa: E402
 
 
-def start_sim(size: int, *extra: str):
-    proc = subprocess.Popen([sys.executable, "-m", "mehs", "sim-device", "--size", str(size), *extra],
-                            stdout=subprocess.PIPE, text=True)
-    urls = {}
-    for line in proc.stdout:
-        key, _, val = line.strip().partition(": ")
-        if key == "ready":
-            return proc, urls
-        urls[key] = val
-    raise SystemExit(f"sim-device {' '.join(extra)} did not start")
 
 
 def measure(urls: dict, size: int, t_ms: float, oversample: float) -> list[tuple[str, float, dict]]:
