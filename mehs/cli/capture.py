@@ -76,8 +76,6 @@ def run(args):
         except ValueError:
             raise InputError(f"--times must be comma-separated numbers, got {args.times!r}") from None
     if not args.resume:  # the id `mehs build` will use: refuse now what it would refuse later
-        from pathlib import Path
-
         from mehs.dataset.scene_list import check_scene_id
 
         check_scene_id(args.scene_id or Path(args.out).resolve().name)
