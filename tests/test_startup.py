@@ -51,16 +51,21 @@ def test_fuse_imports_no_heavy_optional_modules(tmp_path):
     assert "LOADED [] 0" in r.stdout, r.stdout + r.stderr[-2000:]
 
 
-def test_uncached_kernel_notice(tmp_path, capsys):
+def test_uncached_kernel_notice(tmp_path, capsys, monkeypatch):
     from types import SimpleNamespace
 
+    from mehs.synthesis import _numba_cache
     from mehs.synthesis._numba_cache import notice_if_uncached
+
+    monkeypatch.setattr(_numba_cache, "_told", False)
 
     idx = tmp_path / "k.nbi"
     cache_file = SimpleNamespace(_index_path=str(idx))
     disp = SimpleNamespace(_cache=SimpleNamespace(_cache_file=cache_file))
     assert notice_if_uncached(disp) is True
     assert "compiling the merge kernels once" in capsys.readouterr().err
+    assert notice_if_uncached(disp) is False       # once per process
+    monkeypatch.setattr(_numba_cache, "_told", False)
     idx.write_bytes(b"")
     assert notice_if_uncached(disp) is False
     assert notice_if_uncached(object()) is False

@@ -1,6 +1,6 @@
 """A one-line notice when numba is about to compile a kernel that its cache does not hold.
 
-A first-ever ``mehs fuse`` spends 10-20 s compiling the merge kernel (cached
+A first-ever ``mehs fuse`` spends seconds compiling the synthesis kernels (cached
 afterwards, then well under a second to load); without a word it looks like a
 hang (issue 16).
 """
@@ -17,12 +17,19 @@ def notice_if_uncached(dispatcher, what: str = "the merge kernels") -> bool:
     Reads numba's cache location (``NUMBA_CACHE_DIR`` or ``__pycache__`` next to
     the source) from the dispatcher; internals, so any surprise means no notice.
     """
+    global _told
+    if _told:
+        return False
     try:
         index = dispatcher._cache._cache_file._index_path
     except AttributeError:
         return False
     if os.path.exists(index):
         return False
-    print(f"mehs: compiling {what} once (10-20 s); later runs load them from numba's cache",
-          file=sys.stderr)
+    print(f"mehs: compiling {what} once (a few seconds); later runs load them from numba's "
+          "cache", file=sys.stderr)
+    _told = True
     return True
+
+
+_told = False

@@ -30,10 +30,11 @@ Negative estimates (dark noise around a near-zero radiance) are clipped to 0 by
 default (``clip_negative``); the clipping bias is measurable only where the
 signal is of the order of the noise (on the demo scenes it changes no median).
 
-The compiled kernel (:func:`mehs.synthesis._kernels.merge_chunk`) processes a
-chunk of lines at a time straight from the (memory-mapped) inputs, in their
-native memory order, and also accumulates the per-pixel consistency
-statistic used by :mod:`mehs.synthesis.ghost`.
+The compiled kernels (:mod:`mehs.synthesis._merge_kernels`: one for the default
+Poisson merge, one for the weighted methods) process a chunk of lines at a time
+straight from the (memory-mapped) inputs, in their native memory order, on a
+thread pool, and also accumulate the per-pixel consistency statistic used by
+:mod:`mehs.synthesis.ghost`.
 
 References
 ----------
@@ -189,11 +190,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         Accumulate the per-pixel χ² consistency statistic (for ghost detection);
         ``False`` saves one pass over each row and leaves ``chi2`` at 0.
     chunk_lines
-        Lines per kernel call. The kernel reads BIL inputs in place and writes
+        Most lines per kernel call. The kernel reads BIL inputs in place and writes
         straight into the output, so this bounds only the copy made for other
-        layouts (or mixed dtypes); larger chunks mean fewer parallel launches.
+        layouts (or mixed dtypes); chunks run on ``numba.get_num_threads()`` threads.
     """
-    from mehs.synthesis._kernels import merge_chunk
+    from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
 
     if method not in _CODES:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(_CODES)}")
@@ -233,6 +234,12 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         raise InputError(f"response curve has {glut.shape[0]} bands, data has {nb}", source)
     elut = np.exp(glut.astype(np.float64)).astype(np.float32)
     wlut = weighting_table(weighting, L).astype(np.float32)
+    # tables the kernel can compute instead of looking up (a gather per sample
+    # does not vectorise); compared with the exact float32 tables
+    z = np.arange(L, dtype=np.float64)
+    hat = bool(np.array_equal(wlut, (np.minimum(z, L - 1 - z) / ((L - 1) / 2.0))
+                              .astype(np.float32)))
+    lin_g = bool(np.all(glut == np.log(np.maximum(z, 0.5)).astype(np.float32)))
 
     if noise is None:
         noise = NoiseModel()
@@ -313,8 +320,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
     t32 = t.astype(np.float32)
-    for l0 in range(0, nl, chunk_lines):
-        l1 = min(nl, l0 + chunk_lines)
+    gain, rel2 = float(noise.gain), float(noise.relative) ** 2
+
+    def work(l0: int) -> None:
+        l1 = min(nl, l0 + step)
         parts = [np.asarray(v[l0:l1]) for v in views]
         if is_float:
             for j, part in enumerate(parts):
@@ -324,13 +333,33 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         if not same_dtype:
             parts = [p.astype(np.float32) for p in parts]
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
-        merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut,
-                    np.float32(floor), float(noise.gain), avar,
-                    float(noise.relative) ** 2, cal, code, bool(consistency),
-                    out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
-                    nvalid[l0:l1], msum[l0:l1])
-    if clip_negative:
-        np.maximum(out, 0, out=out)
+        outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
+                nvalid[l0:l1], msum[l0:l1])
+        if code == _CODES["poisson"]:
+            merge_chunk_poisson(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar,
+                                rel2, cal, bool(consistency), bool(clip_negative), *outs)
+        else:
+            merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut, hat,
+                        lin_g, np.float32(floor), gain, avar, rel2, cal, code,
+                        bool(consistency), bool(clip_negative), *outs)
+
+    # The kernels release the GIL: chunks of lines run on a thread pool of numba's
+    # thread count (NUMBA_NUM_THREADS / numba.set_num_threads, one per build worker),
+    # at least two chunks per thread so that one slow chunk does not idle the rest.
+    from numba import get_num_threads
+
+    nthreads = max(1, min(get_num_threads(), nl))
+    step = chunk_lines if nthreads == 1 else max(1, min(chunk_lines, -(-nl // (2 * nthreads))))
+    starts = range(0, nl, step)
+    if nthreads == 1 or len(starts) == 1:
+        for l0 in starts:
+            work(l0)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-merge") as pool:
+            for f in [pool.submit(work, l0) for l0 in starts]:
+                f.result()
     radiance = out.transpose(0, 2, 1)
     mask = np.zeros((nl, ns), dtype=np.uint8)
     mask[nsat > 0] |= MASK_SATURATED

@@ -1,0 +1,698 @@
+"""Compiled (numba) merge of a bracket, one chunk of lines at a time.
+
+Two entry points, so that a run compiles only what it uses (a first-ever
+``mehs fuse`` with the default Poisson merge compiles the small kernel only):
+
+- :func:`merge_chunk_poisson` — the default (Hanji 2020) estimator;
+- :func:`merge_chunk` — Debevec, Robertson and inverse-variance weights.
+
+Both share the per-row stages below (sample selection, pooled estimate,
+consistency statistic, output), inlined at numba level so that LLVM sees each
+row's scratch as distinct arrays and vectorises (as separate functions the
+aliasing checks defeated it: 6× slower). The kernels are serial and release
+the GIL; :func:`mehs.synthesis.merge.merge_bracket` runs chunks of lines on a
+thread pool. numba's ``parallel=True`` compiled for 16 s (one signature, the
+Poisson kernel) against 4.6 s without it — most of a first-ever run (issue 16). Every per-sample loop runs over the contiguous
+samples axis with selects only, so LLVM vectorises it; the per-row scratch
+(a few kB) stays in L1. ``fastmath`` stays off: the merge must give the same
+numbers as the reference formulas, and NaN/inf checks must not be optimised
+away. The one transcendental in a hot loop, Debevec's ``exp``, is
+:func:`_exp_row` (Cephes ``expf``, vectorisable: pip's llvmlite has no SVML,
+and a scalar ``expf`` per sample made Debevec slower than OpenCV's; issue 16).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Merge method codes shared with mehs.synthesis.merge.
+DEBEVEC, ROBERTSON, POISSON, INVVAR = 0, 1, 2, 3
+
+#: A sample of exposure j ≥ 1 is used only when the prediction from the shorter
+#: exposures lies this many sigmas (squared) below saturation: the choice then
+#: does not depend on the sample's own noise, so no truncation bias.
+ROOM_SIGMA2 = np.float32(9.0)
+#: A saturated sample predicted this far (sigmas², squared) below saturation is
+#: evidence of change (a censored residual in the consistency statistic).
+CENSOR_SIGMA2 = np.float32(25.0)
+#: the shorter exposures' prediction counts as "too noisy to decide" when its variance
+#: exceeds this multiple of the sample's own variance at saturation (σ ratio 2)
+PREDICTION_NOISIER2 = np.float32(4.0)
+
+_LOG2E = np.float32(1.44269504088896341)
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.12194440e-4)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _exp_row(x, out, kbuf):
+    """``out = exp(x)`` in float32, elementwise, vectorisable (Cephes ``expf``, ≤ 2 ulp).
+
+    ``2**k`` is assembled from its exponent bits in the int32 scratch ``kbuf``
+    (viewed as float32), so neither loop calls into libm.
+    """
+    n = x.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    half = np.float32(0.5)
+    lo = np.float32(-126.0)
+    hi = np.float32(128.0)
+    for i in range(n):
+        v = x[i]
+        k = np.floor(v * _LOG2E + half)
+        k = min(max(k, lo - f1), hi)
+        r = (v - k * _LN2_HI) - k * _LN2_LO
+        z = r * r
+        p = ((((np.float32(1.9875691500e-4) * r + np.float32(1.3981999507e-3)) * r
+               + np.float32(8.3334519073e-3)) * r + np.float32(4.1665795894e-2)) * r
+             + np.float32(1.6666665459e-1)) * r + np.float32(5.0000001201e-1)
+        out[i] = p * z + r + f1
+        # k = -127 → exponent bits 0 → 0.0 (underflow); k = 128 → inf
+        kbuf[i] = (np.int32(k) + np.int32(127)) << np.int32(23)
+    scale = kbuf.view(np.float32)
+    for i in range(n):
+        o = max(out[i] * scale[i], f0)
+        out[i] = o if x[i] == x[i] else x[i]     # NaN stays NaN
+    return out
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _log_accumulate_row(x, w, lt, num, den, ebuf, kbuf):
+    """``num += w·(ln x − lt)``, ``den += w``, for positive, finite, normal ``x``.
+
+    ``ln`` is Cephes ``logf`` (≤ 2 ulp), vectorisable: the exponent and mantissa
+    are split through int32 views (``frexp``), so no libm call is made per sample.
+    """
+    n = x.shape[0]
+    xb = x.view(np.int32)
+    for i in range(n):
+        b = xb[i]
+        ebuf[i] = np.float32((b >> np.int32(23)) - np.int32(126))
+        kbuf[i] = (b & np.int32(0x007FFFFF)) | np.int32(0x3F000000)
+    m = kbuf.view(np.float32)
+    f1 = np.float32(1.0)
+    for i in range(n):
+        mi = m[i]
+        small = mi < np.float32(0.707106781186547524)
+        e = ebuf[i] - (f1 if small else np.float32(0.0))
+        v = (mi + mi - f1) if small else (mi - f1)
+        z = v * v
+        y = ((((((((np.float32(7.0376836292e-2) * v - np.float32(1.1514610310e-1)) * v
+                   + np.float32(1.1676998740e-1)) * v - np.float32(1.2420140846e-1)) * v
+                 + np.float32(1.4249322787e-1)) * v - np.float32(1.6668057665e-1)) * v
+               + np.float32(2.0000714765e-1)) * v - np.float32(2.4999993993e-1)) * v
+             + np.float32(3.3333331174e-1)) * v * z
+        y += e * _LN2_LO
+        y += np.float32(-0.5) * z
+        ln = v + y + e * _LN2_HI
+        wi = w[i]
+        num[i] += wi * (ln - lt)
+        den[i] += wi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L, g32,
+                y, ok, cs, lev, ysat, sy, st, st2, sav, nv, nc):
+    """Choose the usable samples of row ``l``, band ``a``; return True if any is censored.
+
+    Writes per exposure ``y`` (linearised DN), ``ok`` (1 = used), ``cs``
+    (censored: the saturation level, else 0) and, for non-linear sensors,
+    ``lev``; per sample the running sums ``sy`` (Σy), ``st`` (Σt), ``st2``
+    (Σt²), ``sav`` (Σ zero-signal variance), ``nv`` (count) and ``nc``
+    (censored count).
+
+    Every unsaturated sample is used by the linear estimators, and exposure
+    j ≥ 1 where the running Poisson estimate of the shorter exposures predicts
+    it ``3σ`` below saturation — or, where that prediction is more than twice
+    as noisy as the sample (brackets ×50–×200 apart, dark bands), where the
+    sample itself lies ``3σ`` below saturation: deciding by a much noisier
+    prediction dropped the long sample exactly where the short one had noise
+    up, +15 % at 400 nm.
+    """
+    P = len(zs)
+    ns = sy.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    k2u = ROOM_SIGMA2
+    k2c = CENSOR_SIGMA2
+    k2p = PREDICTION_NOISIER2
+    if not linear:
+        # (the linear path's first exposure writes the sums instead of adding)
+        for i in range(ns):
+            sy[i] = f0
+            st[i] = f0
+            st2[i] = f0
+            sav[i] = f0
+            nv[i] = f0
+            nc[i] = f0
+    any_cens = False
+    for j in range(P):
+        zr = zs[j][l, a]
+        dr = darks[j, a]
+        tj = times[j]
+        tj2 = tj * tj
+        aj = avar[j]
+        yj = y[j]
+        okj = ok[j]
+        csj = cs[j]
+        ncens = False     # an OR, not a count: an int64 counter halves the vector width
+        if linear and j == 0:
+            # the shortest exposure: nothing to predict from, no censoring
+            for i in range(ns):
+                raw = np.float32(zr[i])
+                yv = raw - dr[i]
+                yj[i] = yv
+                o = f1 if raw < s else f0
+                okj[i] = o
+                csj[i] = f0
+                sy[i] = o * yv
+                st[i] = o * tj
+                st2[i] = o * tj2
+                sav[i] = o * aj
+                nv[i] = o
+                nc[i] = f0
+            continue
+        if linear:
+            # the common case in one fused, branch-free loop (same tests as below)
+            for i in range(ns):
+                raw = np.float32(zr[i])
+                d = dr[i]
+                yv = raw - d
+                yj[i] = yv
+                ys = s - d
+                sti = st[i]
+                syi = max(sy[i], f0)
+                room = ys * sti - syi * tj
+                vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
+                r2 = room * room
+                pos = room > f0
+                unsat = raw < s
+                vown = g32 * max(ys, f0) + aj
+                marg = ys - yv
+                own = (vp > k2p * vown * sti * sti) & (marg > f0) & (marg * marg > k2u * vown)
+                o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
+                c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                csj[i] = ys if c else f0
+                ncens = ncens | c
+                okj[i] = o
+                sy[i] += o * yv
+                st[i] += o * tj
+                st2[i] += o * tj2
+                sav[i] += o * aj
+                nv[i] += o
+        else:
+            lj = lev[j]
+            if dark_after:
+                zs_ = min(int(s), L - 1)
+                for i in range(ns):
+                    zi = min(int(zr[i]), L - 1)
+                    lj[i] = zi
+                    yj[i] = elut[cb, zi] - dr[i]
+                    ysat[i] = elut[cb, zs_] - dr[i]
+            else:
+                for i in range(ns):
+                    zi = min(max(int(np.rint(np.float32(zr[i]) - dr[i])), 0), L - 1)
+                    lj[i] = zi
+                    yj[i] = elut[cb, zi]
+                    zsi = min(max(int(np.rint(s - dr[i])), 0), L - 1)
+                    ysat[i] = elut[cb, zsi]
+            for i in range(ns):
+                raw = np.float32(zr[i])
+                yv = yj[i]
+                ys = ysat[i]
+                sti = st[i]
+                syi = max(sy[i], f0)
+                # (ysat − predicted y)·Σt and the prediction's variance·(Σt)²
+                room = ys * sti - syi * tj
+                vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
+                r2 = room * room
+                pos = room > f0
+                unsat = raw < s
+                # a prediction from exposures ×50–×200 shorter is far noisier than
+                # the sample itself: then its own 3σ margin below saturation decides
+                # (a bias confined to a 3σ band under saturation, instead of dropping
+                # every long sample whose short prediction happened to be high)
+                vown = g32 * max(ys, f0) + aj
+                marg = ys - yv
+                own = (vp > k2p * vown * sti * sti) & (marg > f0) & (marg * marg > k2u * vown)
+                o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
+                c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                csj[i] = ys if c else f0
+                ncens = ncens | c
+                okj[i] = o
+                sy[i] += o * yv
+                st[i] += o * tj
+                st2[i] += o * tj2
+                sav[i] += o * aj
+                nv[i] += o
+        if ncens:
+            any_cens = True
+            for i in range(ns):
+                nc[i] += f1 if csj[i] != f0 else f0
+    return any_cens
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _pool_row(sy, st, nv, X):
+    """Pooled (Poisson) estimate ``X = Σy / Σt``; True if some pixel has no usable sample."""
+    ns = X.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    nbad = False
+    for i in range(ns):
+        has = nv[i] > f0
+        X[i] = sy[i] / (st[i] if has else f1)
+        nbad = nbad | (not has)
+    return nbad
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _fallback_row(zs, l, a, s, times, y, nv, X, nsa, had_bad, nbad):
+    """Where no sample is usable (saturated in every exposure): a rare scalar pass.
+
+    ``X`` becomes the shortest exposure's lower bound and ``nsa`` counts the
+    saturated exposures; ``nsa`` is reset lazily (``had_bad``: the previous
+    band set it). Returns the new ``had_bad``.
+    """
+    P = len(zs)
+    ns = X.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    if had_bad:
+        for i in range(ns):
+            nsa[i] = f0
+        had_bad = False
+    if nbad:
+        had_bad = True
+        t0 = times[0]
+        for i in range(ns):
+            if nv[i] > f0:
+                continue
+            ns_i = f0
+            for j in range(P):
+                ns_i += f1 if np.float32(zs[j][l, a, i]) >= s else f0
+            nsa[i] = ns_i
+            X[i] = y[0, i] / t0          # a lower bound, never extrapolated
+    return had_bad
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _chi2_sums(times, avar, g32, rel32, ok, y, om, X, sw, swx, swx2):
+    """Σw, Σwx and Σwx² of the usable samples ``x = y/t``, ``w = 1/var`` from ``max(X, 0)``.
+
+    The consistency statistic is ``Σw(x − x̄)² = Σwx² − (Σwx)²/Σw`` about the
+    inverse-variance mean ``x̄`` (the estimate under which it is χ²-distributed
+    with ``n − 1`` dof), taken with weights from the pooled estimate; ``om``
+    receives the weights (for the censored residuals).
+    """
+    P = om.shape[0]
+    ns = X.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    for j in range(P):
+        tj = times[j]
+        itj = f1 / tj
+        itj2 = itj * itj
+        aj = avar[j]
+        okj = ok[j]
+        yj = y[j]
+        omj = om[j]
+        if j == 0:
+            for i in range(ns):
+                xp = max(X[i], f0)
+                w = f1 / ((g32 * xp * tj + aj) * itj2 + rel32 * xp * xp)
+                omj[i] = w
+                wx = okj[i] * w * (yj[i] * itj)
+                sw[i] = okj[i] * w
+                swx[i] = wx
+                swx2[i] = wx * (yj[i] * itj)
+        else:
+            for i in range(ns):
+                xp = max(X[i], f0)
+                w = f1 / ((g32 * xp * tj + aj) * itj2 + rel32 * xp * xp)
+                omj[i] = w
+                wx = okj[i] * w * (yj[i] * itj)
+                sw[i] += okj[i] * w
+                swx[i] += wx
+                swx2[i] += wx * (yj[i] * itj)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _chi2_censored(times, om, cs, sw, swx, swx2):
+    """Finish the statistic into ``swx2`` and add the censored residuals (rare).
+
+    A sample that saturated although the others predicted it well below
+    saturation (a bright object moved in) adds ``w·(ysat/t − x̄)²``.
+    """
+    P = om.shape[0]
+    ns = sw.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    for i in range(ns):
+        w = sw[i]
+        mean = swx[i] / w if w > f0 else f0
+        v = swx2[i] - swx[i] * mean
+        swx2[i] = v if v > f0 else f0
+        sw[i] = mean
+    for j in range(P):
+        itj = f1 / times[j]
+        csj = cs[j]
+        omj = om[j]
+        for i in range(ns):
+            if csj[i] != f0:
+                r = csj[i] * itj - sw[i]
+                swx2[i] += omj[i] * r * r if r > f0 else f0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _write_row(X, clip, c, num, den, nv, nsa, P, want_chi2, finished, sw, swx, swx2, nc,
+               ol, snr_l, msum_l, nvalid_l, nsat_l, chi2_l, dof_l):
+    """Write one band of the output row and accumulate the per-pixel statistics.
+
+    ``X`` is the estimate (a non-finite one is written as 0); the SNR is
+    ``max(X, 0)·num/√den`` (``num`` = Σω, ``den`` = Σω²·var of the weights ω).
+    With ``want_chi2`` the statistic is ``swx2`` when ``finished``
+    (:func:`_chi2_censored` ran), else it is computed here from the sums.    """
+    ns = X.shape[0]
+    f0 = np.float32(0.0)
+    inf32 = np.float32(np.inf)
+    fP = np.float32(P)
+    two = np.float32(2.0)
+    for i in range(ns):
+        xi = X[i]
+        fin = (xi > -inf32) & (xi < inf32)
+        # the output keeps a negative (noise) estimate unless clipped: clipping each
+        # one to 0 biases near-zero bands upward, so noise studies may keep them
+        x = xi if fin & (xi >= f0) else f0
+        xr = xi if fin else f0
+        ol[i] = (x if clip else xr) * c
+        msum_l[i] += x * c
+        has = nv[i] > f0
+        nvalid_l[i] += 1 if has else 0
+        dn = den[i]
+        snr_l[i] += x * num[i] / np.sqrt(dn) if has & (dn > f0) else f0
+        nsat_l[i] += 1 if nsa[i] == fP else 0
+    if want_chi2 and finished:
+        for i in range(ns):
+            ne = nv[i] + nc[i]
+            m2 = (ne >= two) & (nv[i] > f0)
+            chi2_l[i] += swx2[i] if m2 else f0
+            dof_l[i] += np.int32(ne) - np.int32(1) if m2 else np.int32(0)
+    elif want_chi2:
+        for i in range(ns):
+            w = sw[i]
+            mean = swx[i] / w if w > f0 else f0
+            v = swx2[i] - swx[i] * mean
+            q = v if v > f0 else f0
+            ne = nv[i] + nc[i]
+            m2 = (ne >= two) & (nv[i] > f0)
+            chi2_l[i] += q if m2 else f0
+            dof_l[i] += np.int32(ne) - np.int32(1) if m2 else np.int32(0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_poisson(zs, darks, sat, times, linear, dark_after, elut, L,
+                        gain, avar, rel_var, cal, want_chi2, clip,
+                        out, chi2, dof, snr, nsat, nvalid, msum):
+    """Poisson merge ``X = Σy / Σt`` of one chunk of lines (BIL); see :func:`merge_chunk`."""
+    P = len(zs)
+    nl, nb, ns = out.shape
+    shared = elut.shape[0] == 1
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    g32 = np.float32(gain)
+    rel32 = np.float32(rel_var)
+    for l in range(nl):
+        y = np.empty((P, ns), dtype=np.float32)
+        ok = np.empty((P, ns), dtype=np.float32)
+        om = np.empty((P, ns), dtype=np.float32)
+        cs = np.empty((P, ns), dtype=np.float32)
+        lev = np.zeros((P, ns), dtype=np.int32)
+        scratch = np.empty((11, ns), dtype=np.float32)
+        sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa = (
+            scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5],
+            scratch[6], scratch[7], scratch[8], scratch[9], scratch[10])
+        for i in range(ns):
+            nsa[i] = f0
+        had_bad = False
+        for a in range(nb):
+            cb = 0 if shared else a
+            s = sat[a]
+            any_cens = _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after,
+                                   elut, L, g32, y, ok, cs, lev, ysat, sy, st, st2, sav, nv, nc)
+            # X = Σy/Σt and, in the same pass, Σω²var = gain·X·Σt + Σa + rel·X²·Σt² for
+            # the weights ω = t (Σω = Σt): no per-sample pass for the SNR
+            nbad = False
+            for i in range(ns):
+                has = nv[i] > f0
+                sti = st[i]
+                xi = sy[i] / (sti if has else f1)
+                X[i] = xi
+                x = xi if xi >= f0 else f0
+                den[i] = g32 * x * sti + sav[i] + rel32 * x * x * st2[i]
+                nbad = nbad | (not has)
+            # (where no sample is usable the SNR is 0 whatever den holds)
+            had_bad = _fallback_row(zs, l, a, s, times, y, nv, X, nsa, had_bad, nbad)
+            if want_chi2:
+                _chi2_sums(times, avar, g32, rel32, ok, y, om, X, sy, st2, sav)
+                if any_cens:
+                    _chi2_censored(times, om, cs, sy, st2, sav)
+            _write_row(X, clip, cal[a], st, den, nv, nsa, P, want_chi2, any_cens, sy, st2, sav,
+                       nc, out[l, a], snr[l], msum[l], nvalid[l], nsat[l], chi2[l], dof[l])
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat, lin_g,
+                floor, gain, avar, rel_var, cal, method, want_chi2, clip,
+                out, chi2, dof, snr, nsat, nvalid, msum):
+    """Merge one chunk of lines of a bracket (band-interleaved-by-line layout).
+
+    Parameters
+    ----------
+    zs : tuple of P arrays (lines, bands, samples)
+        Raw DN of each exposure (shortest first), all of one array type.
+    darks : float32 (P, bands, samples)
+        Dark level per exposure (already linearised when ``dark_after``).
+    sat : float32 (bands,)
+        Raw DN at or above which a sample counts as saturated.
+    times : float32 (P,)
+        Exposure times (ms), ascending.
+    linear : bool
+        ``True``: linear sensor, ``y = raw − dark``.
+    dark_after : bool
+        Non-linear: ``y = exp(g(raw)) − dark`` (dark linearised); otherwise
+        ``y = exp(g(round(raw − dark)))``.
+    glut, elut : float32 (C_lut, L)
+        g and exp(g) per band (C_lut = 1 for a shared curve).
+    wlut : float32 (L,)
+        Level weights (Debevec / Robertson).
+    hat : bool
+        ``wlut`` is Debevec's hat ``min(z, L−1−z)/((L−1)/2)``: computed, not looked up
+        (a table gather per sample does not vectorise: LLVM cannot rule out aliasing).
+    lin_g : bool
+        ``glut`` is the linear curve ``ln max(z, ½)``: computed with :func:`_log_accumulate_row`.
+    floor : float32
+        Debevec only: samples with y ≤ floor get zero weight (``ln y`` needs y > 0).
+    gain : float
+        Shot-noise gain (DN per electron) of the linearised y.
+    avar : float32 (P,)
+        Variance of y at zero signal for each exposure (read noise, dark-current
+        shot noise, quantisation, dark-reference error).
+    rel_var : float
+        Squared systematic relative error (response-curve error).
+    cal : float32 (bands,)
+        Radiometric calibration factor per band.
+    method : int
+        DEBEVEC, ROBERTSON or INVVAR (POISSON: :func:`merge_chunk_poisson`).
+    want_chi2 : bool
+        Accumulate the ghost statistic.
+    clip : bool
+        Write negative (noise) estimates as 0.
+
+    Outputs (written in place): ``out`` float32 (lines, bands, samples);
+    per pixel (lines, samples): ``chi2`` float32 consistency statistic,
+    ``dof`` int32, ``snr`` float32 (summed over bands), ``nsat`` int32 bands
+    saturated in every exposure, ``nvalid`` int32 bands with a usable sample,
+    ``msum`` float32 sum over bands of the output.
+
+    Sample selection: :func:`_select_row`; the consistency statistic
+    (:func:`_chi2_sums`) is taken about the inverse-variance mean of the usable
+    samples whatever the method, so ghost decisions do not depend on it.
+    """
+    P = len(zs)
+    nl, nb, ns = out.shape
+    L = wlut.shape[0]
+    shared = glut.shape[0] == 1
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    half = np.float32(0.5)
+    top = np.float32(L - 1)
+    hmid = np.float32((L - 1) / 2.0)
+    g32 = np.float32(gain)
+    rel32 = np.float32(rel_var)
+    fl = np.float32(floor)
+    for l in range(nl):
+        y = np.empty((P, ns), dtype=np.float32)
+        ok = np.empty((P, ns), dtype=np.float32)
+        om = np.empty((P, ns), dtype=np.float32)
+        cs = np.empty((P, ns), dtype=np.float32)
+        lev = np.zeros((P, ns), dtype=np.int32)
+        kbuf = np.empty(ns, dtype=np.int32)
+        scratch = np.empty((16, ns), dtype=np.float32)
+        sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa, XP, q, ex, lv, gz = (
+            scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5],
+            scratch[6], scratch[7], scratch[8], scratch[9], scratch[10], scratch[11],
+            scratch[12], scratch[13], scratch[14], scratch[15])
+        for i in range(ns):
+            nsa[i] = f0
+        had_bad = False
+        for a in range(nb):
+            cb = 0 if shared else a
+            s = sat[a]
+            any_cens = _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after,
+                                   elut, L, g32, y, ok, cs, lev, ysat, sy, st, st2, sav, nv, nc)
+            nbad = _pool_row(sy, st, nv, X)
+            had_bad = _fallback_row(zs, l, a, s, times, y, nv, X, nsa, had_bad, nbad)
+            for i in range(ns):
+                XP[i] = max(X[i], f0)
+                num[i] = f0
+                den[i] = f0
+            for j in range(P):
+                tj = times[j]
+                aj = avar[j]
+                lt = np.float32(np.log(tj))
+                okj = ok[j]
+                yj = y[j]
+                omj = om[j]
+                lj = lev[j]
+                if method == INVVAR:
+                    # variance predicted from the pooled estimate, not from y_j
+                    # itself (which would give low samples more weight: biased)
+                    for i in range(ns):
+                        w = okj[i] * tj * tj / (g32 * XP[i] * tj + aj)
+                        omj[i] = w
+                        num[i] += w * yj[i] / tj
+                        den[i] += w
+                elif method == ROBERTSON:
+                    if linear and hat:
+                        # the level weight of the *expected* level X·t: the
+                        # sample's own level would favour upward noise (bias)
+                        for i in range(ns):
+                            lvi = np.float32(np.int32(min(max(XP[i] * tj + half, f0), top)))
+                            w = okj[i] * (min(lvi, top - lvi) / hmid) * tj * tj
+                            omj[i] = w
+                            num[i] += w * yj[i] / tj
+                            den[i] += w
+                        continue
+                    if linear:
+                        for i in range(ns):
+                            lv[i] = np.float32(np.int32(min(max(XP[i] * tj + half, f0), top)))
+                    else:
+                        for i in range(ns):
+                            lv[i] = np.float32(lj[i])
+                    if hat:
+                        for i in range(ns):
+                            w = okj[i] * (min(lv[i], top - lv[i]) / hmid) * tj * tj
+                            omj[i] = w
+                            num[i] += w * yj[i] / tj
+                            den[i] += w
+                    else:
+                        for i in range(ns):
+                            w = okj[i] * wlut[np.int32(lv[i])] * tj * tj
+                            omj[i] = w
+                            num[i] += w * yj[i] / tj
+                            den[i] += w
+                else:
+                    if linear and hat and lin_g and not dark_after:
+                        # Debevec's own form, g of the integer level z = ln max(z, ½),
+                        # hat weight of z: computed in one pass, then ln in _log_accumulate_row
+                        for i in range(ns):
+                            yv = yj[i]
+                            lvi = np.float32(np.int32(min(max(yv + half, f0), top)))
+                            w = okj[i] * (min(lvi, top - lvi) / hmid)
+                            omj[i] = w if yv > fl else f0
+                            gz[i] = max(lvi, half)
+                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                        continue
+                    if linear:
+                        for i in range(ns):
+                            lv[i] = np.float32(np.int32(min(max(yj[i] + half, f0), top)))
+                    else:
+                        for i in range(ns):
+                            lv[i] = np.float32(lj[i])
+                    # w(level), zero at or below the floor (ln y needs y > 0)
+                    if hat:
+                        for i in range(ns):
+                            w = okj[i] * (min(lv[i], top - lv[i]) / hmid)
+                            omj[i] = w if yj[i] > fl else f0
+                    else:
+                        for i in range(ns):
+                            w = okj[i] * wlut[np.int32(lv[i])]
+                            omj[i] = w if yj[i] > fl else f0
+                    if dark_after:
+                        # ln y of the linearised sample (positive wherever w > 0)
+                        for i in range(ns):
+                            gz[i] = yj[i] if omj[i] > f0 else f1
+                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                    elif lin_g:
+                        for i in range(ns):
+                            gz[i] = max(lv[i], half)
+                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                    else:
+                        # g of the integer level, a table look-up
+                        gl = glut[cb]
+                        for i in range(ns):
+                            w = omj[i]
+                            num[i] += w * (gl[np.int32(lv[i])] - lt)
+                            den[i] += w
+            if method == DEBEVEC:
+                for i in range(ns):
+                    dn = den[i]
+                    q[i] = num[i] / dn if dn > f0 else f0
+                _exp_row(q, ex, kbuf)
+                for i in range(ns):
+                    # both loaded first: a load on one arm only does not vectorise
+                    xo = X[i]
+                    xe = ex[i]
+                    X[i] = xe if den[i] > f0 else xo
+            else:
+                for i in range(ns):
+                    xo = X[i]
+                    dn = den[i]
+                    xw = num[i] / (dn if dn > f0 else f1)
+                    X[i] = xw if dn > f0 else xo
+            if method == DEBEVEC or method == ROBERTSON:
+                for i in range(ns):
+                    if den[i] == f0 and nv[i] > f0:
+                        # usable samples, all with zero level weight: pooled estimate
+                        for j in range(P):
+                            om[j, i] = ok[j, i] * times[j]
+            # noise-model SNR: Σω and Σω²·var with var from the (clipped) estimate
+            for i in range(ns):
+                num[i] = f0
+                den[i] = f0
+            for j in range(P):
+                tj = times[j]
+                aj = avar[j]
+                okj = ok[j]
+                omj = om[j]
+                for i in range(ns):
+                    xi = X[i]
+                    x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
+                    v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
+                    num[i] += okj[i] * omj[i]
+                    den[i] += okj[i] * omj[i] * omj[i] * v
+            if want_chi2:
+                # about the pooled estimate XP (not the method's), as for Poisson
+                _chi2_sums(times, avar, g32, rel32, ok, y, om, XP, sy, st2, sav)
+                if any_cens:
+                    _chi2_censored(times, om, cs, sy, st2, sav)
+            _write_row(X, clip, cal[a], num, den, nv, nsa, P, want_chi2, any_cens, sy, st2, sav,
+                       nc, out[l, a], snr[l], msum[l], nvalid[l], nsat[l], chi2[l], dof[l])
+
+
+# a first-ever run compiles for several seconds: say so instead of looking hung (issue 16)
+from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
+
+notice_if_uncached(merge_chunk_poisson, "the synthesis kernels")
