@@ -7,6 +7,7 @@ confidence, the response curve and a JSON summary).
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -305,6 +306,25 @@ def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
     return np.ascontiguousarray(Z.transpose(1, 2, 0)), idx
 
 
+def _after_file_check(fuse):
+    """Run ``fuse(bracket, ...)``, then wait for the bracket's deferred file check
+    (:meth:`Bracket.check_files`): no result from a file that fails it, and its error
+    rather than the one a damaged file may have caused."""
+    @functools.wraps(fuse)
+    def checked(bracket, *args, **kwargs):
+        try:
+            result = fuse(bracket, *args, **kwargs)
+        except Exception:
+            if isinstance(bracket, Bracket):
+                bracket.check_files()
+            raise
+        if isinstance(bracket, Bracket):
+            bracket.check_files()
+        return result
+    return checked
+
+
+@_after_file_check
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
                  ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,
@@ -345,6 +365,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
         to ``summary["response"]["check"]``; an undetermined curve adds a
         ``summary["warnings"]`` entry and a :class:`ResponseUndeterminedWarning`.
+
+    A bracket loaded with ``load_bracket(..., defer_verify=True)`` is fused while
+    its files are hashed; the result is returned only once they matched their
+    record (else the :class:`~mehs.errors.FormatError` naming the file is raised).
     """
     if method not in MERGE_METHODS:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
