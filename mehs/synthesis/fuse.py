@@ -18,6 +18,7 @@ import numpy as np
 
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
+from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
                                   merge_bracket)
@@ -423,6 +424,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                     auto_info = {"linearity_check": f"skipped ({exc.problem})"}
                     curve = ResponseCurve.linear(bracket.bit_depth)
             if curve is None:
+                skip_scipy_linalg_import()     # before the first kernel
                 curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                          seed=seed, shared=shared_response, levels="raw",
                                          saturation=sat)
@@ -471,6 +473,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         calibration = None
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()
+    skip_scipy_linalg_import()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
