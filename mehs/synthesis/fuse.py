@@ -51,8 +51,20 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
     nl, ns, nb = bracket.shape
     rows = np.unique(np.linspace(0, nl - 1, min(nl, 64)).round().astype(np.intp))
 
+    def rows_of(data) -> np.ndarray:
+        """``data[rows]`` with the memory layout and writeability of ``data``: the merge
+        kernel then runs the specialisation the full cube compiles (a writeable copy of
+        a read-only memory map compiled a second one, ~15 s on a first-ever run)."""
+        a = np.asarray(data)
+        out = np.empty_like(a[:rows.size], order="K")
+        out[...] = a[rows]
+        out.flags.writeable = a.flags.writeable
+        return out
+
+    subset = [rows_of(e.data) for e in bracket.exposures]
+
     def merge(c: ResponseCurve):
-        mr = merge_bracket([np.asarray(e.data[rows]) for e in bracket.exposures],
+        mr = merge_bracket(subset,
                            bracket.times_ms, method="poisson", response=c, darks=bracket.darks,
                            bit_depth=bracket.bit_depth, saturation=saturation,
                            consistency=False, source=bracket.source)
