@@ -79,6 +79,18 @@ def _level_scale(ratio: np.ndarray, level: np.ndarray, bins: int = 16,
     return np.maximum(np.interp(lv, cen, sm), glob)
 
 
+def _unique_inverse(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(v, return_inverse=True)`` of non-negative integers, by counting, not sorting
+    (the dof of a 512² frame: 25 ms → 2 ms)."""
+    if v.dtype.kind not in "iu" or v.size == 0:
+        return np.unique(v, return_inverse=True)
+    counts = np.bincount(v)
+    values = np.flatnonzero(counts)
+    lookup = np.zeros(counts.size, dtype=np.intp)
+    lookup[values] = np.arange(values.size)
+    return values, lookup[v]
+
+
 def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
                   scale: float | str = "auto", min_pixels: int = 3,
                   grow: int = 1, level: np.ndarray | None = None) -> GhostResult:
@@ -117,7 +129,7 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
         if level is None or np.shape(level) != chi2.shape:
             raise InputError("scale='level' needs a level array shaped like chi2")
         if has.sum() >= 64:
-            ud, inv = np.unique(dof[has], return_inverse=True)
+            ud, inv = _unique_inverse(dof[has])
             ratio = chi2[has] / chdtri(ud, 0.5)[inv]
             sl = np.ones(chi2.shape)
             sl[has] = _level_scale(ratio, np.asarray(level, dtype=np.float64)[has])
@@ -129,11 +141,13 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
             mask[has] = chi2[has] / sl[has] > thr
             return _finish(mask, score, s, alpha, min_pixels, grow)
         scale = "auto"
+    ud = inv = None
+    if has.any():
+        ud, inv = _unique_inverse(dof[has])
     if scale == "auto":
         # the median of χ²_ν/ν is below 1 for small ν (0.45 at ν = 1): compare
         # with each pixel's own χ² median, or few-band cubes get a wrong scale
         if has.any():
-            ud, inv = np.unique(dof[has], return_inverse=True)
             s = float(np.median(chi2[has] / chdtri(ud, 0.5)[inv]))
         else:
             s = 1.0
@@ -146,22 +160,23 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     score[has] = chi2[has] / (s * dof[has])
     mask = np.zeros(chi2.shape, dtype=bool)
     if has.any():
-        ud, inv = np.unique(dof[has], return_inverse=True)
         thr = chdtri(ud, alpha)[inv]
         mask[has] = chi2[has] / s > thr
     return _finish(mask, score, s, alpha, min_pixels, grow)
 
 
 def _finish(mask, score, s, alpha, min_pixels, grow) -> GhostResult:
-    from scipy import ndimage
-
     if min_pixels > 1 and mask.any():
+        from scipy import ndimage     # 40 ms of imports: only when something was flagged
+
         lab, n = ndimage.label(mask, structure=np.ones((3, 3)))
         sizes = np.bincount(lab.ravel())
         keep = sizes >= min_pixels
         keep[0] = False
         mask = keep[lab]
     if grow > 0 and mask.any():
+        from scipy import ndimage
+
         mask = ndimage.binary_dilation(mask, structure=np.ones((3, 3)), iterations=int(grow))
     return GhostResult(mask, score, float(mask.mean()), s, float(alpha))
 
