@@ -210,7 +210,7 @@ def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
             raise InputError("does not exist", paths[0])
         raise InputError("not a scene folder (no scene.json); give two or more Specim IQ "
                          "folders for a bracket", paths[0])
-    caps = [read_specim_folder(p) for p in paths]
+    caps = [read_specim_folder(p, preview=False) for p in paths]
     times = []
     for p, c in zip(paths, caps):
         if c.raw.integration_time_ms is None:
@@ -308,7 +308,7 @@ def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
     exps, darks, whites, times = [], [], [], []
     for e in recs:
         folder = root / str(e.get("folder", ""))
-        cap = read_specim_folder(folder)
+        cap = read_specim_folder(folder, preview=False)
         t = e.get("integration_time_ms") or cap.raw.integration_time_ms
         try:
             t = float(t)
