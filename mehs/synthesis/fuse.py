@@ -565,7 +565,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
             msg = (f"response curve undetermined by this bracket: {why}; the radiance is "
                    f"unreliable — {ADVICE}")
         summary.setdefault("warnings", []).append(msg)
-        warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=2)
+        warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=3)   # past _after_file_check
     timings["total_s"] = time.perf_counter() - t0
     summary["timings"] = timings
     return FusionResult(cube, mr.confidence, mask, curve, summary, ghost_score,
