@@ -1,0 +1,110 @@
+"""The shortcuts that keep `mehs fuse` fast (issue 16) give what they replace."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mehs.errors import FormatError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_chi2_isf_equals_scipy_chdtri():
+    from scipy.special import chdtri, gammaincc as scipy_gammaincc
+
+    from mehs.synthesis._chi2 import chi2_isf, gammaincc
+
+    dof = np.arange(1, 1201)
+    for p in (0.5, 1e-4, 1e-7, 0.01, 0.3, 0.9, 0.999):
+        np.testing.assert_allclose(chi2_isf(p, dof), chdtri(dof, p), rtol=1e-12)
+    a = np.repeat([0.5, 1.0, 3.5, 40.0, 204.0, 600.0], 7)
+    y = a * np.tile([0.01, 0.3, 0.9, 1.0, 1.1, 2.0, 5.0], 6)
+    np.testing.assert_allclose(gammaincc(a, y), scipy_gammaincc(a, y), rtol=1e-12, atol=1e-300)
+
+
+def test_group_index_equals_searchsorted():
+    from mehs.synthesis.noise import _group_index
+
+    rng = np.random.default_rng(1)
+    n = 20000
+    x = np.concatenate([rng.gamma(0.5, 800, n), rng.normal(0, 3, n),
+                        np.round(rng.gamma(0.5, 800, n)), np.round(rng.normal(0, 3, n)),
+                        [0.0, -0.0, np.inf, -np.inf, np.nan, 1e-40, -1e-40, 3.4e38, -3.4e38,
+                         1.0000001, 0.99999994]]).astype(np.float32)
+    rng.shuffle(x)
+    fin = x[np.isfinite(x)]
+    for edges in (np.quantile(fin, np.linspace(0, 1, 49)),                  # ties: integer data
+                  np.quantile(fin, np.linspace(0, 1, 49)).astype(np.float32),
+                  np.sort(np.concatenate([rng.choice(fin, 40) + rng.normal(0, 1e-6, 40),
+                                          [0.0, -0.0, 1.0, 1.0000001, 0.99999994, 50.0, 50.0,
+                                           1e-40, 2.0]]))):                  # several in a cell
+        ref = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, 47)
+        np.testing.assert_array_equal(_group_index(edges, x, 48), ref)
+        np.testing.assert_array_equal(_group_index(edges, x.astype(np.float64), 48), ref)
+
+
+def test_16bit_roughness_equals_float_medians():
+    from mehs.io.plausibility import _roughness
+
+    def reference(x):
+        x = x.astype(np.float64)
+        d = float(np.median(np.abs(np.diff(x, axis=-1))))
+        s = float(np.median(np.abs(x - np.median(x))))
+        return d / s if s > 0 else 0.0
+
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        shape = (int(rng.integers(1, 4)), int(rng.integers(1, 30)), int(rng.integers(2, 25)))
+        x = [rng.integers(0, 4096, shape).astype(np.uint16),
+             rng.integers(0, 4096, shape).astype(np.uint16).byteswap(),
+             rng.integers(-300, 300, shape).astype(np.int16),
+             np.full(shape, 7, np.uint16)][k % 4]
+        assert _roughness(x) == reference(x)
+
+
+def _scene(tmp_path):
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket, write_simulated_scene
+
+    sim = simulate_bracket(make_scene("window", 24, 24, seed=1), SensorModel(seed=3),
+                           (0.05, 0.4, 3.2), seed=0)
+    return write_simulated_scene(sim, tmp_path / "scene", scene_id="s")
+
+
+def test_deferred_check_stops_the_fusion_of_an_altered_raw(tmp_path):
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    scene = _scene(tmp_path)
+    fuse_bracket(load_bracket(scene, defer_verify=True), ghosts="off")   # intact: fine
+    raw = next((scene / "exposures").glob("1_*/capture/*.raw"))
+    data = bytearray(raw.read_bytes())
+    data[100] ^= 0xFF
+    raw.write_bytes(bytes(data))
+    br = load_bracket(scene, defer_verify=True)      # returns while hashing
+    with pytest.raises(FormatError, match="SHA-256") as exc:
+        fuse_bracket(br, ghosts="off")
+    assert raw.name in str(exc.value)
+    with pytest.raises(FormatError, match="SHA-256"):
+        load_bracket(scene)                          # not deferred: raised right away
+
+
+def test_fuse_of_a_static_scene_loads_no_scipy_submodules(tmp_path):
+    """numba starts without scipy.linalg, the ghost test needs no scipy.special / ndimage."""
+    scene = _scene(tmp_path)
+    code = ("import sys\nfrom mehs.cli import main\n"
+            f"rc = main(['fuse', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}])\n"
+            "mods = ('scipy.linalg', 'scipy.special', 'scipy.ndimage', 'scipy.stats')\n"
+            "print('LOADED', [m for m in mods if m in sys.modules], rc)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "LOADED [] 0" in r.stdout, r.stdout + r.stderr[-2000:]
