@@ -79,9 +79,13 @@ def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> Pr
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
     dark = np.zeros_like(raw)
     for j, e in enumerate(bracket.exposures):
-        raw[j] = np.asarray(e.data[lines], dtype=np.float32).reshape(-1, nb)
+        a = np.asarray(e.data)
+        bil = a.transpose(0, 2, 1)
+        # a BIL file (Specim's): gather whole lines as stored, transpose them in memory
+        block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
+        raw[j].reshape(lines.size, ns, nb)[...] = block
         if bracket.darks[j] is not None:
-            dark[j] = np.broadcast_to(bracket.darks[j][None], (lines.size, ns, nb)).reshape(-1, nb)
+            dark[j].reshape(lines.size, ns, nb)[...] = bracket.darks[j]
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
                         np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines)
 
