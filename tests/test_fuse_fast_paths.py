@@ -28,25 +28,36 @@ def test_chi2_isf_equals_scipy_chdtri():
     np.testing.assert_allclose(gammaincc(a, y), scipy_gammaincc(a, y), rtol=1e-12, atol=1e-300)
 
 
-def test_group_index_equals_searchsorted():
-    from mehs.synthesis.noise import _group_index
+def test_instrument_groups_are_ordered_ranges_of_equal_size():
+    from mehs.synthesis.noise import _instrument_groups
 
     rng = np.random.default_rng(1)
-    n = 20000
-    x = np.concatenate([rng.gamma(0.5, 800, n), rng.normal(0, 3, n),
-                        np.round(rng.gamma(0.5, 800, n)), np.round(rng.normal(0, 3, n)),
-                        [0.0, -0.0, np.inf, -np.inf, np.nan, 1e-40, -1e-40, 3.4e38, -3.4e38,
-                         1.0000001, 0.99999994]]).astype(np.float32)
-    rng.shuffle(x)
-    fin = x[np.isfinite(x)]
-    for edges in (np.quantile(fin, np.linspace(0, 1, 49)),                  # ties: integer data
-                  np.quantile(fin, np.linspace(0, 1, 49)).astype(np.float32),
-                  np.sort(np.concatenate([rng.choice(fin, 40) + rng.normal(0, 1e-6, 40),
-                                          [0.0, -0.0, 1.0, 1.0000001, 0.99999994, 50.0, 50.0,
-                                           1e-40, 2.0]]))):                  # several in a cell
-        ref = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, 47)
-        np.testing.assert_array_equal(_group_index(edges, x, 48), ref)
-        np.testing.assert_array_equal(_group_index(edges, x.astype(np.float64), 48), ref)
+    n = 200000
+    for x in (rng.gamma(0.5, 800, n).astype(np.float32),                   # continuous
+              np.round(rng.gamma(0.3, 30, n) - 3).astype(np.float32)):    # dark: integer ties
+        bad = rng.random(n) < 0.02
+        g = _instrument_groups(x, bad, 48)
+        assert g.min() >= 0 and g.max() <= 47
+        # ranges of the instrument: a group's values all lie below the next group's
+        hi = np.full(48, -np.inf)
+        lo = np.full(48, np.inf)
+        np.maximum.at(hi, g, x)
+        np.minimum.at(lo, g, x)
+        used = np.flatnonzero(np.bincount(g, minlength=48))
+        assert np.all(hi[used[:-1]] < lo[used[1:]])
+        # a deterministic function of the instrument
+        np.testing.assert_array_equal(_instrument_groups(x, bad, 48), g)
+    # continuous data: good samples split evenly (one cell, ≤ 0.1 % of the value, of slack per edge)
+    x = rng.normal(1000, 300, n).astype(np.float32)
+    bad = np.zeros(n, bool)
+    sizes = np.bincount(_instrument_groups(x, bad, 48), minlength=48)
+    assert np.all(np.abs(sizes / (n / 48) - 1) < 0.1), sizes
+    assert _instrument_groups(x, np.ones(n, bool), 48) is None
+    # float64 instruments: exact quantiles
+    x64 = x.astype(np.float64)
+    q = np.quantile(x64, np.linspace(0, 1, 49))
+    np.testing.assert_array_equal(_instrument_groups(x64, bad, 48),
+                                  np.clip(np.searchsorted(q, x64, side="right") - 1, 0, 47))
 
 
 def test_16bit_roughness_equals_float_medians():
