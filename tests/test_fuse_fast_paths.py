@@ -53,11 +53,9 @@ def test_instrument_groups_are_ordered_ranges_of_equal_size():
     sizes = np.bincount(_instrument_groups(x, bad, 48), minlength=48)
     assert np.all(np.abs(sizes / (n / 48) - 1) < 0.1), sizes
     assert _instrument_groups(x, np.ones(n, bool), 48) is None
-    # float64 instruments: exact quantiles
-    x64 = x.astype(np.float64)
-    q = np.quantile(x64, np.linspace(0, 1, 49))
-    np.testing.assert_array_equal(_instrument_groups(x64, bad, 48),
-                                  np.clip(np.searchsorted(q, x64, side="right") - 1, 0, 47))
+    # a float64 instrument (a recovered curve's) is grouped by its float32 values
+    np.testing.assert_array_equal(_instrument_groups(x.astype(np.float64), bad, 48),
+                                  _instrument_groups(x, bad, 48))
 
 
 def test_16bit_roughness_equals_float_medians():

@@ -169,18 +169,11 @@ def _instrument_groups(inst: np.ndarray, bad: np.ndarray, groups: int) -> np.nda
     cell — neither a partition for the quantiles nor a binary search per value (which
     cost 40 + 40 ms for the 1.7 million samples of a pair). Like quantile edges they
     depend on the instrument only; a cell's worth of tied values (one integer level of
-    a dark scene) stays in one group, as equal quantiles would leave it. Non-float32
-    instruments get exact quantiles.
+    a dark scene) stays in one group, as equal quantiles would leave it. (A float64
+    instrument, from a recovered curve, is grouped by its float32 values.)
     """
-    x = np.ascontiguousarray(inst).ravel()
+    x = np.ascontiguousarray(inst, dtype=np.float32).ravel()
     bad = np.asarray(bad).ravel()
-    if x.dtype != np.float32:
-        good = x[~bad]
-        if good.size == 0:
-            return None
-        q = np.quantile(good, np.linspace(0, 1, groups + 1))
-        g = np.searchsorted(q, x, side="right") - 1
-        return np.clip(g, 0, groups - 1, out=g)
     c = _cells(x)
     counts = np.bincount(c, minlength=_NCELLS)
     if bad.any():
