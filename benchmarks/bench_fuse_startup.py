@@ -1,15 +1,19 @@
 """Wall time of `mehs fuse` on one 512×512×204×3 scene, as a user runs it (issue 16).
 
-    python benchmarks/bench_fuse_startup.py [--quick] [--size S] [--repeat N]
+    python benchmarks/bench_fuse_startup.py [--quick] [--size S] [--repeat N] [--skip-cold]
 
 Rows, each a fresh ``python -m mehs`` process (median of ``--repeat``):
 
 - ``python -c "import numpy"`` — the interpreter's own start-up (reference);
 - ``mehs fuse`` with a warm numba cache (the usual case);
 - ``mehs fuse`` with an empty numba cache (``NUMBA_CACHE_DIR`` pointing at a new
-  folder: a first-ever run, which compiles the kernels), once;
-- the in-process stages of one warm run (imports, load + verify, fuse, write),
-  from ``-X importtime`` and a timer around ``fuse_bracket``.
+  folder: a first-ever run, which compiles the kernels), once (not with ``--skip-cold``);
+- the in-process stages of one warm run, as ``mehs fuse`` runs them: imports,
+  loading the bracket (which starts the SHA-256 check of its files in a
+  background thread), ``fuse_bracket`` — its response (linearity check), noise,
+  merge (whose first kernel call loads numba's cache) and ghost stages from
+  ``summary["timings"]``, and the wait for the SHA-256 check at its end — and
+  ``write_fusion``.
 
 Targets: warm ≤ 1.2 s, first-ever ≤ 6 s. The load is printed before and after.
 """
@@ -17,6 +21,7 @@ Targets: warm ≤ 1.2 s, first-ever ≤ 6 s. The load is printed before and afte
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -45,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a 128×128 scene")
     ap.add_argument("--size", type=int, default=None)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--skip-cold", action="store_true",
+                    help="no first-ever run (its compilation takes tens of seconds)")
     args = ap.parse_args(argv)
     from _load import load_line
     from bench_build import make_scene
@@ -64,32 +71,48 @@ def main(argv=None) -> int:
     t_py = statistics.median(wall([py, "-c", "import numpy"], env) for _ in range(args.repeat))
     t_warm = statistics.median(fuse(f"w{i}") for i in range(args.repeat))
     cold_env = dict(env, NUMBA_CACHE_DIR=str(tmp / "numba_cache_empty"))
-    t_cold = fuse("cold", cold_env)
+    t_cold = float("nan") if args.skip_cold else fuse("cold", cold_env)
     # in-process breakdown of one warm run
     code = (
-        "import time, sys; t0 = time.perf_counter()\n"
+        "import json, time, sys; t0 = time.perf_counter()\n"
         "from mehs.synthesis.bracket import load_bracket\n"
         "from mehs.synthesis.fuse import fuse_bracket, write_fusion\n"
-        "import mehs.synthesis._kernels, mehs.synthesis.ghost, scipy.special, scipy.ndimage\n"
-        "t1 = time.perf_counter(); br = load_bracket(sys.argv[1])\n"
-        "t2 = time.perf_counter(); res = fuse_bracket(br)\n"
+        "t1 = time.perf_counter()\n"
+        "br = load_bracket(sys.argv[1], defer_verify=True)   # as `mehs fuse` does\n"
+        "t2 = time.perf_counter()\n"
+        "wait = []\n"
+        "check = br.check_files\n"
+        "def timed_check():\n"
+        "    t = time.perf_counter(); check(); wait.append(time.perf_counter() - t)\n"
+        "br.check_files = timed_check\n"
+        "res = fuse_bracket(br)\n"
         "t3 = time.perf_counter(); write_fusion(res, sys.argv[2])\n"
         "t4 = time.perf_counter()\n"
-        "print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, res.summary.get('timings', ''))\n")
+        "print(json.dumps({'imports': t1 - t0, 'load': t2 - t1, 'fuse': t3 - t2,\n"
+        "                  'write': t4 - t3, 'wait': sum(wait), **res.summary['timings']}))\n")
     shutil.rmtree(tmp / "bd", ignore_errors=True)
     r = subprocess.run([py, "-c", code, str(scene), str(tmp / "bd")], capture_output=True,
                        text=True, env=env)
-    parts = r.stdout.split(maxsplit=4) if r.returncode == 0 else ["nan"] * 4
+    nan = float("nan")
+    st = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else {}
+    if r.returncode:
+        print(f"in-process breakdown failed:\n{r.stderr[-2000:]}", file=sys.stderr)
     print(f"`mehs fuse` of one {size}×{size}×204×3 scene (median of {args.repeat})")
-    print(f"{'what':<54} {'seconds':>8} {'× python+numpy':>15}")
+    print(f"{'what':<58} {'seconds':>8} {'× python+numpy':>15}")
     for label, sec in (("python -c 'import numpy' (reference)", t_py),
                        ("mehs fuse, warm numba cache", t_warm),
                        ("mehs fuse, first-ever run (empty numba cache)", t_cold),
-                       ("  in process: imports (mehs, numba kernels, scipy)", float(parts[0])),
-                       ("  in process: load bracket + sha256 verify", float(parts[1])),
-                       ("  in process: fuse_bracket", float(parts[2])),
-                       ("  in process: write_fusion", float(parts[3]))):
-        print(f"{label:<54} {sec:8.2f} {sec / t_py:14.1f}×")
+                       ("  in process: imports (mehs, numpy)", st.get("imports", nan)),
+                       ("  in process: load bracket (starts the SHA-256 check)",
+                        st.get("load", nan)),
+                       ("  in process: fuse_bracket", st.get("fuse", nan)),
+                       ("    response (probe + linearity check)", st.get("response_s", nan)),
+                       ("    noise model", st.get("noise_s", nan)),
+                       ("    merge (+ numba import and cache load)", st.get("merge_s", nan)),
+                       ("    ghosts", st.get("ghosts_s", nan)),
+                       ("    waiting for the SHA-256 check", st.get("wait", nan)),
+                       ("  in process: write_fusion", st.get("write", nan))):
+        print(f"{label:<58} {sec:8.2f} {sec / t_py:14.1f}×")
     print("targets (issue 16, 512²): warm ≤ 1.2 s; first-ever ≤ 6 s")
     print("after: ", load_line())
     shutil.rmtree(tmp, ignore_errors=True)

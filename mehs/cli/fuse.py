@@ -66,12 +66,16 @@ def run(args) -> int:
 
             cal = Calibration.load(cal)   # a bad file fails before the fusion
     paths = args.scene if len(args.scene) > 1 else args.scene[0]
-    bracket = load_bracket(paths, verify=args.verify, allow_partial=args.allow_partial)
+    # the raws are hashed while they are fused; fuse_bracket returns nothing (so nothing
+    # is written) unless they match scene.json
+    bracket = load_bracket(paths, verify=args.verify, allow_partial=args.allow_partial,
+                           defer_verify=True)
     from mehs.errors import InputError
 
     try:
         ref = args.reference if args.reference == "auto" else int(args.reference)
     except ValueError:
+        bracket.check_files()     # a damaged scene is said first, as before
         raise InputError(f"--reference must be 'auto' or an exposure index, "
                          f"got {args.reference!r}") from None
     import sys

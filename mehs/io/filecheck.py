@@ -94,3 +94,64 @@ def verify_files(root: str | Path, files: Mapping[str, str], sha256: Mapping[str
                                   "(file altered or damaged)", path)
         fresh[rel] = now
     return fresh
+
+
+class HashCheck:
+    """SHA-256 of files against recorded digests, computed by background threads.
+
+    Started on construction; :meth:`result` waits and raises :class:`FormatError`
+    naming the first file (in the given order) whose hash differs or that cannot
+    be read. Hashing releases the GIL, so the caller keeps working meanwhile —
+    on other files, or on the data of these ones (``mehs fuse`` fuses while the
+    raws are hashed, and writes nothing until the check has passed).
+
+    Parameters
+    ----------
+    items
+        ``(path, hex digest)`` pairs.
+    message
+        The error text for a mismatch.
+    threads
+        Hashing threads (files are spread over them; one file is never split).
+    """
+
+    def __init__(self, items, *, message: str = "SHA-256 does not match its record "
+                 "(file altered or truncated)", threads: int = 1) -> None:
+        import threading
+
+        self._items = [(Path(p), str(d)) for p, d in items]
+        self._message = message
+        self._errors: list[FormatError | None] = [None] * len(self._items)
+        n = max(1, min(int(threads), len(self._items)))
+        # the largest files first, spread round-robin: the threads finish together
+        order = sorted(range(len(self._items)), key=lambda i: -_size(self._items[i][0]))
+        self._threads = [threading.Thread(target=self._run, args=(order[k::n],), daemon=True,
+                                          name=f"mehs-sha256-{k}") for k in range(n)]
+        for t in self._threads:
+            t.start()
+
+    def _run(self, indices) -> None:
+        for i in indices:       # all of them: the first failing file is named, whatever the threads
+            path, digest = self._items[i]
+            try:
+                ok = sha256_file(path) == digest
+                err = None if ok else FormatError(self._message, path)
+            except OSError as exc:
+                err = FormatError(f"cannot be read to check its SHA-256 ({exc.strerror or exc})",
+                                  path)
+            self._errors[i] = err
+
+    def result(self) -> None:
+        """Wait for the check; :class:`FormatError` for the first failing file."""
+        for t in self._threads:
+            t.join()
+        err = next((e for e in self._errors if e is not None), None)
+        if err is not None:
+            raise err
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0

@@ -36,9 +36,33 @@ class ByteOrderWarning(UserWarning):
 
 
 def _roughness(x: np.ndarray) -> float:
+    if x.dtype.kind in "iu" and x.dtype.itemsize <= 2:
+        return _roughness_16bit(x)
     x = x.astype(np.float64)
     d = float(np.median(np.abs(np.diff(x, axis=-1))))
     s = float(np.median(np.abs(x - np.median(x))))
+    return d / s if s > 0 else 0.0
+
+
+def _median_of_counts(counts: np.ndarray) -> float:
+    """``np.median`` of the values ``0, 1, …`` occurring ``counts`` times (as float64)."""
+    n = int(counts.sum())
+    c = np.cumsum(counts)
+    lo = int(np.searchsorted(c, (n - 1) // 2, side="right"))    # value of rank (n−1)//2
+    hi = int(np.searchsorted(c, n // 2, side="right"))          # value of rank n//2
+    return (float(lo) + float(hi)) / 2.0
+
+
+def _roughness_16bit(x: np.ndarray) -> float:
+    """:func:`_roughness` of (at most) 16-bit integers, exactly, by counting instead of
+    partitioning (three medians of 10⁵ values a cube cost ~10 ms of every ``read_envi``)."""
+    x = x.astype(np.int32)
+    lo = int(x.min()) if x.size else 0
+    d = _median_of_counts(np.bincount(np.abs(np.diff(x, axis=-1)).ravel()))
+    xs = (x - lo).ravel()
+    m = _median_of_counts(np.bincount(xs))                  # median(x) − lo: k or k + ½
+    # |x − median| in halves: an integer whatever the median
+    s = _median_of_counts(np.bincount(np.abs(2 * xs - int(round(2 * m))))) / 2.0
     return d / s if s > 0 else 0.0
 
 

@@ -196,7 +196,7 @@ def is_specim_folder(path: str | Path) -> bool:
 
 
 def read_specim_folder(path: str | Path, *, require_dark: bool = True,
-                       memmap: bool = True) -> SpecimCapture:
+                       memmap: bool = True, preview: bool = True) -> SpecimCapture:
     """Read a Specim IQ capture folder.
 
     Parameters
@@ -208,6 +208,10 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
         read captures without one (``darkref`` is then ``None``).
     memmap
         Passed to :func:`~mehs.io.envi.read_envi` for every cube.
+    preview
+        Decode the preview PNG (``preview`` is None without it: a reader of the
+        cubes only, such as :func:`~mehs.synthesis.bracket.load_bracket`, skips
+        the decoding and OpenCV's import).
 
     Raises
     ------
@@ -268,17 +272,17 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
         if reflectance.units in ("unknown", "DN"):
             reflectance.units = "reflectance"
 
-    preview = None
+    image = None
     prev_path = None
     for typ, ext, rel in manifest:
         if typ == "preview":
             prev_path = _inside(root, rel)
     if prev_path is None or not prev_path.is_file():
         prev_path = root / f"{cid}.png"
-    if prev_path.is_file():
-        preview = _read_png(prev_path)
+    if preview and prev_path.is_file():
+        image = _read_png(prev_path)
     return SpecimCapture(cid, root, raw, refs["darkref"], refs["whiteref"],
-                         refs["whitedarkref"], reflectance, metadata, preview)
+                         refs["whitedarkref"], reflectance, metadata, image)
 
 
 def _check_matches(raw: SpectralCube, ref: SpectralCube, path: Path) -> None:

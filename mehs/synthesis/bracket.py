@@ -50,9 +50,22 @@ class Bracket:
     source: Path | None = None
     truth: SpectralCube | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    #: the SHA-256 check of the scene's files still running (``load_bracket(...,
+    #: defer_verify=True)``), or None; :meth:`check_files` waits for it
+    file_check: Any = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         validate_bracket(self)
+
+    def check_files(self) -> None:
+        """Wait for a deferred file check; :class:`FormatError` naming a file that failed it.
+
+        :func:`mehs.synthesis.fuse.fuse_bracket` calls it before it returns, and
+        when it fails (a damaged file is the better explanation of the failure).
+        """
+        if self.file_check is not None:
+            self.file_check.result()
+            self.file_check = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -77,7 +90,7 @@ def validate_bracket(b: Bracket) -> None:
         raise InputError(f"{t.size} exposure times for {P} exposures", src)
     if not np.all(np.isfinite(t) & (t > 0)):
         raise InputError(f"exposure times must be positive, got {t.tolist()} ms", src)
-    if np.unique(t).size != P:
+    if len(set(t.tolist())) != P:     # not np.unique: its first call imports numpy.ma (15 ms)
         raise InputError(f"exposure times must be distinct, got {t.tolist()} ms", src)
     shape = b.exposures[0].shape
     wl = b.exposures[0].wavelengths
@@ -130,7 +143,8 @@ def _guess_bit_depth(cube: SpectralCube, meta: dict) -> int:
 
 
 def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: str = "sha256",
-                 bit_depth: int | None = None, allow_partial: bool = False) -> Bracket:
+                 bit_depth: int | None = None, allow_partial: bool = False,
+                 defer_verify: bool = False) -> Bracket:
     """Load a bracket from a scene folder (``scene.json``) or a list of Specim IQ folders.
 
     Parameters
@@ -142,7 +156,8 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
     verify
         Scene folders: ``"sha256"`` re-hashes the files listed in
         ``scene.json`` (catches a truncated or altered capture), ``"size"``
-        only checks they exist and are non-empty, ``"none"`` skips this.
+        only checks they exist and are non-empty, ``"none"`` skips this. The
+        files are hashed by background threads while the cubes are opened.
     bit_depth
         Override the ADC bit depth (default: ``scene.json`` device sensor, else
         12 for 12-bit-range uint16 data).
@@ -150,6 +165,12 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
         Scene folders: use the complete exposures of a bracket whose capture
         did not finish (an exposure marked ``incomplete``, or planned and never
         started). Without it such a scene is refused, naming the exposure.
+    defer_verify
+        ``verify="sha256"``: return while one background thread still hashes
+        the files; :meth:`Bracket.check_files` (which
+        :func:`~mehs.synthesis.fuse.fuse_bracket` calls before it returns)
+        waits for it and raises for a file that failed. ``mehs fuse`` fuses
+        meanwhile and writes nothing unless the check passed.
 
     Raises
     ------
@@ -166,13 +187,13 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
         warnings.simplefilter("error", ByteOrderWarning)
         try:
             return _load_bracket(path_or_paths, verify=verify, bit_depth=bit_depth,
-                                 allow_partial=allow_partial)
+                                 allow_partial=allow_partial, defer_verify=defer_verify)
         except ByteOrderWarning as w:
             raise FormatError(f"{w}; refusing to fuse it") from None
 
 
 def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
-                  allow_partial: bool) -> Bracket:
+                  allow_partial: bool, defer_verify: bool = False) -> Bracket:
     from mehs.io.specim import read_specim_folder
 
     if isinstance(path_or_paths, (str, Path)):
@@ -183,13 +204,13 @@ def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
         raise InputError("no bracket given")
     if len(paths) == 1 and (paths[0] / "scene.json").is_file():
         return _load_scene(paths[0], verify=verify, bit_depth=bit_depth,
-                           allow_partial=allow_partial)
+                           allow_partial=allow_partial, defer_verify=defer_verify)
     if len(paths) == 1:
         if not paths[0].exists():
             raise InputError("does not exist", paths[0])
         raise InputError("not a scene folder (no scene.json); give two or more Specim IQ "
                          "folders for a bracket", paths[0])
-    caps = [read_specim_folder(p) for p in paths]
+    caps = [read_specim_folder(p, preview=False) for p in paths]
     times = []
     for p, c in zip(paths, caps):
         if c.raw.integration_time_ms is None:
@@ -230,12 +251,11 @@ def partial_bracket_error(root: Path, missing: list[str]) -> InputError:
 
 
 def _load_scene(root: Path, *, verify: str, bit_depth: int | None,
-                allow_partial: bool = False) -> Bracket:
+                allow_partial: bool = False, defer_verify: bool = False) -> Bracket:
     import json
+    import os
 
-    from mehs.io.atomic import sha256_file
-    from mehs.io.envi import read_envi
-    from mehs.io.specim import read_specim_folder
+    from mehs.io.filecheck import HashCheck
 
     sj = root / "scene.json"
     try:
@@ -254,16 +274,41 @@ def _load_scene(root: Path, *, verify: str, bit_depth: int | None,
                          "needs at least 2", root)
     if verify not in ("sha256", "size", "none"):
         raise InputError(f"verify must be 'sha256', 'size' or 'none', got {verify!r}")
-    exps, darks, whites, times = [], [], [], []
+    to_hash = []
     for e in recs:
-        folder = root / str(e.get("folder", ""))
         for rel, digest in (e.get("files") or {}).items():
             f = root / rel
             if verify != "none" and (not f.is_file() or f.stat().st_size == 0):
                 raise FormatError("file listed in scene.json is missing or empty", f)
-            if verify == "sha256" and sha256_file(f) != digest:
-                raise FormatError("SHA-256 does not match scene.json (file altered or truncated)", f)
-        cap = read_specim_folder(folder)
+            to_hash.append((f, digest))
+    check = None
+    if verify == "sha256" and to_hash:
+        # hashed while the cubes are opened (and, deferred, while they are fused)
+        check = HashCheck(to_hash, message="SHA-256 does not match scene.json (file altered "
+                          "or truncated)", threads=1 if defer_verify else min(2, os.cpu_count() or 1))
+    try:
+        bracket = _open_scene(root, doc, recs, bit_depth)
+    except Exception:
+        if check is not None:
+            check.result()      # a file that fails its hash explains the failure best
+        raise
+    if check is not None:
+        if defer_verify:
+            bracket.file_check = check
+        else:
+            check.result()
+    return bracket
+
+
+def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
+                bit_depth: int | None) -> Bracket:
+    from mehs.io.envi import read_envi
+    from mehs.io.specim import read_specim_folder
+
+    exps, darks, whites, times = [], [], [], []
+    for e in recs:
+        folder = root / str(e.get("folder", ""))
+        cap = read_specim_folder(folder, preview=False)
         t = e.get("integration_time_ms") or cap.raw.integration_time_ms
         try:
             t = float(t)

@@ -7,6 +7,7 @@ confidence, the response curve and a JSON summary).
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ import numpy as np
 
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
+from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
                                   merge_bracket)
@@ -49,8 +51,20 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
     nl, ns, nb = bracket.shape
     rows = np.unique(np.linspace(0, nl - 1, min(nl, 64)).round().astype(np.intp))
 
+    def rows_of(data) -> np.ndarray:
+        """``data[rows]`` with the memory layout and writeability of ``data``: the merge
+        kernel then runs the specialisation the full cube compiles (a writeable copy of
+        a read-only memory map compiled a second one, ~15 s on a first-ever run)."""
+        a = np.asarray(data)
+        out = np.empty_like(a[:rows.size], order="K")
+        out[...] = a[rows]
+        out.flags.writeable = a.flags.writeable
+        return out
+
+    subset = [rows_of(e.data) for e in bracket.exposures]
+
     def merge(c: ResponseCurve):
-        mr = merge_bracket([np.asarray(e.data[rows]) for e in bracket.exposures],
+        mr = merge_bracket(subset,
                            bracket.times_ms, method="poisson", response=c, darks=bracket.darks,
                            bit_depth=bracket.bit_depth, saturation=saturation,
                            consistency=False, source=bracket.source)
@@ -305,6 +319,25 @@ def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
     return np.ascontiguousarray(Z.transpose(1, 2, 0)), idx
 
 
+def _after_file_check(fuse):
+    """Run ``fuse(bracket, ...)``, then wait for the bracket's deferred file check
+    (:meth:`Bracket.check_files`): no result from a file that fails it, and its error
+    rather than the one a damaged file may have caused."""
+    @functools.wraps(fuse)
+    def checked(bracket, *args, **kwargs):
+        try:
+            result = fuse(bracket, *args, **kwargs)
+        except Exception:
+            if isinstance(bracket, Bracket):
+                bracket.check_files()
+            raise
+        if isinstance(bracket, Bracket):
+            bracket.check_files()
+        return result
+    return checked
+
+
+@_after_file_check
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
                  ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,
@@ -345,6 +378,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
         to ``summary["response"]["check"]``; an undetermined curve adds a
         ``summary["warnings"]`` entry and a :class:`ResponseUndeterminedWarning`.
+
+    A bracket loaded with ``load_bracket(..., defer_verify=True)`` is fused while
+    its files are hashed; the result is returned only once they matched their
+    record (else the :class:`~mehs.errors.FormatError` naming the file is raised).
     """
     if method not in MERGE_METHODS:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(MERGE_METHODS)}")
@@ -399,6 +436,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                     auto_info = {"linearity_check": f"skipped ({exc.problem})"}
                     curve = ResponseCurve.linear(bracket.bit_depth)
             if curve is None:
+                skip_scipy_linalg_import()     # before the first kernel
                 curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                          seed=seed, shared=shared_response, levels="raw",
                                          saturation=sat)
@@ -447,6 +485,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         calibration = None
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()
+    skip_scipy_linalg_import()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
@@ -526,7 +565,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
             msg = (f"response curve undetermined by this bracket: {why}; the radiance is "
                    f"unreliable — {ADVICE}")
         summary.setdefault("warnings", []).append(msg)
-        warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=2)
+        warnings.warn(ResponseUndeterminedWarning(msg), stacklevel=3)   # past _after_file_check
     timings["total_s"] = time.perf_counter() - t0
     summary["timings"] = timings
     return FusionResult(cube, mr.confidence, mask, curve, summary, ghost_score,

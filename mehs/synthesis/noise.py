@@ -33,6 +33,7 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -78,9 +79,13 @@ def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> Pr
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
     dark = np.zeros_like(raw)
     for j, e in enumerate(bracket.exposures):
-        raw[j] = np.asarray(e.data[lines], dtype=np.float32).reshape(-1, nb)
+        a = np.asarray(e.data)
+        bil = a.transpose(0, 2, 1)
+        # a BIL file (Specim's): gather whole lines as stored, transpose them in memory
+        block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
+        raw[j].reshape(lines.size, ns, nb)[...] = block
         if bracket.darks[j] is not None:
-            dark[j] = np.broadcast_to(bracket.darks[j][None], (lines.size, ns, nb)).reshape(-1, nb)
+            dark[j].reshape(lines.size, ns, nb)[...] = bracket.darks[j]
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
                         np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines)
 
@@ -137,6 +142,71 @@ def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
     return out
 
 
+#: Bits of the float32 order key that name a cell of :func:`_instrument_groups`.
+CELL_BITS = 18
+_NCELLS = 1 << CELL_BITS
+
+
+def _cells(x: np.ndarray) -> np.ndarray:
+    """Cell of each float32 value: the top :data:`CELL_BITS` bits of an int32 key that sorts
+    like the values (−0.0 and +0.0 alike). Cells are 0.1-0.2 % wide relative to the value
+    (2^(CELL_BITS − 9) cells a binade); every value of a cell is below every value of a later one."""
+    b = x.view(np.int32)
+    m = b >> 31                                        # −1 for a negative value, else 0
+    key = (b & np.int32(0x7FFFFFFF)) ^ m
+    key -= m                                           # ± the magnitude's bits
+    key >>= 32 - CELL_BITS
+    key += _NCELLS >> 1
+    return key
+
+
+def _instrument_groups(inst: np.ndarray, bad: np.ndarray, groups: int) -> np.ndarray | None:
+    """Group 0 … ``groups − 1`` of every sample: ranges of the instrument holding about
+    equal numbers of good samples, or None without good samples.
+
+    The ranges are bounded at the edges of :func:`_cells` nearest to the quantiles
+    ``k/groups`` of the good samples, so the group of a value is a table lookup of its
+    cell — neither a partition for the quantiles nor a binary search per value (which
+    cost 40 + 40 ms for the 1.7 million samples of a pair). Like quantile edges they
+    depend on the instrument only; a cell's worth of tied values (one integer level of
+    a dark scene) stays in one group, as equal quantiles would leave it. (A float64
+    instrument, from a recovered curve, is grouped by its float32 values.)
+    """
+    x = np.ascontiguousarray(inst, dtype=np.float32).ravel()
+    bad = np.asarray(bad).ravel()
+    c = _cells(x)
+    counts = np.bincount(c, minlength=_NCELLS)
+    if bad.any():
+        counts -= np.bincount(c[bad], minlength=_NCELLS)
+    cum = np.cumsum(counts)                      # good samples in cells up to each
+    n = int(cum[-1])
+    if n == 0:
+        return None
+    target = np.arange(1, groups) * (n / groups)
+    last = np.searchsorted(cum, target)          # the cell holding each target rank
+    before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
+    # the group ends after that cell, or before it when that is nearer the target
+    last = np.where(target - before < cum[last] - target, last - 1, last)
+    # a cell's group: the number of groups that ended before it
+    table = np.cumsum(np.bincount(last + 1, minlength=_NCELLS + 1)[:_NCELLS])
+    return np.take(table.astype(np.uint8 if groups <= 256 else np.intp), c).astype(np.intp)
+
+
+#: The per-group median and MAD that set the 5σ clip come from about this many samples a
+#: group (their errors, ~2 % of σ, move a 5σ clip by 0.1σ); a group with few samples
+#: in that subset uses all of its own.
+CLIP_SAMPLES = 4096
+
+
+def _stride(n: int, m: int, bands: int) -> int:
+    """A step through ``n`` pixel-major samples that keeps about ``m``, coprime with the
+    number of bands: the kept samples cover every band and pixel evenly."""
+    s = max(1, n // max(m, 1))
+    while s > 1 and math.gcd(s, bands) != 1:
+        s += 1
+    return s
+
+
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
                          groups: int) -> dict[str, np.ndarray] | None:
     raw_j, raw_k = probe.raw[j], probe.raw[k]
@@ -147,53 +217,57 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     if nb < 2:
         return None
     nbr = _instrument(y_j)
-    inst = (y_j + y_k)[:, nbr]                    # neighbour band: independent noise
+    # (np.take: 2.5× faster than fancy indexing for a column gather)
+    inst = np.take(y_j + y_k, nbr, axis=1).ravel()     # neighbour band: independent noise
     sat = probe.saturation[None, :]
-    bad = (raw_k >= sat) | (raw_j >= sat) | (probe.raw[k][:, nbr] >= sat[:, nbr])
-    inst = inst.ravel()
-    q = np.quantile(inst[~bad.ravel()], np.linspace(0, 1, groups + 1)) if (~bad).any() else None
-    if q is None:
+    sat_k = raw_k >= sat
+    badf = (sat_k | (raw_j >= sat) | np.take(sat_k, nbr, axis=1)).ravel()
+    gid = _instrument_groups(inst, badf, groups)
+    if gid is None:
         return None
-    gid = np.clip(np.searchsorted(q, inst, side="right") - 1, 0, groups - 1)
-    badf = bad.ravel()
     # a group with more than 0.1 % saturated samples is dropped whole (dropping
     # only the saturated samples would select on their own noise)
-    nbad = np.bincount(gid, weights=badf, minlength=groups)
+    nbad = np.bincount(gid[badf], minlength=groups)
     ntot = np.bincount(gid, minlength=groups)
     keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
-    use = ~badf & keep_group[gid]
-    d = (y_k - r * y_j).ravel()[use]
-    qv = (y_k + r * r * y_j).ravel()[use]
-    yjv = y_j.ravel()[use]
-    ykv = y_k.ravel()[use]
-    g = gid[use]
-    n = np.bincount(g, minlength=groups).astype(np.float64)
+    use = ~badf if keep_group.all() else ~badf & np.take(keep_group, gid)
+    n_use = np.where(keep_group, ntot - nbad, 0)
+    d = (y_k - r * y_j).ravel()
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 1e-5 of the variance, and symmetric trimming leaves the mean unbiased
+    step = _stride(d.size, groups * CLIP_SAMPLES, nb)
+    u = use[::step]
+    ds, gs = d[::step][u], gid[::step][u]
+    # a stable sort of small integer keys is a radix sort in numpy (O(n))
+    order = np.argsort(gs.astype(np.uint8 if groups <= 256 else np.uint16), kind="stable")
+    ds = ds[order]
+    picked = np.bincount(gs, minlength=groups)
+    bounds = np.concatenate(([0], np.cumsum(picked)))
     med = np.zeros(groups)
     sig = np.zeros(groups)
-    # a stable sort of small integer keys is a radix sort in numpy (O(n), ~10×
-    # faster than sorting intp keys); the order, and so every median, is unchanged
-    key_dtype = np.uint8 if groups <= 256 else np.uint16
-    order = np.argsort(g.astype(key_dtype), kind="stable")
-    bounds = np.concatenate(([0], np.cumsum(n.astype(np.intp))))
-    ds = d[order]
-    for gi in np.flatnonzero(n > 0):
-        dv = ds[bounds[gi]:bounds[gi + 1]]
+    for gi in np.flatnonzero(n_use > 0):
+        if picked[gi] < min(n_use[gi], CLIP_SAMPLES // 2):
+            dv = d[use & (gid == gi)]             # a small group: all its samples
+        else:
+            dv = ds[bounds[gi]:bounds[gi + 1]]
         med[gi] = np.median(dv)
         sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
-    t = np.abs(d - med[g]) <= 5.0 * np.maximum(sig[g], 1e-9)
-    gt = g[t]
+    # the sums are taken about each group's median: one pass, and no cancellation
+    e = d - np.take(med, gid)
+    t = np.abs(e) <= np.take(5.0 * np.maximum(sig, 1e-9), gid)
+    t &= use
+    gt = gid[t]
+    et = e[t]
     nt = np.bincount(gt, minlength=groups).astype(np.float64)
     den = np.maximum(nt, 1)
-    mean_d = np.bincount(gt, weights=d[t], minlength=groups) / den
-    var = np.bincount(gt, weights=(d[t] - mean_d[gt]) ** 2, minlength=groups) / den
-    return {"n": nt, "nt": nt, "var": var, "mean_d": mean_d,
-            "q": np.bincount(gt, weights=qv[t], minlength=groups) / den,
-            "yj": np.bincount(gt, weights=yjv[t], minlength=groups) / den,
-            "yk": np.bincount(gt, weights=ykv[t], minlength=groups) / den,
-            "r": r}
+    mean_e = np.bincount(gt, weights=et, minlength=groups) / den
+    var = np.maximum(np.bincount(gt, weights=et * et, minlength=groups) / den - mean_e ** 2, 0.0)
+    mean_d = np.where(nt > 0, med + mean_e, 0.0)
+    yj = np.bincount(gt, weights=y_j.ravel()[t], minlength=groups) / den
+    yk = np.where(nt > 0, mean_d + r * yj, 0.0)         # d = y_k − r·y_j
+    return {"n": nt, "nt": nt, "var": var, "mean_d": mean_d, "q": yk + r * r * yj,
+            "yj": yj, "yk": yk, "r": r}
 
 
 def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current: float = 0.0,

@@ -1,0 +1,143 @@
+"""The shortcuts that keep `mehs fuse` fast (issue 16) give what they replace."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mehs.errors import FormatError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_chi2_isf_equals_scipy_chdtri():
+    from scipy.special import chdtri, gammaincc as scipy_gammaincc
+
+    from mehs.synthesis._chi2 import chi2_isf, gammaincc
+
+    dof = np.arange(1, 1201)
+    for p in (0.5, 1e-4, 1e-7, 0.01, 0.3, 0.9, 0.999):
+        np.testing.assert_allclose(chi2_isf(p, dof), chdtri(dof, p), rtol=1e-12)
+    a = np.repeat([0.5, 1.0, 3.5, 40.0, 204.0, 600.0], 7)
+    y = a * np.tile([0.01, 0.3, 0.9, 1.0, 1.1, 2.0, 5.0], 6)
+    np.testing.assert_allclose(gammaincc(a, y), scipy_gammaincc(a, y), rtol=1e-12, atol=1e-300)
+
+
+def test_instrument_groups_are_ordered_ranges_of_equal_size():
+    from mehs.synthesis.noise import _instrument_groups
+
+    rng = np.random.default_rng(1)
+    n = 200000
+    for x in (rng.gamma(0.5, 800, n).astype(np.float32),                   # continuous
+              np.round(rng.gamma(0.3, 30, n) - 3).astype(np.float32)):    # dark: integer ties
+        bad = rng.random(n) < 0.02
+        g = _instrument_groups(x, bad, 48)
+        assert g.min() >= 0 and g.max() <= 47
+        # ranges of the instrument: a group's values all lie below the next group's
+        hi = np.full(48, -np.inf)
+        lo = np.full(48, np.inf)
+        np.maximum.at(hi, g, x)
+        np.minimum.at(lo, g, x)
+        used = np.flatnonzero(np.bincount(g, minlength=48))
+        assert np.all(hi[used[:-1]] < lo[used[1:]])
+        # a deterministic function of the instrument
+        np.testing.assert_array_equal(_instrument_groups(x, bad, 48), g)
+    # continuous data: good samples split evenly (one cell, ≤ 0.1 % of the value, of slack per edge)
+    x = rng.normal(1000, 300, n).astype(np.float32)
+    bad = np.zeros(n, bool)
+    sizes = np.bincount(_instrument_groups(x, bad, 48), minlength=48)
+    assert np.all(np.abs(sizes / (n / 48) - 1) < 0.1), sizes
+    assert _instrument_groups(x, np.ones(n, bool), 48) is None
+    # a float64 instrument (a recovered curve's) is grouped by its float32 values
+    np.testing.assert_array_equal(_instrument_groups(x.astype(np.float64), bad, 48),
+                                  _instrument_groups(x, bad, 48))
+
+
+def test_16bit_roughness_equals_float_medians():
+    from mehs.io.plausibility import _roughness
+
+    def reference(x):
+        x = x.astype(np.float64)
+        d = float(np.median(np.abs(np.diff(x, axis=-1))))
+        s = float(np.median(np.abs(x - np.median(x))))
+        return d / s if s > 0 else 0.0
+
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        shape = (int(rng.integers(1, 4)), int(rng.integers(1, 30)), int(rng.integers(2, 25)))
+        x = [rng.integers(0, 4096, shape).astype(np.uint16),
+             rng.integers(0, 4096, shape).astype(np.uint16).byteswap(),
+             rng.integers(-300, 300, shape).astype(np.int16),
+             np.full(shape, 7, np.uint16)][k % 4]
+        assert _roughness(x) == reference(x)
+
+
+def test_small_groups_and_growth_equal_scipy_ndimage():
+    from scipy import ndimage
+
+    from mehs.synthesis.ghost import _finish
+
+    rng = np.random.default_rng(0)
+    for k in range(100):
+        mask = rng.random(tuple(rng.integers(1, 30, 2))) < [0.002, 0.03, 0.1, 0.3, 0.6][k % 5]
+        for min_pixels in (1, 2, 3, 4):
+            for grow in (0, 1, 2):
+                ref = mask
+                if min_pixels > 1 and ref.any():
+                    lab, _ = ndimage.label(ref, structure=np.ones((3, 3)))
+                    keep = np.bincount(lab.ravel()) >= min_pixels
+                    keep[0] = False
+                    ref = keep[lab]
+                if grow and ref.any():
+                    ref = ndimage.binary_dilation(ref, structure=np.ones((3, 3)),
+                                                  iterations=grow)
+                got = _finish(mask.copy(), None, 1.0, 1e-4, min_pixels, grow).mask
+                np.testing.assert_array_equal(got, ref)
+
+
+def _scene(tmp_path):
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket, write_simulated_scene
+
+    sim = simulate_bracket(make_scene("window", 24, 24, seed=1), SensorModel(seed=3),
+                           (0.05, 0.4, 3.2), seed=0)
+    return write_simulated_scene(sim, tmp_path / "scene", scene_id="s")
+
+
+def test_deferred_check_stops_the_fusion_of_an_altered_raw(tmp_path):
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    scene = _scene(tmp_path)
+    fuse_bracket(load_bracket(scene, defer_verify=True), ghosts="off")   # intact: fine
+    raw = next((scene / "exposures").glob("1_*/capture/*.raw"))
+    data = bytearray(raw.read_bytes())
+    data[100] ^= 0xFF
+    raw.write_bytes(bytes(data))
+    br = load_bracket(scene, defer_verify=True)      # returns while hashing
+    with pytest.raises(FormatError, match="SHA-256") as exc:
+        fuse_bracket(br, ghosts="off")
+    assert raw.name in str(exc.value)
+    with pytest.raises(FormatError, match="SHA-256"):
+        load_bracket(scene)                          # not deferred: raised right away
+
+
+def test_fuse_of_a_static_scene_loads_no_scipy_submodules(tmp_path):
+    """numba starts without scipy.linalg, the ghost test needs no scipy.special / ndimage
+    (a few pixels of every frame are flagged by chance and dropped as small groups)."""
+    scene = _scene(tmp_path)
+    code = ("import sys\nfrom mehs.cli import main\n"
+            f"rc = main(['fuse', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}])\n"
+            "mods = ('scipy.linalg', 'scipy.special', 'scipy.ndimage', 'scipy.stats')\n"
+            "print('LOADED', [m for m in mods if m in sys.modules], rc)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "LOADED [] 0" in r.stdout, r.stdout + r.stderr[-2000:]
