@@ -9,7 +9,7 @@ as the reference formulas, and NaN/inf checks must not be optimised away.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 # ---------------------------------------------------------------- response solve
 @njit(cache=True)
@@ -100,9 +100,9 @@ def _schur_matvec(x, c, wsm, lam, Z, w2, Winv, mid, y):
     y[mid] = 0.0
 
 
-@njit(parallel=True, cache=True)
-def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
-    """Solve the Debevec–Malik system of each channel by preconditioned CG.
+@njit(nogil=True, cache=True)
+def _debevec_pcg_range(Z, wz, logt, wsm, lam, mid, tol, maxiter, c0, c1, g, iters, relres):
+    """Solve the Debevec–Malik system of channels ``c0``..``c1 − 1`` by preconditioned CG.
 
     Parameters
     ----------
@@ -120,20 +120,17 @@ def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
     mid : int
         Gauge level (its g is fixed to 0 here; the caller shifts it).
 
-    Returns
-    -------
-    g : float64 (C, L); iterations : int64 (C,); relative residual : float64 (C,)
+    Writes ``g`` float64 (C, L), ``iters`` int64 (C,) and ``relres`` float64 (C,)
+    (relative residual) of those channels.
 
     The ln E unknowns are eliminated exactly (one per pixel, block-diagonal),
     leaving the L×L Schur complement ``S``; it is solved by CG preconditioned
     with its pentadiagonal part (data diagonal + smoothness), factorised in O(L).
     """
-    C, N, P = Z.shape
+    N = Z.shape[1]
+    P = Z.shape[2]
     L = wsm.shape[0]
-    g = np.zeros((C, L))
-    iters = np.zeros(C, dtype=np.int64)
-    relres = np.zeros(C)
-    for ch in prange(C):
+    for ch in range(c0, c1):
         Zc = Z[ch]
         w2 = wz[ch] * wz[ch]
         Winv = np.zeros(N)
@@ -205,25 +202,24 @@ def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
             g[ch, i] = x[i]
         iters[ch] = it
         relres[ch] = rn / bn if bn > 0.0 else 0.0
-    return g, iters, relres
 
 
-@njit(parallel=True, cache=True)
-def stratified_pick(levels, order, n, strata, L):
+@njit(nogil=True, cache=True)
+def _stratified_pick_range(levels, order, n, strata, L, c0, c1, out):
     """Pick up to ``n`` pixels per channel, stratified over exposures × intensity.
 
     ``levels`` int32 (P, M, C) holds candidate levels (L-1 marks saturated);
     pixels are visited in the random ``order`` and kept while any of their
     exposures falls in an under-filled (exposure, stratum) cell. Only pixels
     with at least two usable exposures (0 < level < L-1) are eligible, since a
-    pixel seen once carries no information about g. Returns int64 (C, n)
-    candidate indices, −1 where fewer eligible pixels exist.
+    pixel seen once carries no information about g. Writes channels
+    ``c0``..``c1 − 1`` of ``out`` int64 (C, n): candidate indices, −1 where
+    fewer eligible pixels exist.
     """
-    P, M, C = levels.shape
+    P = levels.shape[0]
     K = order.shape[0]
     quota = (n + P * strata - 1) // (P * strata)
-    out = -np.ones((C, n), dtype=np.int64)
-    for ch in prange(C):
+    for ch in range(c0, c1):
         count = np.zeros((P, strata), dtype=np.int64)
         picked = np.zeros(K, dtype=np.bool_)   # the second pass must not repeat a pixel
         taken = 0
@@ -259,7 +255,74 @@ def stratified_pick(levels, order, n, strata, L):
     return out
 
 
+def _over_channels(C: int, run) -> None:
+    """Run ``run(c0, c1)`` over channel ranges on numba's thread count (kernels release the GIL).
+
+    The kernels are serial: numba's ``parallel=True`` cost 11-20 s of compiling on a
+    first-ever run (issue 16) and gains nothing for the default shared curve (one channel).
+    """
+    from numba import get_num_threads
+
+    nthreads = max(1, min(get_num_threads(), C))
+    if nthreads == 1:
+        run(0, C)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    step = -(-C // (2 * nthreads))
+    with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-response") as pool:
+        for f in [pool.submit(run, c0, min(C, c0 + step)) for c0 in range(0, C, step)]:
+            f.result()
+
+
+def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
+    """Solve the Debevec–Malik system of each channel by preconditioned CG.
+
+    Parameters
+    ----------
+    Z : int32 (C, N, P)
+        Sampled levels per channel, pixel and exposure.
+    wz : float64 (C, N, P)
+        Data weights ``w(Z)`` (0 for saturated / unusable samples).
+    logt : float64 (1, 1, P) or (C, N, P)
+        ln of the exposure times, or one effective log time per sample.
+    wsm : float64 (L,)
+        Weights of the smoothness rows.
+    lam : float64 (C,)
+        Effective smoothness per channel.
+    mid : int
+        Gauge level (its g is fixed to 0 here; the caller shifts it).
+
+    Returns
+    -------
+    g : float64 (C, L); iterations : int64 (C,); relative residual : float64 (C,)
+
+    See :func:`_debevec_pcg_range` for the method.
+    """
+    C = Z.shape[0]
+    L = wsm.shape[0]
+    g = np.zeros((C, L))
+    iters = np.zeros(C, dtype=np.int64)
+    relres = np.zeros(C)
+    _over_channels(C, lambda c0, c1: _debevec_pcg_range(Z, wz, logt, wsm, lam, mid, tol,
+                                                         maxiter, c0, c1, g, iters, relres))
+    return g, iters, relres
+
+
+def stratified_pick(levels, order, n, strata, L):
+    """Pick up to ``n`` pixels per channel, stratified over exposures × intensity.
+
+    ``levels`` int32 (P, M, C); returns int64 (C, n) candidate indices, −1 where
+    fewer eligible pixels exist. See :func:`_stratified_pick_range`.
+    """
+    C = levels.shape[2]
+    out = -np.ones((C, n), dtype=np.int64)
+    _over_channels(C, lambda c0, c1: _stratified_pick_range(levels, order, n, strata, L,
+                                                             c0, c1, out))
+    return out
+
+
 # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
 from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
 
-notice_if_uncached(debevec_pcg, "the synthesis kernels")
+notice_if_uncached(_debevec_pcg_range, "the synthesis kernels")
