@@ -223,3 +223,34 @@ def test_awan_tiles_bound_its_quadratic_attention(monkeypatch):
     bpp = max(torch_bytes_per_pixel(net, probe=32), budget / cap)
     plan = plan_tiles((1024, 2048), bpp, margin=net.TILING_MARGIN, max_bytes=budget)
     assert plan.tile is not None and plan.tile * plan.width <= cap
+
+
+@pytest.mark.parametrize("make", ["local_unet", "fcdensenet"])
+def test_margin_covers_every_phase_of_the_pooling_grid(make):
+    # behind a pooling the receptive field depends on the pixel's phase on the grid;
+    # the aligned margin must cover the worst phase at a tile's leading and trailing edge
+    from mehs.ssr.tiling import _global_pools_detached, torch_align, torch_receptive_radius
+
+    torch.manual_seed(5)
+    if make == "local_unet":
+        net = LocalUNet().eval()
+    else:
+        from mehs.ssr.net import build_network
+        # with these sizes a pixel at phase 1 reaches 23 px right, its phase-0 neighbour 20:
+        # the former margin (phase-0 radius + 1 = 21) left the trailing edge inexact
+        net = build_network(variant="fcdensenet", first_channels=8, down_layers=(2, 1),
+                            bottleneck_layers=2, growth=4).eval()
+    a = torch_align(net)
+    m = torch_receptive_radius(net, probe=128, align=a)
+    c = 64
+    x = torch.rand(a, 3, 128, 128, requires_grad=True)
+    with _global_pools_detached(net):                # the attention's mean is global
+        sum(net(x)[p, :, c + p, c + p].sum() for p in range(a)).backward()
+    for p in range(a):
+        g = x.grad[p].abs().sum(0).numpy()
+        ys, xs = np.nonzero(g > 0)
+        left = c + p - min(ys.min(), xs.min())
+        right = max(ys.max(), xs.max()) - (c + p)
+        first = m + (p - m) % a                     # first weighted index with phase p
+        last_d = m + (-1 - p - m) % a               # nearest distance to a trailing edge
+        assert left <= first and right <= last_d, (p, left, right, m)

@@ -284,33 +284,48 @@ def _global_pools_detached(network):
 GLOBAL_MARGIN = 64
 
 
-def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512) -> int:
+def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
+                           align: int = 1) -> int:
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
 
-    The gradient of the centre pixel's output w.r.t. the input is non-zero
-    exactly inside the receptive field. A global average (the channel attention
-    of :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
+    The gradient of an output pixel w.r.t. the input is non-zero exactly inside
+    its receptive field. A global average (the channel attention of
+    :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
     mean is detached during the probe: the radius is that of the convolutions,
     poolings and up-samplings. The probe doubles until the field fits inside it;
     a field still filling a ``max_probe`` probe (another global operation)
     gives :data:`GLOBAL_MARGIN`.
+
+    With ``align > 1`` the result is the tile margin that makes tiles whose
+    edges lie on that grid exact: behind a pooling the field depends on the
+    pixel's phase on the grid (small hdrssr: 54 px right of a pixel at phase 0,
+    59 px at phase 3). The gradient of the ``align × align`` block of outputs
+    at an aligned centre bounds every phase at once: with ``L`` and ``R`` its
+    field's reach left of and right of the block's first pixel, a pixel at
+    phase ``p`` reaches at most ``L − p`` left and ``R − p`` right, so a margin
+    of ``round_up(L, align)`` covers a tile's leading edge and
+    ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
     """
     import torch
 
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
+    a = max(1, int(align))
     while True:
         x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
-        c = probe // 2
+        c = probe // 2 // a * a
         with _global_pools_detached(network):
-            network(x)[0, :, c, c].sum().backward()
+            network(x)[0, :, c:c + a, c:c + a].sum().backward()
         g = x.grad[0].abs().sum(0).cpu().numpy()
         ys, xs = np.nonzero(g > 0)
         if ys.size == 0:
             return 0
-        r = int(max(c - ys.min(), ys.max() - c, c - xs.min(), xs.max() - c))
-        if r < c - 1:
-            return r
+        lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
+        if lo > 0 and hi < probe - 1:
+            reach_lo, reach_hi = int(c - lo), int(hi - c)
+            if a == 1:
+                return max(reach_lo, reach_hi)
+            return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
         if probe >= max_probe:
             return GLOBAL_MARGIN
         probe *= 2
@@ -396,9 +411,9 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
 
     def margin() -> int:
         with torch.enable_grad():
-            radius = torch_receptive_radius(model.network)
+            m = torch_receptive_radius(model.network, align=torch_align(model.network))
         model.network.zero_grad(set_to_none=True)
-        return radius + 1
+        return m
 
     net = model.network
     cap = getattr(net, "max_tile_pixels", None)
