@@ -254,3 +254,21 @@ def test_margin_covers_every_phase_of_the_pooling_grid(make):
         first = m + (p - m) % a                     # first weighted index with phase p
         last_d = m + (-1 - p - m) % a               # nearest distance to a trailing edge
         assert left <= first and right <= last_d, (p, left, right, m)
+
+
+def test_blend_keeps_band_major_tiles_band_major():
+    # torch hands back (h, w, B) views of (B, h, w) buffers: the stitched image is laid
+    # out the same way (as whole-image inference returns it), with the same values
+    rgb = _rgb(97, 131)
+
+    def fn(x):
+        y = np.stack([x[:, :, 0] * np.float32(k + 1) for k in range(5)])    # (B, h, w)
+        return y.transpose(1, 2, 0)
+
+    plan = TilingPlan(48, 4, 8, 8, tile_w=64)
+    out = predict_tiled(fn, rgb, plan)
+    assert out.shape == (97, 131, 5) and out.transpose(2, 0, 1).flags.c_contiguous
+    np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)
+    out = predict_tiled(lambda x: np.ascontiguousarray(fn(x)), rgb, plan)
+    assert out.flags.c_contiguous
+    np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)

@@ -21,7 +21,8 @@ seams, and large tiles (the default: as large as the memory budget allows) keep
 the averages close. Images that fit the budget are run whole, exactly as before.
 
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
-to ``(h, w, B)``; the result is float32 ``(H, W, B)``.
+to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
+when the tiles' outputs are, as torch's are).
 
 References
 ----------
@@ -88,6 +89,30 @@ def available_memory() -> int:
     except OSError:
         pass
     return 4 << 30
+
+
+_MALLOC_TRIM = []
+
+
+def _trim_heap() -> None:
+    """Return the C heap's free memory to the system (glibc ``malloc_trim``; elsewhere nothing).
+
+    glibc keeps freed blocks below its mmap threshold resident; after a network
+    run that is up to a few hundred MB the next tile could reuse, but that the
+    resident-memory figure counts as held.
+    """
+    if not _MALLOC_TRIM:
+        fn = None
+        try:
+            import ctypes
+
+            fn = ctypes.CDLL("libc.so.6").malloc_trim
+            fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+        except (OSError, AttributeError):
+            pass
+        _MALLOC_TRIM.append(fn)
+    if _MALLOC_TRIM[0] is not None:
+        _MALLOC_TRIM[0](0)
 
 
 def _round_up(n: int, a: int) -> int:
@@ -180,6 +205,39 @@ def _ramp(length: int, lo_inner: bool, hi_inner: bool, margin: int, blend: int) 
     return w
 
 
+def _axis_pieces(n: int, tile: int, plan: TilingPlan) -> list[tuple[int, int, list]]:
+    """Per tile along one axis: its span ``(start, end)`` and the pieces where it has weight.
+
+    Each piece is ``(a, b, weights)``: image positions ``[a, b)`` and the tile's
+    float32 weights there, normalised so that all tiles' weights sum to 1 at
+    every position; ``weights`` is None where the tile alone has weight (1).
+    """
+    starts = tile_starts(n, tile, plan.overlap, plan.align)
+    spans, ramps = [], []
+    total = np.zeros(n, dtype=np.float32)
+    for i, s in enumerate(starts):
+        e = n if i == len(starts) - 1 else s + tile
+        r = _ramp(e - s, i > 0, i < len(starts) - 1, plan.margin, plan.blend)
+        total[s:e] += r
+        spans.append((s, e))
+        ramps.append(r)
+    out = []
+    for (s, e), r in zip(spans, ramps):
+        nz = np.flatnonzero(r)
+        lo, hi = s + int(nz[0]), s + int(nz[-1]) + 1
+        wn = r[lo - s:hi - s] / total[lo:hi]
+        sole = wn == 1
+        pieces, a = [], lo
+        while a < hi:                                  # runs of sole (1) and shared weights
+            b = a + 1
+            while b < hi and sole[b - lo] == sole[a - lo]:
+                b += 1
+            pieces.append((a, b, None if sole[a - lo] else wn[a - lo:b - lo]))
+            a = b
+        out.append((s, e, pieces))
+    return out
+
+
 def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan: TilingPlan
                   ) -> np.ndarray:
     """Run ``fn`` on overlapping tiles of ``rgb`` and blend the results.
@@ -196,30 +254,38 @@ def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan:
     Returns
     -------
     float32 ``(H, W, B)``: ``Σ w_k y_k / Σ w_k`` over the tiles covering each pixel.
+    Where one tile alone has weight its output is copied; the weights are
+    per-axis ramps normalised once, so no full-size weight map is kept, and
+    the output is laid out like the tiles' outputs (band-major for torch).
     """
     if plan.tile is None:
         return np.asarray(fn(rgb), dtype=np.float32)
     h, w = rgb.shape[:2]
-    ys = tile_starts(h, plan.tile, plan.overlap, plan.align)
-    xs = tile_starts(w, plan.width, plan.overlap, plan.align)
+    rows, cols = _axis_pieces(h, plan.tile, plan), _axis_pieces(w, plan.width, plan)
     out = None
-    wsum = np.zeros((h, w), dtype=np.float32)
-    for iy, y0 in enumerate(ys):
-        y1 = h if iy == len(ys) - 1 else y0 + plan.tile
-        wy = _ramp(y1 - y0, iy > 0, iy < len(ys) - 1, plan.margin, plan.blend)
-        for ix, x0 in enumerate(xs):
-            x1 = w if ix == len(xs) - 1 else x0 + plan.width
-            wx = _ramp(x1 - x0, ix > 0, ix < len(xs) - 1, plan.margin, plan.blend)
+    for y0, y1, row_pieces in rows:
+        for x0, x1, col_pieces in cols:
+            if out is not None:
+                _trim_heap()                  # the last tile's freed blocks, before the next
             y = np.asarray(fn(np.ascontiguousarray(rgb[y0:y1, x0:x1])), dtype=np.float32)
-            if y.shape[:2] != (y1 - y0, x1 - x0):
+            if y.ndim != 3 or y.shape[:2] != (y1 - y0, x1 - x0):
                 raise InputError(f"the model turned a {y1 - y0}×{x1 - x0} tile into shape "
                                  f"{y.shape}; tiled inference needs (h, w, bands) out")
-            if out is None:
-                out = np.zeros((h, w, y.shape[2]), dtype=np.float32)
-            wt = wy[:, None] * wx[None, :]
-            out[y0:y1, x0:x1] += y * wt[:, :, None]
-            wsum[y0:y1, x0:x1] += wt
-    out /= wsum[:, :, None]
+            if out is None:                   # zeros: pages are only touched as tiles land
+                if y.transpose(2, 0, 1).flags.c_contiguous:
+                    out = np.zeros((y.shape[2], h, w), dtype=np.float32).transpose(1, 2, 0)
+                else:
+                    out = np.zeros((h, w, y.shape[2]), dtype=np.float32)
+            for a, b, wy in row_pieces:
+                for c, d, wx in col_pieces:
+                    src = y[a - y0:b - y0, c - x0:d - x0]
+                    if wy is None and wx is None:
+                        out[a:b, c:d] = src
+                    else:
+                        wt = (np.ones(b - a, np.float32) if wy is None else wy)[:, None] * \
+                             (np.ones(d - c, np.float32) if wx is None else wx)[None, :]
+                        out[a:b, c:d] += src * wt[:, :, None]
+            del y, src                        # free this tile's output before the next runs
     return out
 
 
