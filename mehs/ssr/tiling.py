@@ -301,7 +301,7 @@ def _axis_pieces(n: int, tile: int, plan: TilingPlan) -> list[tuple[int, int, li
         ramps.append(r)
     out = []
     for (s, e), r in zip(spans, ramps):
-        nz = np.flatnonzero(r)
+        nz = np.flatnonzero(r)           # never empty: tile_starts keeps a core
         lo, hi = s + int(nz[0]), s + int(nz[-1]) + 1
         wn = r[lo - s:hi - s] / total[lo:hi]
         sole = wn == 1
@@ -354,6 +354,7 @@ def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan:
                     out = np.zeros((y.shape[2], h, w), dtype=np.float32).transpose(1, 2, 0)
                 else:
                     out = np.zeros((h, w, y.shape[2]), dtype=np.float32)
+            src = None
             for a, b, wy in row_pieces:
                 for c, d, wx in col_pieces:
                     src = y[a - y0:b - y0, c - x0:d - x0]
