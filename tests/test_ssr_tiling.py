@@ -10,8 +10,15 @@ from mehs.ssr.tiling import TilingPlan, plan_tiles, predict_tiled, tile_starts
 
 torch = pytest.importorskip("torch")
 
-from mehs.ssr.tiling import torch_bytes_per_pixel  # noqa: E402
+from mehs.ssr.tiling import allocator_overhead, torch_memory_probe  # noqa: E402
 nn = torch.nn
+
+
+def _tile_budget(net, side):
+    """The memory budget within which a ``side × side`` tile just fits (the library's model)."""
+    m = torch_memory_probe(net)
+    n = side * side
+    return int(allocator_overhead(n) * (m["fixed_bytes"] + m["bytes_per_pixel"] * n))
 
 
 class LocalUNet(nn.Module):
@@ -56,13 +63,12 @@ def test_torch_tiles_equal_whole_image(shape):
     rgb = _rgb(*shape)
     whole = tiled_torch_call(_model(net), rgb)
     # a budget of a 72×72 tile forces several tiles in both directions
-    budget = int(torch_bytes_per_pixel(net) * 72 ** 2)
+    budget = _tile_budget(net, 72)
     m = _model(net, max_bytes=budget)
     tiled = tiled_torch_call(m, rgb)
     probe = m._tiling_probe
     assert probe["align"] == 8 and 5 <= probe["margin"] <= 40
-    plan = plan_tiles(shape, probe["bytes_per_pixel"], margin=probe["margin"],
-                      align=probe["align"], max_bytes=budget)
+    plan = m._tiling_last["plan"]
     assert plan.tile is not None and (plan.tile < shape[0] or plan.width < shape[1])
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
 
@@ -82,12 +88,11 @@ def test_mehs_network_tiles_equal_whole_image_when_local():
             nn.init.zeros_(mod.excite.bias)
     rgb = _rgb(120, 176, seed=3)
     whole = tiled_torch_call(_model(net), rgb)
-    budget = int(torch_bytes_per_pixel(net) * 112 ** 2)
+    budget = _tile_budget(net, 112)
     m = _model(net, max_bytes=budget)
     tiled = tiled_torch_call(m, rgb)
     assert m._tiling_probe["align"] == 8
-    plan = plan_tiles((120, 176), m._tiling_probe["bytes_per_pixel"],
-                      margin=m._tiling_probe["margin"], max_bytes=budget)
+    plan = m._tiling_last["plan"]
     assert plan.tile is not None and (plan.tile < 120 or plan.width < 176)
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
 
@@ -223,3 +228,158 @@ def test_awan_tiles_bound_its_quadratic_attention(monkeypatch):
     bpp = max(torch_bytes_per_pixel(net, probe=32), budget / cap)
     plan = plan_tiles((1024, 2048), bpp, margin=net.TILING_MARGIN, max_bytes=budget)
     assert plan.tile is not None and plan.tile * plan.width <= cap
+
+
+@pytest.mark.parametrize("make", ["local_unet", "fcdensenet"])
+def test_margin_covers_every_phase_of_the_pooling_grid(make):
+    # behind a pooling the receptive field depends on the pixel's phase on the grid;
+    # the aligned margin must cover the worst phase at a tile's leading and trailing edge
+    from mehs.ssr.tiling import _global_pools_detached, torch_align, torch_receptive_radius
+
+    torch.manual_seed(5)
+    if make == "local_unet":
+        net = LocalUNet().eval()
+    else:
+        from mehs.ssr.net import build_network
+        # with these sizes a pixel at phase 1 reaches 23 px right, its phase-0 neighbour 20:
+        # the former margin (phase-0 radius + 1 = 21) left the trailing edge inexact
+        net = build_network(variant="fcdensenet", first_channels=8, down_layers=(2, 1),
+                            bottleneck_layers=2, growth=4).eval()
+    a = torch_align(net)
+    m = torch_receptive_radius(net, probe=128, align=a)
+    c = 64
+    x = torch.rand(a, 3, 128, 128, requires_grad=True)
+    with _global_pools_detached(net):                # the attention's mean is global
+        sum(net(x)[p, :, c + p, c + p].sum() for p in range(a)).backward()
+    for p in range(a):
+        g = x.grad[p].abs().sum(0).numpy()
+        ys, xs = np.nonzero(g > 0)
+        left = c + p - min(ys.min(), xs.min())
+        right = max(ys.max(), xs.max()) - (c + p)
+        first = m + (p - m) % a                     # first weighted index with phase p
+        last_d = m + (-1 - p - m) % a               # nearest distance to a trailing edge
+        assert left <= first and right <= last_d, (p, left, right, m)
+
+
+# ------------------------------------------------------------- the planner (fake memory)
+def _brute_force(shape, bpp, margin, blend, align, max_bytes, fixed=0.0, out=0.0):
+    """Fewest computed pixels (then fewest tiles) over every aligned tile shape that fits."""
+    from mehs.ssr.tiling import _covered
+
+    h, w = shape
+    ov = 2 * margin + blend
+    smallest = -(-(ov + align) // align) * align
+    best = None
+    for th in range(smallest, -(-h // align) * align + 1, align):
+        for tw in range(smallest, -(-w // align) * align + 1, align):
+            if fixed + bpp * min(th, h) * min(tw, w) + out > max_bytes:
+                continue
+            n = len(tile_starts(h, th, ov, align)) * len(tile_starts(w, tw, ov, align))
+            c = (_covered(h, th, ov, align) * _covered(w, tw, ov, align), n)
+            best = c if best is None or c < best else best
+    return best
+
+
+@pytest.mark.parametrize("shape,margin,blend,align,budget_px", [
+    ((1024, 2048), 56, 16, 8, 830_000),      # the issue's case: three full-height strips
+    ((2048, 2048), 56, 16, 8, 1_200_000),    # square image: blocks beat strips
+    ((300, 1000), 20, 8, 8, 60_000),         # strips along the short side
+    ((257, 131), 9, 4, 4, 9_000),            # odd sizes, a finer grid
+    ((500, 500), 30, 0, 16, 90_000),
+])
+def test_plan_computes_the_fewest_pixels_within_the_budget(shape, margin, blend, align,
+                                                           budget_px):
+    from mehs.ssr.tiling import plan_summary
+
+    bpp, fixed, out = 1000.0, 2.5e6, 0.4e9 * shape[0] * shape[1] / (1024 * 2048)
+    budget = fixed + out + bpp * budget_px + 0.5     # off the aligned boundaries
+    plan = plan_tiles(shape, bpp, margin=margin, blend=blend, align=align, max_bytes=budget,
+                      fixed_bytes=fixed, out_bytes=out)
+    s = plan_summary(shape, plan)
+    assert plan.tile % align == 0 and plan.width % align == 0
+    assert fixed + bpp * s["tile"][0] * s["tile"][1] + out <= budget        # the tile fits
+    computed, tiles = _brute_force(shape, bpp, margin, blend, align, budget, fixed, out)
+    assert round(s["computed"] * shape[0] * shape[1]) == computed and s["tiles"] == tiles
+
+
+def test_plan_for_the_issue_image_is_three_strips():
+    # 2048×1024, margin 56 (small hdrssr), ~0.83 M pixels a tile: full-height strips
+    # recompute 2 overlaps of 128 px (1.125×); 2×2 blocks would recompute 1.19×
+    from mehs.ssr.tiling import plan_summary
+
+    plan = plan_tiles((1024, 2048), 1000.0, margin=56, max_bytes=1000 * 830_000)
+    assert plan_summary((1024, 2048), plan) == {"tile": (1024, 768), "tiles": 3,
+                                                "computed": 1.125}
+
+
+def test_plan_counts_the_output_and_the_allocator():
+    from mehs.ssr.tiling import plan_summary
+
+    shape, bpp = (1024, 2048), 1000.0
+    # fits whole: the stitched output is not needed
+    assert plan_tiles(shape, bpp, margin=8, max_bytes=bpp * 2**21, out_bytes=1e9).tile is None
+    base = plan_summary(shape, plan_tiles(shape, bpp, margin=8, max_bytes=bpp * 600_000))
+    less = plan_summary(shape, plan_tiles(shape, bpp, margin=8, max_bytes=bpp * 600_000,
+                                          out_bytes=bpp * 300_000))
+    doubled = plan_summary(shape, plan_tiles(shape, bpp, margin=8, max_bytes=bpp * 600_000,
+                                             overhead=lambda n: 2.0))
+    for s in (less, doubled):
+        assert s["tile"][0] * s["tile"][1] <= 300_000 < base["tile"][0] * base["tile"][1]
+
+
+def test_default_budget_is_the_cap_less_what_the_process_holds(monkeypatch):
+    from mehs.ssr import tiling
+
+    monkeypatch.setattr(tiling, "_rss", lambda: 500_000_000)
+    monkeypatch.setattr(tiling, "available_memory", lambda: 8_000_000_000)
+    assert tiling.default_budget(2_000_000_000) == 1_500_000_000
+    assert tiling.default_budget() == tiling.DEFAULT_MAX_RSS - 500_000_000
+    monkeypatch.setattr(tiling, "available_memory", lambda: 1_000_000_000)
+    assert tiling.default_budget(2_000_000_000) == 500_000_000      # half the available
+    monkeypatch.setattr(tiling, "available_memory", lambda: 8_000_000_000)
+    monkeypatch.setattr(tiling, "_rss", lambda: 2_500_000_000)      # already over the cap
+    assert tiling.default_budget(2_000_000_000) == tiling.MIN_BUDGET
+
+
+def test_network_call_budget_leaves_room_for_the_output(monkeypatch):
+    from mehs.ssr import tiling
+
+    monkeypatch.setattr(tiling, "_rss", lambda: 0)
+    monkeypatch.setattr(tiling, "available_memory", lambda: 1 << 40)
+    monkeypatch.delenv("MEHS_TILE_MEMORY", raising=False)
+    probes = {"bytes_per_pixel": lambda: {"bytes_per_pixel": 100.0, "fixed_bytes": 0.0,
+                                          "out_bytes_per_pixel": 16.0},
+              "margin": lambda: 8, "align": lambda: 8}
+    fn = lambda x: np.repeat(x[:, :, :1] * 2, 4, axis=2)                # noqa: E731
+    rgb = _rgb(400, 600)
+    model = SimpleNamespace(tiling={"max_rss": 10_000_000})             # whole: 24 MB
+    out = tiling.tiled_network_call(model, fn, rgb, probes)
+    np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)
+    last = model._tiling_last
+    th, tw = last["summary"]["tile"]
+    assert last["budget"] == 10_000_000 and last["out_bytes"] == 400 * 600 * 16
+    assert 100 * th * tw <= 10_000_000 - 400 * 600 * 16 < 100 * 400 * 600
+    # MEHS_TILE_MEMORY is the tile's own budget: no room is kept for the output
+    monkeypatch.setenv("MEHS_TILE_MEMORY", str(10_000_000 / 2**20))
+    model = SimpleNamespace(tiling="auto", _tiling_probe={})
+    tiling.tiled_network_call(model, fn, rgb, probes)
+    th2, tw2 = model._tiling_last["summary"]["tile"]
+    assert model._tiling_last["out_bytes"] == 0 and th2 * tw2 > th * tw
+
+
+def test_blend_keeps_band_major_tiles_band_major():
+    # torch hands back (h, w, B) views of (B, h, w) buffers: the stitched image is laid
+    # out the same way (as whole-image inference returns it), with the same values
+    rgb = _rgb(97, 131)
+
+    def fn(x):
+        y = np.stack([x[:, :, 0] * np.float32(k + 1) for k in range(5)])    # (B, h, w)
+        return y.transpose(1, 2, 0)
+
+    plan = TilingPlan(48, 4, 8, 8, tile_w=64)
+    out = predict_tiled(fn, rgb, plan)
+    assert out.shape == (97, 131, 5) and out.transpose(2, 0, 1).flags.c_contiguous
+    np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)
+    out = predict_tiled(lambda x: np.ascontiguousarray(fn(x)), rgb, plan)
+    assert out.flags.c_contiguous
+    np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)

@@ -11,17 +11,27 @@ float32 rounding); the peak memory is that of one tile instead of the image
 
 Exactness also needs the tiles to sit on the network's pooling grid: tile
 origins and sizes are multiples of ``align`` (``2**depth`` for a U-Net that
-pools ``depth`` times, so each tile's pooling windows are the whole image's).
+pools ``depth`` times, so each tile's pooling windows are the whole image's),
+and the margin covers the receptive field of every phase on that grid.
+
+Memory. A call's memory is modelled as ``fixed + bytes_per_pixel × pixels``,
+measured on two small probes (:func:`torch_memory_probe`). By default the
+process is to stay under :data:`DEFAULT_MAX_RSS` of resident memory: what it
+already holds and the stitched output are taken off, the rest (at most
+:data:`AVAILABLE_SHARE` of the available memory) is the tile's. Images whose
+whole inference fits run whole, exactly as before; the others get the tile
+shape that computes the fewest pixels (margins included) within the budget.
 
 Limits. A network with a *global* operation is not tile-invariant: the
 channel attention of :mod:`mehs.ssr.net.layers` averages each feature map over
 the whole input (squeeze-and-excitation), so a tile sees its own averages and
 the result differs slightly from whole-image inference; the ramp hides the
 seams, and large tiles (the default: as large as the memory budget allows) keep
-the averages close. Images that fit the budget are run whole, exactly as before.
+the averages close.
 
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
-to ``(h, w, B)``; the result is float32 ``(H, W, B)``.
+to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
+when the tiles' outputs are, as torch's are).
 
 References
 ----------
@@ -34,6 +44,7 @@ References
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -41,11 +52,14 @@ import numpy as np
 
 from mehs.errors import InputError
 
-#: Default cap on the memory one tile's inference may use (a laptop-sized budget:
-#: with torch, numpy, the input and the 31-band output the process stays under 2 GB).
-DEFAULT_MAX_BYTES = 3 << 29
-#: Share of the currently available memory a tile may use at most.
+#: Peak resident memory of the whole process the default budget keeps under: a
+#: laptop-sized 2 GB (issue 16: a 2048×1024 image through the small hdrssr net).
+DEFAULT_MAX_RSS = 2_000_000_000
+#: Share of the currently available memory the inference may use at most.
 AVAILABLE_SHARE = 0.5
+#: The least memory a budget gives a tile even when the process already holds
+#: more than :data:`DEFAULT_MAX_RSS` (the cap then cannot be kept; small tiles do).
+MIN_BUDGET = 256 << 20
 
 
 @dataclass(frozen=True)
@@ -90,30 +104,88 @@ def available_memory() -> int:
     return 4 << 30
 
 
+def _rss() -> int:
+    """Resident memory of this process now (bytes)."""
+    try:
+        import psutil
+
+        return int(psutil.Process().memory_info().rss)
+    except ImportError:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+_MALLOC_TRIM = []
+
+
+def _trim_heap() -> None:
+    """Return the C heap's free memory to the system (glibc ``malloc_trim``; elsewhere nothing).
+
+    glibc keeps freed blocks below its mmap threshold resident; after a network
+    run that is up to a few hundred MB the next tile could reuse, but that the
+    resident-memory figure counts as held.
+    """
+    if not _MALLOC_TRIM:
+        fn = None
+        try:
+            import ctypes
+
+            fn = ctypes.CDLL("libc.so.6").malloc_trim
+            fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+        except (OSError, AttributeError):
+            pass
+        _MALLOC_TRIM.append(fn)
+    if _MALLOC_TRIM[0] is not None:
+        _MALLOC_TRIM[0](0)
+
+
+def default_budget(max_rss: int | None = None) -> int:
+    """Bytes the next inference may use: ``max_rss`` minus what the process holds now.
+
+    ``max_rss`` defaults to :data:`DEFAULT_MAX_RSS`; the result is at most
+    :data:`AVAILABLE_SHARE` of the available memory and, when the process
+    already holds nearly the cap or more, :data:`MIN_BUDGET` (at most the cap).
+    """
+    cap = DEFAULT_MAX_RSS if max_rss is None else int(max_rss)
+    _trim_heap()
+    share = AVAILABLE_SHARE * available_memory()
+    return int(min(max(cap - _rss(), min(MIN_BUDGET, cap)), share))
+
+
 def _round_up(n: int, a: int) -> int:
     return -(-n // a) * a
 
 
 def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, blend: int = 16,
-               align: int = 8, max_bytes: int | None = None) -> TilingPlan:
-    """Choose the tile shape that fits the memory budget and computes the fewest pixels.
+               align: int = 8, max_bytes: int | None = None, fixed_bytes: float = 0.0,
+               out_bytes: float = 0.0, overhead: Callable[[float], float] | None = None
+               ) -> TilingPlan:
+    """The tile shape that computes the fewest pixels within the memory budget.
 
-    Every tile recomputes its neighbours' overlap, so the shape matters: for a
-    2048×1024 image, a budget of ~0.5 M pixels and a 55-px margin, 584×896
-    tiles compute 1.27× the image's pixels, 720×720 squares 1.34×. All aligned
-    heights are tried, each with the widest tile the budget allows.
+    One call on ``n`` pixels is taken to need ``fixed_bytes + bytes_per_pixel × n``,
+    times ``overhead(n)`` if given (see :func:`allocator_overhead`).
+    The image runs whole if that fits ``max_bytes``; otherwise tiles must fit
+    ``max_bytes − out_bytes`` (the stitched output is held while they run).
+    Every tile recomputes its neighbours' overlap (``2 margin + blend``), so the
+    shape matters: all aligned tile heights are tried, each with the tile
+    width (up to the widest the budget allows) that computes the fewest pixels
+    across the image; strips (a tile spanning the image's height or width) are
+    among them. Ties go to fewer tiles, then to the smaller tile.
 
     Parameters
     ----------
     shape
         ``(H, W)`` of the image.
-    bytes_per_pixel
-        Peak memory of the network per input pixel (see :func:`torch_bytes_per_pixel`).
+    bytes_per_pixel, fixed_bytes
+        Memory model of one call (see :func:`torch_memory_probe`).
     margin, blend, align
         See :class:`TilingPlan`.
     max_bytes
-        Memory budget of one tile; default ``min(DEFAULT_MAX_BYTES,
-        AVAILABLE_SHARE × available memory)``.
+        Memory the inference may use; default :func:`default_budget`.
+    out_bytes
+        Memory of the stitched output (``H × W × bands × 4``).
+    overhead
+        Resident bytes per modelled byte as a function of a call's pixels.
     """
     if bytes_per_pixel <= 0 or not np.isfinite(bytes_per_pixel):
         raise InputError(f"bytes_per_pixel must be positive, got {bytes_per_pixel}")
@@ -121,29 +193,60 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, b
         raise InputError(f"margin and blend must be ≥ 0 and align ≥ 1, got "
                          f"{margin}, {blend}, {align}")
     if max_bytes is None:
-        max_bytes = int(min(DEFAULT_MAX_BYTES, AVAILABLE_SHARE * available_memory()))
+        max_bytes = default_budget()
     h, w = shape
-    if h * w * bytes_per_pixel <= max_bytes:
+
+    def memory(n: float) -> float:
+        return (fixed_bytes + bytes_per_pixel * n) * (1.0 if overhead is None else overhead(n))
+
+    if memory(h * w) <= max_bytes:
         return TilingPlan(None, margin, blend, align)
-    max_px = max_bytes / bytes_per_pixel
+    lo, hi = 0.0, float(h * w)                 # the most pixels a tile may have (memory grows)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if memory(mid) + out_bytes <= max_bytes else (lo, mid)
+    max_px = lo
+    overlap = 2 * margin + blend
     # a tile must keep some weighted core beyond its two margins and the ramp
-    smallest = _round_up(2 * margin + blend + align, align)
+    smallest = _round_up(overlap + align, align)
     if smallest * smallest > max_px:
+        need = memory(smallest ** 2) + out_bytes
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
-                         f"{smallest ** 2 * bytes_per_pixel / 2**20:.0f} MiB, more than the "
+                         f"{need / 2**20:.0f} MiB with the output, more than the "
                          f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or "
                          "more memory")
-    overlap = 2 * margin + blend
+    # per width limit, the width that covers the image's width with the fewest pixels
+    best_w, cur = [], None
+    for tw in range(smallest, _round_up(w, align) + 1, align):
+        c = (_covered(w, tw, overlap, align), len(tile_starts(w, tw, overlap, align)), tw)
+        cur = c if cur is None or c[:2] < cur[:2] else cur
+        best_w.append(cur)
     best = None
     for th in range(smallest, _round_up(h, align) + 1, align):
-        tw = min(int(max_px // th) // align * align, _round_up(w, align))
-        if tw < smallest:
+        rows = min(th, h)
+        limit = min(int(max_px // rows) // align * align, _round_up(w, align))
+        if limit < smallest:
             break
-        cost = (_covered(h, th, overlap, align) * _covered(w, tw, overlap, align), -th * tw)
+        cov_w, n_w, tw = best_w[(limit - smallest) // align]
+        cost = (_covered(h, th, overlap, align) * cov_w,
+                len(tile_starts(h, th, overlap, align)) * n_w, rows * min(tw, w))
         if best is None or cost < best[0]:
             best = (cost, th, tw)
+        if th >= h:
+            break
     _, th, tw = best
     return TilingPlan(th, margin, blend, align, tw)
+
+
+def plan_summary(shape: tuple[int, int], plan: TilingPlan) -> dict:
+    """``{"tile": (h, w), "tiles": n, "computed": pixels computed / image pixels}``."""
+    h, w = shape
+    if plan.tile is None:
+        return {"tile": (h, w), "tiles": 1, "computed": 1.0}
+    ov, a = plan.overlap, plan.align
+    n = len(tile_starts(h, plan.tile, ov, a)) * len(tile_starts(w, plan.width, ov, a))
+    computed = _covered(h, plan.tile, ov, a) * _covered(w, plan.width, ov, a) / (h * w)
+    return {"tile": (min(plan.tile, h), min(plan.width, w)), "tiles": n, "computed": computed}
 
 
 def _covered(n: int, tile: int, overlap: int, align: int) -> int:
@@ -180,6 +283,39 @@ def _ramp(length: int, lo_inner: bool, hi_inner: bool, margin: int, blend: int) 
     return w
 
 
+def _axis_pieces(n: int, tile: int, plan: TilingPlan) -> list[tuple[int, int, list]]:
+    """Per tile along one axis: its span ``(start, end)`` and the pieces where it has weight.
+
+    Each piece is ``(a, b, weights)``: image positions ``[a, b)`` and the tile's
+    float32 weights there, normalised so that all tiles' weights sum to 1 at
+    every position; ``weights`` is None where the tile alone has weight (1).
+    """
+    starts = tile_starts(n, tile, plan.overlap, plan.align)
+    spans, ramps = [], []
+    total = np.zeros(n, dtype=np.float32)
+    for i, s in enumerate(starts):
+        e = n if i == len(starts) - 1 else s + tile
+        r = _ramp(e - s, i > 0, i < len(starts) - 1, plan.margin, plan.blend)
+        total[s:e] += r
+        spans.append((s, e))
+        ramps.append(r)
+    out = []
+    for (s, e), r in zip(spans, ramps):
+        nz = np.flatnonzero(r)           # never empty: tile_starts keeps a core
+        lo, hi = s + int(nz[0]), s + int(nz[-1]) + 1
+        wn = r[lo - s:hi - s] / total[lo:hi]
+        sole = wn == 1
+        pieces, a = [], lo
+        while a < hi:                                  # runs of sole (1) and shared weights
+            b = a + 1
+            while b < hi and sole[b - lo] == sole[a - lo]:
+                b += 1
+            pieces.append((a, b, None if sole[a - lo] else wn[a - lo:b - lo]))
+            a = b
+        out.append((s, e, pieces))
+    return out
+
+
 def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan: TilingPlan
                   ) -> np.ndarray:
     """Run ``fn`` on overlapping tiles of ``rgb`` and blend the results.
@@ -196,62 +332,164 @@ def predict_tiled(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray, plan:
     Returns
     -------
     float32 ``(H, W, B)``: ``Σ w_k y_k / Σ w_k`` over the tiles covering each pixel.
+    Where one tile alone has weight its output is copied; the weights are
+    per-axis ramps normalised once, so no full-size weight map is kept, and
+    the output is laid out like the tiles' outputs (band-major for torch).
     """
     if plan.tile is None:
         return np.asarray(fn(rgb), dtype=np.float32)
     h, w = rgb.shape[:2]
-    ys = tile_starts(h, plan.tile, plan.overlap, plan.align)
-    xs = tile_starts(w, plan.width, plan.overlap, plan.align)
+    rows, cols = _axis_pieces(h, plan.tile, plan), _axis_pieces(w, plan.width, plan)
     out = None
-    wsum = np.zeros((h, w), dtype=np.float32)
-    for iy, y0 in enumerate(ys):
-        y1 = h if iy == len(ys) - 1 else y0 + plan.tile
-        wy = _ramp(y1 - y0, iy > 0, iy < len(ys) - 1, plan.margin, plan.blend)
-        for ix, x0 in enumerate(xs):
-            x1 = w if ix == len(xs) - 1 else x0 + plan.width
-            wx = _ramp(x1 - x0, ix > 0, ix < len(xs) - 1, plan.margin, plan.blend)
+    for y0, y1, row_pieces in rows:
+        for x0, x1, col_pieces in cols:
+            if out is not None:
+                _trim_heap()                  # the last tile's freed blocks, before the next
             y = np.asarray(fn(np.ascontiguousarray(rgb[y0:y1, x0:x1])), dtype=np.float32)
-            if y.shape[:2] != (y1 - y0, x1 - x0):
+            if y.ndim != 3 or y.shape[:2] != (y1 - y0, x1 - x0):
                 raise InputError(f"the model turned a {y1 - y0}×{x1 - x0} tile into shape "
                                  f"{y.shape}; tiled inference needs (h, w, bands) out")
-            if out is None:
-                out = np.zeros((h, w, y.shape[2]), dtype=np.float32)
-            wt = wy[:, None] * wx[None, :]
-            out[y0:y1, x0:x1] += y * wt[:, :, None]
-            wsum[y0:y1, x0:x1] += wt
-    out /= wsum[:, :, None]
+            if out is None:                   # zeros: pages are only touched as tiles land
+                if y.transpose(2, 0, 1).flags.c_contiguous:
+                    out = np.zeros((y.shape[2], h, w), dtype=np.float32).transpose(1, 2, 0)
+                else:
+                    out = np.zeros((h, w, y.shape[2]), dtype=np.float32)
+            src = None
+            for a, b, wy in row_pieces:
+                for c, d, wx in col_pieces:
+                    src = y[a - y0:b - y0, c - x0:d - x0]
+                    if wy is None and wx is None:
+                        out[a:b, c:d] = src
+                    else:
+                        wt = (np.ones(b - a, np.float32) if wy is None else wy)[:, None] * \
+                             (np.ones(d - c, np.float32) if wx is None else wx)[None, :]
+                        out[a:b, c:d] += src * wt[:, :, None]
+            del y, src                        # free this tile's output before the next runs
     return out
 
 
 # ------------------------------------------------------------- torch networks
-def torch_bytes_per_pixel(network, *, probe: int = 64, safety: float = 1.0) -> float:
-    """Peak-memory estimate per input pixel of a torch network, from one probe run.
+#: Resident memory per byte the memory probe counts, for a call on this many
+#: pixels or more (see :func:`allocator_overhead`).
+ALLOCATOR_OVERHEAD = 1.15
+#: Calls on fewer pixels than this keep more of their memory on the C heap.
+HEAP_PIXELS = 1_200_000
 
-    Sums the bytes of every leaf module's output on a ``probe × probe`` input
-    (an upper bound without autograd: a dense network's concatenations keep
-    many alive together, but not all), plus the input, times ``safety``.
-    Small hdrssr net: 3.1 kB/px estimated; peak RSS growth of a whole
-    1024×512 image measured 1.4 kB/px.
+
+def allocator_overhead(pixels: float) -> float:
+    """Resident bytes per byte counted by :func:`torch_memory_probe`, for a call on ``pixels``.
+
+    The probe counts live tensors and convolution reorders. glibc serves
+    blocks under its mmap threshold (which grows to 32 MiB) from its heap, whose
+    freed blocks are reused imperfectly, so the smaller the call, the larger the
+    share of its tensors there and the more resident memory per counted byte.
+    Measured on the small hdrssr net (resident growth of one call after
+    ``malloc_trim``): ×1.12 at 1.1 M pixels, ×1.2 at 0.79 M, ×1.31 at 0.52 M,
+    ×1.40–1.68 at 0.29 M. Modelled as ``1.15 + 0.2 log2(HEAP_PIXELS / pixels)``
+    within [1.15, 1.8].
     """
+    if pixels <= 0:
+        return 1.8
+    return float(np.clip(ALLOCATOR_OVERHEAD + 0.2 * np.log2(HEAP_PIXELS / pixels),
+                         ALLOCATOR_OVERHEAD, 1.8))
+
+
+#: Sides of the two square probes of :func:`torch_memory_probe`. The slope
+#: between them drops fixed costs; the larger one exceeds the 32 k-pixel
+#: chunks in which the mehs basis branches evaluate large inputs.
+MEMORY_PROBES = (128, 192)
+
+
+def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
+    """Peak bytes of live tensors (plus convolution reorders) of one ``side²`` call; bands out.
+
+    A dispatch mode sees every operator's outputs and counts each storage from
+    its creation to its release (the input included, parameters not). At each
+    convolution a copy of its input and output is added: oneDNN reorders both
+    into its blocked layout, outside torch's tensors.
+    """
+    import weakref
+
     import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_leaves
 
-    total = [0]
+    conv = torch.ops.aten.convolution.default
 
-    def hook(_m, _i, out):
-        if isinstance(out, torch.Tensor):
-            total[0] += out.numel() * out.element_size()
+    class Peak(TorchDispatchMode):
+        @classmethod
+        def _should_skip_dynamo(cls):
+            # else torch wraps __torch_dispatch__ in torch._dynamo.disable, whose first
+            # call imports torch._dynamo (1.4 s of CPU); nothing is compiled here
+            return False
 
-    leaves = [m for m in network.modules() if not any(True for _ in m.children())]
-    handles = [m.register_forward_hook(hook) for m in leaves]
-    try:
-        param = next(network.parameters(), None)
-        device = param.device if param is not None else "cpu"
-        with torch.no_grad():
-            network(torch.zeros(1, 3, probe, probe, device=device))
-    finally:
-        for hd in handles:
-            hd.remove()
-    return safety * (total[0] / probe ** 2 + 12)
+        def __init__(self):
+            super().__init__()
+            self.live = self.peak = 0
+            self.held = set()
+
+        def _release(self, key, n):
+            self.live -= n
+            self.held.discard(key)
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            for t in tree_leaves(out):
+                if isinstance(t, torch.Tensor):
+                    s = t.untyped_storage()
+                    if id(s) not in self.held:
+                        self.held.add(id(s))
+                        self.live += s.nbytes()
+                        weakref.finalize(s, self._release, id(s), s.nbytes())
+            now = self.live
+            if func is conv:
+                now += args[0].untyped_storage().nbytes() + out.untyped_storage().nbytes()
+            self.peak = max(self.peak, now)
+            return out
+
+    param = next(network.parameters(), None)
+    device = param.device if param is not None else "cpu"
+    with torch.no_grad(), Peak() as mode:
+        y = network(torch.rand(1, 3, side, side, device=device))
+        bands = int(y.shape[1]) * y.element_size()
+        del y
+    return mode.peak, bands
+
+
+def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> dict:
+    """Memory of a torch network's inference, ``fixed + per pixel × pixels``, from two probes.
+
+    Each probe runs the network (no autograd) on a random square input while
+    counting the bytes of live tensors (:func:`_peak_tensor_bytes`); the slope
+    between the two peaks is the memory per pixel, its intercept the fixed part
+    (such as a buffer of fixed size). Small hdrssr net: 1.25 kB/px and 3.6 MB
+    (one 64×64 probe summing every layer's output said 3.1 kB/px). The
+    allocator's share comes on top (:func:`allocator_overhead`).
+
+    Returns
+    -------
+    ``{"bytes_per_pixel", "fixed_bytes", "out_bytes_per_pixel", "allocator"}``:
+    the counted model, the bytes per image pixel of the stitched output
+    (bands × 4) and ``"heap"`` (apply :func:`allocator_overhead`).
+    """
+    s1, s2 = sorted(int(s) for s in sizes)
+    (p1, bands), (p2, _) = _peak_tensor_bytes(network, s1), _peak_tensor_bytes(network, s2)
+    n1, n2 = s1 * s1, s2 * s2
+    slope = (p2 - p1) / (n2 - n1) if n2 > n1 else 0.0
+    if slope <= 0:                    # no growth seen: the larger probe's mean, no fixed part
+        slope, fixed = p2 / n2, 0.0
+    else:
+        fixed = max(0.0, p2 - slope * n2)
+    return {"bytes_per_pixel": slope, "fixed_bytes": fixed,
+            "out_bytes_per_pixel": float(bands), "allocator": "heap"}
+
+
+def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
+    """Memory per pixel of a torch network's inference (probes of ``probe`` and 1.5 × ``probe``).
+
+    See :func:`torch_memory_probe` (this is its ``bytes_per_pixel``, as counted).
+    """
+    return torch_memory_probe(network, sizes=(probe, probe * 3 // 2))["bytes_per_pixel"]
 
 
 def _global_pools_detached(network):
@@ -284,33 +522,48 @@ def _global_pools_detached(network):
 GLOBAL_MARGIN = 64
 
 
-def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512) -> int:
+def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
+                           align: int = 1) -> int:
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
 
-    The gradient of the centre pixel's output w.r.t. the input is non-zero
-    exactly inside the receptive field. A global average (the channel attention
-    of :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
+    The gradient of an output pixel w.r.t. the input is non-zero exactly inside
+    its receptive field. A global average (the channel attention of
+    :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
     mean is detached during the probe: the radius is that of the convolutions,
     poolings and up-samplings. The probe doubles until the field fits inside it;
     a field still filling a ``max_probe`` probe (another global operation)
     gives :data:`GLOBAL_MARGIN`.
+
+    With ``align > 1`` the result is the tile margin that makes tiles whose
+    edges lie on that grid exact: behind a pooling the field depends on the
+    pixel's phase on the grid (small hdrssr: 54 px right of a pixel at phase 0,
+    59 px at phase 3). The gradient of the ``align × align`` block of outputs
+    at an aligned centre bounds every phase at once: with ``L`` and ``R`` its
+    field's reach left of and right of the block's first pixel, a pixel at
+    phase ``p`` reaches at most ``L − p`` left and ``R − p`` right, so a margin
+    of ``round_up(L, align)`` covers a tile's leading edge and
+    ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
     """
     import torch
 
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
+    a = max(1, int(align))
     while True:
         x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
-        c = probe // 2
+        c = probe // 2 // a * a
         with _global_pools_detached(network):
-            network(x)[0, :, c, c].sum().backward()
+            network(x)[0, :, c:c + a, c:c + a].sum().backward()
         g = x.grad[0].abs().sum(0).cpu().numpy()
         ys, xs = np.nonzero(g > 0)
         if ys.size == 0:
             return 0
-        r = int(max(c - ys.min(), ys.max() - c, c - xs.min(), xs.max() - c))
-        if r < c - 1:
-            return r
+        lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
+        if lo > 0 and hi < probe - 1:
+            reach_lo, reach_hi = int(c - lo), int(hi - c)
+            if a == 1:
+                return max(reach_lo, reach_hi)
+            return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
         if probe >= max_probe:
             return GLOBAL_MARGIN
         probe *= 2
@@ -340,17 +593,21 @@ SMALL_IMAGE = 256 * 256
 
 
 def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
-                       probes: dict[str, Callable[[], float]]) -> np.ndarray:
+                       probes: dict[str, Callable[[], object]]) -> np.ndarray:
     """The hook of the torch / ONNX SSR models: run ``fn`` whole or in tiles.
 
     ``model.tiling`` selects: ``"auto"`` (the default; tiles only when the image
     would exceed the memory budget), ``"off"`` (always whole), or a dict of
-    :func:`plan_tiles` keywords (``bytes_per_pixel``, ``margin``, ``blend``,
-    ``align``, ``max_bytes``). Missing ones come from ``probes[name]()``, each
-    called at most once per model (cached in ``model._tiling_probe``) and only
-    when needed: the memory probe for images above :data:`SMALL_IMAGE`, the
-    margin and grid probes only when the image is actually tiled.
-    ``MEHS_TILE_MEMORY`` (MiB) caps the budget.
+    options: :func:`plan_tiles` keywords (``bytes_per_pixel``, ``fixed_bytes``,
+    ``margin``, ``blend``, ``align``, ``max_bytes``: the memory of one tile) and
+    ``max_rss`` (the process cap of :func:`default_budget`). Missing ones come
+    from ``probes[name]()``, each called at most once per model (cached in
+    ``model._tiling_probe``) and only when needed: the memory probe (a number,
+    or a dict as :func:`torch_memory_probe` returns) for images above
+    :data:`SMALL_IMAGE`, the margin and grid probes only when the image is
+    actually tiled. ``MEHS_TILE_MEMORY`` (MiB) sets ``max_bytes``; without it the
+    budget is :func:`default_budget` less the stitched output. What was done is
+    left in ``model._tiling_last`` (plan, budget, seconds spent probing).
     """
     mode = getattr(model, "tiling", "auto")
     if mode == "off" or mode is None:
@@ -360,8 +617,11 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     opts = dict(mode) if isinstance(mode, dict) else {}
     if mode == "auto" and rgb.shape[0] * rgb.shape[1] <= SMALL_IMAGE:
         return fn(rgb)
-    if "max_bytes" not in opts and env_max_bytes() is not None:
-        opts["max_bytes"] = env_max_bytes()
+    t0 = time.perf_counter()
+    tile_budget = opts.pop("max_bytes", None)
+    if tile_budget is None:
+        tile_budget = env_max_bytes()
+    max_rss = opts.pop("max_rss", None)
     cache = model.__dict__.setdefault("_tiling_probe", {})
 
     def get(name):
@@ -371,21 +631,45 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
             cache[name] = probes[name]()
         return cache[name]
 
-    bpp = get("bytes_per_pixel")
-    budget = {"max_bytes": opts["max_bytes"]} if "max_bytes" in opts else {}
-    if plan_tiles(rgb.shape[:2], bpp, margin=0, **budget).tile is None:
+    if "bytes_per_pixel" in opts:
+        memory = {"bytes_per_pixel": opts.pop("bytes_per_pixel")}
+    else:
+        if "bytes_per_pixel" not in cache:
+            m = probes["bytes_per_pixel"]()
+            cache.update(m if isinstance(m, dict) else {"bytes_per_pixel": m})
+        memory = cache
+    bpp = float(memory["bytes_per_pixel"])
+    fixed = float(opts.pop("fixed_bytes", memory.get("fixed_bytes", 0.0)))
+    h, w = rgb.shape[:2]
+    if tile_budget is not None:
+        budget, out_bytes = int(tile_budget), 0.0
+    else:
+        budget = default_budget(max_rss)
+        out_bytes = float(memory.get("out_bytes_per_pixel", 0.0)) * h * w
+    record = {"budget": budget, "out_bytes": out_bytes, "max_rss": max_rss}
+    model.__dict__["_tiling_last"] = record
+    overhead = allocator_overhead if memory.get("allocator") == "heap" else None
+    if (fixed + bpp * h * w) * (1.0 if overhead is None else overhead(h * w)) <= budget:
+        record.update(plan=None, summary=plan_summary((h, w), TilingPlan(None, 0, 0, 1)),
+                      probe_seconds=time.perf_counter() - t0)
         return fn(rgb)
-    margin, align = get("margin"), get("align")
-    plan = plan_tiles(rgb.shape[:2], bpp, margin=margin, align=align, **opts)
+    align = get("align")
+    margin = get("margin")
+    if tile_budget is None:
+        budget = default_budget(max_rss)            # after the margin probe's garbage
+    plan = plan_tiles((h, w), bpp, margin=margin, align=align, max_bytes=budget,
+                      fixed_bytes=fixed, out_bytes=out_bytes, overhead=overhead, **opts)
+    record.update(budget=budget, plan=plan, summary=plan_summary((h, w), plan),
+                  probe_seconds=time.perf_counter() - t0)
     return predict_tiled(fn, rgb, plan)
 
 
 def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     """``model.network`` (torch, eval mode) on ``rgb (H, W, 3)`` → ``(H, W, B)``, tiled when large.
 
-    The probe measures the network's memory per pixel, its receptive-field
-    radius (the margin: tiles then agree with whole-image inference wherever
-    the network is local) and its pooling grid.
+    The probes measure the network's memory (:func:`torch_memory_probe`), its
+    margin (:func:`torch_receptive_radius` on its pooling grid: tiles then agree
+    with whole-image inference wherever the network is local) and its grid.
     """
     import torch
 
@@ -396,32 +680,33 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
 
     def margin() -> int:
         with torch.enable_grad():
-            radius = torch_receptive_radius(model.network)
+            m = torch_receptive_radius(model.network, align=torch_align(model.network))
         model.network.zero_grad(set_to_none=True)
-        return radius + 1
+        return m
 
     net = model.network
     cap = getattr(net, "max_tile_pixels", None)
 
-    def bytes_per_pixel() -> float:
-        bpp = torch_bytes_per_pixel(net)
-        if cap is not None:
-            # memory super-linear in the tile (global attention): the network says how
-            # large a tile fits the budget; the per-pixel figure is raised to match
-            budget = env_max_bytes() or int(min(DEFAULT_MAX_BYTES,
-                                                AVAILABLE_SHARE * available_memory()))
-            bpp = max(bpp, budget / cap(budget))
-        return bpp
+    def memory() -> dict:
+        if cap is None:
+            return torch_memory_probe(net)
+        # memory super-linear in the tile (global attention): small probes, and the
+        # network says how large a tile fits the budget; the per-pixel figure is raised
+        mem = torch_memory_probe(net, sizes=(32, 48))
+        budget = env_max_bytes() or default_budget()
+        mem["bytes_per_pixel"] = max(mem["bytes_per_pixel"], budget / cap(budget))
+        mem["allocator"] = None          # the cap already is a resident-memory figure
+        return mem
 
     fixed_margin = getattr(net, "TILING_MARGIN", None)
     return tiled_network_call(model, run, rgb, {
-        "bytes_per_pixel": bytes_per_pixel,
+        "bytes_per_pixel": memory,
         "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
         "align": lambda: torch_align(net)})
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the
-#: small and tiny mehs networks (radius 54 and 15 px, 3 and 2 poolings) and
+#: small and tiny mehs networks (margins 56 and 16 px on grids of 8) and
 #: most U-Nets up to 5 poolings; set ``model.tiling = {"margin": ...}`` otherwise.
 ONNX_DEFAULT_MARGIN, ONNX_DEFAULT_ALIGN = 64, 32
 
@@ -433,22 +718,14 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
     memory over a 256×256 probe run (onnxruntime's arena keeps its peak), with
     a floor of 1 kB per pixel in case the arena was already grown by earlier calls.
     """
-    def memory() -> float:
+    def memory() -> dict:
         n = 256
+        _trim_heap()
         before = _rss()
-        fn(np.zeros((n, n, 3), dtype=np.float32))
-        return max(1024.0, 1.25 * max(0, _rss() - before) / n ** 2)
+        y = fn(np.zeros((n, n, 3), dtype=np.float32))
+        return {"bytes_per_pixel": max(1024.0, 1.25 * max(0, _rss() - before) / n ** 2),
+                "out_bytes_per_pixel": 4.0 * y.shape[-1]}
 
     return tiled_network_call(model, fn, rgb, {
         "bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
         "align": lambda: ONNX_DEFAULT_ALIGN})
-
-
-def _rss() -> int:
-    try:
-        import psutil
-
-        return int(psutil.Process().memory_info().rss)
-    except ImportError:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
