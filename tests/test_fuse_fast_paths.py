@@ -130,11 +130,13 @@ def test_deferred_check_stops_the_fusion_of_an_altered_raw(tmp_path):
 
 def test_fuse_of_a_static_scene_loads_no_scipy_submodules(tmp_path):
     """numba starts without scipy.linalg, the ghost test needs no scipy.special / ndimage
-    (a few pixels of every frame are flagged by chance and dropped as small groups)."""
+    (a few pixels of every frame are flagged by chance and dropped as small groups), and
+    nothing optional (colour, matplotlib, torch, dask, onnxruntime) is imported."""
     scene = _scene(tmp_path)
     code = ("import sys\nfrom mehs.cli import main\n"
             f"rc = main(['fuse', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}])\n"
-            "mods = ('scipy.linalg', 'scipy.special', 'scipy.ndimage', 'scipy.stats')\n"
+            "mods = ('scipy.linalg', 'scipy.special', 'scipy.ndimage', 'scipy.stats', 'colour',\n"
+            "        'matplotlib', 'torch', 'dask', 'onnxruntime')\n"
             "print('LOADED', [m for m in mods if m in sys.modules], rc)\n")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,

@@ -278,26 +278,9 @@ def _over_channels(C: int, run) -> None:
 def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
     """Solve the Debevec–Malik system of each channel by preconditioned CG.
 
-    Parameters
-    ----------
-    Z : int32 (C, N, P)
-        Sampled levels per channel, pixel and exposure.
-    wz : float64 (C, N, P)
-        Data weights ``w(Z)`` (0 for saturated / unusable samples).
-    logt : float64 (1, 1, P) or (C, N, P)
-        ln of the exposure times, or one effective log time per sample.
-    wsm : float64 (L,)
-        Weights of the smoothness rows.
-    lam : float64 (C,)
-        Effective smoothness per channel.
-    mid : int
-        Gauge level (its g is fixed to 0 here; the caller shifts it).
-
-    Returns
-    -------
-    g : float64 (C, L); iterations : int64 (C,); relative residual : float64 (C,)
-
-    See :func:`_debevec_pcg_range` for the method.
+    Arguments as :func:`_debevec_pcg_range` (``Z`` int32 (C, N, P), ``wz`` float64
+    (C, N, P), ``logt`` float64 (1, 1, P) or (C, N, P), ``wsm`` (L,), ``lam`` (C,)).
+    Returns ``g`` float64 (C, L), iterations int64 (C,), relative residual float64 (C,).
     """
     C = Z.shape[0]
     L = wsm.shape[0]

@@ -174,7 +174,8 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
                 nc[i] = f0
             continue
         if linear:
-            # the common case in one fused, branch-free loop (same tests as below)
+            # the common case in one fused, branch-free loop: the tests below, without
+            # the look-up pass that the non-linear path needs first
             for i in range(ns):
                 raw = np.float32(zr[i])
                 d = dr[i]
@@ -429,10 +430,10 @@ def merge_chunk_poisson(zs, darks, sat, times, linear, dark_after, elut, L,
         om = np.empty((P, ns), dtype=np.float32)
         cs = np.empty((P, ns), dtype=np.float32)
         lev = np.zeros((P, ns), dtype=np.int32)
-        scratch = np.empty((11, ns), dtype=np.float32)
-        sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa = (
+        scratch = np.empty((10, ns), dtype=np.float32)
+        sy, st, st2, sav, nv, nc, X, den, ysat, nsa = (
             scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5],
-            scratch[6], scratch[7], scratch[8], scratch[9], scratch[10])
+            scratch[6], scratch[7], scratch[8], scratch[9])
         for i in range(ns):
             nsa[i] = f0
         had_bad = False
