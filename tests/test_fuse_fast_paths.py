@@ -143,3 +143,27 @@ def test_fuse_of_a_static_scene_loads_no_scipy_submodules(tmp_path):
                        timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "LOADED [] 0" in r.stdout, r.stdout + r.stderr[-2000:]
+
+
+@pytest.mark.parametrize("method", ["poisson", "debevec"])
+def test_warm_merge_kernel_prepares_the_very_specialisation_the_merge_uses(method):
+    """The first line of the stack gives the whole stack's kernel signature, read-only
+    BIL memory maps included: the merge after it compiles nothing new. (int16 raws: a
+    type no other test merges, so the signature cannot come from another test.)"""
+    from mehs.synthesis import _merge_kernels as K
+    from mehs.synthesis.merge import merge_bracket, warm_merge_kernel
+
+    rng = np.random.default_rng(0)
+    stack = []
+    for t in (1.0, 4.0, 16.0):
+        bil = np.ascontiguousarray(np.clip(rng.normal(300 * t, 20, (6, 7, 9)), 0, 4095)
+                                   .astype(np.int16))        # (lines, bands, samples) on disk
+        bil.flags.writeable = False
+        stack.append(bil.transpose(0, 2, 1))                 # (lines, samples, bands) view
+    darks = [np.full((9, 7), 10.0)] * 3
+    warm_merge_kernel(stack, [1.0, 4.0, 16.0], method=method, darks=darks).join(600)
+    kernel = K.merge_chunk_poisson if method == "poisson" else K.merge_chunk
+    before = set(kernel.signatures)
+    assert before
+    merge_bracket(stack, [1.0, 4.0, 16.0], method=method, darks=darks)
+    assert set(kernel.signatures) == before

@@ -21,7 +21,7 @@ from mehs.errors import InputError
 from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
-                                  merge_bracket)
+                                  merge_bracket, warm_merge_kernel)
 from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
                                      sample_pixels, to_levels)
 
@@ -404,6 +404,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     L = 1 << bracket.bit_depth
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
     sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
+    if method in MERGE_METHODS:
+        # numba's import and kernel load (or first-ever compile) overlap the checks below
+        warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
+                          darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)
     auto_info: dict[str, Any] = {}
     probe = None
     if isinstance(response, ResponseCurve):

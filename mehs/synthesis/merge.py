@@ -381,6 +381,40 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     return MergeResult(radiance, (snr / nb).astype(np.float32), mask, chi2, dof, msum, info)
 
 
+def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
+                      method: str = "poisson", darks: Sequence[np.ndarray | None] | None = None,
+                      bit_depth: int = 12, saturation: Any = None):
+    """Start loading (or, on a first-ever run, compiling) the kernel a merge will need.
+
+    Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
+    returns the thread: the kernel's specialisation depends only on the arrays' types
+    (dtype, layout, read-only flag, number of exposures) and the method, so that line
+    gives the same one as the whole cube. Importing numba and loading the cached
+    kernel (0.3–0.6 s), or compiling it (seconds), then overlaps the work a caller does
+    before the merge (file checks, the linearity test); a later :func:`merge_bracket`
+    waits for numba's compiler lock if it has to. Any error is left to that later call.
+    """
+    import threading
+
+    from mehs.cube import SpectralCube
+
+    arrays = [np.asarray(s.data if isinstance(s, SpectralCube) else s) for s in stack]
+
+    def run() -> None:
+        try:
+            from mehs.synthesis._numba_start import skip_scipy_linalg_import
+
+            skip_scipy_linalg_import()
+            merge_bracket([a[:1] for a in arrays], times_ms, method=method, darks=darks,
+                          bit_depth=bit_depth, saturation=saturation)
+        except Exception:   # noqa: BLE001 - the real merge reports it
+            pass
+
+    t = threading.Thread(target=run, name="mehs-warm-merge", daemon=True)
+    t.start()
+    return t
+
+
 def merge_Debevec1997(stack, times_ms, **kwargs) -> MergeResult:
     """Debevec & Malik's weighted log-domain mean (see module docstring)."""
     return merge_bracket(stack, times_ms, method="debevec", **kwargs)
