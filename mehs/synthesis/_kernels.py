@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from mehs.synthesis._ranges import run_ranges
+
 # ---------------------------------------------------------------- response solve
 @njit(cache=True)
 def _penta_factor(c, wsm, lam, mid, d, l1, l2):
@@ -255,26 +257,6 @@ def _stratified_pick_range(levels, order, n, strata, L, c0, c1, out):
     return out
 
 
-def _over_channels(C: int, run) -> None:
-    """Run ``run(c0, c1)`` over channel ranges on numba's thread count (kernels release the GIL).
-
-    The kernels are serial: numba's ``parallel=True`` cost 11-20 s of compiling on a
-    first-ever run (issue 16) and gains nothing for the default shared curve (one channel).
-    """
-    from numba import get_num_threads
-
-    nthreads = max(1, min(get_num_threads(), C))
-    if nthreads == 1:
-        run(0, C)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    step = -(-C // (2 * nthreads))
-    with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-response") as pool:
-        for f in [pool.submit(run, c0, min(C, c0 + step)) for c0 in range(0, C, step)]:
-            f.result()
-
-
 def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
     """Solve the Debevec–Malik system of each channel by preconditioned CG.
 
@@ -287,8 +269,11 @@ def debevec_pcg(Z, wz, logt, wsm, lam, mid, tol, maxiter):
     g = np.zeros((C, L))
     iters = np.zeros(C, dtype=np.int64)
     relres = np.zeros(C)
-    _over_channels(C, lambda c0, c1: _debevec_pcg_range(Z, wz, logt, wsm, lam, mid, tol,
-                                                         maxiter, c0, c1, g, iters, relres))
+    # serial kernels on channel ranges: parfor compiled for 11-20 s of a first-ever run
+    # and gains nothing for the default shared curve (one channel)
+    run_ranges(C, lambda c0, c1: _debevec_pcg_range(Z, wz, logt, wsm, lam, mid, tol, maxiter,
+                                                     c0, c1, g, iters, relres),
+               name="mehs-response")
     return g, iters, relres
 
 
@@ -300,8 +285,8 @@ def stratified_pick(levels, order, n, strata, L):
     """
     C = levels.shape[2]
     out = -np.ones((C, n), dtype=np.int64)
-    _over_channels(C, lambda c0, c1: _stratified_pick_range(levels, order, n, strata, L,
-                                                             c0, c1, out))
+    run_ranges(C, lambda c0, c1: _stratified_pick_range(levels, order, n, strata, L, c0, c1,
+                                                        out), name="mehs-response")
     return out
 
 

@@ -175,7 +175,8 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
             continue
         if linear:
             # the common case in one fused, branch-free loop: the tests below, without
-            # the look-up pass that the non-linear path needs first
+            # the look-up pass that the non-linear path needs first (sharing that path
+            # measured 7-8 % slower on the default Poisson merge)
             for i in range(ns):
                 raw = np.float32(zr[i])
                 d = dr[i]

@@ -404,10 +404,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     L = 1 << bracket.bit_depth
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
     sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
-    if method in MERGE_METHODS:
-        # numba's import and kernel load (or first-ever compile) overlap the checks below
-        warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
-                          darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)
+    # numba's import and kernel load (or first-ever compile) overlap the checks below
+    warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
+                      darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)
     auto_info: dict[str, Any] = {}
     probe = None
     if isinstance(response, ResponseCurve):

@@ -235,11 +235,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     elut = np.exp(glut.astype(np.float64)).astype(np.float32)
     wlut = weighting_table(weighting, L).astype(np.float32)
     # tables the kernel can compute instead of looking up (a gather per sample
-    # does not vectorise); compared with the exact float32 tables
-    z = np.arange(L, dtype=np.float64)
-    hat = bool(np.array_equal(wlut, (np.minimum(z, L - 1 - z) / ((L - 1) / 2.0))
-                              .astype(np.float32)))
-    lin_g = bool(np.all(glut == np.log(np.maximum(z, 0.5)).astype(np.float32)))
+    # does not vectorise): Debevec's hat and the linear curve's ln max(z, ½)
+    hat = bool(np.array_equal(wlut, weighting_table("hat", L).astype(np.float32)))
+    lin_g = bool(np.all(glut == ResponseCurve.linear(int(bit_depth)).table()
+                        .astype(np.float32)))
 
     if noise is None:
         noise = NoiseModel()
@@ -322,8 +321,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
 
-    def work(l0: int) -> None:
-        l1 = min(nl, l0 + step)
+    def work(l0: int, l1: int) -> None:
         parts = [np.asarray(v[l0:l1]) for v in views]
         if is_float:
             for j, part in enumerate(parts):
@@ -343,23 +341,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                         lin_g, np.float32(floor), gain, avar, rel2, cal, code,
                         bool(consistency), bool(clip_negative), *outs)
 
-    # The kernels release the GIL: chunks of lines run on a thread pool of numba's
-    # thread count (NUMBA_NUM_THREADS / numba.set_num_threads, one per build worker),
-    # at least two chunks per thread so that one slow chunk does not idle the rest.
-    from numba import get_num_threads
+    # chunks of lines, at most chunk_lines each, on numba's thread count (the kernels
+    # release the GIL)
+    from mehs.synthesis._ranges import run_ranges
 
-    nthreads = max(1, min(get_num_threads(), nl))
-    step = chunk_lines if nthreads == 1 else max(1, min(chunk_lines, -(-nl // (2 * nthreads))))
-    starts = range(0, nl, step)
-    if nthreads == 1 or len(starts) == 1:
-        for l0 in starts:
-            work(l0)
-    else:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-merge") as pool:
-            for f in [pool.submit(work, l0) for l0 in starts]:
-                f.result()
+    run_ranges(nl, work, max_step=chunk_lines, name="mehs-merge")
     radiance = out.transpose(0, 2, 1)
     mask = np.zeros((nl, ns), dtype=np.uint8)
     mask[nsat > 0] |= MASK_SATURATED
