@@ -162,3 +162,22 @@ def test_branch_row_strips_give_the_same_result(branch_cls):
         strips = br(feats)
     # equal up to float32 rounding (the 1×1 conv blocks its sums differently per shape)
     torch.testing.assert_close(strips, whole, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("arch", ["hdrssr", "mikamoto", "galliani"])
+@pytest.mark.parametrize("n", [1, 2])
+def test_inference_buffers_give_the_training_graphs_numbers(arch, n):
+    # without autograd the dense blocks write into one preallocated tensor and the
+    # head frees the features before its fusion (issue 16); with autograd the plain
+    # concatenating graph runs: both must give the same numbers, also for N > 1 where
+    # the buffer's channel slices are not contiguous
+    from mehs.ssr.net.zoo import build_network as build_arch
+
+    torch.manual_seed(1)
+    net = build_arch(arch=arch, preset="tiny").eval()
+    rgb = torch.rand(n, 3, 13, 21) * 20
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.requires_grad_())
+    assert plain.requires_grad
+    torch.testing.assert_close(lean, plain.detach(), rtol=0, atol=0)

@@ -74,7 +74,17 @@ class TwoBranchFCDenseNet(SSRNetwork):
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
         f = self.features(x)
-        return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
+        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+            return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
+        # inference: the branches fill one tensor and the features are released before
+        # the fusion (the image-sized peak of the head)
+        n, _, h, w = f.shape
+        L = self.n_bands
+        both = f.new_empty(n, 2 * L, h, w)
+        both[:, :L] = self.sigmoid_branch(f)
+        both[:, L:] = self.hat_branch(f)
+        del f
+        return self.fusion(both)
 
 
 class MikamotoTwoBranch(TwoBranchFCDenseNet):
