@@ -383,3 +383,27 @@ def test_blend_keeps_band_major_tiles_band_major():
     out = predict_tiled(lambda x: np.ascontiguousarray(fn(x)), rgb, plan)
     assert out.flags.c_contiguous
     np.testing.assert_allclose(out, fn(rgb), rtol=1e-6)
+
+
+def test_memory_probe_of_chunked_branches_does_not_depend_on_probe_size():
+    # the basis branches work in chunks of 32 k pixels: probes below that size
+    # measured the branch's growth up to the chunk as memory per pixel (1.37 kB/px
+    # for small hdrssr, 0.90 for a large image). The probe's chunks are small, so any
+    # two probe sizes give the large-image slope, and the branches' own setting is back
+    from mehs.ssr.net.basis import _BasisBranch
+    from mehs.ssr.net.zoo import build_network
+
+    torch.manual_seed(0)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    net.hat_branch.chunk_pixels = 5000               # an instance's own setting survives
+    small = torch_memory_probe(net, sizes=(96, 128))
+    large = torch_memory_probe(net, sizes=(192, 256))
+    assert small["bytes_per_pixel"] == pytest.approx(large["bytes_per_pixel"], rel=0.03)
+    assert net.hat_branch.chunk_pixels == 5000
+    assert "chunk_pixels" not in vars(net.sigmoid_branch)
+    assert net.sigmoid_branch.chunk_pixels == _BasisBranch.chunk_pixels
+    # and the line covers a run with the branches' own chunks above the probes
+    from mehs.ssr.tiling import _peak_tensor_bytes
+
+    peak, _ = _peak_tensor_bytes(net, 320)
+    assert peak <= large["fixed_bytes"] + large["bytes_per_pixel"] * 320 ** 2
