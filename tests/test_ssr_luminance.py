@@ -148,3 +148,20 @@ def test_switch_restore_off_with_preprocess_inverts_reinhard():
     out = predict(f, rgb, preprocess=True, restore=False)
     np.testing.assert_allclose(out, 3.0, rtol=1e-5)
     assert np.all(predict(f, rgb, preprocess=False, restore=False) == 3.0)
+
+
+def test_overwrite_writes_into_the_spectra_and_gives_the_same_numbers():
+    rng = np.random.default_rng(3)
+    rgb = rng.random((6, 5, 3), dtype=np.float32) * 4
+    for fallback in (False, True):
+        S = rng.random((31, 6, 5), dtype=np.float32).transpose(1, 2, 0)   # band-major (torch)
+        if fallback:
+            S[0, 0] = 0.0                       # a flat-spectrum fallback pixel as well
+        want = restore_luminance(S, rgb, WAVELENGTHS_31)
+        got = restore_luminance(S, rgb, WAVELENGTHS_31, overwrite=True)
+        np.testing.assert_array_equal(got, want)
+        assert np.shares_memory(got, S) != fallback
+    ro = rng.random((6, 5, 31), dtype=np.float32)
+    ro.flags.writeable = False
+    np.testing.assert_array_equal(restore_luminance(ro, rgb, WAVELENGTHS_31, overwrite=True),
+                                  restore_luminance(ro, rgb, WAVELENGTHS_31))

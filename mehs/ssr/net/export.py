@@ -159,7 +159,7 @@ class TorchSSRModel(SSRModel):
         if self.restores_luminance:
             from mehs.ssr.luminance import restore_luminance
 
-            y = restore_luminance(y, rgb, self.wavelengths)
+            y = restore_luminance(y, rgb, self.wavelengths, overwrite=True)
         return y.astype(np.float32, copy=False)
 
 
