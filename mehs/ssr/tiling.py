@@ -43,6 +43,7 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -489,24 +490,20 @@ def _chunked_modules(network) -> list:
             if isinstance(getattr(m, "chunk_pixels", None), int) and m.chunk_pixels > 0]
 
 
+@contextlib.contextmanager
 def _probe_chunks(modules, pixels: int):
     """Context: ``modules`` evaluate in chunks of ``pixels`` (their own setting restored after)."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def ctx():
-        own = [(m, m.__dict__.get("chunk_pixels")) for m in modules]
-        try:
-            for m in modules:
-                m.chunk_pixels = int(pixels)
-            yield
-        finally:
-            for m, v in own:
-                if v is None:
-                    del m.__dict__["chunk_pixels"]
-                else:
-                    m.chunk_pixels = v
-    return ctx()
+    own = [(m, m.__dict__.get("chunk_pixels")) for m in modules]
+    try:
+        for m in modules:
+            m.chunk_pixels = int(pixels)
+        yield
+    finally:
+        for m, v in own:
+            if v is None:
+                del m.__dict__["chunk_pixels"]
+            else:
+                m.chunk_pixels = v
 
 
 def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> dict:

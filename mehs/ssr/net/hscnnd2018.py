@@ -34,6 +34,7 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
+from mehs.ssr.net.layers import training_graph
 
 
 def _conv(c_in: int, c_out: int, k: int) -> nn.Conv2d:
@@ -91,7 +92,7 @@ class HSCNND2018(SSRNetwork):
         r = self.relu
         u1, d1 = r(self.up1(x)), r(self.down1(x))
         feats = torch.cat([u1, r(self.up2(u1)), d1, r(self.down2(d1))], dim=1)
-        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+        if training_graph():
             for block in self.blocks:
                 feats = torch.cat([feats, block(feats)], dim=1)
             return self.conv_out(feats)

@@ -75,10 +75,11 @@ class DenseBlock(nn.Module):
         self.layers = nn.ModuleList(
             DenseLayer(in_channels + i * growth, growth, reduction, attention=attention,
                        dropout=dropout) for i in range(n_layers))
-        self.out_channels = (in_channels if keep_input else 0) + n_layers * growth
+        self.growth, self.new_channels = growth, n_layers * growth
+        self.out_channels = (in_channels if keep_input else 0) + self.new_channels
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if _training_graph():
+        if training_graph():
             feats = [x]
             for layer in self.layers:
                 feats.append(layer(torch.cat(feats, dim=1)))
@@ -93,8 +94,7 @@ class DenseBlock(nn.Module):
         """A tensor for the block's input and features, ``inputs`` copied in along channels."""
         x0 = inputs[0]
         c_in = sum(int(t.shape[1]) for t in inputs)
-        growth = sum(layer[2].out_channels for layer in self.layers)
-        buf = x0.new_empty(x0.shape[0], c_in + growth, x0.shape[2], x0.shape[3])
+        buf = x0.new_empty(x0.shape[0], c_in + self.new_channels, x0.shape[2], x0.shape[3])
         c = 0
         for t in inputs:
             buf[:, c:c + t.shape[1]] = t
@@ -103,16 +103,14 @@ class DenseBlock(nn.Module):
 
     def fill(self, buf: torch.Tensor) -> torch.Tensor:
         """Run the layers on a :meth:`buffer`; the block's output (a view of it)."""
-        c_in = buf.shape[1] - sum(layer[2].out_channels for layer in self.layers)
-        c = c_in
+        c_in = c = buf.shape[1] - self.new_channels
         for layer in self.layers:
-            g = layer[2].out_channels
-            buf[:, c:c + g] = layer(buf[:, :c])
-            c += g
+            buf[:, c:c + self.growth] = layer(buf[:, :c])
+            c += self.growth
         return buf if self.keep_input else buf[:, c_in:]
 
 
-def _training_graph() -> bool:
+def training_graph() -> bool:
     """True where autograd or an exporter needs the plain concatenating graph."""
     return torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
 
@@ -200,7 +198,7 @@ class FCDenseNet(nn.Module):
             skips.append(x)
             x = down(x)
         x = self.bottleneck(x)
-        if _training_graph():
+        if training_graph():
             for up, block, skip in zip(self.trans_up, self.up_blocks, skips[::-1]):
                 x = block(torch.cat([up(x), skip], dim=1))
             return x[..., :h, :w]
@@ -211,5 +209,4 @@ class FCDenseNet(nn.Module):
             buf = block.buffer(up(x), skips.pop())
             del x
             x = block.fill(buf)
-            del buf
         return x[..., :h, :w]

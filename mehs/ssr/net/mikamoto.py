@@ -25,7 +25,7 @@ from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net.basis import MexicanHatBranch, SigmoidBasisBranch
-from mehs.ssr.net.layers import FCDenseNet
+from mehs.ssr.net.layers import FCDenseNet, training_graph
 
 #: Jégou et al.'s FC-DenseNet56: 48 first filters, 5 levels of 4 layers, bottleneck 4,
 #: growth 12 (published: 1.5 M parameters with a 1×1 classifier).
@@ -74,7 +74,7 @@ class TwoBranchFCDenseNet(SSRNetwork):
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
         f = self.features(x)
-        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+        if training_graph():
             return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
         # inference: the branches fill one tensor and the features are released before
         # the fusion (the image-sized peak of the head)
