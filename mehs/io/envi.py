@@ -748,12 +748,21 @@ def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
             take = lambda a, b: data[a:b].transpose(0, 2, 1)  # noqa: E731
         else:
             take = lambda a, b: data[a:b]  # noqa: E731
+    from mehs.io.streaming import CacheDropper
+
+    dropper = CacheDropper(fh.fileno(), L * S * B * file_dt.itemsize)
+    offset = 0
     for a, b in ranges:
         chunk = np.asarray(take(a, b))
         _check_cast(chunk, dt)
         if round_:
             chunk = np.rint(chunk)
-        chunk.astype(file_dt, order="C", copy=False).tofile(fh)
+        chunk = chunk.astype(file_dt, order="C", copy=False)
+        chunk.tofile(fh)
+        fh.flush()
+        dropper.written(offset, chunk.nbytes)
+        offset += chunk.nbytes
+    dropper.finish()
 
 
 def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
