@@ -1,5 +1,3 @@
-import sys
+from mehs.cli import console
 
-from mehs.cli import main
-
-sys.exit(main())
+console()

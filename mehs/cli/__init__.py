@@ -75,5 +75,23 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console() -> None:
+    """The ``mehs`` command (and ``python -m mehs``): :func:`main`, then a quick exit.
+
+    Interpreter teardown re-scans every object still alive with the cyclic garbage
+    collector, several times; after numba has loaded a kernel (or torch a model)
+    that took 0.25–0.35 s of every ``mehs fuse`` (issue 16). One collection here
+    still finalises whatever is garbage; freezing the survivors then lets the
+    teardown skip them (they are freed with the process). Not done in
+    :func:`main`, which tests and scripts call in a process that goes on.
+    """
+    code = main()
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()
