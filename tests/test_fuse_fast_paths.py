@@ -98,7 +98,7 @@ def test_fuse_loads_no_scipy_linalg_stats_or_optional_packages(tmp_path):
     scene = _scene(tmp_path)
     code = ("import sys\nfrom mehs.cli import main\n"
             f"rc = main(['fuse', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}])\n"
-            "mods = ('scipy.linalg', 'scipy.stats', 'colour',\n"
+            "mods = ('scipy.linalg', 'scipy.stats', 'scipy.special', 'scipy.ndimage', 'colour',\n"
             "        'matplotlib', 'torch', 'dask', 'onnxruntime')\n"
             "print('LOADED', [m for m in mods if m in sys.modules], rc)\n")
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -15,13 +15,52 @@ def test_trim_mean_equals_scipy(n, cut):
     assert _trim_mean(a, cut) == pytest.approx(trim_mean(a, cut), rel=1e-12, abs=1e-12)
 
 
-def test_chi2_quantiles_equal_scipy_stats():
+@pytest.mark.parametrize("p", [0.5, 1e-4, 1e-9, 0.95])
+def test_chi2_quantiles_equal_scipy_stats(p):
+    """mehs's χ² quantile (closed form at whole dof, scipy beyond) against scipy.stats."""
     from scipy import stats
-    from scipy.special import chdtri
 
-    dof = np.arange(1, 800)
-    np.testing.assert_allclose(chdtri(dof, 0.5), stats.chi2.median(dof), rtol=1e-12)
-    np.testing.assert_allclose(chdtri(dof, 1e-4), stats.chi2.isf(1e-4, dof), rtol=1e-12)
+    from mehs.synthesis.ghost import chdtri
+
+    for dof in (np.arange(1, 1025), np.array([3, 1500, 4000]), np.array([0.5, 2.5, 7.0])):
+        np.testing.assert_allclose(chdtri(dof, p), stats.chi2.isf(p, dof), rtol=1e-11)
+    ints = np.array([[1, 2], [204, 407]], dtype=np.int32)
+    assert chdtri(ints, p).shape == (2, 2)
+
+
+def test_chi2_closed_form_refuses_what_it_cannot_do():
+    from mehs.synthesis._chi2 import chi2_isf_integer
+
+    with pytest.raises(ValueError, match="whole degrees of freedom"):
+        chi2_isf_integer(np.array([0, 3]), 0.5)
+    with pytest.raises(ValueError, match="whole degrees of freedom"):
+        chi2_isf_integer(np.array([1.5]), 0.5)
+    with pytest.raises(ValueError, match="p must be"):
+        chi2_isf_integer(np.array([3]), 1.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("min_pixels,grow", [(3, 1), (1, 2), (5, 0), (2, 3)])
+def test_ghost_mask_cleanup_equals_scipy_ndimage(seed, min_pixels, grow):
+    """Dropping small 8-connected groups and growing the mask (OpenCV) as scipy.ndimage does."""
+    from scipy import ndimage
+
+    from mehs.synthesis.ghost import _finish
+
+    rng = np.random.default_rng(seed)
+    mask = rng.random((61, 47)) < 0.08
+    mask[0, :5] = mask[-1, -4:] = mask[20:30, 0] = True       # groups touching the border
+    want = mask.copy()
+    if min_pixels > 1:
+        lab, _ = ndimage.label(want, structure=np.ones((3, 3)))
+        keep = np.bincount(lab.ravel()) >= min_pixels
+        keep[0] = False
+        want = keep[lab]
+    if grow > 0:
+        want = ndimage.binary_dilation(want, structure=np.ones((3, 3)), iterations=grow)
+    got = _finish(mask, np.zeros(mask.shape, np.float32), 1.0, 1e-4, min_pixels, grow)
+    np.testing.assert_array_equal(got.mask, want)
+    assert got.fraction == pytest.approx(want.mean())
 
 
 def test_uncached_kernel_notice(tmp_path, capsys, monkeypatch):
