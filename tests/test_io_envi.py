@@ -79,6 +79,35 @@ def test_chunked_write_bit_exact(tmp_path, interleave, monkeypatch):
     np.testing.assert_array_equal(read_envi(hp).data, cube.data)
 
 
+@pytest.mark.parametrize("sync_file_range", [True, False])
+@pytest.mark.parametrize("interleave", ["bil", "bsq"])
+def test_large_write_drops_its_page_cache_and_keeps_every_byte(tmp_path, interleave,
+                                                               sync_file_range, monkeypatch):
+    """Chunks written back and dropped as they go (Linux sync_file_range, or fdatasync
+    elsewhere): the file is still bit-exact, and the dropper saw every chunk in order."""
+    from mehs.io import streaming
+
+    monkeypatch.setattr(envi_mod, "_CHUNK_BYTES", 4000)
+    monkeypatch.setattr(streaming, "DROP_CACHE_MIN_BYTES", 1)
+    if not sync_file_range:
+        monkeypatch.setattr(streaming, "_sync_file_range", None)
+    seen = []
+    real = streaming.CacheDropper.written
+
+    def spy(self, offset, length):
+        seen.append((offset, length))
+        return real(self, offset, length)
+
+    monkeypatch.setattr(streaming.CacheDropper, "written", spy)
+    cube = _cube(np.float32, shape=(17, 13, 11))
+    hp = write_envi(tmp_path / "c.hdr", cube, interleave=interleave, data_ext=".dat")
+    np.testing.assert_array_equal(read_envi(hp).data, cube.data)
+    assert len(seen) >= 3
+    ends = np.cumsum([n for _, n in seen])
+    assert [o for o, _ in seen] == [0, *ends[:-1]] and ends[-1] == cube.data.nbytes
+    assert not list(tmp_path.glob(".*part*"))
+
+
 def test_memmap_view_and_copy(tmp_path):
     cube = _cube(np.uint16, shape=(6, 4, 5))
     hp = write_envi(tmp_path / "c.hdr", cube, interleave="bil")
