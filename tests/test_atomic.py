@@ -1,6 +1,7 @@
 import os
 import stat
 
+import numpy as np
 import pytest
 
 from mehs.errors import InputError
@@ -32,3 +33,16 @@ def test_permissions_follow_umask(tmp_path):
     os.umask(mask)
     assert mode == 0o666 & ~mask
     assert len(sha256_file(target)) == 64
+
+
+@pytest.mark.parametrize("file_digest", [True, False])
+@pytest.mark.parametrize("size", [0, 1, (1 << 18) - 1, 1 << 18, (1 << 18) + 1, 3 << 19])
+def test_sha256_file_equals_hashlib(tmp_path, size, file_digest, monkeypatch):
+    import hashlib
+
+    if not file_digest:                      # the Python 3.10 path
+        monkeypatch.delattr(hashlib, "file_digest", raising=False)
+    data = np.random.default_rng(size).integers(0, 256, size, dtype=np.uint8).tobytes()
+    p = tmp_path / "f.raw"
+    p.write_bytes(data)
+    assert sha256_file(p) == hashlib.sha256(data).hexdigest()

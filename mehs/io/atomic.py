@@ -17,7 +17,6 @@ from typing import Any, Iterator
 
 from mehs.errors import InputError
 
-_CHUNK = 1 << 22
 
 
 def _umask() -> int:
@@ -113,12 +112,21 @@ def _json_default(obj: Any) -> Any:
 
 
 def sha256_file(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes, read in chunks."""
-    h = hashlib.sha256()
+    """Hex SHA-256 of a file's bytes.
+
+    ``hashlib.file_digest`` reads into one reused buffer: reading 4 MiB ``bytes``
+    at a time allocated fresh memory for every block, and hashing a 512² scene's
+    537 MB took 1.09 s instead of 0.40 s (issue 16; the check runs beside every fusion).
+    """
     with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(_CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
+        if hasattr(hashlib, "file_digest"):          # Python >= 3.11
+            return hashlib.file_digest(fh, "sha256").hexdigest()
+        h = hashlib.sha256()
+        buf = bytearray(1 << 18)
+        view = memoryview(buf)
+        while n := fh.readinto(buf):
+            h.update(view[:n])
+        return h.hexdigest()
 
 
 def check_output_dir(path: str | Path, *, inputs=()) -> Path:
