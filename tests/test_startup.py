@@ -81,3 +81,34 @@ def test_uncached_kernel_notice(tmp_path, capsys, monkeypatch):
     idx.write_bytes(b"")
     assert notice_if_uncached(disp) is False
     assert notice_if_uncached(object()) is False
+
+
+def test_cli_small_pages_turns_numpy_huge_pages_off_unless_the_user_chose(monkeypatch):
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:
+        from numpy.core.multiarray import _set_madvise_hugepage
+    from mehs.cli import small_pages
+
+    before = _set_madvise_hugepage(True)
+    try:
+        monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
+        assert small_pages() is False
+        assert _set_madvise_hugepage(True) is True          # left as the user set it
+        monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE")
+        assert small_pages() is True
+        assert _set_madvise_hugepage(True) is False         # small_pages turned it off
+    finally:
+        _set_madvise_hugepage(before)
+
+
+def test_console_runs_the_command_and_exits_with_its_code(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "mehs", "fuse", str(tmp_path / "missing"),
+                        "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "mehs: error:" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "mehs", "--version"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0 and r.stdout.startswith("mehs ")

@@ -75,8 +75,37 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def small_pages() -> bool:
+    """Stop numpy from asking for transparent huge pages in this process; True if it did.
+
+    numpy advises ``MADV_HUGEPAGE`` for every array of 4 MiB or more. Where the kernel
+    then compacts memory to find 2 MiB pages on demand (``defrag = madvise``, common
+    on virtual machines) the first touch of a large array stalls: a warm
+    ``mehs fuse`` of a 512² scene spent 1.6–2.3 s of system time (2.1–3.0 s wall)
+    with them, 0.7–0.9 s (1.5–1.8 s) without (issue 16). The command's arrays are
+    allocated once and streamed through, so small pages cost no measurable
+    compute. A ``NUMPY_MADVISE_HUGEPAGE`` set by the user wins; library use of mehs
+    is not affected.
+    """
+    import os
+
+    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
+        return False
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:                       # numpy < 2
+        try:
+            from numpy.core.multiarray import _set_madvise_hugepage
+        except ImportError:                   # pragma: no cover - a numpy without it
+            return False
+    _set_madvise_hugepage(False)
+    return True
+
+
 def console() -> None:
     """The ``mehs`` command (and ``python -m mehs``): :func:`main`, then a quick exit.
+
+    Runs with small pages (:func:`small_pages`).
 
     Interpreter teardown re-scans every object still alive with the cyclic garbage
     collector, several times; after numba has loaded a kernel (or torch a model)
@@ -85,6 +114,7 @@ def console() -> None:
     teardown skip them (they are freed with the process). Not done in
     :func:`main`, which tests and scripts call in a process that goes on.
     """
+    small_pages()
     code = main()
     import gc
 
