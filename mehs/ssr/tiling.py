@@ -764,10 +764,31 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         return mem
 
     fixed_margin = getattr(net, "TILING_MARGIN", None)
-    return tiled_network_call(model, run, rgb, {
-        "bytes_per_pixel": memory,
-        "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
-        "align": lambda: torch_align(net)})
+    probes = {"bytes_per_pixel": memory,
+              "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
+              "align": lambda: torch_align(net)}
+    if cap is None:
+        # measured once per architecture, not once per process (mehs's own networks)
+        from mehs.ssr.probe_cache import ProbeStore
+
+        store = model.__dict__.get("_tiling_store")
+        if store is None:
+            store = model.__dict__["_tiling_store"] = ProbeStore.for_network(net)
+        probes = {name: _stored(store, kind, probes[name])
+                  for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
+                                     ("align", "align"))}
+    return tiled_network_call(model, run, rgb, probes)
+
+
+def _stored(store, kind: str, measure: Callable[[], object]) -> Callable[[], object]:
+    """``measure`` behind ``store``: the stored figure if there is one, else measured and stored."""
+    def get():
+        v = store.get(kind)
+        if v is None:
+            v = measure()
+            store.put(kind, v)
+        return v
+    return get
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the

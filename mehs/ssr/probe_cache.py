@@ -1,0 +1,131 @@
+"""On-disk cache of the tiling probes of mehs's own SSR networks (issue 16).
+
+Tiled inference (:mod:`mehs.ssr.tiling`) measures a network before planning: its
+memory per pixel (three small runs), its receptive-field margin (a backward
+pass) and its pooling grid. On 2048×1024 images that is 0.55–0.85 s of a 9–11 s
+call, in every new process. The figures depend on the architecture, never on
+the weights, so they are kept in ``<cache>/tiling/<key>.json`` and read back by
+later processes.
+
+Only networks whose every module is defined in :mod:`mehs.ssr.net` (or is a
+``torch.nn`` layer) are cached: their configuration is visible in the module
+tree, and the key covers it — the module tree's ``repr``, every parameter's and
+buffer's name, shape and dtype, the modules' ``chunk_pixels``, the device type,
+the torch version and the source of every mehs module the network is built
+from and of the probes themselves (an edit re-measures). A user network may
+hold configuration outside its ``repr``, so it is probed in every process.
+
+The cache folder is ``MEHS_CACHE_DIR`` if set (empty: no cache), else
+``$XDG_CACHE_HOME/mehs`` or ``~/.cache/mehs``. A file that does not parse or
+does not carry its key is ignored and rewritten; writes are atomic.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+#: Bumped when the meaning of a stored figure changes.
+FORMAT = "mehs-tiling-probe/1"
+#: What is stored, with the type each must have when read back.
+_KINDS = {"memory": dict, "margin": int, "align": int}
+
+
+def cache_dir() -> Path | None:
+    """The mehs cache folder, or None when ``MEHS_CACHE_DIR`` is set empty."""
+    env = os.environ.get("MEHS_CACHE_DIR")
+    if env is not None:
+        return Path(env).expanduser() if env.strip() else None
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "mehs"
+
+
+def _mehs_module(cls: type) -> bool:
+    return cls.__module__.startswith("mehs.ssr.net")
+
+
+def _torch_module(cls: type) -> bool:
+    return cls.__module__.startswith("torch.nn.modules")
+
+
+def network_key(network) -> str | None:
+    """The cache key of a torch network, or None when it must not be cached (see module doc)."""
+    import torch
+
+    mods = list(network.modules())
+    if not _mehs_module(type(network)):
+        return None
+    if any(not (_mehs_module(type(m)) or _torch_module(type(m))) for m in mods):
+        return None
+    h = hashlib.sha256()
+
+    def add(*parts: Any) -> None:
+        for p in parts:
+            h.update(str(p).encode())
+            h.update(b"\0")
+
+    add(FORMAT, torch.__version__, repr(network))
+    for name, t in [*network.named_parameters(), *network.named_buffers()]:
+        add(name, tuple(t.shape), t.dtype, t.device.type)
+    for m in mods:
+        add(type(m).__qualname__, getattr(m, "chunk_pixels", None))
+    files = {sys.modules[type(m).__module__].__file__ for m in mods if _mehs_module(type(m))}
+    import mehs.ssr.tiling
+
+    files |= {mehs.ssr.tiling.__file__, __file__}
+    for f in sorted(f for f in files if f):
+        add(Path(f).name, hashlib.sha256(Path(f).read_bytes()).hexdigest())
+    return h.hexdigest()
+
+
+class ProbeStore:
+    """The stored probes of one network (``get``/``put`` by kind: memory, margin, align)."""
+
+    def __init__(self, path: Path | None, key: str | None):
+        self.path, self.key = path, key
+        self._data: dict | None = None
+
+    @classmethod
+    def for_network(cls, network) -> "ProbeStore":
+        folder = cache_dir()
+        key = network_key(network) if folder is not None else None
+        return cls(None if key is None else folder / "tiling" / f"{key[:32]}.json", key)
+
+    def _load(self) -> dict:
+        if self._data is None:
+            self._data = {}
+            if self.path is not None:
+                try:
+                    doc = json.loads(self.path.read_text())
+                    if (isinstance(doc, dict) and doc.get("format") == FORMAT
+                            and doc.get("key") == self.key):
+                        self._data = {k: v for k, v in doc.get("probes", {}).items()
+                                      if k in _KINDS and isinstance(v, _KINDS[k])
+                                      and not isinstance(v, bool)}
+                except (OSError, ValueError):
+                    pass                    # missing or damaged: measured again, rewritten
+        return self._data
+
+    def get(self, kind: str):
+        """The stored figure, or None."""
+        return self._load().get(kind)
+
+    def put(self, kind: str, value) -> None:
+        """Store a measured figure (nothing when the network is not cacheable)."""
+        if self.path is None or kind not in _KINDS:
+            return
+        if kind == "memory":
+            value = {k: (float(v) if isinstance(v, (int, float)) else v) for k, v in value.items()}
+        data = self._load()
+        data[kind] = value
+        from mehs.errors import MehsError
+        from mehs.io.atomic import write_json_atomic
+
+        try:
+            write_json_atomic(self.path, {"format": FORMAT, "key": self.key, "probes": data})
+        except (OSError, MehsError):    # a read-only or full cache: measured again next time
+            pass
