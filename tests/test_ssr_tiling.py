@@ -234,7 +234,7 @@ def test_awan_tiles_bound_its_quadratic_attention(monkeypatch):
 def test_margin_covers_every_phase_of_the_pooling_grid(make):
     # behind a pooling the receptive field depends on the pixel's phase on the grid;
     # the aligned margin must cover the worst phase at a tile's leading and trailing edge
-    from mehs.ssr.tiling import _global_pools_detached, torch_align, torch_receptive_radius
+    from mehs.ssr.tiling_probes import _global_pools_detached, torch_align, torch_receptive_radius
 
     torch.manual_seed(5)
     if make == "local_unet":
@@ -403,7 +403,7 @@ def test_memory_probe_of_chunked_branches_does_not_depend_on_probe_size():
     assert "chunk_pixels" not in vars(net.sigmoid_branch)
     assert net.sigmoid_branch.chunk_pixels == _BasisBranch.chunk_pixels
     # and the line covers a run with the branches' own chunks above the probes
-    from mehs.ssr.tiling import _peak_tensor_bytes
+    from mehs.ssr.tiling_probes import _peak_tensor_bytes
 
     peak, _ = _peak_tensor_bytes(net, 320)
     assert peak <= large["fixed_bytes"] + large["bytes_per_pixel"] * 320 ** 2

@@ -43,8 +43,6 @@ References
 
 from __future__ import annotations
 
-import contextlib
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -53,6 +51,38 @@ from typing import Callable
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,
+                                    PROBE_CHUNK_SHARE, _round_up, torch_align,
+                                    torch_bytes_per_pixel, torch_memory_probe,
+                                    torch_receptive_radius)
+
+__all__ = [
+    "ALLOCATOR_OVERHEAD",
+    "AVAILABLE_SHARE",
+    "DEFAULT_MAX_RSS",
+    "GLOBAL_MARGIN",
+    "HEAP_PIXELS",
+    "MEMORY_PROBES",
+    "MIN_BUDGET",
+    "PROBE_CHUNK_SHARE",
+    "SMALL_IMAGE",
+    "TilingPlan",
+    "allocator_overhead",
+    "available_memory",
+    "default_budget",
+    "env_max_bytes",
+    "plan_summary",
+    "plan_tiles",
+    "predict_tiled",
+    "tile_starts",
+    "tiled_network_call",
+    "tiled_onnx_call",
+    "tiled_torch_call",
+    "torch_align",
+    "torch_bytes_per_pixel",
+    "torch_memory_probe",
+    "torch_receptive_radius",
+]
 
 #: Peak resident memory of the whole process the default budget keeps under: a
 #: laptop-sized 2 GB (issue 16: a 2048×1024 image through the small hdrssr net).
@@ -152,10 +182,6 @@ def default_budget(max_rss: int | None = None) -> int:
     _trim_heap()
     share = AVAILABLE_SHARE * available_memory()
     return int(min(max(cap - _rss(), min(MIN_BUDGET, cap)), share))
-
-
-def _round_up(n: int, a: int) -> int:
-    return -(-n // a) * a
 
 
 def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, blend: int = 16,
@@ -414,231 +440,6 @@ def allocator_overhead(pixels: float) -> float:
         return 1.8
     return float(np.clip(ALLOCATOR_OVERHEAD + 0.2 * np.log2(HEAP_PIXELS / pixels),
                          ALLOCATOR_OVERHEAD, 1.8))
-
-
-#: Sides of the two square probes of :func:`torch_memory_probe`. The slope
-#: between them drops fixed costs (small hdrssr: 904 B/px from (96, 128), (128,
-#: 192) and (192, 256) alike; the smallest pair costs 0.2 s).
-MEMORY_PROBES = (96, 128)
-#: Modules that evaluate large inputs in chunks (a ``chunk_pixels`` attribute, as
-#: the mehs basis branches) get chunks of this share of the smaller probe's pixels
-#: during the probes: both probes are then several chunks long, as a large image
-#: is (see :func:`torch_memory_probe`; a quarter put both small-hdrssr probes and
-#: both tiny-hdrssr test probes on the large-image line, half did not).
-PROBE_CHUNK_SHARE = 0.25
-
-
-def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
-    """Peak bytes of live tensors (plus convolution reorders) of one ``side²`` call; bands out.
-
-    A dispatch mode sees every operator's outputs and counts each storage from
-    its creation to its release (the input included, parameters not). At each
-    convolution a copy of its input and output is added: oneDNN reorders both
-    into its blocked layout, outside torch's tensors.
-    """
-    import weakref
-
-    import torch
-    from torch.utils._python_dispatch import TorchDispatchMode
-    from torch.utils._pytree import tree_leaves
-
-    conv = torch.ops.aten.convolution.default
-
-    class Peak(TorchDispatchMode):
-        @classmethod
-        def _should_skip_dynamo(cls):
-            # else torch wraps __torch_dispatch__ in torch._dynamo.disable, whose first
-            # call imports torch._dynamo (1.4 s of CPU); nothing is compiled here
-            return False
-
-        def __init__(self):
-            super().__init__()
-            self.live = self.peak = 0
-            self.held = set()
-
-        def _release(self, key, n):
-            self.live -= n
-            self.held.discard(key)
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            out = func(*args, **(kwargs or {}))
-            for t in tree_leaves(out):
-                if isinstance(t, torch.Tensor):
-                    s = t.untyped_storage()
-                    if id(s) not in self.held:
-                        self.held.add(id(s))
-                        self.live += s.nbytes()
-                        weakref.finalize(s, self._release, id(s), s.nbytes())
-            now = self.live
-            if func is conv:
-                now += args[0].untyped_storage().nbytes() + out.untyped_storage().nbytes()
-            self.peak = max(self.peak, now)
-            return out
-
-    param = next(network.parameters(), None)
-    device = param.device if param is not None else "cpu"
-    with torch.no_grad(), Peak() as mode:
-        y = network(torch.rand(1, 3, side, side, device=device))
-        bands = int(y.shape[1]) * y.element_size()
-        del y
-    return mode.peak, bands
-
-
-def _chunked_modules(network) -> list:
-    """Modules of ``network`` that evaluate large inputs in chunks of ``chunk_pixels`` pixels."""
-    return [m for m in network.modules()
-            if isinstance(getattr(m, "chunk_pixels", None), int) and m.chunk_pixels > 0]
-
-
-@contextlib.contextmanager
-def _probe_chunks(modules, pixels: int):
-    """Context: ``modules`` evaluate in chunks of ``pixels`` (their own setting restored after)."""
-    own = [(m, m.__dict__.get("chunk_pixels")) for m in modules]
-    try:
-        for m in modules:
-            m.chunk_pixels = int(pixels)
-        yield
-    finally:
-        for m, v in own:
-            if v is None:
-                del m.__dict__["chunk_pixels"]
-            else:
-                m.chunk_pixels = v
-
-
-def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> dict:
-    """Memory of a torch network's inference, ``fixed + per pixel × pixels``, from two probes.
-
-    Each probe runs the network (no autograd) on a random square input while
-    counting the bytes of live tensors (:func:`_peak_tensor_bytes`); the slope
-    between the two peaks is the memory per pixel, its intercept the fixed part
-    (such as a buffer of fixed size). The allocator's share comes on top
-    (:func:`allocator_overhead`).
-
-    Modules that evaluate in chunks (``chunk_pixels``) make the peak a maximum
-    of two lines: below the chunk size their temporaries grow with the image,
-    above it they are fixed and the rest of the network sets the slope. Probes
-    smaller than a real chunk measured the first line (1.37 kB/px for the small
-    hdrssr net, against 0.90 kB/px for any large image). So the slope is measured
-    with chunks of :data:`PROBE_CHUNK_SHARE` of the smaller probe, and the fixed part is raised so
-    that the line also covers the larger probe run with the modules' own chunks:
-    a line with the large-image slope through that point lies above both.
-
-    Returns
-    -------
-    ``{"bytes_per_pixel", "fixed_bytes", "out_bytes_per_pixel", "allocator"}``:
-    the counted model, the bytes per image pixel of the stitched output
-    (bands × 4) and ``"heap"`` (apply :func:`allocator_overhead`).
-    """
-    s1, s2 = sorted(int(s) for s in sizes)
-    n1, n2 = s1 * s1, s2 * s2
-    chunked = _chunked_modules(network)
-    with _probe_chunks(chunked, max(256, int(PROBE_CHUNK_SHARE * n1))):
-        (p1, bands), (p2, _) = _peak_tensor_bytes(network, s1), _peak_tensor_bytes(network, s2)
-    slope = (p2 - p1) / (n2 - n1) if n2 > n1 else 0.0
-    if slope <= 0:                    # no growth seen: the larger probe's mean, no fixed part
-        slope, fixed = p2 / n2, 0.0
-    else:
-        fixed = max(0.0, p2 - slope * n2)
-    if chunked:
-        # a run at least one of the modules' own chunks large: their full temporaries
-        side = max(s2, math.isqrt(max(int(m.chunk_pixels) for m in chunked) - 1) + 1)
-        own, _ = _peak_tensor_bytes(network, side)
-        fixed = max(fixed, own - slope * side * side)
-    return {"bytes_per_pixel": slope, "fixed_bytes": fixed,
-            "out_bytes_per_pixel": float(bands), "allocator": "heap"}
-
-
-def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
-    """Memory per pixel of a torch network's inference (probes of ``probe`` and 1.5 × ``probe``).
-
-    See :func:`torch_memory_probe` (this is its ``bytes_per_pixel``, as counted).
-    """
-    return torch_memory_probe(network, sizes=(probe, probe * 3 // 2))["bytes_per_pixel"]
-
-
-def _global_pools_detached(network):
-    """Context: the channel attention's global means detached from autograd (see below)."""
-    import contextlib
-
-    import torch
-
-    @contextlib.contextmanager
-    def ctx():
-        patched = []
-        for m in network.modules():
-            if type(m).__name__ == "ChannelAttention":
-                def local(x, _m=m):
-                    s = x.mean(dim=(2, 3), keepdim=True).detach()
-                    return x * torch.sigmoid(_m.excite(torch.relu(_m.squeeze(s))))
-                m.forward = local          # an instance attribute shadows the method
-                patched.append(m)
-        try:
-            yield
-        finally:
-            for m in patched:
-                del m.forward
-    return ctx()
-
-
-#: Margin used when a network's gradient reaches the whole probe (a global
-#: operation such as spectral-wise attention over all pixels, or a field wider
-#: than the largest probe): tiles are then approximate whatever the margin.
-GLOBAL_MARGIN = 64
-
-
-def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
-                           align: int = 1) -> int:
-    """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
-
-    The gradient of an output pixel w.r.t. the input is non-zero exactly inside
-    its receptive field. A global average (the channel attention of
-    :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
-    mean is detached during the probe: the radius is that of the convolutions,
-    poolings and up-samplings. The probe doubles until the field fits inside it;
-    a field still filling a ``max_probe`` probe (another global operation)
-    gives :data:`GLOBAL_MARGIN`.
-
-    With ``align > 1`` the result is the tile margin that makes tiles whose
-    edges lie on that grid exact: behind a pooling the field depends on the
-    pixel's phase on the grid (small hdrssr: 54 px right of a pixel at phase 0,
-    59 px at phase 3). The gradient of the ``align × align`` block of outputs
-    at an aligned centre bounds every phase at once: with ``L`` and ``R`` its
-    field's reach left of and right of the block's first pixel, a pixel at
-    phase ``p`` reaches at most ``L − p`` left and ``R − p`` right, so a margin
-    of ``round_up(L, align)`` covers a tile's leading edge and
-    ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
-    """
-    import torch
-
-    param = next(network.parameters(), None)
-    device = param.device if param is not None else "cpu"
-    a = max(1, int(align))
-    while True:
-        x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
-        c = probe // 2 // a * a
-        with _global_pools_detached(network):
-            network(x)[0, :, c:c + a, c:c + a].sum().backward()
-        g = x.grad[0].abs().sum(0).cpu().numpy()
-        ys, xs = np.nonzero(g > 0)
-        if ys.size == 0:
-            return 0
-        lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
-        if lo > 0 and hi < probe - 1:
-            reach_lo, reach_hi = int(c - lo), int(hi - c)
-            if a == 1:
-                return max(reach_lo, reach_hi)
-            return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
-        if probe >= max_probe:
-            return GLOBAL_MARGIN
-        probe *= 2
-
-
-def torch_align(network) -> int:
-    """Tile grid of a torch network: ``2**depth`` of its deepest pooling stack (at least 8)."""
-    depths = [int(getattr(m, "depth")) for m in network.modules()
-              if isinstance(getattr(m, "depth", None), int)]
-    return max([8] + [2 ** d for d in depths])
 
 
 def env_max_bytes() -> int | None:
