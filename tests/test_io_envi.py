@@ -10,7 +10,7 @@ import pytest
 
 from mehs.cube import SpectralCube, UnsortedWavelengthsWarning
 from mehs.errors import FormatError, InputError
-from mehs.io import envi as envi_mod
+from mehs.io import envi_write
 from mehs.io.envi import (parse_acquisition_date, read_envi, read_envi_header,
                           write_envi)
 
@@ -73,7 +73,7 @@ def test_round_trip_bit_exact(tmp_path, interleave, dtype):
 @pytest.mark.parametrize("interleave", ["bil", "bip", "bsq"])
 def test_chunked_write_bit_exact(tmp_path, interleave, monkeypatch):
     # force many small chunks so the chunk boundaries are exercised
-    monkeypatch.setattr(envi_mod, "_CHUNK_BYTES", 997)
+    monkeypatch.setattr(envi_write, "_CHUNK_BYTES", 997)
     cube = _cube(np.uint16, shape=(13, 11, 9))
     hp = write_envi(tmp_path / "c.hdr", cube, interleave=interleave)
     np.testing.assert_array_equal(read_envi(hp).data, cube.data)
@@ -87,7 +87,7 @@ def test_large_write_drops_its_page_cache_and_keeps_every_byte(tmp_path, interle
     elsewhere): the file is still bit-exact, and the dropper saw every chunk in order."""
     from mehs.io import streaming
 
-    monkeypatch.setattr(envi_mod, "_CHUNK_BYTES", 4000)
+    monkeypatch.setattr(envi_write, "_CHUNK_BYTES", 4000)
     monkeypatch.setattr(streaming, "DROP_CACHE_MIN_BYTES", 1)
     if not sync_file_range:
         monkeypatch.setattr(streaming, "_sync_file_range", None)
