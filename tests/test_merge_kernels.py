@@ -77,3 +77,58 @@ def test_computed_linear_curve_equals_the_table_lookup():
     table = merge_bracket(stack, t, method="debevec", darks=darks, response=shifted)
     np.testing.assert_allclose(np.asarray(table.radiance), np.asarray(fast.radiance),
                                rtol=4e-6, atol=1e-6)
+
+
+def _stress_bracket(seed, P, nl=9, ns=37, nb=11):
+    """Raws with censored samples (a bright object in the longest exposure), a pixel
+    saturated in every exposure, negative dark-subtracted values, a missing dark."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(1, 40, P))
+    t[0] = 1.0
+    E = (np.exp(rng.uniform(np.log(0.05), np.log(6000), (nl, ns, 1)))
+         * rng.uniform(0.2, 1, (1, 1, nb)))
+    stack = []
+    for j in range(P):
+        x = E * t[j] + 60 + rng.normal(0, 4, E.shape)
+        if j == P - 1:
+            x[:3, :5] += 5000
+        x[4, 7] = 5000
+        stack.append(np.clip(np.rint(x), 0, 4095).astype(np.uint16))
+    darks = [np.full((ns, nb), 60.0) + rng.normal(0, 1, (ns, nb)) for _ in range(P)]
+    if seed % 3 == 0:
+        darks[1] = None
+    return stack, t, darks
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("P", [2, 3, 4])
+@pytest.mark.parametrize("consistency", [True, False])
+@pytest.mark.parametrize("clip", [True, False])
+def test_one_pass_poisson_kernel_equals_the_stage_kernel_to_the_bit(seed, P, consistency, clip,
+                                                                      monkeypatch):
+    """The default merge of a linear sensor (one pass per sample) gives the stage kernel's
+    numbers exactly: estimate, fallback, SNR, mask, χ² with censored residuals, dof."""
+    from mehs.synthesis import _merge_fused
+    from mehs.synthesis._merge_kernels import merge_chunk_poisson
+    from mehs.synthesis.merge import NoiseModel, merge_bracket
+
+    stack, t, darks = _stress_bracket(seed, P)
+    kw = dict(darks=darks, bit_depth=12, consistency=consistency, clip_negative=clip,
+              noise=NoiseModel(1.7, 3.0, relative=0.01 if seed % 2 else 0.0),
+              calibration=np.linspace(0.5, 2, stack[0].shape[2]))
+    fused = merge_bracket(stack, t, **kw)
+
+    def stage(zs, darks, sat, times, gain, avar, rel_var, cal, want_chi2, clip, *outs):
+        merge_chunk_poisson(zs, darks, sat, times, True, False, np.zeros((1, 2), np.float32),
+                            4096, gain, avar, rel_var, cal, want_chi2, clip, *outs)
+
+    monkeypatch.setattr(_merge_fused, "merge_chunk_poisson_linear", stage)
+    ref = merge_bracket(stack, t, **kw)
+    if consistency:
+        assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
+    for k in ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance"):
+        a = np.ascontiguousarray(getattr(fused, k))
+        b = np.ascontiguousarray(getattr(ref, k))
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a.view(np.uint8) if a.dtype.kind == "f" else a,
+                                      b.view(np.uint8) if b.dtype.kind == "f" else b, err_msg=k)

@@ -194,6 +194,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         straight into the output, so this bounds only the copy made for other
         layouts (or mixed dtypes); chunks run on ``numba.get_num_threads()`` threads.
     """
+    from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
     from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
 
     if method not in _CODES:
@@ -333,7 +334,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
-        if code == _CODES["poisson"]:
+        if code == _CODES["poisson"] and linear:
+            merge_chunk_poisson_linear(parts, dk_k, sat, t32, gain, avar, rel2, cal,
+                                       bool(consistency), bool(clip_negative), *outs)
+        elif code == _CODES["poisson"]:
             merge_chunk_poisson(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar,
                                 rel2, cal, bool(consistency), bool(clip_negative), *outs)
         else:
