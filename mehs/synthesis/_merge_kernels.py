@@ -3,7 +3,8 @@
 Two entry points, so that a run compiles only what it uses (a first-ever
 ``mehs fuse`` with the default Poisson merge compiles the small kernel only):
 
-- :func:`merge_chunk_poisson` — the default (Hanji 2020) estimator;
+- :func:`merge_chunk_poisson` — the Poisson (Hanji 2020) estimator of a non-linear
+  sensor (a linear one's, the default, is :mod:`mehs.synthesis._merge_fused`);
 - :func:`merge_chunk` — Debevec, Robertson and inverse-variance weights.
 
 Both share the per-row stages below (sample selection, pooled estimate,

@@ -30,8 +30,9 @@ Negative estimates (dark noise around a near-zero radiance) are clipped to 0 by
 default (``clip_negative``); the clipping bias is measurable only where the
 signal is of the order of the noise (on the demo scenes it changes no median).
 
-The compiled kernels (:mod:`mehs.synthesis._merge_kernels`: one for the default
-Poisson merge, one for the weighted methods) process a chunk of lines at a time
+The compiled kernels (:mod:`mehs.synthesis._merge_fused`: the default Poisson merge
+of a linear sensor in one pass per sample; :mod:`mehs.synthesis._merge_kernels`: the
+Poisson merge of a non-linear one and the weighted methods) process a chunk of lines at a time
 straight from the (memory-mapped) inputs, in their native memory order, on a
 thread pool, and also accumulate the per-pixel consistency statistic used by
 :mod:`mehs.synthesis.ghost`.
