@@ -112,3 +112,25 @@ def test_console_runs_the_command_and_exits_with_its_code(tmp_path):
     r = subprocess.run([sys.executable, "-m", "mehs", "--version"], capture_output=True,
                        text=True)
     assert r.returncode == 0 and r.stdout.startswith("mehs ")
+
+
+def test_the_compile_notice_names_the_kernel_the_merge_runs(monkeypatch):
+    """The notice is about the kernel a merge is about to use (a linear sensor's Poisson
+    merge compiles the one-pass kernel only: no notice about the stage kernel)."""
+    from mehs.synthesis import merge as merge_mod
+    from mehs.synthesis import _numba_cache
+    from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
+    from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
+    from mehs.synthesis.response import ResponseCurve
+
+    seen = []
+    monkeypatch.setattr(_numba_cache, "notice_if_uncached",
+                        lambda d, what="": seen.append(d) or False)
+    rng = np.random.default_rng(0)
+    stack = [rng.integers(100, 3000, (3, 4, 5)).astype(np.uint16) for _ in range(3)]
+    t = [1.0, 4.0, 16.0]
+    merge_mod.merge_bracket(stack, t)
+    merge_mod.merge_bracket(stack, t, method="debevec")
+    curve = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5)) * 1.01, 12, "test")
+    merge_mod.merge_bracket(stack, t, response=curve)
+    assert seen == [merge_chunk_poisson_linear, merge_chunk, merge_chunk_poisson]

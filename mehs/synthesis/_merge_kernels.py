@@ -693,9 +693,3 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                     _chi2_censored(times, om, cs, sy, st2, sav)
             _write_row(X, clip, cal[a], num, den, nv, nsa, P, want_chi2, any_cens, sy, st2, sav,
                        nc, out[l, a], snr[l], msum[l], nvalid[l], nsat[l], chi2[l], dof[l])
-
-
-# a first-ever run compiles for several seconds: say so instead of looking hung (issue 16)
-from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
-
-notice_if_uncached(merge_chunk_poisson, "the synthesis kernels")

@@ -197,6 +197,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     """
     from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
     from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
+    from mehs.synthesis._numba_cache import notice_if_uncached
 
     if method not in _CODES:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(_CODES)}")
@@ -320,6 +321,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     same_dtype = len({a.dtype for a in arrays}) == 1
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
+    kernel = (merge_chunk_poisson_linear if code == _CODES["poisson"] and linear
+              else merge_chunk_poisson if code == _CODES["poisson"] else merge_chunk)
+    # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
+    notice_if_uncached(kernel, "the synthesis kernels")
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
 
