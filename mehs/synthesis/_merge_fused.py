@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mehs.synthesis._merge_kernels import CENSOR_SIGMA2, PREDICTION_NOISIER2, ROOM_SIGMA2
+from mehs.synthesis._merge_rows import CENSOR_SIGMA2, PREDICTION_NOISIER2, ROOM_SIGMA2
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
