@@ -132,3 +132,27 @@ def test_warm_merge_kernel_prepares_the_very_specialisation_the_merge_uses(metho
     assert before
     merge_bracket(stack, [1.0, 4.0, 16.0], method=method, darks=darks)
     assert set(kernel.signatures) == before
+
+
+def test_warm_merge_kernel_for_a_recovered_curve_prepares_the_stage_kernel():
+    """A recovered (non-linear) curve's Poisson merge runs the stage kernel: warming with
+    ``linear=False`` loads the very specialisation a merge with any such curve uses."""
+    from mehs.synthesis import _merge_kernels as K
+    from mehs.synthesis.merge import merge_bracket, warm_merge_kernel
+    from mehs.synthesis.response import ResponseCurve
+
+    rng = np.random.default_rng(1)
+    stack = []
+    for t in (1.0, 4.0, 16.0):
+        bil = np.ascontiguousarray(np.clip(rng.normal(300 * t, 20, (5, 6, 8)), 0, 4095)
+                                   .astype(np.int32))        # a type no other test merges
+        bil.flags.writeable = False
+        stack.append(bil.transpose(0, 2, 1))
+    darks = [np.full((8, 6), 10.0)] * 3
+    warm_merge_kernel(stack, [1.0, 4.0, 16.0], darks=darks, linear=False).join(600)
+    before = set(K.merge_chunk_poisson.signatures)
+    assert before
+    g = np.log(np.maximum(np.arange(4096.0), 0.5))[None].repeat(6, 0) * 1.02   # per band
+    curve = ResponseCurve(g, 12, "debevec1997", parameters={"levels": "raw"})
+    merge_bracket(stack, [1.0, 4.0, 16.0], darks=darks, response=curve)
+    assert set(K.merge_chunk_poisson.signatures) == before

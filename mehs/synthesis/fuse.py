@@ -440,6 +440,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                     curve = ResponseCurve.linear(bracket.bit_depth)
             if curve is None:
                 skip_scipy_linalg_import()     # before the first kernel
+                # the merge of a recovered curve runs the stage kernel: loaded (or compiled)
+                # while the curve is recovered and checked
+                warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms,
+                                  method=method, darks=bracket.darks,
+                                  bit_depth=bracket.bit_depth, saturation=sat, linear=False)
                 curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                          seed=seed, shared=shared_response, levels="raw",
                                          saturation=sat)

@@ -379,13 +379,14 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 
 def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                       method: str = "poisson", darks: Sequence[np.ndarray | None] | None = None,
-                      bit_depth: int = 12, saturation: Any = None):
+                      bit_depth: int = 12, saturation: Any = None, linear: bool = True):
     """Start loading (or, on a first-ever run, compiling) the kernel a merge will need.
 
     Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
     returns the thread: the kernel's specialisation depends only on the arrays' types
-    (dtype, layout, read-only flag, number of exposures) and the method, so that line
-    gives the same one as the whole cube. Importing numba and loading the cached
+    (dtype, layout, read-only flag, number of exposures), the method and whether the
+    response curve is linear (``linear=False``: any recovered curve, whose values do not
+    matter here), so that line gives the same one as the whole cube. Importing numba and loading the cached
     kernel (0.3–0.6 s), or compiling it (seconds), then overlaps the work a caller does
     before the merge (file checks, the linearity test); a later :func:`merge_bracket`
     waits for numba's compiler lock if it has to. Any error is left to that later call.
@@ -401,8 +402,11 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             from mehs.synthesis._numba_start import skip_scipy_linalg_import
 
             skip_scipy_linalg_import()
+            curve = None if linear else ResponseCurve(
+                np.log(np.maximum(np.arange(float(1 << bit_depth)), 0.5)), bit_depth,
+                "warm-up")
             merge_bracket([a[:1] for a in arrays], times_ms, method=method, darks=darks,
-                          bit_depth=bit_depth, saturation=saturation)
+                          bit_depth=bit_depth, saturation=saturation, response=curve)
         except Exception:   # noqa: BLE001 - the real merge reports it
             pass
 
