@@ -217,7 +217,10 @@ def main() -> int:
 if __name__ == "__main__":
     from _load import load_line  # the load this run saw (issue 16)
 
-    print("before:", load_line(), flush=True)
+    parent = "--child" not in sys.argv     # the child's stdout is one line of JSON
+    if parent:
+        print("before:", load_line(), flush=True)
     rc = main()
-    print("after: ", load_line())
+    if parent:
+        print("after: ", load_line())
     sys.exit(rc)
