@@ -128,10 +128,14 @@ def test_warm_merge_kernel_prepares_the_very_specialisation_the_merge_uses(metho
     warm_merge_kernel(stack, [1.0, 4.0, 16.0], method=method, darks=darks).join(600)
     # (a linear sensor's Poisson merge: the one-pass kernel)
     kernel = F.merge_chunk_poisson_linear if method == "poisson" else K.merge_chunk
-    before = set(kernel.signatures)
+
+    def mine():     # (a warm-up thread of another test may add uint16 signatures meanwhile)
+        return {sig for sig in kernel.signatures if "array(int16," in str(sig[0])}
+
+    before = mine()
     assert before
     merge_bracket(stack, [1.0, 4.0, 16.0], method=method, darks=darks)
-    assert set(kernel.signatures) == before
+    assert mine() == before
 
 
 def test_warm_merge_kernel_for_a_recovered_curve_prepares_the_stage_kernel():
@@ -150,9 +154,12 @@ def test_warm_merge_kernel_for_a_recovered_curve_prepares_the_stage_kernel():
         stack.append(bil.transpose(0, 2, 1))
     darks = [np.full((8, 6), 10.0)] * 3
     warm_merge_kernel(stack, [1.0, 4.0, 16.0], darks=darks, linear=False).join(600)
-    before = set(K.merge_chunk_poisson.signatures)
+    def mine():
+        return {sig for sig in K.merge_chunk_poisson.signatures if "array(int32," in str(sig[0])}
+
+    before = mine()
     assert before
     g = np.log(np.maximum(np.arange(4096.0), 0.5))[None].repeat(6, 0) * 1.02   # per band
     curve = ResponseCurve(g, 12, "debevec1997", parameters={"levels": "raw"})
     merge_bracket(stack, [1.0, 4.0, 16.0], darks=darks, response=curve)
-    assert set(K.merge_chunk_poisson.signatures) == before
+    assert mine() == before

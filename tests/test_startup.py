@@ -123,9 +123,14 @@ def test_the_compile_notice_names_the_kernel_the_merge_runs(monkeypatch):
     from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
     from mehs.synthesis.response import ResponseCurve
 
+    import threading
+
     seen = []
+    me = threading.current_thread()
+    # (a warm-up thread an earlier test started may still be merging: not counted)
     monkeypatch.setattr(_numba_cache, "notice_if_uncached",
-                        lambda d, what="": seen.append(d) or False)
+                        lambda d, what="": (threading.current_thread() is me
+                                            and seen.append(d)) or False)
     rng = np.random.default_rng(0)
     stack = [rng.integers(100, 3000, (3, 4, 5)).astype(np.uint16) for _ in range(3)]
     t = [1.0, 4.0, 16.0]
