@@ -84,17 +84,36 @@ def network_key(network) -> str | None:
 
 
 class ProbeStore:
-    """The stored probes of one network (``get``/``put`` by kind: memory, margin, align)."""
+    """The stored probes of one network (``get``/``put`` by kind: memory, margin, align).
 
-    def __init__(self, path: Path | None, key: str | None):
-        self.path, self.key = path, key
+    The key (which hashes the network's source files) is worked out at the first
+    ``get`` or ``put``, so a store is free to make for every call that might need it.
+    """
+
+    def __init__(self, network):
+        self._network = network
+        self._where: tuple[Path | None, str | None] | None = None
         self._data: dict | None = None
 
     @classmethod
     def for_network(cls, network) -> "ProbeStore":
-        folder = cache_dir()
-        key = network_key(network) if folder is not None else None
-        return cls(None if key is None else folder / "tiling" / f"{key[:32]}.json", key)
+        return cls(network)
+
+    def _resolve(self) -> tuple[Path | None, str | None]:
+        if self._where is None:
+            folder = cache_dir()
+            key = network_key(self._network) if folder is not None else None
+            self._where = (None if key is None else folder / "tiling" / f"{key[:32]}.json", key)
+        return self._where
+
+    @property
+    def path(self) -> Path | None:
+        """The cache file, or None when the network is not cached."""
+        return self._resolve()[0]
+
+    @property
+    def key(self) -> str | None:
+        return self._resolve()[1]
 
     def _load(self) -> dict:
         if self._data is None:
@@ -110,6 +129,17 @@ class ProbeStore:
                 except (OSError, ValueError):
                     pass                    # missing or damaged: measured again, rewritten
         return self._data
+
+    def measured(self, kind: str, measure):
+        """``measure`` behind the store: a callable giving the stored figure if there is
+        one, else measuring it and storing it."""
+        def get():
+            v = self.get(kind)
+            if v is None:
+                v = measure()
+                self.put(kind, v)
+            return v
+        return get
 
     def get(self, kind: str):
         """The stored figure, or None."""

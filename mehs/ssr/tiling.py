@@ -51,38 +51,10 @@ from typing import Callable
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,
+from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,  # noqa: F401 (public here)
                                     PROBE_CHUNK_SHARE, _round_up, torch_align,
                                     torch_bytes_per_pixel, torch_memory_probe,
                                     torch_receptive_radius)
-
-__all__ = [
-    "ALLOCATOR_OVERHEAD",
-    "AVAILABLE_SHARE",
-    "DEFAULT_MAX_RSS",
-    "GLOBAL_MARGIN",
-    "HEAP_PIXELS",
-    "MEMORY_PROBES",
-    "MIN_BUDGET",
-    "PROBE_CHUNK_SHARE",
-    "SMALL_IMAGE",
-    "TilingPlan",
-    "allocator_overhead",
-    "available_memory",
-    "default_budget",
-    "env_max_bytes",
-    "plan_summary",
-    "plan_tiles",
-    "predict_tiled",
-    "tile_starts",
-    "tiled_network_call",
-    "tiled_onnx_call",
-    "tiled_torch_call",
-    "torch_align",
-    "torch_bytes_per_pixel",
-    "torch_memory_probe",
-    "torch_receptive_radius",
-]
 
 #: Peak resident memory of the whole process the default budget keeps under: a
 #: laptop-sized 2 GB (issue 16: a 2048×1024 image through the small hdrssr net).
@@ -572,24 +544,11 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         # measured once per architecture, not once per process (mehs's own networks)
         from mehs.ssr.probe_cache import ProbeStore
 
-        store = model.__dict__.get("_tiling_store")
-        if store is None:
-            store = model.__dict__["_tiling_store"] = ProbeStore.for_network(net)
-        probes = {name: _stored(store, kind, probes[name])
+        store = ProbeStore.for_network(net)
+        probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
     return tiled_network_call(model, run, rgb, probes)
-
-
-def _stored(store, kind: str, measure: Callable[[], object]) -> Callable[[], object]:
-    """``measure`` behind ``store``: the stored figure if there is one, else measured and stored."""
-    def get():
-        v = store.get(kind)
-        if v is None:
-            v = measure()
-            store.put(kind, v)
-        return v
-    return get
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the
