@@ -52,7 +52,7 @@ import numpy as np
 
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
-from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, STRUCTURAL_KEYS, envi_dtypes,
+from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, envi_dtypes,
                                format_acquisition_date, parse_acquisition_date)
 from mehs.io.envi_write import write_envi  # the writer, part of this module's interface
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
@@ -64,14 +64,8 @@ __all__ = ["EnviHeader", "read_envi_header", "read_envi", "write_envi",
 #: Data-file extensions tried after the header's stem (then upper-case), in order.
 DATA_EXTENSIONS = ("", ".raw", ".dat", ".img", ".bil", ".bsq", ".bip", ".bin")
 
-_INTERLEAVES = INTERLEAVES
 #: axes permutation from a file's (interleave) order to (lines, samples, bands)
 _TO_BIP = {"bil": (0, 2, 1), "bsq": (1, 2, 0), "bip": (0, 1, 2)}
-
-_MANAGED_KEYS, _STRUCTURAL_KEYS = MANAGED_KEYS, STRUCTURAL_KEYS
-
-
-_envi_dtypes = envi_dtypes
 
 
 @dataclass(frozen=True)
@@ -292,14 +286,14 @@ def read_envi_header(path: str | Path) -> EnviHeader:
     if "data type" not in h:
         raise FormatError("mandatory header key 'data type' is missing", hp)
     code = str(h["data type"]).strip()
-    table = _envi_dtypes()
+    table = envi_dtypes()
     if code not in table:
         raise FormatError(f"unknown ENVI data type {code!r} (known: "
                           f"{', '.join(sorted(table, key=int))})", hp)
     dtype = table[code]
     if "interleave" in h:
         inter = str(h["interleave"]).strip().lower()
-        if inter not in _INTERLEAVES:
+        if inter not in INTERLEAVES:
             raise FormatError(f"unknown interleave {h['interleave']!r} "
                               "(expected bil, bip or bsq)", hp)
     elif bands == 1:
@@ -518,7 +512,7 @@ def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
         kw["units"] = str(h["data units"]).strip()
     elif sf is None:
         kw["units"] = "DN" if data.dtype.kind in "iu" else "unknown"
-    meta = {k: v for k, v in h.items() if k not in _MANAGED_KEYS}
+    meta = {k: v for k, v in h.items() if k not in MANAGED_KEYS}
     if sf is not None:
         meta["reflectance scale factor"] = sf
         if sf != 1.0 and "data ignore value" in meta:
