@@ -340,10 +340,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
-        if code == _CODES["poisson"] and linear:
+        if kernel is merge_chunk_poisson_linear:
             merge_chunk_poisson_linear(parts, dk_k, sat, t32, gain, avar, rel2, cal,
                                        bool(consistency), bool(clip_negative), *outs)
-        elif code == _CODES["poisson"]:
+        elif kernel is merge_chunk_poisson:
             merge_chunk_poisson(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar,
                                 rel2, cal, bool(consistency), bool(clip_negative), *outs)
         else:
@@ -385,11 +385,12 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
     returns the thread: the kernel's specialisation depends only on the arrays' types
     (dtype, layout, read-only flag, number of exposures), the method and whether the
-    response curve is linear (``linear=False``: any recovered curve, whose values do not
-    matter here), so that line gives the same one as the whole cube. Importing numba and loading the cached
-    kernel (0.3–0.6 s), or compiling it (seconds), then overlaps the work a caller does
-    before the merge (file checks, the linearity test); a later :func:`merge_bracket`
-    waits for numba's compiler lock if it has to. Any error is left to that later call.
+    response curve is linear (``linear=False``: any recovered curve, whose values do
+    not matter here), so that line gives the same one as the whole cube. Importing
+    numba and loading the cached kernel (0.3–0.6 s), or compiling it (seconds), then
+    overlaps the work a caller does before the merge (file checks, the linearity test);
+    a later :func:`merge_bracket` waits for numba's compiler lock if it has to. Any
+    error is left to that later call.
     """
     import threading
 
