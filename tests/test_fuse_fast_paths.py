@@ -114,7 +114,7 @@ def test_warm_merge_kernel_prepares_the_very_specialisation_the_merge_uses(metho
     BIL memory maps included: the merge after it compiles nothing new. (int16 raws: a
     type no other test merges, so the signature cannot come from another test.)"""
     from mehs.synthesis import _merge_fused as F
-    from mehs.synthesis import _merge_kernels as K
+    from mehs.synthesis import _merge_fused_weighted as W
     from mehs.synthesis.merge import merge_bracket, warm_merge_kernel
 
     rng = np.random.default_rng(0)
@@ -126,8 +126,9 @@ def test_warm_merge_kernel_prepares_the_very_specialisation_the_merge_uses(metho
         stack.append(bil.transpose(0, 2, 1))                 # (lines, samples, bands) view
     darks = [np.full((9, 7), 10.0)] * 3
     warm_merge_kernel(stack, [1.0, 4.0, 16.0], method=method, darks=darks).join(600)
-    # (a linear sensor's Poisson merge: the one-pass kernel)
-    kernel = F.merge_chunk_poisson_linear if method == "poisson" else K.merge_chunk
+    # (a linear sensor's merges: the one-pass kernels)
+    kernel = (F.merge_chunk_poisson_linear if method == "poisson"
+              else W.merge_chunk_debevec_linear)
 
     def mine():     # (a warm-up thread of another test may add uint16 signatures meanwhile)
         return {sig for sig in kernel.signatures if "array(int16," in str(sig[0])}

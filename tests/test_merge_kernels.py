@@ -42,6 +42,48 @@ def test_vectorised_log_accumulation_matches_numpy():
     np.testing.assert_array_equal(den, w)
 
 
+def test_scalar_cephes_forms_give_the_row_forms_bits():
+    """The one-pass kernels' scalar ``logf`` / ``expf`` (bit views through LLVM bitcasts)
+    return the row forms' bits, and stay within 2 ulp of float64 numpy."""
+    from numba import njit
+
+    from mehs.synthesis._cephes import expf, logf
+    from mehs.synthesis._merge_kernels import _exp_row, _log_accumulate_row
+
+    @njit
+    def logs(x, o):
+        for i in range(x.shape[0]):
+            o[i] = logf(x[i])
+
+    @njit
+    def exps(x, o):
+        for i in range(x.shape[0]):
+            o[i] = expf(x[i])
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate([np.float32(2) ** rng.uniform(-125, 127, 20001).astype(np.float32),
+                        np.arange(0.5, 4096, 0.5)]).astype(np.float32)
+    got = np.empty_like(x)
+    logs(x, got)
+    num = np.zeros_like(x)
+    _log_accumulate_row(x, np.ones_like(x), np.float32(0), num, np.zeros_like(x),
+                        np.empty_like(x), np.empty(x.size, np.int32))
+    np.testing.assert_array_equal(got.view(np.int32), num.view(np.int32))
+    ref = np.log(x.astype(np.float64))
+    big = np.abs(ref) > 1e-3
+    assert np.max(np.abs(got[big] - ref[big]) / np.abs(ref[big])) < 2.5e-7
+    y = np.concatenate([np.linspace(-90, 90, 20001),
+                        [np.nan, np.inf, -200.0, 0.0, -0.0, 1e-30]]).astype(np.float32)
+    got = np.empty_like(y)
+    exps(y, got)
+    row = _exp_row(y, np.empty_like(y), np.empty(y.size, np.int32))
+    np.testing.assert_array_equal(got.view(np.int32), row.view(np.int32))
+    fin = np.abs(y) < 80
+    ref = np.exp(y[fin].astype(np.float64))
+    assert np.max(np.abs(got[fin] - ref) / ref) < 2.5e-7
+    assert np.isnan(got[-6]) and got[-5] == np.inf and got[-4] == 0.0
+
+
 def _bracket(seed=3):
     rng = np.random.default_rng(seed)
     E = np.exp(rng.uniform(np.log(0.2), np.log(2000), (12, 33, 9))).astype(np.float32)
@@ -124,6 +166,50 @@ def test_one_pass_poisson_kernel_equals_the_stage_kernel_to_the_bit(seed, P, con
 
     monkeypatch.setattr(_merge_fused, "merge_chunk_poisson_linear", stage)
     ref = merge_bracket(stack, t, **kw)
+    if consistency:
+        assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
+    for k in ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance"):
+        a = np.ascontiguousarray(getattr(fused, k))
+        b = np.ascontiguousarray(getattr(ref, k))
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a.view(np.uint8) if a.dtype.kind == "f" else a,
+                                      b.view(np.uint8) if b.dtype.kind == "f" else b, err_msg=k)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("P", [2, 3, 4])
+@pytest.mark.parametrize("method", ["debevec", "robertson", "inverse-variance"])
+@pytest.mark.parametrize("consistency,clip", [(True, True), (False, False)])
+def test_one_pass_weighted_kernel_equals_the_stage_kernel_to_the_bit(seed, P, method,
+                                                                       consistency, clip,
+                                                                       monkeypatch):
+    """Debevec / Robertson / inverse-variance of a linear sensor in one pass per sample
+    (scalar Cephes ln/exp) give the stage kernel's numbers exactly, rare paths included."""
+    from mehs.synthesis import _merge_fused_weighted
+    from mehs.synthesis._merge_kernels import merge_chunk
+    from mehs.synthesis._merge_rows import DEBEVEC, INVVAR, ROBERTSON
+    from mehs.synthesis.merge import NoiseModel
+    from mehs.synthesis.response import weighting_table
+
+    stack, t, darks = _stress_bracket(seed, P)
+    kw = dict(method=method, darks=darks, bit_depth=12, consistency=consistency,
+              clip_negative=clip, noise=NoiseModel(1.7, 3.0, relative=0.01 if seed % 2 else 0.0),
+              calibration=np.linspace(0.5, 2, stack[0].shape[2]))
+    fused = merge_bracket(stack, t, **kw)
+    seen = []
+    glut = ResponseCurve.linear(12).table().astype(np.float32)
+    wlut = weighting_table("hat", 4096).astype(np.float32)
+
+    code = {"debevec": DEBEVEC, "robertson": ROBERTSON, "inverse-variance": INVVAR}[method]
+
+    def stage(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, want_chi2, clip, *outs):
+        seen.append(code)
+        merge_chunk(zs, darks, sat, times, True, False, glut, np.exp(glut), wlut, True, True,
+                    floor, gain, avar, rel_var, cal, code, want_chi2, clip, *outs)
+
+    monkeypatch.setitem(_merge_fused_weighted.WEIGHTED_LINEAR, code, stage)
+    ref = merge_bracket(stack, t, **kw)
+    assert seen                                                # the one-pass kernel was used
     if consistency:
         assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
     for k in ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance"):

@@ -130,6 +130,7 @@ def test_the_compile_notice_names_the_kernel_the_merge_runs(monkeypatch):
     from mehs.synthesis import merge as merge_mod
     from mehs.synthesis import _numba_cache
     from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
+    from mehs.synthesis._merge_fused_weighted import merge_chunk_debevec_linear
     from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
     from mehs.synthesis.response import ResponseCurve
 
@@ -149,4 +150,6 @@ def test_the_compile_notice_names_the_kernel_the_merge_runs(monkeypatch):
     merge_mod.merge_bracket(stack, t, method="debevec")
     curve = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5)) * 1.01, 12, "test")
     merge_mod.merge_bracket(stack, t, response=curve)
-    assert seen == [merge_chunk_poisson_linear, merge_chunk, merge_chunk_poisson]
+    merge_mod.merge_bracket(stack, t, method="robertson", response=curve)
+    assert seen == [merge_chunk_poisson_linear, merge_chunk_debevec_linear, merge_chunk_poisson,
+                    merge_chunk]

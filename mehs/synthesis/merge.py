@@ -30,9 +30,10 @@ Negative estimates (dark noise around a near-zero radiance) are clipped to 0 by
 default (``clip_negative``); the clipping bias is measurable only where the
 signal is of the order of the noise (on the demo scenes it changes no median).
 
-The compiled kernels (:mod:`mehs.synthesis._merge_fused`: the default Poisson merge
-of a linear sensor in one pass per sample; :mod:`mehs.synthesis._merge_kernels`: the
-Poisson merge of a non-linear one and the weighted methods) process a chunk of lines at a time
+The compiled kernels (:mod:`mehs.synthesis._merge_fused` and
+:mod:`mehs.synthesis._merge_fused_weighted`: a linear sensor's merges with the hat
+weighting, in one pass per sample; :mod:`mehs.synthesis._merge_kernels`: a non-linear
+sensor's, and other weightings) process a chunk of lines at a time
 straight from the (memory-mapped) inputs, in their native memory order, on a
 thread pool, and also accumulate the per-pixel consistency statistic used by
 :mod:`mehs.synthesis.ghost`.
@@ -196,6 +197,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         layouts (or mixed dtypes); chunks run on ``numba.get_num_threads()`` threads.
     """
     from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
+    from mehs.synthesis._merge_fused_weighted import WEIGHTED_LINEAR
     from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
     from mehs.synthesis._numba_cache import notice_if_uncached
 
@@ -321,8 +323,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     same_dtype = len({a.dtype for a in arrays}) == 1
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
-    kernel = (merge_chunk_poisson_linear if code == _CODES["poisson"] and linear
-              else merge_chunk_poisson if code == _CODES["poisson"] else merge_chunk)
+    if code == _CODES["poisson"]:
+        kernel = merge_chunk_poisson_linear if linear else merge_chunk_poisson
+    else:
+        # the one-pass kernel computes the linear curve and the hat weight (no tables)
+        kernel = WEIGHTED_LINEAR[code] if linear and hat and lin_g else merge_chunk
     # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
     notice_if_uncached(kernel, "the synthesis kernels")
     t32 = t.astype(np.float32)
@@ -346,6 +351,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         elif kernel is merge_chunk_poisson:
             merge_chunk_poisson(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar,
                                 rel2, cal, bool(consistency), bool(clip_negative), *outs)
+        elif kernel is not merge_chunk:        # a weighted method's one-pass kernel
+            kernel(parts, dk_k, sat, t32, L, np.float32(floor), gain, avar, rel2, cal,
+                   bool(consistency), bool(clip_negative), *outs)
         else:
             merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut, hat,
                         lin_g, np.float32(floor), gain, avar, rel2, cal, code,

@@ -1,0 +1,263 @@
+"""Debevec, Robertson and inverse-variance merges of a linear sensor in one pass per sample.
+
+The weighted methods' stage kernel (:func:`mehs.synthesis._merge_kernels.merge_chunk`)
+makes about a dozen passes over each row — selection, pooled estimate, one per
+exposure for the method's weights (and a vectorised ``ln`` pass for Debevec), the
+``exp`` pass, the SNR and consistency passes — through per-row scratch arrays.
+Here, as in :mod:`mehs.synthesis._merge_fused` for the Poisson merge, the
+exposures are the unrolled inner loop of each sample and the running sums stay in
+registers; ``ln`` and ``exp`` are the scalar Cephes forms of
+:mod:`mehs.synthesis._cephes`, so the sample loop still vectorises.
+
+It covers the common case: a linear response (``g(z) = ln max(z, ½)``) and Debevec's
+hat weighting, computed rather than looked up (a look-up per sample is a gather).
+Any other curve or weighting keeps the stage kernel.
+
+The arithmetic is the stage kernel's expression for expression, in the same order,
+so the numbers are the same to the bit (tested). The sample selection and the
+consistency statistic repeat :func:`mehs.synthesis._merge_fused.merge_chunk_poisson_linear`'s:
+sharing them through a helper function, even one numba inlines, stopped LLVM from
+vectorising the sample loop (10–25× slower), and the bit-equality tests of both
+kernels against the stage kernel keep the copies in step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from mehs.synthesis._cephes import expf, logf
+from mehs.synthesis._merge_rows import (CENSOR_SIGMA2, DEBEVEC, INVVAR, PREDICTION_NOISIER2,
+                                        ROBERTSON, ROOM_SIGMA2)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, method,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
+    """Debevec / Robertson / inverse-variance merge of a chunk of lines (BIL), linear sensor.
+
+    Arguments as :func:`mehs.synthesis._merge_kernels.merge_chunk` for a linear curve
+    and the hat weighting (``L`` levels), without the look-up tables. ``method`` must
+    be a compile-time constant (one entry point per method below): a run-time branch
+    between the methods inside the sample loop kept it from vectorising (7× slower).
+    """
+    P = len(zs)
+    nl, nb, ns = out.shape
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    half = np.float32(0.5)
+    top = np.float32(L - 1)
+    hmid = np.float32((L - 1) / 2.0)
+    fl = np.float32(floor)
+    g32 = np.float32(gain)
+    rel32 = np.float32(rel_var)
+    k2u = ROOM_SIGMA2
+    k2c = CENSOR_SIGMA2
+    k2p = PREDICTION_NOISIER2
+    inf32 = np.float32(np.inf)
+    fP = np.float32(P)
+    two = np.float32(2.0)
+    # ln t_j as the stage kernel takes it (a float64 log, rounded)
+    lts = np.empty(P, np.float32)
+    for j in range(P):
+        lts[j] = np.float32(np.log(times[j]))
+    deb = method == DEBEVEC
+    rob = method == ROBERTSON
+    for l in range(nl):
+        ol_ = out[l]
+        snr_l, msum_l, nvalid_l, nsat_l = snr[l], msum[l], nvalid[l], nsat[l]
+        chi2_l, dof_l = chi2[l], dof[l]
+        for a in range(nb):
+            s = sat[a]
+            c_a = cal[a]
+            ol = ol_[a]
+            for i in range(ns):
+                # -- choose the samples (as merge_chunk_poisson_linear)
+                sy = f0
+                st = f0
+                st2 = f0
+                sav = f0
+                nv = f0
+                nc = f0
+                nsc = f0
+                okm = 0
+                cm = 0
+                for j in range(P):
+                    r_ = np.float32(zs[j][l, a, i])
+                    d = darks[j, a, i]
+                    tj = times[j]
+                    tj2 = tj * tj
+                    aj = avar[j]
+                    yv = r_ - d
+                    nsc += f1 if r_ >= s else f0
+                    if j == 0:
+                        o = f1 if r_ < s else f0
+                        sy = o * yv
+                        st = o * tj
+                        st2 = o * tj2
+                        sav = o * aj
+                        nv = o
+                    else:
+                        ys = s - d
+                        sti = st
+                        syi = max(sy, f0)
+                        room = ys * sti - syi * tj
+                        vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav)
+                        r2 = room * room
+                        pos = room > f0
+                        unsat = r_ < s
+                        vown = g32 * max(ys, f0) + aj
+                        marg = ys - yv
+                        own = ((vp > k2p * vown * sti * sti) & (marg > f0)
+                               & (marg * marg > k2u * vown))
+                        o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
+                        c = (r_ >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                        cb = c & (ys != f0)
+                        cm |= (1 << j) if cb else 0
+                        sy += o * yv
+                        st += o * tj
+                        st2 += o * tj2
+                        sav += o * aj
+                        nv += o
+                        nc += f1 if cb else f0
+                    okm |= (1 << j) if o != f0 else 0
+                # -- the pooled (Poisson) estimate, or the shortest exposure's lower bound
+                has = nv > f0
+                xi = sy / (st if has else f1)
+                nsa = f0
+                if not has:
+                    nsa = nsc
+                    xi = (np.float32(zs[0][l, a, i]) - darks[0, a, i]) / times[0]
+                xp = max(xi, f0)
+                # -- the method's weighted estimate (the stage kernel's per-exposure passes)
+                num = f0
+                den = f0
+                for j in range(P):
+                    tj = times[j]
+                    okj = f1 if (okm >> j) & 1 else f0
+                    yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                    if deb:
+                        # g of the integer level z = ln max(z, ½), hat weight of z
+                        lvi = np.float32(np.int32(min(max(yj + half, f0), top)))
+                        w = okj * (min(lvi, top - lvi) / hmid)
+                        w = w if yj > fl else f0
+                        num += w * (logf(max(lvi, half)) - lts[j])
+                        den += w
+                    elif rob:
+                        # the level weight of the *expected* level X·t (not the sample's)
+                        lvi = np.float32(np.int32(min(max(xp * tj + half, f0), top)))
+                        w = okj * (min(lvi, top - lvi) / hmid) * tj * tj
+                        num += w * yj / tj
+                        den += w
+                    else:
+                        w = okj * tj * tj / (g32 * xp * tj + avar[j])
+                        num += w * yj / tj
+                        den += w
+                if deb:
+                    q = num / den if den > f0 else f0
+                    xe = expf(q)
+                    xm = xe if den > f0 else xi
+                else:
+                    xw = num / (den if den > f0 else f1)
+                    xm = xw if den > f0 else xi
+                # usable samples all with zero level weight: the pooled weights ω = t
+                pooled_w = (method == DEBEVEC or method == ROBERTSON) & (den == f0) & has
+                # -- noise-model SNR: Σω and Σω²·var with var from the (clipped) estimate
+                x = xm if (xm >= f0) & (xm < inf32) else f0
+                snum = f0
+                sden = f0
+                for j in range(P):
+                    tj = times[j]
+                    aj = avar[j]
+                    okj = f1 if (okm >> j) & 1 else f0
+                    yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                    if deb:
+                        lvi = np.float32(np.int32(min(max(yj + half, f0), top)))
+                        w = okj * (min(lvi, top - lvi) / hmid)
+                        w = w if yj > fl else f0
+                    elif rob:
+                        lvi = np.float32(np.int32(min(max(xp * tj + half, f0), top)))
+                        w = okj * (min(lvi, top - lvi) / hmid) * tj * tj
+                    else:
+                        w = okj * tj * tj / (g32 * xp * tj + aj)
+                    w = okj * tj if pooled_w else w
+                    v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
+                    snum += okj * w
+                    sden += okj * w * w * v
+                # -- the consistency statistic about the pooled estimate (as Poisson)
+                qc = f0
+                if want_chi2:
+                    sw = f0
+                    swx = f0
+                    swx2 = f0
+                    for j in range(P):
+                        tj = times[j]
+                        itj = f1 / tj
+                        itj2 = itj * itj
+                        w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
+                        okj = f1 if (okm >> j) & 1 else f0
+                        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                        wx = okj * w * (yj * itj)
+                        if j == 0:
+                            sw = okj * w
+                            swx = wx
+                            swx2 = wx * (yj * itj)
+                        else:
+                            sw += okj * w
+                            swx += wx
+                            swx2 += wx * (yj * itj)
+                    mean = swx / sw if sw > f0 else f0
+                    v = swx2 - swx * mean
+                    qc = v if v > f0 else f0
+                    if cm != 0:
+                        for j in range(1, P):
+                            if (cm >> j) & 1:
+                                tj = times[j]
+                                itj = f1 / tj
+                                itj2 = itj * itj
+                                w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
+                                r = (s - darks[j, a, i]) * itj - mean
+                                qc += w * r * r if r > f0 else f0
+                # -- write (the stage kernel's _write_row)
+                fin = (xm > -inf32) & (xm < inf32)
+                xo = xm if fin & (xm >= f0) else f0
+                xr = xm if fin else f0
+                ol[i] = (xo if clip else xr) * c_a
+                msum_l[i] += xo * c_a
+                nvalid_l[i] += 1 if has else 0
+                snr_l[i] += xo * snum / np.sqrt(sden) if has & (sden > f0) else f0
+                nsat_l[i] += 1 if nsa == fP else 0
+                if want_chi2:
+                    ne = nv + nc
+                    m2 = (ne >= two) & (nv > f0)
+                    chi2_l[i] += qc if m2 else f0
+                    dof_l[i] += np.int32(ne) - np.int32(1) if m2 else np.int32(0)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_debevec_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
+                               want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
+    """Debevec & Malik's log-domain mean of a linear sensor (see :func:`_merge_weighted`)."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, DEBEVEC,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_robertson_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
+                                 want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
+    """Robertson et al.'s ``w·t²``-weighted mean of a linear sensor (see :func:`_merge_weighted`)."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, ROBERTSON,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_invvar_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
+                              want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
+    """Inverse-variance weights of a linear sensor (see :func:`_merge_weighted`)."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, INVVAR,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+#: the one-pass kernel of each weighted method code
+WEIGHTED_LINEAR = {DEBEVEC: merge_chunk_debevec_linear, ROBERTSON: merge_chunk_robertson_linear,
+                   INVVAR: merge_chunk_invvar_linear}
