@@ -24,24 +24,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
+
+from mehs._cache import cache_dir
 
 #: Bumped when the meaning of a stored figure changes.
 FORMAT = "mehs-tiling-probe/1"
 #: What is stored, with the type each must have when read back.
 _KINDS = {"memory": dict, "margin": int, "align": int}
-
-
-def cache_dir() -> Path | None:
-    """The mehs cache folder, or None when ``MEHS_CACHE_DIR`` is set empty."""
-    env = os.environ.get("MEHS_CACHE_DIR")
-    if env is not None:
-        return Path(env).expanduser() if env.strip() else None
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "mehs"
 
 
 def _mehs_module(cls: type) -> bool:

@@ -57,10 +57,6 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
     inf32 = np.float32(np.inf)
     fP = np.float32(P)
     two = np.float32(2.0)
-    # ln t_j as the stage kernel takes it (a float64 log, rounded)
-    lts = np.empty(P, np.float32)
-    for j in range(P):
-        lts[j] = np.float32(np.log(times[j]))
     deb = method == DEBEVEC
     rob = method == ROBERTSON
     for l in range(nl):
@@ -141,7 +137,9 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                         lvi = np.float32(np.int32(min(max(yj + half, f0), top)))
                         w = okj * (min(lvi, top - lvi) / hmid)
                         w = w if yj > fl else f0
-                        num += w * (logf(max(lvi, half)) - lts[j])
+                        # (ln t_j as the stage kernel takes it; LLVM hoists it. No scratch array: the
+                        # kernel allocates nothing, see mehs.synthesis._native)
+                        num += w * (logf(max(lvi, half)) - np.float32(np.log(tj)))
                         den += w
                     elif rob:
                         # the level weight of the *expected* level X·t (not the sample's)

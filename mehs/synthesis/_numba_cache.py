@@ -26,8 +26,16 @@ def notice_if_uncached(dispatcher, what: str = "the merge kernels") -> bool:
         return False
     if os.path.exists(index):
         return False
-    print(f"mehs: compiling {what} once (a few seconds); later runs load them from numba's "
-          "cache", file=sys.stderr)
+    return notice_compiling(what, "numba's cache")
+
+
+def notice_compiling(what: str, where: str = "the mehs cache") -> bool:
+    """Print the one-line compile notice (once per process); True if printed."""
+    global _told
+    if _told:
+        return False
+    print(f"mehs: compiling {what} once (a few seconds); later runs load them from {where}",
+          file=sys.stderr)
     _told = True
     return True
 

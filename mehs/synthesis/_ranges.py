@@ -7,7 +7,30 @@ compiled for most of a first-ever run. :func:`run_ranges` is how both the merge
 
 from __future__ import annotations
 
+import os
+import sys
 from typing import Callable
+
+
+def thread_count() -> int:
+    """numba's thread count, without importing numba when nothing else has.
+
+    ``numba.get_num_threads()`` once numba is loaded (``numba.set_num_threads`` may
+    have lowered it); before that, what numba would start with: ``NUMBA_NUM_THREADS``,
+    else the CPUs this process may run on. A merge whose machine code is loaded
+    directly (:mod:`mehs.synthesis._native`) never starts numba for this.
+    """
+    if "numba" in sys.modules:
+        from numba import get_num_threads
+
+        return int(get_num_threads())
+    env = os.environ.get("NUMBA_NUM_THREADS", "").strip()
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:      # not Linux
+        return os.cpu_count() or 1
 
 
 def run_ranges(n: int, run: Callable[[int, int], None], *, max_step: int | None = None,
@@ -19,10 +42,8 @@ def run_ranges(n: int, run: Callable[[int, int], None], *, max_step: int | None 
     least two ranges per thread so that one slow range does not idle the rest. The
     first exception of a range is raised once all have ended.
     """
-    from numba import get_num_threads
-
     max_step = n if max_step is None else max(1, int(max_step))
-    nthreads = max(1, min(get_num_threads(), n))
+    nthreads = max(1, min(thread_count(), n))
     step = max_step if nthreads == 1 else max(1, min(max_step, -(-n // (2 * nthreads))))
     starts = range(0, n, step)
     if nthreads == 1 or len(starts) == 1:

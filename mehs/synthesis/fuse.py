@@ -493,7 +493,6 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         calibration = None
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()
-    skip_scipy_linalg_import()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,

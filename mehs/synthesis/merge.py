@@ -142,6 +142,32 @@ class MergeResult:
 _CODES = {"debevec": 0, "robertson": 1, "poisson": 2, "inverse-variance": 3}
 
 
+#: the one-pass kernel of each weighted method (linear curve, hat weighting)
+_WEIGHTED_KINDS = {_CODES["debevec"]: "debevec_linear", _CODES["robertson"]: "robertson_linear",
+                   _CODES["inverse-variance"]: "invvar_linear"}
+
+
+def _numba_kernel(kind: str | None, code: int):
+    """The numba dispatcher of a merge (imports numba; says so if it will compile)."""
+    from mehs.synthesis._numba_cache import notice_if_uncached
+    from mehs.synthesis._numba_start import skip_scipy_linalg_import
+
+    skip_scipy_linalg_import()
+    if kind == "poisson_linear":
+        from mehs.synthesis._merge_fused import merge_chunk_poisson_linear as kernel
+    elif kind is not None:
+        from mehs.synthesis._merge_fused_weighted import WEIGHTED_LINEAR
+
+        kernel = WEIGHTED_LINEAR[code]
+    elif code == _CODES["poisson"]:
+        from mehs.synthesis._merge_kernels import merge_chunk_poisson as kernel
+    else:
+        from mehs.synthesis._merge_kernels import merge_chunk as kernel
+    # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
+    notice_if_uncached(kernel, "the synthesis kernels")
+    return kernel
+
+
 def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                   method: str = "poisson", response: ResponseCurve | None = None,
                   darks: Sequence[np.ndarray | None] | None = None, bit_depth: int = 12,
@@ -194,13 +220,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     chunk_lines
         Most lines per kernel call. The kernel reads BIL inputs in place and writes
         straight into the output, so this bounds only the copy made for other
-        layouts (or mixed dtypes); chunks run on ``numba.get_num_threads()`` threads.
+        layouts (or mixed dtypes); chunks run on numba's thread count
+        (:func:`mehs.synthesis._ranges.thread_count`).
     """
-    from mehs.synthesis._merge_fused import merge_chunk_poisson_linear
-    from mehs.synthesis._merge_fused_weighted import WEIGHTED_LINEAR
-    from mehs.synthesis._merge_kernels import merge_chunk, merge_chunk_poisson
-    from mehs.synthesis._numba_cache import notice_if_uncached
-
     if method not in _CODES:
         raise InputError(f"unknown merge method {method!r}; use one of {sorted(_CODES)}")
     from mehs.cube import SpectralCube
@@ -323,13 +345,23 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     same_dtype = len({a.dtype for a in arrays}) == 1
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
+    # the one-pass kernels: a linear curve, the hat weighting computed (no tables)
     if code == _CODES["poisson"]:
-        kernel = merge_chunk_poisson_linear if linear else merge_chunk_poisson
+        kind = "poisson_linear" if linear else None
     else:
-        # the one-pass kernel computes the linear curve and the hat weight (no tables)
-        kernel = WEIGHTED_LINEAR[code] if linear and hat and lin_g else merge_chunk
-    # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
-    notice_if_uncached(kernel, "the synthesis kernels")
+        kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
+    native = None
+    if kind is not None and same_dtype:
+        from mehs.synthesis import _native
+
+        if _native.supported(kind, arrays[0].dtype, P):
+            if not _native.is_stored(kind, arrays[0].dtype, P):
+                from mehs.synthesis._numba_cache import notice_compiling
+
+                notice_compiling("the synthesis kernels")
+            # machine code loaded without starting numba (None: numba's dispatcher below)
+            native = _native.native_kernel(kind, arrays[0].dtype, P)
+    kernel = native or _numba_kernel(kind, code)
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
 
@@ -345,19 +377,19 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
-        if kernel is merge_chunk_poisson_linear:
-            merge_chunk_poisson_linear(parts, dk_k, sat, t32, gain, avar, rel2, cal,
-                                       bool(consistency), bool(clip_negative), *outs)
-        elif kernel is merge_chunk_poisson:
-            merge_chunk_poisson(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar,
-                                rel2, cal, bool(consistency), bool(clip_negative), *outs)
-        elif kernel is not merge_chunk:        # a weighted method's one-pass kernel
+        if kind == "poisson_linear":
+            kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, bool(consistency),
+                   bool(clip_negative), *outs)
+        elif kind is not None:               # a weighted method's one-pass kernel
             kernel(parts, dk_k, sat, t32, L, np.float32(floor), gain, avar, rel2, cal,
                    bool(consistency), bool(clip_negative), *outs)
+        elif code == _CODES["poisson"]:
+            kernel(parts, dk_k, sat, t32, linear, dark_after, elut, L, gain, avar, rel2, cal,
+                   bool(consistency), bool(clip_negative), *outs)
         else:
-            merge_chunk(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut, hat,
-                        lin_g, np.float32(floor), gain, avar, rel2, cal, code,
-                        bool(consistency), bool(clip_negative), *outs)
+            kernel(parts, dk_k, sat, t32, linear, dark_after, glut, elut, wlut, hat, lin_g,
+                   np.float32(floor), gain, avar, rel2, cal, code, bool(consistency),
+                   bool(clip_negative), *outs)
 
     # chunks of lines, at most chunk_lines each, on numba's thread count (the kernels
     # release the GIL)
@@ -408,9 +440,6 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 
     def run() -> None:
         try:
-            from mehs.synthesis._numba_start import skip_scipy_linalg_import
-
-            skip_scipy_linalg_import()
             curve = None if linear else ResponseCurve(
                 np.log(np.maximum(np.arange(float(1 << bit_depth)), 0.5)), bit_depth,
                 "warm-up")

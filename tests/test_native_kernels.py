@@ -1,0 +1,208 @@
+"""The merge kernels' stored machine code, loaded without numba (issue 16).
+
+:mod:`mehs.synthesis._native` compiles a C entry point around each one-pass kernel
+once, keeps its object code in the mehs cache and links it into later processes
+through llvmlite. Its numbers must be numba's own kernel's to the bit, a damaged or
+foreign cache entry must never be loaded, and a warm process must not start numba.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mehs.synthesis.merge import NoiseModel, merge_bracket
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bracket(P, dtype=np.uint16, seed=0):
+    rng = np.random.default_rng(seed)
+    E = np.exp(rng.uniform(np.log(0.2), np.log(3000), (9, 17, 6)))
+    t = [1.0, 4.0, 16.0, 64.0][:P]
+    stack = []
+    for j, tj in enumerate(t):
+        x = E * tj + 60 + rng.normal(0, 4, E.shape)
+        if j == P - 1:
+            x[:2, :4] += 5000                       # a ghost: censored samples
+        stack.append(np.clip(np.rint(x), 0, 4095).astype(dtype))
+    darks = [np.full((17, 6), 60.0) + rng.normal(0, 1, (17, 6)) for _ in range(P)]
+    return stack, t, darks
+
+
+def _fields(r):
+    return [np.ascontiguousarray(getattr(r, k)) for k in
+            ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance")]
+
+
+def _same_bits(a, b):
+    for x, y in zip(_fields(a), _fields(b)):
+        assert x.dtype == y.dtype
+        np.testing.assert_array_equal(x.view(np.uint8), y.view(np.uint8))
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "kernels"
+
+
+@pytest.mark.parametrize("method,P,dtype", [("poisson", 3, np.uint16),
+                                            ("debevec", 2, np.int16),
+                                            ("inverse-variance", 4, np.uint16)])
+def test_stored_kernel_gives_the_numba_kernels_bits(cache, monkeypatch, method, P, dtype):
+    from mehs.synthesis import _native
+
+    stack, t, darks = _bracket(P, dtype)
+    kw = dict(method=method, darks=darks, noise=NoiseModel(1.5, 3.0, relative=0.01))
+    stored = merge_bracket(stack, t, **kw)
+    kind = {"poisson": "poisson_linear", "debevec": "debevec_linear",
+            "inverse-variance": "invvar_linear"}[method]
+    assert _native.is_stored(kind, dtype, P)                    # the native path ran
+    assert len(list(cache.glob(f"{kind}-*.o"))) == 1
+    monkeypatch.setenv("MEHS_CACHE_DIR", "")                    # numba's dispatcher
+    _same_bits(stored, merge_bracket(stack, t, **kw))
+
+
+def test_a_warm_process_merges_without_starting_numba(cache):
+    stack, t, darks = _bracket(3)
+    folder = cache.parent.parent
+    np.save(folder / "stack.npy", np.stack(stack))
+    code = (
+        "import sys, numpy as np\n"
+        "from mehs.synthesis.merge import merge_bracket\n"
+        f"s = np.load({str(folder / 'stack.npy')!r})\n"
+        f"r = merge_bracket(list(s), {t!r}, darks=[np.full((17, 6), 60.0)] * 3)\n"
+        f"np.save({str(folder / 'out.npy')!r}, np.asarray(r.radiance))\n"
+        "print('NUMBA', 'numba' in sys.modules)\n")
+    env = dict(os.environ, MEHS_CACHE_DIR=str(cache.parent), PYTHONPATH=str(ROOT))
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           env=env, timeout=600) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert "compiling the synthesis kernels once" in runs[0].stderr
+    assert "NUMBA False" in runs[1].stdout, runs[1].stdout + runs[1].stderr
+    assert "compiling" not in runs[1].stderr
+    ref = merge_bracket(stack, t, darks=[np.full((17, 6), 60.0)] * 3)
+    np.testing.assert_array_equal(np.load(folder / "out.npy"), np.asarray(ref.radiance))
+
+
+def _reset(monkeypatch):
+    from mehs.synthesis import _native
+
+    monkeypatch.setattr(_native, "_loaded", {})
+
+
+@pytest.mark.parametrize("damage", ["flip a byte", "truncate", "bad json", "other key"])
+def test_a_damaged_or_foreign_entry_is_never_loaded(cache, monkeypatch, damage):
+    """A stored object is loaded only with its recorded key and SHA-256: anything else is
+    compiled anew (a damaged object handed to LLVM could end the process)."""
+    from mehs.synthesis import _native
+
+    stack, t, darks = _bracket(3)
+    first = merge_bracket(stack, t, darks=darks)
+    obj = next(cache.glob("poisson_linear-uint16-P3-*.o"))
+    meta = obj.with_suffix(".json")
+    if damage == "flip a byte":
+        b = bytearray(obj.read_bytes())
+        b[len(b) // 2] ^= 0xFF
+        obj.write_bytes(bytes(b))
+    elif damage == "truncate":
+        obj.write_bytes(obj.read_bytes()[:100])
+    elif damage == "bad json":
+        meta.write_text("{not json")
+    else:
+        m = json.loads(meta.read_text())
+        m["key"]["llvmlite"] = "0.0.0"
+        meta.write_text(json.dumps(m))
+    _reset(monkeypatch)
+    assert not _native.is_stored("poisson_linear", np.uint16, 3)
+    _same_bits(first, merge_bracket(stack, t, darks=darks))    # compiled anew
+    assert _native.is_stored("poisson_linear", np.uint16, 3)
+    _reset(monkeypatch)
+    assert _native.is_stored("poisson_linear", np.uint16, 3)    # and stored again
+
+
+def test_an_entry_needing_an_unknown_symbol_is_not_linked(cache, monkeypatch):
+    from mehs.synthesis import _native
+
+    stack, t, darks = _bracket(3)
+    merge_bracket(stack, t, darks=darks)
+    meta = next(cache.glob("poisson_linear-uint16-P3-*.json"))
+    m = json.loads(meta.read_text())
+    m["undefined"].append("mehs_no_such_symbol_anywhere")
+    meta.write_text(json.dumps(m))
+    _reset(monkeypatch)
+    assert _native.native_kernel("poisson_linear", np.uint16, 3, build=False) is None
+
+
+def test_the_entry_point_refuses_arrays_it_cannot_read_as_the_kernel_does(cache):
+    from mehs.synthesis import _native
+
+    stack, t, darks = _bracket(3)
+    merge_bracket(stack, t, darks=darks)
+    call = _native.native_kernel("poisson_linear", np.uint16, 3)
+    nl, nb, ns = 2, 6, 17
+    zs = tuple(np.zeros((nl, nb, ns), np.uint16) for _ in range(3))
+    args = [np.zeros((3, nb, ns), np.float32), np.full(nb, 4000, np.float32),
+            np.array(t, np.float32), 1.0, np.ones(3, np.float32), 0.0, np.ones(nb, np.float32),
+            True, True]
+    outs = [np.zeros((nl, nb, ns), np.float32), np.zeros((nl, ns), np.float32),
+            np.zeros((nl, ns), np.int32), np.zeros((nl, ns), np.float32),
+            np.zeros((nl, ns), np.int32), np.zeros((nl, ns), np.int32),
+            np.zeros((nl, ns), np.float32)]
+    call(zs, *args, *outs)                                      # the right arrays run
+    with pytest.raises(TypeError, match="exposure 1"):
+        call((zs[0], zs[1][:, :, ::-1], zs[2]), *args, *outs)  # not C-contiguous
+    with pytest.raises(TypeError, match="output 2"):
+        call(zs, *args, *outs[:2], outs[2].astype(np.int64), *outs[3:])
+    with pytest.raises(TypeError, match="3 exposures"):
+        call(zs[:2], *args, *outs)
+
+
+def test_unsupported_raw_types_and_no_cache_use_numba(cache, monkeypatch):
+    from mehs.synthesis import _native
+
+    stack, t, darks = _bracket(3, np.int64)
+    r = merge_bracket(stack, t, darks=darks)
+    assert not cache.exists() or not list(cache.glob("*int64*"))
+    monkeypatch.setenv("MEHS_CACHE_DIR", "")
+    assert not _native.supported("poisson_linear", np.uint16, 3)
+    _same_bits(r, merge_bracket([s.astype(np.int64) for s in stack], t, darks=darks))
+
+
+def test_numba_still_works_after_a_stored_kernel_bound_its_error_paths(cache, tmp_path):
+    """Loading a stored kernel in a process without numba binds numba's error helpers to
+    ``abort``; numba started later in that process must still allocate and raise."""
+    stack, t, darks = _bracket(3)
+    merge_bracket(stack, t, darks=darks)                        # stored
+    np.save(tmp_path / "stack.npy", np.stack(stack))
+    code = (
+        "import sys, numpy as np\n"
+        "from mehs.synthesis.merge import merge_bracket\n"
+        f"s = np.load({str(tmp_path / 'stack.npy')!r})\n"
+        f"merge_bracket(list(s), {t!r})\n"
+        "assert 'numba' not in sys.modules\n"
+        "from numba import njit\n"
+        "@njit\n"
+        "def f(n):\n"
+        "    a = np.arange(n)\n"
+        "    if n > 5:\n"
+        "        raise ValueError('too big')\n"
+        "    return a.sum()\n"
+        "assert f(4) == 6\n"
+        "try:\n"
+        "    f(9)\n"
+        "except ValueError as e:\n"
+        "    print('RAISED', e)\n")
+    env = dict(os.environ, MEHS_CACHE_DIR=str(cache.parent), PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "RAISED too big" in r.stdout
