@@ -79,7 +79,8 @@ def main(argv=None) -> int:
     # in-process breakdown of one warm run
     code = (
         "import json, time, sys; t0 = time.perf_counter()\n"
-        "from mehs.cli import small_pages; small_pages()   # as the command runs\n"
+        "from mehs.cli import reuse_heap, small_pages\n"
+        "small_pages(); reuse_heap()                        # as the command runs\n"
         "from mehs.synthesis.bracket import load_bracket\n"
         "from mehs.synthesis.fuse import fuse_bracket, write_fusion\n"
         "t1 = time.perf_counter()\n"

@@ -112,6 +112,55 @@ def test_cli_small_pages_turns_numpy_huge_pages_off_unless_the_user_chose(monkey
         _set_madvise_hugepage(before)
 
 
+def test_console_reuses_the_heap_for_fuse_only(monkeypatch):
+    import sys
+
+    import mehs.cli as cli
+
+    calls = []
+    monkeypatch.setattr(cli, "reuse_heap", lambda: calls.append(sys.argv[1]) or True)
+    monkeypatch.setattr(cli, "small_pages", lambda: True)
+    monkeypatch.setattr(cli, "main", lambda: 0)
+    for argv in (["mehs", "fuse", "x"], ["mehs", "evaluate", "x"], ["mehs"]):
+        monkeypatch.setattr(sys, "argv", argv)
+        with pytest.raises(SystemExit):
+            cli.console()
+    assert calls == ["fuse"]
+
+
+def test_reuse_heap_serves_mid_sized_arrays_from_the_glibc_heap():
+    """After :func:`mehs.cli.reuse_heap` a 20 MB array comes from the heap (``arena``),
+    not from its own mapping (``hblkhd``), so freed pages are used again."""
+    import subprocess
+    import sys
+
+    code = (
+        "import ctypes, numpy as np\n"
+        "libc = ctypes.CDLL('libc.so.6')\n"
+        "class M(ctypes.Structure):\n"
+        "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks',\n"
+        "               'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
+        "libc.mallinfo2.restype = M\n"
+        "import sys\n"
+        "if sys.argv[1] == 'on':\n"
+        "    from mehs.cli import reuse_heap\n"
+        "    assert reuse_heap()\n"
+        "a = np.ones(5_000_000, np.float32)\n"
+        "m = libc.mallinfo2()\n"
+        "print('MMAPPED', m.hblkhd >= 20_000_000, 'HEAP', m.arena >= 20_000_000)\n")
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        pytest.skip("not glibc ≥ 2.33")
+    off = subprocess.run([sys.executable, "-c", code, "off"], capture_output=True, text=True)
+    on = subprocess.run([sys.executable, "-c", code, "on"], capture_output=True, text=True)
+    assert off.returncode == 0 and on.returncode == 0, off.stderr + on.stderr
+    assert "MMAPPED True HEAP False" in off.stdout
+    assert "MMAPPED False HEAP True" in on.stdout
+
+
 def test_console_runs_the_command_and_exits_with_its_code(tmp_path):
     import subprocess
     import sys

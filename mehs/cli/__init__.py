@@ -102,10 +102,35 @@ def small_pages() -> bool:
     return True
 
 
+def reuse_heap() -> bool:
+    """Let glibc reuse freed memory for later arrays instead of unmapping it; True if set.
+
+    numpy's temporaries of a few MB (the linearity test makes ~40 of 7–14 MB) are
+    each a fresh ``mmap`` under glibc's default thresholds, so every one is faulted in
+    page by page again — on a VM where a first touch is expensive. With the mmap
+    threshold at 256 MiB and the trim threshold at 512 MiB they come from the heap and
+    reuse its pages: a warm 512² ``mehs fuse`` made half the page faults (155k → 80k),
+    0.2 s less system time, median wall 1.39 → 1.23 s in 8 alternating runs, with a peak
+    resident memory 1 % higher (680 → 687 MB). Used for ``mehs fuse`` only: the SSR
+    commands' memory budget (:mod:`mehs.ssr.tiling`) models the default allocator.
+    No-op (False) where the C library is not glibc.
+    """
+    import ctypes
+
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(M_MMAP_THRESHOLD, 256 << 20)) and bool(mallopt(M_TRIM_THRESHOLD,
+                                                                         512 << 20))
+
+
 def console() -> None:
     """The ``mehs`` command (and ``python -m mehs``): :func:`main`, then a quick exit.
 
-    Runs with small pages (:func:`small_pages`).
+    Runs with small pages (:func:`small_pages`); ``mehs fuse`` also with the C heap
+    reused (:func:`reuse_heap`).
 
     Interpreter teardown re-scans every object still alive with the cyclic garbage
     collector, several times; after numba has loaded a kernel (or torch a model)
@@ -115,6 +140,8 @@ def console() -> None:
     :func:`main`, which tests and scripts call in a process that goes on.
     """
     small_pages()
+    if sys.argv[1:2] == ["fuse"]:
+        reuse_heap()
     code = main()
     import gc
 
