@@ -164,6 +164,8 @@ def test_the_entry_point_refuses_arrays_it_cannot_read_as_the_kernel_does(cache)
         call(zs, *args, *outs[:2], outs[2].astype(np.int64), *outs[3:])
     with pytest.raises(TypeError, match="3 exposures"):
         call(zs[:2], *args, *outs)
+    with pytest.raises(TypeError, match="exposure 0 must be a C-contiguous uint16"):
+        call(tuple(z.astype(np.int16) for z in zs), *args, *outs)   # another raw type
 
 
 def test_unsupported_raw_types_and_no_cache_use_numba(cache, monkeypatch):

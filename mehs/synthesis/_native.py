@@ -159,14 +159,18 @@ def _load(kind: str, dtype: np.dtype, P: int) -> Callable | None:
             or not isinstance(meta.get("symbol"), str)
             or not isinstance(meta.get("undefined"), list)):
         return None
-    return _link(kind, P, obj, meta["symbol"], meta["undefined"])
+    try:
+        return _link(kind, dtype, P, obj, meta["symbol"], meta["undefined"])
+    except Exception:       # noqa: BLE001 - no ctypes libc, an llvmlite error: use numba
+        return None
 
 
 def _abort_address() -> int:
     return ctypes.cast(ctypes.CDLL(None).abort, ctypes.c_void_p).value
 
 
-def _link(kind: str, P: int, obj: bytes, symbol: str, undefined: list) -> Callable | None:
+def _link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
+          undefined: list) -> Callable | None:
     import llvmlite.binding as ll
 
     ll.initialize_native_target()
@@ -199,10 +203,10 @@ def _link(kind: str, P: int, obj: bytes, symbol: str, undefined: list) -> Callab
     if not address:
         return None
     _engines.append(engine)
-    return _wrap(kind, P, address)
+    return _wrap(kind, dtype, P, address)
 
 
-def _wrap(kind: str, P: int, address: int) -> Callable:
+def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
     """A callable with the numba kernel's arguments over the C entry point at ``address``."""
     extra = KERNELS[kind][2]
     vp = ctypes.c_void_p
@@ -229,8 +233,7 @@ def _wrap(kind: str, P: int, address: int) -> Callable:
             raise TypeError(f"native merge kernel: {P} exposures and 7 outputs expected")
         out = outs[0]
         nl, nb, ns = out.shape
-        z0 = zs[0]
-        zp = [ptr(z, z0.dtype, (nl, nb, ns), f"exposure {j}") for j, z in enumerate(zs)]
+        zp = [ptr(z, dtype, (nl, nb, ns), f"exposure {j}") for j, z in enumerate(zs)]
         args = zp + [ptr(darks, np.float32, (P, nb, ns), "darks"),
                      ptr(sat, np.float32, (nb,), "sat"), ptr(times, np.float32, (P,), "times")]
         args += [int(s) if t == "int64" else float(s) for s, (_, t) in zip(scalars, extra)]
