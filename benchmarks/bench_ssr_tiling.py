@@ -161,7 +161,8 @@ def main(argv=None) -> int:
           + (f"; median of {args.repeat} alternating runs" if args.repeat > 1 else ""))
     summary = t["last"].get("summary") or {"tile": shape, "tiles": 1, "computed": 1.0}
     plan = (f"{summary['tile'][1]}×{summary['tile'][0]} × {summary['tiles']}, "
-            f"{summary['computed']:.3f}× px")
+            f"{summary['computed']:.3f}× px"
+            + (", tiles on the reused C heap" if t["last"].get("heap_reuse") else ""))
     budget = t["last"].get("budget")
     print(f"{'mode':<6} {'seconds':>8} {'× whole':>8} {'CPU s':>7} {'× whole':>8} "
           f"{'peak RSS GB':>12} {'before GB':>10} {'probes s':>9}  "

@@ -407,3 +407,77 @@ def test_memory_probe_of_chunked_branches_does_not_depend_on_probe_size():
 
     peak, _ = _peak_tensor_bytes(net, 320)
     assert peak <= large["fixed_bytes"] + large["bytes_per_pixel"] * 320 ** 2
+
+
+def test_tiles_run_on_the_reused_heap_planned_for_its_memory(monkeypatch):
+    """A network whose probe models glibc's heap gets tiles on the reused heap, sized with
+    :func:`heap_reuse_overhead`; one without that model keeps the default allocator."""
+    from mehs.ssr import allocator, tiling
+
+    if not allocator.heap_reuse_available():
+        pytest.skip("not glibc")
+    monkeypatch.setattr(tiling, "_rss", lambda: 0)
+    monkeypatch.setattr(tiling, "available_memory", lambda: 1 << 40)
+    monkeypatch.delenv("MEHS_TILE_MEMORY", raising=False)
+    acted = []
+    real = allocator.reused_heap
+
+    def spy(enable=True):
+        acted.append(enable)
+        return real(enable)
+
+    monkeypatch.setattr(tiling, "reused_heap", spy)
+    fn = lambda x: np.repeat(x[:, :, :1] * 2, 4, axis=2)                # noqa: E731
+    rgb = _rgb(400, 600)
+    for kind in ("heap", None):
+        probes = {"bytes_per_pixel": lambda: {"bytes_per_pixel": 100.0, "fixed_bytes": 1e5,
+                                              "out_bytes_per_pixel": 16.0, "allocator": kind},
+                  "margin": lambda: 8, "align": lambda: 8}
+        model = SimpleNamespace(tiling={"max_rss": 20_000_000})
+        np.testing.assert_allclose(tiling.tiled_network_call(model, fn, rgb, probes), fn(rgb),
+                                   rtol=1e-6)
+        last = model._tiling_last
+        th, tw = last["summary"]["tile"]
+        model_of = (allocator.heap_reuse_overhead if kind == "heap"
+                    else lambda n: 1.0)
+        assert last["heap_reuse"] is (kind == "heap")
+        assert (1e5 + 100 * th * tw) * model_of(th * tw) + last["out_bytes"] <= last["budget"]
+    assert acted == [True, False]
+
+
+def test_reused_heap_serves_arrays_from_the_heap_and_settles_after():
+    """Inside :func:`reused_heap` a 20 MB array comes from glibc's heap (``arena``), not a
+    mapping of its own; after it the thresholds sit where glibc's dynamic ones settle
+    (a 20 MB array from the heap, a 40 MB one mapped) and the free heap is returned."""
+    import subprocess
+    import sys
+
+    code = (
+        "import ctypes, numpy as np\n"
+        "libc = ctypes.CDLL('libc.so.6')\n"
+        "class M(ctypes.Structure):\n"
+        "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks',\n"
+        "               'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
+        "libc.mallinfo2.restype = M\n"
+        "from mehs.ssr.allocator import reused_heap\n"
+        "with reused_heap() as on:\n"
+        "    a = np.ones(75_000_000, np.uint8)\n"
+        "    m = libc.mallinfo2()\n"
+        "    print('IN', on, m.arena >= 75_000_000, m.hblkhd < 75_000_000)\n"
+        "    del a\n"
+        "m = libc.mallinfo2()\n"
+        "print('TRIMMED', m.arena < 20_000_000)\n"
+        "b = np.ones(20_000_000, np.uint8); c = np.ones(40_000_000, np.uint8)\n"
+        "m = libc.mallinfo2()\n"
+        "print('AFTER', m.arena >= 20_000_000, 40_000_000 <= m.hblkhd < 60_000_000)\n")
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        pytest.skip("not glibc ≥ 2.33")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "IN True True True" in r.stdout
+    assert "TRIMMED True" in r.stdout
+    assert "AFTER True True" in r.stdout, r.stdout
