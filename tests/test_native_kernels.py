@@ -176,6 +176,10 @@ def test_unsupported_raw_types_and_no_cache_use_numba(cache, monkeypatch):
     assert not cache.exists() or not list(cache.glob("*int64*"))
     monkeypatch.setenv("MEHS_CACHE_DIR", "")
     assert not _native.supported("poisson_linear", np.uint16, 3)
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(cache.parent))
+    assert _native.supported("poisson_linear", np.uint16, 3)
+    swapped = np.dtype(np.uint16).newbyteorder()              # an ENVI file of the other order
+    assert not _native.supported("poisson_linear", swapped, 3)
     _same_bits(r, merge_bracket([s.astype(np.int64) for s in stack], t, darks=darks))
 
 
@@ -208,3 +212,17 @@ def test_numba_still_works_after_a_stored_kernel_bound_its_error_paths(cache, tm
                        timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "RAISED too big" in r.stdout
+
+
+@pytest.mark.parametrize("stored", [True, False])
+def test_a_bracket_of_the_other_byte_order_merges_like_the_native_one(cache, monkeypatch,
+                                                                       stored):
+    """An ENVI file written big-endian is memory-mapped with a swapped dtype: swapped chunk
+    by chunk, it gives the native bracket's numbers (it crashed numba's typing before)."""
+    stack, t, darks = _bracket(3)
+    ref = merge_bracket(stack, t, darks=darks)
+    if not stored:
+        monkeypatch.setenv("MEHS_CACHE_DIR", "")
+    swapped = [s.astype(s.dtype.newbyteorder()) for s in stack]
+    assert not swapped[0].dtype.isnative and np.array_equal(swapped[0], stack[0])
+    _same_bits(ref, merge_bracket(swapped, t, darks=darks))

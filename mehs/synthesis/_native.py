@@ -106,9 +106,13 @@ def _key(kind: str, dtype: np.dtype, P: int) -> tuple[dict, str]:
 
 
 def supported(kind: str, dtype, P: int) -> bool:
-    """Whether a stored entry point can exist for this merge (else: the numba kernel)."""
-    return (kind in KERNELS and np.dtype(dtype).name in _DTYPES and 2 <= P <= _MAX_EXPOSURES
-            and _folder() is not None)
+    """Whether a stored entry point can exist for this merge (else: the numba kernel).
+
+    Native byte order only: the entry point reads the raw buffer as the machine does.
+    """
+    dtype = np.dtype(dtype)
+    return (kind in KERNELS and dtype.name in _DTYPES and dtype.isnative
+            and 2 <= P <= _MAX_EXPOSURES and _folder() is not None)
 
 
 def native_kernel(kind: str, dtype, P: int, *, build: bool = True) -> Callable | None:
@@ -225,6 +229,8 @@ def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
             raise TypeError(f"native merge kernel: {what} must be a C-contiguous {np.dtype(dtype)} "
                             f"array of shape {shape}")
         return a.ctypes.data
+
+    dtype = np.dtype(dtype.name)          # native byte order (see supported)
 
     def call(zs, darks, sat, times, *rest):
         scalars, rest = rest[:n_extra], rest[n_extra:]

@@ -343,6 +343,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     msum = np.zeros((nl, ns), dtype=np.float32)
     is_float = np.issubdtype(arrays[0].dtype, np.floating)
     same_dtype = len({a.dtype for a in arrays}) == 1
+    # the kernels read native byte order: another one (a big-endian ENVI file) is
+    # swapped chunk by chunk below
+    kdtype = arrays[0].dtype.newbyteorder("=")
+    swap = same_dtype and not arrays[0].dtype.isnative
     chunk_lines = max(1, int(chunk_lines))
     code = _CODES[method]
     # the one-pass kernels: a linear curve, the hat weighting computed (no tables)
@@ -354,13 +358,13 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     if kind is not None and same_dtype:
         from mehs.synthesis import _native
 
-        if _native.supported(kind, arrays[0].dtype, P):
-            if not _native.is_stored(kind, arrays[0].dtype, P):
+        if _native.supported(kind, kdtype, P):
+            if not _native.is_stored(kind, kdtype, P):
                 from mehs.synthesis._numba_cache import notice_compiling
 
                 notice_compiling("the synthesis kernels")
             # machine code loaded without starting numba (None: numba's dispatcher below)
-            native = _native.native_kernel(kind, arrays[0].dtype, P)
+            native = _native.native_kernel(kind, kdtype, P)
     kernel = native or _numba_kernel(kind, code)
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
@@ -374,6 +378,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                                      source)
         if not same_dtype:
             parts = [p.astype(np.float32) for p in parts]
+        elif swap:
+            parts = [p.astype(kdtype) for p in parts]
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
@@ -426,11 +432,12 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     returns the thread: the kernel's specialisation depends only on the arrays' types
     (dtype, layout, read-only flag, number of exposures), the method and whether the
     response curve is linear (``linear=False``: any recovered curve, whose values do
-    not matter here), so that line gives the same one as the whole cube. Importing
-    numba and loading the cached kernel (0.3–0.6 s), or compiling it (seconds), then
-    overlaps the work a caller does before the merge (file checks, the linearity test);
-    a later :func:`merge_bracket` waits for numba's compiler lock if it has to. Any
-    error is left to that later call.
+    not matter here), so that line gives the same one as the whole cube. Linking the
+    stored kernel (:mod:`mehs.synthesis._native`, tens of ms), or importing numba and
+    loading its cached kernel (0.3–0.6 s), or compiling (seconds), then overlaps the
+    work a caller does before the merge (file checks, the linearity test); a later
+    :func:`merge_bracket` waits for the build or numba's compiler lock if it has to.
+    Any error is left to that later call.
     """
     import threading
 
