@@ -226,3 +226,21 @@ def test_a_bracket_of_the_other_byte_order_merges_like_the_native_one(cache, mon
     swapped = [s.astype(s.dtype.newbyteorder()) for s in stack]
     assert not swapped[0].dtype.isnative and np.array_equal(swapped[0], stack[0])
     _same_bits(ref, merge_bracket(swapped, t, darks=darks))
+
+
+def test_a_cache_that_cannot_take_entries_compiles_nothing_extra(tmp_path, monkeypatch):
+    """Where the cache folder cannot be written, every process would pay for a compile it
+    cannot keep: the entry point is not compiled and numba's kernel runs."""
+    from mehs.synthesis import _native
+
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the cache folder would be")
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(blocker))
+    monkeypatch.setattr(_native, "_loaded", {})
+    compiled = []
+    monkeypatch.setattr(_native, "_compile", lambda *a: compiled.append(a))
+    stack, t, darks = _bracket(3)
+    r = merge_bracket(stack, t, darks=darks)
+    assert compiled == [] and blocker.is_file()
+    monkeypatch.setenv("MEHS_CACHE_DIR", "")
+    _same_bits(r, merge_bracket(stack, t, darks=darks))

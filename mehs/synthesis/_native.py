@@ -139,6 +139,12 @@ def native_kernel(kind: str, dtype, P: int, *, build: bool = True) -> Callable |
         return fn
 
 
+def can_store() -> bool:
+    """Whether a missing entry point will be compiled and kept (a writable cache folder)."""
+    folder = _folder()
+    return folder is not None and _writable(folder)
+
+
 def is_stored(kind: str, dtype, P: int) -> bool:
     """Whether the cache holds a loadable entry point (for the first-compile notice)."""
     return native_kernel(kind, dtype, P, build=False) is not None
@@ -266,46 +272,68 @@ def entry({zargs}, dk, sat, times, {xargs}gain, avar, rel, cal, want, clip, nl, 
 '''
 
 
-def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
-    """Compile the C entry point with numba, store its object code, load it."""
+def _writable(folder: Path) -> bool:
+    """Whether entries can be stored in ``folder`` (created if missing)."""
     try:
-        import importlib
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
 
-        import llvmlite.binding as ll
-        from numba import carray, cfunc, types
 
-        from mehs.io.atomic import write_bytes_atomic, write_json_atomic
-        from mehs.synthesis._numba_start import skip_scipy_linalg_import
+def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
+    """Compile the C entry point with numba, store its object code, load it.
 
-        skip_scipy_linalg_import()
-        module, name, extra = KERNELS[kind]
-        K = getattr(importlib.import_module(module), name)
-        nbt = {"int64": types.int64, "float32": types.float32}
-        f32p, i32p = types.CPointer(types.float32), types.CPointer(types.int32)
-        zp = types.CPointer(getattr(types, dtype.name))
-        sig = types.void(*([zp] * P), f32p, f32p, f32p, *[nbt[t] for _, t in extra],
-                         types.float64, f32p, types.float64, f32p, types.boolean, types.boolean,
-                         types.int64, types.int64, types.int64,
-                         f32p, f32p, i32p, f32p, i32p, i32p, f32p)
-        src = _TEMPLATE.format(
-            zargs=", ".join(f"z{j}" for j in range(P)),
-            zarrays=", ".join(f"carray(z{j}, (nl, nb, ns))" for j in range(P)),
-            xargs="".join(f"{n}, " for n, _ in extra))
-        ns_: dict = {"K": K, "carray": carray, "P": P}
-        exec(compile(src, f"<mehs native entry {kind}>", "exec"), ns_)   # noqa: S102
-        compiled = cfunc(sig, nogil=True, error_model="numpy")(ns_["entry"])
-        lib = compiled._library
-        _, _, (obj, bitcode) = lib.serialize_using_object_code()
-        mod = ll.parse_bitcode(bitcode)
-        undefined = sorted({f.name for f in mod.functions
-                            if f.is_declaration and not f.name.startswith("llvm.")}
-                           | {g.name for g in mod.global_variables if g.is_declaration})
+    Nothing is compiled when the cache folder cannot take the entry: every process
+    would pay for a compile it cannot keep (the numba kernel runs instead, cached by
+    numba where it can be).
+    """
+    folder = _folder()
+    if folder is None or not _writable(folder):
+        return None
+    try:
         key, stem = _key(kind, dtype, P)
-        folder = _folder()
+        obj, symbol, undefined = _compile(kind, dtype, P)
+        from mehs.io.atomic import write_bytes_atomic, write_json_atomic
+
         write_bytes_atomic(folder / f"{stem}.o", obj)
         write_json_atomic(folder / f"{stem}.json",
-                          {"key": key, "symbol": compiled.native_name, "undefined": undefined,
+                          {"key": key, "symbol": symbol, "undefined": undefined,
                            "sha256": hashlib.sha256(obj).hexdigest()})
     except Exception:       # noqa: BLE001 - anything: the numba kernel does the work
         return None
     return _load(kind, dtype, P)
+
+
+def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]:
+    """numba-compile the entry point: (object code, its symbol, the symbols it needs)."""
+    import importlib
+
+    import llvmlite.binding as ll
+    from numba import carray, cfunc, types
+
+    from mehs.synthesis._numba_start import skip_scipy_linalg_import
+
+    skip_scipy_linalg_import()
+    module, name, extra = KERNELS[kind]
+    K = getattr(importlib.import_module(module), name)
+    nbt = {"int64": types.int64, "float32": types.float32}
+    f32p, i32p = types.CPointer(types.float32), types.CPointer(types.int32)
+    zp = types.CPointer(getattr(types, dtype.name))
+    sig = types.void(*([zp] * P), f32p, f32p, f32p, *[nbt[t] for _, t in extra],
+                     types.float64, f32p, types.float64, f32p, types.boolean, types.boolean,
+                     types.int64, types.int64, types.int64,
+                     f32p, f32p, i32p, f32p, i32p, i32p, f32p)
+    src = _TEMPLATE.format(
+        zargs=", ".join(f"z{j}" for j in range(P)),
+        zarrays=", ".join(f"carray(z{j}, (nl, nb, ns))" for j in range(P)),
+        xargs="".join(f"{n}, " for n, _ in extra))
+    ns_: dict = {"K": K, "carray": carray, "P": P}
+    exec(compile(src, f"<mehs native entry {kind}>", "exec"), ns_)   # noqa: S102
+    compiled = cfunc(sig, nogil=True, error_model="numpy")(ns_["entry"])
+    _, _, (obj, bitcode) = compiled._library.serialize_using_object_code()
+    mod = ll.parse_bitcode(bitcode)
+    undefined = sorted({f.name for f in mod.functions
+                        if f.is_declaration and not f.name.startswith("llvm.")}
+                       | {g.name for g in mod.global_variables if g.is_declaration})
+    return obj, compiled.native_name, undefined

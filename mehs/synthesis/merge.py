@@ -359,7 +359,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         from mehs.synthesis import _native
 
         if _native.supported(kind, kdtype, P):
-            if not _native.is_stored(kind, kdtype, P):
+            if not _native.is_stored(kind, kdtype, P) and _native.can_store():
                 from mehs.synthesis._numba_cache import notice_compiling
 
                 notice_compiling("the synthesis kernels")
