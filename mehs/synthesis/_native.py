@@ -27,6 +27,7 @@ stored objects, the merge uses numba's dispatcher as before).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import json
@@ -181,6 +182,17 @@ def _abort_address() -> int:
 
 def _link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
           undefined: list) -> Callable | None:
+    # LLVM's global context is not thread-safe: where numba is loaded (a recovered
+    # curve's kernels may be compiling on another thread) link under its compiler lock
+    lock = contextlib.nullcontext()
+    if "numba" in sys.modules:
+        from numba.core.compiler_lock import global_compiler_lock as lock
+    with lock:
+        return _link_locked(kind, dtype, P, obj, symbol, undefined)
+
+
+def _link_locked(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
+                 undefined: list) -> Callable | None:
     import llvmlite.binding as ll
 
     ll.initialize_native_target()
