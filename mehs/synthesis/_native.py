@@ -52,7 +52,7 @@ KERNELS = {
     "invvar_linear": ("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
                       (("L", "int64"), ("floor", "float32"))),
 }
-#: the sources whose text enters every key (beside the kernel's own module)
+#: the sources whose text enters every key (the kernels, what they import, this module)
 _SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_rows.py", "_cephes.py",
             "_native.py")
 #: numba's error-path helpers (see the module docstring)
