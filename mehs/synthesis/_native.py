@@ -140,12 +140,6 @@ def native_kernel(kind: str, dtype, P: int, *, build: bool = True) -> Callable |
         return fn
 
 
-def can_store() -> bool:
-    """Whether a missing entry point will be compiled and kept (a writable cache folder)."""
-    folder = _folder()
-    return folder is not None and _writable(folder)
-
-
 def is_stored(kind: str, dtype, P: int) -> bool:
     """Whether the cache holds a loadable entry point (for the first-compile notice)."""
     return native_kernel(kind, dtype, P, build=False) is not None
@@ -303,6 +297,10 @@ def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
     folder = _folder()
     if folder is None or not _writable(folder):
         return None
+    from mehs.synthesis._numba_cache import notice_compiling
+
+    # a first-ever run compiles for seconds: say so instead of looking hung
+    notice_compiling("the synthesis kernels")
     try:
         key, stem = _key(kind, dtype, P)
         obj, symbol, undefined = _compile(kind, dtype, P)

@@ -358,13 +358,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     if kind is not None and same_dtype:
         from mehs.synthesis import _native
 
-        if _native.supported(kind, kdtype, P):
-            if not _native.is_stored(kind, kdtype, P) and _native.can_store():
-                from mehs.synthesis._numba_cache import notice_compiling
-
-                notice_compiling("the synthesis kernels")
-            # machine code loaded without starting numba (None: numba's dispatcher below)
-            native = _native.native_kernel(kind, kdtype, P)
+        # machine code loaded without starting numba (None: numba's dispatcher below)
+        native = _native.native_kernel(kind, kdtype, P)
     kernel = native or _numba_kernel(kind, code)
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
