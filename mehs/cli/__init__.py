@@ -115,15 +115,9 @@ def reuse_heap() -> bool:
     commands' memory budget (:mod:`mehs.ssr.tiling`) models the default allocator.
     No-op (False) where the C library is not glibc.
     """
-    import ctypes
+    from mehs._heap import set_thresholds
 
-    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(M_MMAP_THRESHOLD, 256 << 20)) and bool(mallopt(M_TRIM_THRESHOLD,
-                                                                         512 << 20))
+    return set_thresholds(256 << 20, 512 << 20)
 
 
 def console() -> None:

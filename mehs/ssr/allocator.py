@@ -17,6 +17,8 @@ from typing import Iterator
 
 import numpy as np
 
+from mehs import _heap
+
 #: Resident memory per byte the memory probe counts, for a call on this many
 #: pixels or more (see :func:`allocator_overhead`).
 ALLOCATOR_OVERHEAD = 1.15
@@ -25,32 +27,11 @@ HEAP_PIXELS = 1_200_000
 #: Resident bytes per counted byte of a call run inside :func:`reused_heap`.
 HEAP_REUSE_OVERHEAD = 1.7
 
-# glibc's mallopt parameters
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 #: What the dynamic thresholds settle at in a process that has freed a large block
 #: (glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64-bit, and twice that for trimming):
 #: where :func:`reused_heap` leaves them.
 _SETTLED_MMAP, _SETTLED_TRIM = 32 << 20, 64 << 20
 _REUSE = 1 << 30
-
-_LIBC: list = []
-
-
-def _libc():
-    if not _LIBC:
-        fns = None
-        try:
-            import ctypes
-
-            libc = ctypes.CDLL("libc.so.6")
-            trim, mallopt = libc.malloc_trim, libc.mallopt
-            trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-            mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-            fns = (trim, mallopt)
-        except (OSError, AttributeError):      # not glibc
-            pass
-        _LIBC.append(fns)
-    return _LIBC[0]
 
 
 def trim_heap() -> None:
@@ -60,9 +41,7 @@ def trim_heap() -> None:
     run that is up to a few hundred MB the next tile could reuse, but that the
     resident-memory figure counts as held.
     """
-    fns = _libc()
-    if fns is not None:
-        fns[0](0)
+    _heap.trim()
 
 
 def allocator_overhead(pixels: float) -> float:
@@ -98,7 +77,7 @@ def heap_reuse_overhead(pixels: float) -> float:
 
 def heap_reuse_available() -> bool:
     """Whether :func:`reused_heap` can act here (glibc)."""
-    return _libc() is not None
+    return _heap.available()
 
 
 @contextlib.contextmanager
@@ -117,16 +96,11 @@ def reused_heap(enable: bool = True) -> Iterator[bool]:
     heap's free memory is returned (``malloc_trim``). Yields whether it acted
     (False with ``enable=False`` or without glibc).
     """
-    fns = _libc() if enable else None
-    if fns is None:
+    if not (enable and _heap.set_thresholds(_REUSE, _REUSE)):
         yield False
         return
-    mallopt = fns[1]
-    mallopt(_M_MMAP_THRESHOLD, _REUSE)
-    mallopt(_M_TRIM_THRESHOLD, _REUSE)
     try:
         yield True
     finally:
-        mallopt(_M_MMAP_THRESHOLD, _SETTLED_MMAP)
-        mallopt(_M_TRIM_THRESHOLD, _SETTLED_TRIM)
-        trim_heap()
+        _heap.set_thresholds(_SETTLED_MMAP, _SETTLED_TRIM)
+        _heap.trim()
