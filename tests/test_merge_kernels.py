@@ -19,11 +19,11 @@ def test_vectorised_exp_matches_numpy():
 
     x = np.concatenate([np.linspace(-80, 80, 200001), [0.0, -0.0, 1e-30, -1e-30]]).astype(np.float32)
     out = np.empty_like(x)
-    _exp_row(x, out, np.empty(x.size, np.int32))
+    _exp_row(x, out)
     ref = np.exp(x.astype(np.float64))
     assert np.max(np.abs(out - ref) / ref) < 2.5e-7           # ≤ 2 ulp of float32
     special = np.array([np.nan, 100.0, -100.0], np.float32)
-    got = _exp_row(special, np.empty(3, np.float32), np.empty(3, np.int32))
+    got = _exp_row(special, np.empty(3, np.float32))
     assert np.isnan(got[0]) and got[1] == np.inf and got[2] == 0.0
 
 
@@ -35,20 +35,19 @@ def test_vectorised_log_accumulation_matches_numpy():
     num = np.zeros(x.size, np.float32)
     den = np.zeros(x.size, np.float32)
     lt = np.float32(1.25)
-    _log_accumulate_row(x, w, lt, num, den, np.empty(x.size, np.float32),
-                        np.empty(x.size, np.int32))
+    _log_accumulate_row(x, w, lt, num, den)
     ref = w.astype(np.float64) * (np.log(x.astype(np.float64)) - 1.25)
     np.testing.assert_allclose(num, ref, rtol=3e-6, atol=1e-5)
     np.testing.assert_array_equal(den, w)
 
 
-def test_scalar_cephes_forms_give_the_row_forms_bits():
-    """The one-pass kernels' scalar ``logf`` / ``expf`` (bit views through LLVM bitcasts)
-    return the row forms' bits, and stay within 2 ulp of float64 numpy."""
+def test_scalar_cephes_forms_match_numpy_over_the_float_range():
+    """The scalar ``logf`` / ``expf`` (bit views through LLVM bitcasts) that both the
+    one-pass kernels and the row forms use: within 2 ulp of float64 numpy from the
+    smallest normal to the largest float, and on the special values."""
     from numba import njit
 
     from mehs.synthesis._cephes import expf, logf
-    from mehs.synthesis._merge_kernels import _exp_row, _log_accumulate_row
 
     @njit
     def logs(x, o):
@@ -65,10 +64,6 @@ def test_scalar_cephes_forms_give_the_row_forms_bits():
                         np.arange(0.5, 4096, 0.5)]).astype(np.float32)
     got = np.empty_like(x)
     logs(x, got)
-    num = np.zeros_like(x)
-    _log_accumulate_row(x, np.ones_like(x), np.float32(0), num, np.zeros_like(x),
-                        np.empty_like(x), np.empty(x.size, np.int32))
-    np.testing.assert_array_equal(got.view(np.int32), num.view(np.int32))
     ref = np.log(x.astype(np.float64))
     big = np.abs(ref) > 1e-3
     assert np.max(np.abs(got[big] - ref[big]) / np.abs(ref[big])) < 2.5e-7
@@ -76,8 +71,6 @@ def test_scalar_cephes_forms_give_the_row_forms_bits():
                         [np.nan, np.inf, -200.0, 0.0, -0.0, 1e-30]]).astype(np.float32)
     got = np.empty_like(y)
     exps(y, got)
-    row = _exp_row(y, np.empty_like(y), np.empty(y.size, np.int32))
-    np.testing.assert_array_equal(got.view(np.int32), row.view(np.int32))
     fin = np.abs(y) < 80
     ref = np.exp(y[fin].astype(np.float64))
     assert np.max(np.abs(got[fin] - ref) / ref) < 2.5e-7

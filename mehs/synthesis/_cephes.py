@@ -4,8 +4,9 @@ pip's llvmlite has no SVML, so ``math.log`` in a compiled loop is a libm call pe
 sample and the loop stays scalar. These are the Cephes polynomials (≤ 2 ulp) with
 ``frexp`` / ``ldexp`` done on the float's bits through LLVM ``bitcast``
 (:func:`f32_bits`, :func:`f32_from_bits`): no call, no memory, so a loop that uses
-them vectorises like plain arithmetic. They give the same bits as the row forms
-:func:`mehs.synthesis._merge_rows._exp_row` and ``_log_accumulate_row`` (tested).
+them vectorises like plain arithmetic. The stage kernels' row forms
+(:func:`mehs.synthesis._merge_rows._exp_row`, ``_log_accumulate_row``) are loops over
+them, so the one-pass and the stage kernels take the same ``ln`` and ``exp``.
 
 References
 ----------

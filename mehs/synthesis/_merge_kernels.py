@@ -156,7 +156,6 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
         om = np.empty((P, ns), dtype=np.float32)
         cs = np.empty((P, ns), dtype=np.float32)
         lev = np.zeros((P, ns), dtype=np.int32)
-        kbuf = np.empty(ns, dtype=np.int32)
         scratch = np.empty((16, ns), dtype=np.float32)
         sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa, XP, q, ex, lv, gz = (
             scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5],
@@ -231,7 +230,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                             w = okj[i] * (min(lvi, top - lvi) / hmid)
                             omj[i] = w if yv > fl else f0
                             gz[i] = max(lvi, half)
-                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                        _log_accumulate_row(gz, omj, lt, num, den)
                         continue
                     if linear:
                         for i in range(ns):
@@ -252,11 +251,11 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                         # ln y of the linearised sample (positive wherever w > 0)
                         for i in range(ns):
                             gz[i] = yj[i] if omj[i] > f0 else f1
-                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                        _log_accumulate_row(gz, omj, lt, num, den)
                     elif lin_g:
                         for i in range(ns):
                             gz[i] = max(lv[i], half)
-                        _log_accumulate_row(gz, omj, lt, num, den, ex, kbuf)
+                        _log_accumulate_row(gz, omj, lt, num, den)
                     else:
                         # g of the integer level, a table look-up
                         gl = glut[cb]
@@ -268,7 +267,7 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                 for i in range(ns):
                     dn = den[i]
                     q[i] = num[i] / dn if dn > f0 else f0
-                _exp_row(q, ex, kbuf)
+                _exp_row(q, ex)
                 for i in range(ns):
                     # both loaded first: a load on one arm only does not vectorise
                     xo = X[i]

@@ -3,11 +3,11 @@
 Used by :mod:`mehs.synthesis._merge_kernels` (the weighted methods, and the Poisson merge
 of a non-linear sensor): sample selection, pooled estimate, fallback, consistency
 statistic, output, each a loop over the row's contiguous samples with selects only, so
-that LLVM vectorises it; and the float32 Cephes ``expf`` / ``logf`` written to vectorise
-(pip's llvmlite has no SVML, and a libm call per sample kept the loops scalar). The
-stages are inlined at numba level into the kernels (``inline="always"``), so that LLVM
-sees each row's scratch as distinct arrays (as separate functions the aliasing checks
-defeated it: 6× slower). ``fastmath`` stays off: the merge must give the same numbers as
+that LLVM vectorises it; ``exp`` / ``ln`` of a row through the Cephes forms of
+:mod:`mehs.synthesis._cephes` (pip's llvmlite has no SVML, and a libm call per sample
+kept the loops scalar). The stages are inlined at numba level into the kernels
+(``inline="always"``), so that LLVM sees each row's scratch as distinct arrays (as
+separate functions the aliasing checks defeated it: 6× slower). ``fastmath`` stays off: the merge must give the same numbers as
 the reference formulas, and NaN/inf checks must not be optimised away.
 
 The constants here are shared with :mod:`mehs.synthesis._merge_fused`.
@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from mehs.synthesis._cephes import expf, logf
 
 # Merge method codes shared with mehs.synthesis.merge.
 DEBEVEC, ROBERTSON, POISSON, INVVAR = 0, 1, 2, 3
@@ -32,74 +34,25 @@ CENSOR_SIGMA2 = np.float32(25.0)
 #: exceeds this multiple of the sample's own variance at saturation (σ ratio 2)
 PREDICTION_NOISIER2 = np.float32(4.0)
 
-_LOG2E = np.float32(1.44269504088896341)
-_LN2_HI = np.float32(0.693359375)
-_LN2_LO = np.float32(-2.12194440e-4)
-
-
 @njit(cache=True, inline="always", error_model="numpy")
-def _exp_row(x, out, kbuf):
-    """``out = exp(x)`` in float32, elementwise, vectorisable (Cephes ``expf``, ≤ 2 ulp).
-
-    ``2**k`` is assembled from its exponent bits in the int32 scratch ``kbuf``
-    (viewed as float32), so neither loop calls into libm.
-    """
-    n = x.shape[0]
-    f0 = np.float32(0.0)
-    f1 = np.float32(1.0)
-    half = np.float32(0.5)
-    lo = np.float32(-126.0)
-    hi = np.float32(128.0)
-    for i in range(n):
-        v = x[i]
-        k = np.floor(v * _LOG2E + half)
-        k = min(max(k, lo - f1), hi)
-        r = (v - k * _LN2_HI) - k * _LN2_LO
-        z = r * r
-        p = ((((np.float32(1.9875691500e-4) * r + np.float32(1.3981999507e-3)) * r
-               + np.float32(8.3334519073e-3)) * r + np.float32(4.1665795894e-2)) * r
-             + np.float32(1.6666665459e-1)) * r + np.float32(5.0000001201e-1)
-        out[i] = p * z + r + f1
-        # k = -127 → exponent bits 0 → 0.0 (underflow); k = 128 → inf
-        kbuf[i] = (np.int32(k) + np.int32(127)) << np.int32(23)
-    scale = kbuf.view(np.float32)
-    for i in range(n):
-        o = max(out[i] * scale[i], f0)
-        out[i] = o if x[i] == x[i] else x[i]     # NaN stays NaN
+def _exp_row(x, out):
+    """``out = exp(x)`` in float32, elementwise, vectorisable (Cephes ``expf``, ≤ 2 ulp;
+    :func:`mehs.synthesis._cephes.expf`, which calls into no libm)."""
+    for i in range(x.shape[0]):
+        out[i] = expf(x[i])
     return out
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _log_accumulate_row(x, w, lt, num, den, ebuf, kbuf):
+def _log_accumulate_row(x, w, lt, num, den):
     """``num += w·(ln x − lt)``, ``den += w``, for positive, finite, normal ``x``.
 
-    ``ln`` is Cephes ``logf`` (≤ 2 ulp), vectorisable: the exponent and mantissa
-    are split through int32 views (``frexp``), so no libm call is made per sample.
+    ``ln`` is Cephes ``logf`` (≤ 2 ulp; :func:`mehs.synthesis._cephes.logf`, its
+    ``frexp`` through a bitcast), so the loop vectorises.
     """
-    n = x.shape[0]
-    xb = x.view(np.int32)
-    for i in range(n):
-        b = xb[i]
-        ebuf[i] = np.float32((b >> np.int32(23)) - np.int32(126))
-        kbuf[i] = (b & np.int32(0x007FFFFF)) | np.int32(0x3F000000)
-    m = kbuf.view(np.float32)
-    f1 = np.float32(1.0)
-    for i in range(n):
-        mi = m[i]
-        small = mi < np.float32(0.707106781186547524)
-        e = ebuf[i] - (f1 if small else np.float32(0.0))
-        v = (mi + mi - f1) if small else (mi - f1)
-        z = v * v
-        y = ((((((((np.float32(7.0376836292e-2) * v - np.float32(1.1514610310e-1)) * v
-                   + np.float32(1.1676998740e-1)) * v - np.float32(1.2420140846e-1)) * v
-                 + np.float32(1.4249322787e-1)) * v - np.float32(1.6668057665e-1)) * v
-               + np.float32(2.0000714765e-1)) * v - np.float32(2.4999993993e-1)) * v
-             + np.float32(3.3333331174e-1)) * v * z
-        y += e * _LN2_LO
-        y += np.float32(-0.5) * z
-        ln = v + y + e * _LN2_HI
+    for i in range(x.shape[0]):
         wi = w[i]
-        num[i] += wi * (ln - lt)
+        num[i] += wi * (logf(x[i]) - lt)
         den[i] += wi
 
 
