@@ -32,6 +32,30 @@ from mehs.synthesis._merge_rows import (CENSOR_SIGMA2, DEBEVEC, INVVAR, PREDICTI
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _level(v, top):
+    """The integer level of ``v`` (rounded, clipped to ``[0, top]``), as float32."""
+    return np.float32(np.int32(min(max(v + np.float32(0.5), np.float32(0.0)), top)))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _method_weight(method, okj, yj, xp, tj, aj, g32, top, hmid, fl):
+    """The stage kernel's weight of sample ``j`` (usable: ``okj`` = 1) for ``method``.
+
+    Debevec: the hat of the sample's level, zero at or below the floor (``ln y`` needs
+    ``y > 0``); Robertson: the hat of the *expected* level ``X·t`` (the sample's own
+    would favour upward noise) times ``t²``; inverse variance: ``t² / var(X·t)``.
+    """
+    if method == DEBEVEC:
+        lvi = _level(yj, top)
+        w = okj * (min(lvi, top - lvi) / hmid)
+        return w if yj > fl else np.float32(0.0)
+    if method == ROBERTSON:
+        lvi = _level(xp * tj, top)
+        return okj * (min(lvi, top - lvi) / hmid) * tj * tj
+    return okj * tj * tj / (g32 * xp * tj + aj)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, method,
                     want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
     """Debevec / Robertson / inverse-variance merge of a chunk of lines (BIL), linear sensor.
@@ -58,7 +82,6 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
     fP = np.float32(P)
     two = np.float32(2.0)
     deb = method == DEBEVEC
-    rob = method == ROBERTSON
     for l in range(nl):
         ol_ = out[l]
         snr_l, msum_l, nvalid_l, nsat_l = snr[l], msum[l], nvalid[l], nsat[l]
@@ -132,25 +155,15 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                     tj = times[j]
                     okj = f1 if (okm >> j) & 1 else f0
                     yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                    w = _method_weight(method, okj, yj, xp, tj, avar[j], g32, top, hmid, fl)
                     if deb:
-                        # g of the integer level z = ln max(z, ½), hat weight of z
-                        lvi = np.float32(np.int32(min(max(yj + half, f0), top)))
-                        w = okj * (min(lvi, top - lvi) / hmid)
-                        w = w if yj > fl else f0
-                        # (ln t_j as the stage kernel takes it; LLVM hoists it. No scratch array: the
-                        # kernel allocates nothing, see mehs.synthesis._native)
-                        num += w * (logf(max(lvi, half)) - np.float32(np.log(tj)))
-                        den += w
-                    elif rob:
-                        # the level weight of the *expected* level X·t (not the sample's)
-                        lvi = np.float32(np.int32(min(max(xp * tj + half, f0), top)))
-                        w = okj * (min(lvi, top - lvi) / hmid) * tj * tj
-                        num += w * yj / tj
-                        den += w
+                        # g of the integer level z = ln max(z, ½). (ln t_j as the stage kernel
+                        # takes it; LLVM hoists it. No scratch array: the kernel allocates
+                        # nothing, see mehs.synthesis._native)
+                        num += w * (logf(max(_level(yj, top), half)) - np.float32(np.log(tj)))
                     else:
-                        w = okj * tj * tj / (g32 * xp * tj + avar[j])
                         num += w * yj / tj
-                        den += w
+                    den += w
                 if deb:
                     q = num / den if den > f0 else f0
                     xe = expf(q)
@@ -169,16 +182,8 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                     aj = avar[j]
                     okj = f1 if (okm >> j) & 1 else f0
                     yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
-                    if deb:
-                        lvi = np.float32(np.int32(min(max(yj + half, f0), top)))
-                        w = okj * (min(lvi, top - lvi) / hmid)
-                        w = w if yj > fl else f0
-                    elif rob:
-                        lvi = np.float32(np.int32(min(max(xp * tj + half, f0), top)))
-                        w = okj * (min(lvi, top - lvi) / hmid) * tj * tj
-                    else:
-                        w = okj * tj * tj / (g32 * xp * tj + aj)
-                    w = okj * tj if pooled_w else w
+                    w = (okj * tj if pooled_w
+                         else _method_weight(method, okj, yj, xp, tj, aj, g32, top, hmid, fl))
                     v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
                     snum += okj * w
                     sden += okj * w * w * v
