@@ -22,7 +22,52 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mehs.synthesis._merge_rows import CENSOR_SIGMA2, PREDICTION_NOISIER2, ROOM_SIGMA2
+from mehs.synthesis._merge_rows import _usable
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _consistency(zs, l, a, i, darks, s, times, avar, g32, rel32, xp, okm, cm):
+    """The stage kernel's consistency statistic of one sample (``_chi2_sums``,
+    ``_chi2_censored``): ``Σw(x − x̄)²`` over the usable exposures (bit mask ``okm``)
+    about their inverse-variance mean, ``w`` from the pooled estimate ``xp ≥ 0``, plus
+    the censored residuals (bit mask ``cm``). One value out: numba inlines it and the
+    sample loop still vectorises."""
+    P = len(zs)
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    sw = f0
+    swx = f0
+    swx2 = f0
+    for j in range(P):
+        tj = times[j]
+        itj = f1 / tj
+        itj2 = itj * itj
+        w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
+        okj = f1 if (okm >> j) & 1 else f0
+        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+        wx = okj * w * (yj * itj)
+        if j == 0:
+            sw = okj * w
+            swx = wx
+            swx2 = wx * (yj * itj)
+        else:
+            sw += okj * w
+            swx += wx
+            swx2 += wx * (yj * itj)
+    mean = swx / sw if sw > f0 else f0
+    v = swx2 - swx * mean
+    q = v if v > f0 else f0
+    if cm != 0:
+        # a sample saturated where the others predicted it well below
+        for j in range(1, P):
+            if (cm >> j) & 1:
+                tj = times[j]
+                itj = f1 / tj
+                itj2 = itj * itj
+                w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
+                r = (s - darks[j, a, i]) * itj - mean
+                q += w * r * r if r > f0 else f0
+    return q
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -39,9 +84,6 @@ def merge_chunk_poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, 
     f1 = np.float32(1.0)
     g32 = np.float32(gain)
     rel32 = np.float32(rel_var)
-    k2u = ROOM_SIGMA2
-    k2c = CENSOR_SIGMA2
-    k2p = PREDICTION_NOISIER2
     inf32 = np.float32(np.inf)
     fP = np.float32(P)
     two = np.float32(2.0)
@@ -81,19 +123,7 @@ def merge_chunk_poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, 
                         nv = o
                     else:
                         ys = s - d
-                        sti = st
-                        syi = max(sy, f0)
-                        room = ys * sti - syi * tj
-                        vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav)
-                        r2 = room * room
-                        pos = room > f0
-                        unsat = r_ < s
-                        vown = g32 * max(ys, f0) + aj
-                        marg = ys - yv
-                        own = ((vp > k2p * vown * sti * sti) & (marg > f0)
-                               & (marg * marg > k2u * vown))
-                        o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
-                        c = (r_ >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                        o, c = _usable(r_, yv, ys, s, tj, tj2, aj, g32, sy, st, sav)
                         # (a censored level of exactly 0 counts as none, as in the stage kernel)
                         cb = c & (ys != f0)
                         cm |= (1 << j) if cb else 0
@@ -117,39 +147,8 @@ def merge_chunk_poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, 
                 # -- the consistency statistic about the inverse-variance mean
                 q = f0
                 if want_chi2:
-                    xp = max(xi, f0)
-                    sw = f0
-                    swx = f0
-                    swx2 = f0
-                    for j in range(P):
-                        tj = times[j]
-                        itj = f1 / tj
-                        itj2 = itj * itj
-                        w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
-                        okj = f1 if (okm >> j) & 1 else f0
-                        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
-                        wx = okj * w * (yj * itj)
-                        if j == 0:
-                            sw = okj * w
-                            swx = wx
-                            swx2 = wx * (yj * itj)
-                        else:
-                            sw += okj * w
-                            swx += wx
-                            swx2 += wx * (yj * itj)
-                    mean = swx / sw if sw > f0 else f0
-                    v = swx2 - swx * mean
-                    q = v if v > f0 else f0
-                    if cm != 0:
-                        # a sample saturated where the others predicted it well below
-                        for j in range(1, P):
-                            if (cm >> j) & 1:
-                                tj = times[j]
-                                itj = f1 / tj
-                                itj2 = itj * itj
-                                w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
-                                r = (s - darks[j, a, i]) * itj - mean
-                                q += w * r * r if r > f0 else f0
+                    q = _consistency(zs, l, a, i, darks, s, times, avar, g32, rel32,
+                                     max(xi, f0), okm, cm)
                 # -- write (the stage kernel's _write_row)
                 fin = (xi > -inf32) & (xi < inf32)
                 xo = xi if fin & (xi >= f0) else f0

@@ -14,11 +14,10 @@ hat weighting, computed rather than looked up (a look-up per sample is a gather)
 Any other curve or weighting keeps the stage kernel.
 
 The arithmetic is the stage kernel's expression for expression, in the same order,
-so the numbers are the same to the bit (tested). The sample selection and the
-consistency statistic repeat :func:`mehs.synthesis._merge_fused.merge_chunk_poisson_linear`'s:
-sharing them through a helper function, even one numba inlines, stopped LLVM from
-vectorising the sample loop (10–25× slower), and the bit-equality tests of both
-kernels against the stage kernel keep the copies in step.
+so the numbers are the same to the bit (tested). The choice of each exposure and the
+consistency statistic are the helpers the Poisson kernel uses
+(:func:`mehs.synthesis._merge_rows._usable`, :func:`mehs.synthesis._merge_fused._consistency`),
+inlined by numba.
 """
 
 from __future__ import annotations
@@ -27,8 +26,8 @@ import numpy as np
 from numba import njit
 
 from mehs.synthesis._cephes import expf, logf
-from mehs.synthesis._merge_rows import (CENSOR_SIGMA2, DEBEVEC, INVVAR, PREDICTION_NOISIER2,
-                                        ROBERTSON, ROOM_SIGMA2)
+from mehs.synthesis._merge_fused import _consistency
+from mehs.synthesis._merge_rows import DEBEVEC, INVVAR, ROBERTSON, _usable
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -75,9 +74,6 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
     fl = np.float32(floor)
     g32 = np.float32(gain)
     rel32 = np.float32(rel_var)
-    k2u = ROOM_SIGMA2
-    k2c = CENSOR_SIGMA2
-    k2p = PREDICTION_NOISIER2
     inf32 = np.float32(np.inf)
     fP = np.float32(P)
     two = np.float32(2.0)
@@ -118,19 +114,7 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                         nv = o
                     else:
                         ys = s - d
-                        sti = st
-                        syi = max(sy, f0)
-                        room = ys * sti - syi * tj
-                        vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav)
-                        r2 = room * room
-                        pos = room > f0
-                        unsat = r_ < s
-                        vown = g32 * max(ys, f0) + aj
-                        marg = ys - yv
-                        own = ((vp > k2p * vown * sti * sti) & (marg > f0)
-                               & (marg * marg > k2u * vown))
-                        o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
-                        c = (r_ >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                        o, c = _usable(r_, yv, ys, s, tj, tj2, aj, g32, sy, st, sav)
                         cb = c & (ys != f0)
                         cm |= (1 << j) if cb else 0
                         sy += o * yv
@@ -190,37 +174,7 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                 # -- the consistency statistic about the pooled estimate (as Poisson)
                 qc = f0
                 if want_chi2:
-                    sw = f0
-                    swx = f0
-                    swx2 = f0
-                    for j in range(P):
-                        tj = times[j]
-                        itj = f1 / tj
-                        itj2 = itj * itj
-                        w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
-                        okj = f1 if (okm >> j) & 1 else f0
-                        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
-                        wx = okj * w * (yj * itj)
-                        if j == 0:
-                            sw = okj * w
-                            swx = wx
-                            swx2 = wx * (yj * itj)
-                        else:
-                            sw += okj * w
-                            swx += wx
-                            swx2 += wx * (yj * itj)
-                    mean = swx / sw if sw > f0 else f0
-                    v = swx2 - swx * mean
-                    qc = v if v > f0 else f0
-                    if cm != 0:
-                        for j in range(1, P):
-                            if (cm >> j) & 1:
-                                tj = times[j]
-                                itj = f1 / tj
-                                itj2 = itj * itj
-                                w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
-                                r = (s - darks[j, a, i]) * itj - mean
-                                qc += w * r * r if r > f0 else f0
+                    qc = _consistency(zs, l, a, i, darks, s, times, avar, g32, rel32, xp, okm, cm)
                 # -- write (the stage kernel's _write_row)
                 fin = (xm > -inf32) & (xm < inf32)
                 xo = xm if fin & (xm >= f0) else f0

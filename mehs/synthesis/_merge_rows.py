@@ -57,6 +57,40 @@ def _log_accumulate_row(x, w, lt, num, den):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _usable(raw, yv, ys, s, tj, tj2, aj, g32, sy, st, sav):
+    """Whether exposure j ≥ 1 of one sample is used, and whether it is censored.
+
+    ``raw`` its DN, ``yv`` its linearised value, ``ys`` the linearised saturation level,
+    ``s`` the raw one; ``sy``, ``st``, ``sav`` the running Σy, Σt and Σ zero-signal
+    variance of the shorter exposures' usable samples. Returns ``(o, c)``: ``o`` 1.0
+    if used (else 0.0); ``c`` True when the sample saturated although the shorter
+    exposures predict it ``5σ`` below saturation. Scalars in, a pair out: numba
+    inlines it into each kernel's sample loop and LLVM still vectorises the loop (a
+    helper that returned a sample's whole running state, nine values, did stop it).
+    """
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    syi = max(sy, f0)
+    # (ysat − predicted y)·Σt and the prediction's variance·(Σt)²
+    room = ys * st - syi * tj
+    vp = g32 * syi * tj * st + aj * st * st + tj2 * (g32 * syi + sav)
+    r2 = room * room
+    pos = room > f0
+    unsat = raw < s
+    # a prediction from exposures ×50–×200 shorter is far noisier than the sample
+    # itself: then its own 3σ margin below saturation decides (a bias confined to a 3σ
+    # band under saturation, instead of dropping every long sample whose short
+    # prediction happened to be high)
+    vown = g32 * max(ys, f0) + aj
+    marg = ys - yv
+    own = ((vp > PREDICTION_NOISIER2 * vown * st * st) & (marg > f0)
+           & (marg * marg > ROOM_SIGMA2 * vown))
+    o = f1 if unsat & ((st == f0) | (pos & (r2 > ROOM_SIGMA2 * vp)) | own) else f0
+    c = (raw >= s) & (st > f0) & pos & (r2 > CENSOR_SIGMA2 * vp)
+    return o, c
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L, g32,
                 y, ok, cs, lev, ysat, sy, st, st2, sav, nv, nc):
     """Choose the usable samples of row ``l``, band ``a``; return True if any is censored.
@@ -79,9 +113,6 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
     ns = sy.shape[0]
     f0 = np.float32(0.0)
     f1 = np.float32(1.0)
-    k2u = ROOM_SIGMA2
-    k2c = CENSOR_SIGMA2
-    k2p = PREDICTION_NOISIER2
     if not linear:
         # (the linear path's first exposure writes the sums instead of adding)
         for i in range(ns):
@@ -128,18 +159,7 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
                 yv = raw - d
                 yj[i] = yv
                 ys = s - d
-                sti = st[i]
-                syi = max(sy[i], f0)
-                room = ys * sti - syi * tj
-                vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
-                r2 = room * room
-                pos = room > f0
-                unsat = raw < s
-                vown = g32 * max(ys, f0) + aj
-                marg = ys - yv
-                own = (vp > k2p * vown * sti * sti) & (marg > f0) & (marg * marg > k2u * vown)
-                o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
-                c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                o, c = _usable(raw, yv, ys, s, tj, tj2, aj, g32, sy[i], st[i], sav[i])
                 csj[i] = ys if c else f0
                 ncens = ncens | c
                 okj[i] = o
@@ -168,23 +188,7 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
                 raw = np.float32(zr[i])
                 yv = yj[i]
                 ys = ysat[i]
-                sti = st[i]
-                syi = max(sy[i], f0)
-                # (ysat − predicted y)·Σt and the prediction's variance·(Σt)²
-                room = ys * sti - syi * tj
-                vp = g32 * syi * tj * sti + aj * sti * sti + tj2 * (g32 * syi + sav[i])
-                r2 = room * room
-                pos = room > f0
-                unsat = raw < s
-                # a prediction from exposures ×50–×200 shorter is far noisier than
-                # the sample itself: then its own 3σ margin below saturation decides
-                # (a bias confined to a 3σ band under saturation, instead of dropping
-                # every long sample whose short prediction happened to be high)
-                vown = g32 * max(ys, f0) + aj
-                marg = ys - yv
-                own = (vp > k2p * vown * sti * sti) & (marg > f0) & (marg * marg > k2u * vown)
-                o = f1 if unsat & ((sti == f0) | (pos & (r2 > k2u * vp)) | own) else f0
-                c = (raw >= s) & (sti > f0) & pos & (r2 > k2c * vp)
+                o, c = _usable(raw, yv, ys, s, tj, tj2, aj, g32, sy[i], st[i], sav[i])
                 csj[i] = ys if c else f0
                 ncens = ncens | c
                 okj[i] = o
