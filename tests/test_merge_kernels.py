@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _checks import assert_same_merge_bits
 
 from mehs.synthesis.merge import merge_bracket
 from mehs.synthesis.response import ResponseCurve
@@ -161,12 +162,7 @@ def test_one_pass_poisson_kernel_equals_the_stage_kernel_to_the_bit(seed, P, con
     ref = merge_bracket(stack, t, **kw)
     if consistency:
         assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
-    for k in ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance"):
-        a = np.ascontiguousarray(getattr(fused, k))
-        b = np.ascontiguousarray(getattr(ref, k))
-        assert a.dtype == b.dtype
-        np.testing.assert_array_equal(a.view(np.uint8) if a.dtype.kind == "f" else a,
-                                      b.view(np.uint8) if b.dtype.kind == "f" else b, err_msg=k)
+    assert_same_merge_bits(fused, ref)
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -205,9 +201,4 @@ def test_one_pass_weighted_kernel_equals_the_stage_kernel_to_the_bit(seed, P, me
     assert seen                                                # the one-pass kernel was used
     if consistency:
         assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
-    for k in ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance"):
-        a = np.ascontiguousarray(getattr(fused, k))
-        b = np.ascontiguousarray(getattr(ref, k))
-        assert a.dtype == b.dtype
-        np.testing.assert_array_equal(a.view(np.uint8) if a.dtype.kind == "f" else a,
-                                      b.view(np.uint8) if b.dtype.kind == "f" else b, err_msg=k)
+    assert_same_merge_bits(fused, ref)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _checks import assert_same_merge_bits
 
 from mehs.synthesis.merge import NoiseModel, merge_bracket
 
@@ -34,17 +35,6 @@ def _bracket(P, dtype=np.uint16, seed=0):
         stack.append(np.clip(np.rint(x), 0, 4095).astype(dtype))
     darks = [np.full((17, 6), 60.0) + rng.normal(0, 1, (17, 6)) for _ in range(P)]
     return stack, t, darks
-
-
-def _fields(r):
-    return [np.ascontiguousarray(getattr(r, k)) for k in
-            ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance")]
-
-
-def _same_bits(a, b):
-    for x, y in zip(_fields(a), _fields(b)):
-        assert x.dtype == y.dtype
-        np.testing.assert_array_equal(x.view(np.uint8), y.view(np.uint8))
 
 
 @pytest.fixture()
@@ -67,7 +57,7 @@ def test_stored_kernel_gives_the_numba_kernels_bits(cache, monkeypatch, method, 
     assert _native.is_stored(kind, dtype, P)                    # the native path ran
     assert len(list(cache.glob(f"{kind}-*.o"))) == 1
     monkeypatch.setenv("MEHS_CACHE_DIR", "")                    # numba's dispatcher
-    _same_bits(stored, merge_bracket(stack, t, **kw))
+    assert_same_merge_bits(stored, merge_bracket(stack, t, **kw))
 
 
 def test_a_warm_process_merges_without_starting_numba(cache):
@@ -123,7 +113,7 @@ def test_a_damaged_or_foreign_entry_is_never_loaded(cache, monkeypatch, damage):
         meta.write_text(json.dumps(m))
     _reset(monkeypatch)
     assert not _native.is_stored("poisson_linear", np.uint16, 3)
-    _same_bits(first, merge_bracket(stack, t, darks=darks))    # compiled anew
+    assert_same_merge_bits(first, merge_bracket(stack, t, darks=darks))    # compiled anew
     assert _native.is_stored("poisson_linear", np.uint16, 3)
     _reset(monkeypatch)
     assert _native.is_stored("poisson_linear", np.uint16, 3)    # and stored again
@@ -180,7 +170,7 @@ def test_unsupported_raw_types_and_no_cache_use_numba(cache, monkeypatch):
     assert _native.supported("poisson_linear", np.uint16, 3)
     swapped = np.dtype(np.uint16).newbyteorder()              # an ENVI file of the other order
     assert not _native.supported("poisson_linear", swapped, 3)
-    _same_bits(r, merge_bracket([s.astype(np.int64) for s in stack], t, darks=darks))
+    assert_same_merge_bits(r, merge_bracket([s.astype(np.int64) for s in stack], t, darks=darks))
 
 
 def test_numba_still_works_after_a_stored_kernel_bound_its_error_paths(cache, tmp_path):
@@ -225,7 +215,7 @@ def test_a_bracket_of_the_other_byte_order_merges_like_the_native_one(cache, mon
         monkeypatch.setenv("MEHS_CACHE_DIR", "")
     swapped = [s.astype(s.dtype.newbyteorder()) for s in stack]
     assert not swapped[0].dtype.isnative and np.array_equal(swapped[0], stack[0])
-    _same_bits(ref, merge_bracket(swapped, t, darks=darks))
+    assert_same_merge_bits(ref, merge_bracket(swapped, t, darks=darks))
 
 
 def test_a_cache_that_cannot_take_entries_compiles_nothing_extra(tmp_path, monkeypatch):
@@ -243,4 +233,4 @@ def test_a_cache_that_cannot_take_entries_compiles_nothing_extra(tmp_path, monke
     r = merge_bracket(stack, t, darks=darks)
     assert compiled == [] and blocker.is_file()
     monkeypatch.setenv("MEHS_CACHE_DIR", "")
-    _same_bits(r, merge_bracket(stack, t, darks=darks))
+    assert_same_merge_bits(r, merge_bracket(stack, t, darks=darks))

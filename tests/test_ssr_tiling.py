@@ -4,6 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from _checks import MALLINFO2, has_mallinfo2
 
 from mehs.errors import InputError
 from mehs.ssr.tiling import TilingPlan, plan_tiles, predict_tiled, tile_starts
@@ -452,13 +453,8 @@ def test_reused_heap_serves_arrays_from_the_heap_and_settles_after():
     import subprocess
     import sys
 
-    code = (
-        "import ctypes, numpy as np\n"
-        "libc = ctypes.CDLL('libc.so.6')\n"
-        "class M(ctypes.Structure):\n"
-        "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks',\n"
-        "               'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
-        "libc.mallinfo2.restype = M\n"
+    code = MALLINFO2 + (
+        "import numpy as np\n"
         "from mehs.ssr.allocator import reused_heap\n"
         "with reused_heap() as on:\n"
         "    a = np.ones(75_000_000, np.uint8)\n"
@@ -470,11 +466,7 @@ def test_reused_heap_serves_arrays_from_the_heap_and_settles_after():
         "b = np.ones(20_000_000, np.uint8); c = np.ones(40_000_000, np.uint8)\n"
         "m = libc.mallinfo2()\n"
         "print('AFTER', m.arena >= 20_000_000, 40_000_000 <= m.hblkhd < 60_000_000)\n")
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").mallinfo2
-    except (OSError, AttributeError):
+    if not has_mallinfo2():
         pytest.skip("not glibc ≥ 2.33")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from _checks import MALLINFO2, has_mallinfo2
 
 
 @pytest.mark.parametrize("n", [1, 9, 10, 11, 97, 4096, 10001])
@@ -134,13 +135,8 @@ def test_reuse_heap_serves_mid_sized_arrays_from_the_glibc_heap():
     import subprocess
     import sys
 
-    code = (
-        "import ctypes, numpy as np\n"
-        "libc = ctypes.CDLL('libc.so.6')\n"
-        "class M(ctypes.Structure):\n"
-        "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks',\n"
-        "               'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
-        "libc.mallinfo2.restype = M\n"
+    code = MALLINFO2 + (
+        "import numpy as np\n"
         "import sys\n"
         "if sys.argv[1] == 'on':\n"
         "    from mehs.cli import reuse_heap\n"
@@ -148,11 +144,7 @@ def test_reuse_heap_serves_mid_sized_arrays_from_the_glibc_heap():
         "a = np.ones(5_000_000, np.float32)\n"
         "m = libc.mallinfo2()\n"
         "print('MMAPPED', m.hblkhd >= 20_000_000, 'HEAP', m.arena >= 20_000_000)\n")
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").mallinfo2
-    except (OSError, AttributeError):
+    if not has_mallinfo2():
         pytest.skip("not glibc ≥ 2.33")
     off = subprocess.run([sys.executable, "-c", code, "off"], capture_output=True, text=True)
     on = subprocess.run([sys.executable, "-c", code, "on"], capture_output=True, text=True)

@@ -1,0 +1,40 @@
+"""Checks shared by several test files (imported as ``_checks``, like ``_simdevice``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: every output of :func:`mehs.synthesis.merge.merge_bracket` that is an array
+MERGE_FIELDS = ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance")
+
+
+def assert_same_merge_bits(got, ref) -> None:
+    """Two merge results hold the same dtypes and the same bytes in every output array."""
+    for k in MERGE_FIELDS:
+        a = np.ascontiguousarray(getattr(got, k))
+        b = np.ascontiguousarray(getattr(ref, k))
+        assert a.dtype == b.dtype, k
+        np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8), err_msg=k)
+
+
+#: Python source that defines ``libc`` and ``M`` (glibc's ``struct mallinfo2``) so that
+#: ``libc.mallinfo2()`` tells how much of the heap (``arena``) and of separate
+#: mappings (``hblkhd``) the process holds; for tests run in a fresh interpreter.
+MALLINFO2 = (
+    "import ctypes\n"
+    "libc = ctypes.CDLL('libc.so.6')\n"
+    "class M(ctypes.Structure):\n"
+    "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks', 'hblks',\n"
+    "               'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks', 'keepcost')]\n"
+    "libc.mallinfo2.restype = M\n")
+
+
+def has_mallinfo2() -> bool:
+    """glibc ≥ 2.33."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        return False
+    return True
