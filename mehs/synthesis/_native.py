@@ -1,4 +1,8 @@
-"""The one-pass merge kernels' machine code, kept and loaded without numba (issue 16).
+"""Compiled kernels' machine code, kept and loaded without numba (issue 16).
+
+The one-pass merge kernels and the photon-transfer passes (the noise model and
+linearity test of every ``mehs fuse``) are loaded this way.
+
 
 A warm ``mehs fuse`` spent 0.4–0.7 s of its ~1.4 s starting numba: importing it and
 setting up its CPU target before it could load a cached kernel, holding the GIL
@@ -34,27 +38,129 @@ import json
 import os
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 #: Bumped when the stored layout or the entry points' C signatures change.
-FORMAT = "mehs-native-kernel/1"
+FORMAT = "mehs-native-kernel/2"
 
-#: kernel name → (module, function, extra scalar arguments between ``times`` and ``gain``)
+#: A kernel's parameters, in order: ``(name, type)``. Types: ``"zs:N"`` a tuple of
+#: ``P`` raw-dtype arrays of ``N`` dimensions (one per exposure); ``"raw:N"`` one
+#: raw-dtype array; ``"<numpy type>:N"`` (``f4``, ``f8``, ``i4``, ``i8``, ``u1``, ``u2``) an array
+#: of ``N`` dimensions; ``"f4"``, ``"f8"``, ``"i8"``, ``"b1"`` scalars. An array reaches the
+#: C entry point as its data pointer followed by its shape.
+_MERGE_HEAD = (("zs", "zs:3"), ("darks", "f4:3"), ("sat", "f4:1"), ("times", "f4:1"))
+_MERGE_TAIL = (("gain", "f8"), ("avar", "f4:1"), ("rel_var", "f8"), ("cal", "f4:1"),
+               ("want_chi2", "b1"), ("clip", "b1"), ("output 0", "f4:3"), ("output 1", "f4:2"),
+               ("output 2", "i4:2"), ("output 3", "f4:2"), ("output 4", "i4:2"),
+               ("output 5", "i4:2"), ("output 6", "f4:2"))
+_WEIGHTED = _MERGE_HEAD + (("L", "i8"), ("floor", "f4")) + _MERGE_TAIL
+_MERGE_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_rows.py", "_cephes.py")
+_PTC_COMMON = (("y_j", "raw:2"), ("y_k", "raw:2"), ("raw_j", "f4:2"), ("raw_k", "f4:2"),
+               ("sat", "f4:1"), ("nbr", "i8:1"), ("cell_bits", "i8"), ("key_row", "i4:1"),
+               ("cp", "i4:1"), ("sat_row", "u1:1"), ("bp", "u1:1"))
+_PTC_SOURCES = ("_ptc_kernels.py", "_cephes.py")
+
+
+def _check_merge(P, args) -> None:
+    """The shapes the merge kernels assume (they index without bounds checks)."""
+    zs, darks, sat, times = args[:4]
+    out, *aux = args[-7:]
+    avar, cal = args[-12], args[-10]
+    nl, nb, ns = out.shape
+    for j, z in enumerate(zs):
+        if z.shape != (nl, nb, ns):
+            raise TypeError(f"native merge kernel: exposure {j} has shape {z.shape}, "
+                            f"the output {(nl, nb, ns)}")
+    for what, a, shape in (("darks", darks, (P, nb, ns)), ("sat", sat, (nb,)),
+                           ("times", times, (P,)), ("avar", avar, (P,)), ("cal", cal, (nb,))):
+        if a.shape != shape:
+            raise TypeError(f"native merge kernel: {what} must have shape {shape}")
+    for k, a in enumerate(aux, start=1):
+        if a.shape != (nl, ns):
+            raise TypeError(f"native merge kernel: output {k} must have shape {(nl, ns)}")
+
+
+def _check_ptc(args) -> None:
+    """The shapes the photon-transfer kernels assume."""
+    y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *scratch = args[:11]
+    n, nb = y_j.shape
+    if any(a.shape != (nb,) for a in scratch):
+        raise TypeError("native photon-transfer kernel: scratch rows must have one entry per band")
+    for what, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
+        if a.shape != (n, nb):
+            raise TypeError(f"native photon-transfer kernel: {what} must have shape {(n, nb)}")
+    if sat.shape != (nb,) or nbr.shape != (nb,) or (nb and not (0 <= nbr.min() and nbr.max() < nb)):
+        raise TypeError("native photon-transfer kernel: sat and nbr must have one entry per "
+                        "band, nbr naming bands")
+    if not 1 <= int(cell_bits) <= 24:
+        raise TypeError("native photon-transfer kernel: cell_bits must lie in 1..24")
+
+
+def _check_ptc_cells(P, args) -> None:
+    _check_ptc(args)
+    n, nb = args[0].shape
+    count_all, count_bad, span, step, cells, bad = args[11:]
+    ncells = 1 << int(args[6])
+    m = -(-n * nb // max(int(step), 1))
+    if (int(step) < 1 or count_all.shape != (2, ncells) or count_bad.shape != (ncells,)
+            or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
+        raise TypeError("native photon-transfer kernel: ptc_cells' outputs do not match "
+                        "its inputs")
+
+
+def _check_ptc_sums(P, args) -> None:
+    _check_ptc(args)
+    g_row, e_row, in_row, r, lo, table, med, lim, *acc = args[11:]
+    if any(a.shape != (args[0].shape[1],) for a in (g_row, e_row, in_row)):
+        raise TypeError("native photon-transfer kernel: scratch rows must have one entry per band")
+    groups = med.shape[0]
+    if lim.shape != (groups,) or any(a.shape != (groups,) for a in acc):
+        raise TypeError("native photon-transfer kernel: one value per group expected")
+    if int(lo) < 0 or int(lo) + table.shape[0] > (1 << int(args[6])):
+        raise TypeError("native photon-transfer kernel: the cell table lies outside the cells")
+    if table.size and int(table.max()) >= groups:
+        raise TypeError("native photon-transfer kernel: the cell table names unknown groups")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A kernel with a stored entry point: where it lives, its parameters, the source
+    files its machine code depends on (besides this module) and a shape check."""
+
+    module: str
+    function: str
+    params: tuple
+    sources: tuple
+    check: Callable
+    per_exposure: bool = True      # takes one array per exposure (P ≥ 2)
+
+
 KERNELS = {
-    "poisson_linear": ("mehs.synthesis._merge_fused", "merge_chunk_poisson_linear", ()),
-    "debevec_linear": ("mehs.synthesis._merge_fused_weighted", "merge_chunk_debevec_linear",
-                       (("L", "int64"), ("floor", "float32"))),
-    "robertson_linear": ("mehs.synthesis._merge_fused_weighted", "merge_chunk_robertson_linear",
-                         (("L", "int64"), ("floor", "float32"))),
-    "invvar_linear": ("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
-                      (("L", "int64"), ("floor", "float32"))),
+    "poisson_linear": Spec("mehs.synthesis._merge_fused", "merge_chunk_poisson_linear",
+                           _MERGE_HEAD + _MERGE_TAIL, _MERGE_SOURCES, _check_merge),
+    "debevec_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_debevec_linear",
+                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
+    "robertson_linear": Spec("mehs.synthesis._merge_fused_weighted",
+                             "merge_chunk_robertson_linear", _WEIGHTED, _MERGE_SOURCES,
+                             _check_merge),
+    "invvar_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
+                          _WEIGHTED, _MERGE_SOURCES, _check_merge),
+    "ptc_cells": Spec("mehs.synthesis._ptc_kernels", "ptc_cells",
+                      _PTC_COMMON + (("count_all", "i4:2"), ("count_bad", "i4:1"),
+                                     ("span", "i4:1"), ("step", "i8"), ("cells", "i4:1"),
+                                     ("bad", "u1:1")),
+                      _PTC_SOURCES, _check_ptc_cells, per_exposure=False),
+    "ptc_sums": Spec("mehs.synthesis._ptc_kernels", "ptc_sums",
+                     _PTC_COMMON + (("g_row", "i8:1"), ("e_row", "f8:1"), ("in_row", "u1:1"),
+                                    ("r", "f8"), ("lo", "i8"), ("table", "u2:1"),
+                                    ("med", "f8:1"), ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"),
+                                    ("se2", "f8:1"), ("syj", "f8:1")),
+                     _PTC_SOURCES, _check_ptc_sums, per_exposure=False),
 }
-#: the sources whose text enters every key (the kernels, what they import, this module)
-_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_rows.py", "_cephes.py",
-            "_native.py")
 #: numba's error-path helpers (see the module docstring)
 _DEAD_SYMBOLS = frozenset({
     "NRT_Free", "NRT_MemInfo_call_dtor", "NRT_decref", "NRT_incref", "numba_do_raise",
@@ -68,6 +174,7 @@ _lock = threading.Lock()
 _loaded: dict[tuple, Callable | None] = {}
 _engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
+_sources_digest: dict[tuple, str] = {}
 
 
 def _folder() -> Path | None:
@@ -78,7 +185,8 @@ def _folder() -> Path | None:
 
 
 def _base_key() -> dict:
-    """What every stored object depends on besides its kernel, dtype and exposure count."""
+    """What every stored object depends on besides its kernel, its sources, dtype and
+    exposure count."""
     global _key_base
     if _key_base is None:
         from importlib.metadata import version
@@ -86,12 +194,8 @@ def _base_key() -> dict:
         import llvmlite
         import llvmlite.binding as ll
 
-        here = Path(__file__).resolve().parent
-        h = hashlib.sha256()
-        for name in _SOURCES:
-            h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
         _key_base = {
-            "format": FORMAT, "sources": h.hexdigest(), "numba": version("numba"),
+            "format": FORMAT, "numba": version("numba"),
             "llvmlite": llvmlite.__version__, "python": list(sys.version_info[:2]),
             "cpu": ll.get_host_cpu_name(), "features": ll.get_host_cpu_features().flatten(),
             "env": {k: os.environ.get(k, "") for k in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES",
@@ -100,27 +204,42 @@ def _base_key() -> dict:
     return _key_base
 
 
+def _sources(kind: str) -> str:
+    """SHA-256 of the kernel's source files and of this module."""
+    names = KERNELS[kind].sources + ("_native.py",)
+    if names not in _sources_digest:
+        here = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for name in names:
+            h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
+        _sources_digest[names] = h.hexdigest()
+    return _sources_digest[names]
+
+
 def _key(kind: str, dtype: np.dtype, P: int) -> tuple[dict, str]:
-    key = dict(_base_key(), kernel=kind, dtype=dtype.name, exposures=P)
+    key = dict(_base_key(), sources=_sources(kind), kernel=kind, dtype=dtype.name, exposures=P)
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:24]
     return key, f"{kind}-{dtype.name}-P{P}-{digest}"
 
 
-def supported(kind: str, dtype, P: int) -> bool:
-    """Whether a stored entry point can exist for this merge (else: the numba kernel).
+def supported(kind: str, dtype, P: int = 0) -> bool:
+    """Whether a stored entry point can exist for this kernel (else: the numba kernel).
 
+    ``P``: the number of exposures of a merge kernel (2 … 16), 0 for the others.
     Native byte order only: the entry point reads the raw buffer as the machine does.
     """
     dtype = np.dtype(dtype)
-    return (kind in KERNELS and dtype.name in _DTYPES and dtype.isnative
-            and 2 <= P <= _MAX_EXPOSURES and _folder() is not None)
+    if kind not in KERNELS:
+        return False
+    ok_P = 2 <= P <= _MAX_EXPOSURES if KERNELS[kind].per_exposure else P == 0
+    return ok_P and dtype.name in _DTYPES and dtype.isnative and _folder() is not None
 
 
-def native_kernel(kind: str, dtype, P: int, *, build: bool = True) -> Callable | None:
-    """The kernel ``kind`` for ``P`` exposures of raw ``dtype``, as a Python callable.
+def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callable | None:
+    """The kernel ``kind`` (for ``P`` exposures) of raw ``dtype``, as a Python callable.
 
-    Takes the numba kernel's arguments (``zs`` a tuple of C-contiguous arrays; every
-    array C-contiguous, of the kernel's dtypes: anything else raises ``TypeError``).
+    Takes the numba kernel's arguments (a merge's ``zs`` a tuple of arrays; every array
+    C-contiguous, of the kernel's dtypes and shapes: anything else raises ``TypeError``).
     Loaded from the cache without importing numba; with ``build``, compiled and stored
     when missing. None when there is no cache folder, the combination is not
     supported, or compiling failed: the caller runs the numba kernel.
@@ -140,7 +259,7 @@ def native_kernel(kind: str, dtype, P: int, *, build: bool = True) -> Callable |
         return fn
 
 
-def is_stored(kind: str, dtype, P: int) -> bool:
+def is_stored(kind: str, dtype, P: int = 0) -> bool:
     """Whether the cache holds a loadable entry point (for the first-compile notice)."""
     return native_kernel(kind, dtype, P, build=False) is not None
 
@@ -178,10 +297,11 @@ def _link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
           undefined: list) -> Callable | None:
     # LLVM's global context is not thread-safe: where numba is loaded (a recovered
     # curve's kernels may be compiling on another thread) link under its compiler lock
-    lock = contextlib.nullcontext()
-    if "numba" in sys.modules:
-        from numba.core.compiler_lock import global_compiler_lock as lock
-    with lock:
+    # (read off the module, never imported here: another thread may be importing numba
+    # this moment, and importing its modules from two threads deadlocks; before that
+    # module has made its lock, nothing can be compiling with numba)
+    lock = getattr(sys.modules.get("numba.core.compiler_lock"), "global_compiler_lock", None)
+    with lock or contextlib.nullcontext():
         return _link_locked(kind, dtype, P, obj, symbol, undefined)
 
 
@@ -222,61 +342,65 @@ def _link_locked(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
     return _wrap(kind, dtype, P, address)
 
 
+_CTYPES = {"f4": ctypes.c_float, "f8": ctypes.c_double, "i8": ctypes.c_int64,
+           "b1": ctypes.c_bool}
+_NP = {"f4": np.float32, "f8": np.float64, "i4": np.int32, "i8": np.int64, "u1": np.uint8,
+       "u2": np.uint16}
+
+
+def _flat_params(kind: str, P: int) -> list[tuple[str, str, int]]:
+    """The entry point's parameters: ``(name, kind, ndim)`` with kind ``"array"`` (one
+    pointer, then ``ndim`` int64 extents), or a scalar type; a merge's exposures one by one."""
+    out = []
+    for name, t in KERNELS[kind].params:
+        base, _, nd = t.partition(":")
+        if base == "zs":
+            out += [(f"exposure {j}", "raw", int(nd)) for j in range(P)]
+        elif nd:
+            out.append((name, base, int(nd)))
+        else:
+            out.append((name, base, 0))
+    return out
+
+
 def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
     """A callable with the numba kernel's arguments over the C entry point at ``address``."""
-    extra = KERNELS[kind][2]
-    vp = ctypes.c_void_p
-    ctype = {"int64": ctypes.c_int64, "float32": ctypes.c_float}
-    argtypes = ([vp] * P + [vp, vp, vp] + [ctype[t] for _, t in extra]
-                + [ctypes.c_double, vp, ctypes.c_double, vp, ctypes.c_bool, ctypes.c_bool,
-                   ctypes.c_int64, ctypes.c_int64, ctypes.c_int64] + [vp] * 7)
+    spec = KERNELS[kind]
+    flat = _flat_params(kind, P)
+    argtypes = []
+    for _, t, nd in flat:
+        argtypes += [ctypes.c_void_p] + [ctypes.c_int64] * nd if nd else [_CTYPES[t]]
     # CFUNCTYPE (not PYFUNCTYPE): the call releases the GIL, as the nogil kernel did
     entry = ctypes.CFUNCTYPE(None, *argtypes)(address)
-    n_extra = len(extra)
-    out_dtypes = (np.float32, np.float32, np.int32, np.float32, np.int32, np.int32, np.float32)
-
-    def ptr(a, dtype, shape, what):
-        if not (isinstance(a, np.ndarray) and a.dtype == dtype and a.flags.c_contiguous
-                and a.shape == shape):
-            raise TypeError(f"native merge kernel: {what} must be a C-contiguous {np.dtype(dtype)} "
-                            f"array of shape {shape}")
-        return a.ctypes.data
-
     dtype = np.dtype(dtype.name)          # native byte order (see supported)
+    label = "merge" if spec.per_exposure else kind
+    n_params = len(spec.params)
 
-    def call(zs, darks, sat, times, *rest):
-        scalars, rest = rest[:n_extra], rest[n_extra:]
-        gain, avar, rel_var, cal, want_chi2, clip, *outs = rest
-        if len(zs) != P or len(outs) != 7:
+    def call(*args):
+        if len(args) != n_params:
+            raise TypeError(f"native {label} kernel: {n_params} arguments expected")
+        if spec.per_exposure and len(args[0]) != P:
             raise TypeError(f"native merge kernel: {P} exposures and 7 outputs expected")
-        out = outs[0]
-        nl, nb, ns = out.shape
-        zp = [ptr(z, dtype, (nl, nb, ns), f"exposure {j}") for j, z in enumerate(zs)]
-        args = zp + [ptr(darks, np.float32, (P, nb, ns), "darks"),
-                     ptr(sat, np.float32, (nb,), "sat"), ptr(times, np.float32, (P,), "times")]
-        args += [int(s) if t == "int64" else float(s) for s, (_, t) in zip(scalars, extra)]
-        args += [float(gain), ptr(avar, np.float32, (P,), "avar"), float(rel_var),
-                 ptr(cal, np.float32, (nb,), "cal"), bool(want_chi2), bool(clip), nl, nb, ns]
-        args += [ptr(o, dt, (nl, nb, ns) if k == 0 else (nl, ns), f"output {k}")
-                 for k, (o, dt) in enumerate(zip(outs, out_dtypes))]
-        entry(*args)         # (the arrays stay referenced by the caller meanwhile)
+        values = list(args[0]) + list(args[1:]) if spec.per_exposure else list(args)
+        c_args = []
+        for (name, t, nd), a in zip(flat, values):
+            if not nd:
+                c_args.append(int(a) if t == "i8" else bool(a) if t == "b1" else float(a))
+                continue
+            want = dtype if t == "raw" else np.dtype(_NP[t])
+            if not (isinstance(a, np.ndarray) and a.dtype == want and a.flags.c_contiguous
+                    and a.ndim == nd):
+                raise TypeError(f"native {label} kernel: {name} must be a C-contiguous "
+                                f"{want} array of {nd} dimension(s)")
+            c_args += [a.ctypes.data, *a.shape]
+        spec.check(P, args)
+        entry(*c_args)         # (the arrays stay referenced by the caller meanwhile)
 
     call.kind, call.exposures = kind, P
     return call
 
 
 # -- building ---------------------------------------------------------------------
-
-_TEMPLATE = '''
-def entry({zargs}, dk, sat, times, {xargs}gain, avar, rel, cal, want, clip, nl, nb, ns,
-          out, chi2, dof, snr, nsat, nvalid, msum):
-    zs = ({zarrays},)
-    K(zs, carray(dk, (P, nb, ns)), carray(sat, (nb,)), carray(times, (P,)), {xargs}gain,
-      carray(avar, (P,)), rel, carray(cal, (nb,)), want, clip, carray(out, (nl, nb, ns)),
-      carray(chi2, (nl, ns)), carray(dof, (nl, ns)), carray(snr, (nl, ns)),
-      carray(nsat, (nl, ns)), carray(nvalid, (nl, ns)), carray(msum, (nl, ns)))
-'''
-
 
 def _writable(folder: Path) -> bool:
     """Whether entries can be stored in ``folder`` (created if missing)."""
@@ -325,22 +449,30 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
     from mehs.synthesis._numba_start import skip_scipy_linalg_import
 
     skip_scipy_linalg_import()
-    module, name, extra = KERNELS[kind]
-    K = getattr(importlib.import_module(module), name)
-    nbt = {"int64": types.int64, "float32": types.float32}
-    f32p, i32p = types.CPointer(types.float32), types.CPointer(types.int32)
-    zp = types.CPointer(getattr(types, dtype.name))
-    sig = types.void(*([zp] * P), f32p, f32p, f32p, *[nbt[t] for _, t in extra],
-                     types.float64, f32p, types.float64, f32p, types.boolean, types.boolean,
-                     types.int64, types.int64, types.int64,
-                     f32p, f32p, i32p, f32p, i32p, i32p, f32p)
-    src = _TEMPLATE.format(
-        zargs=", ".join(f"z{j}" for j in range(P)),
-        zarrays=", ".join(f"carray(z{j}, (nl, nb, ns))" for j in range(P)),
-        xargs="".join(f"{n}, " for n, _ in extra))
-    ns_: dict = {"K": K, "carray": carray, "P": P}
+    spec = KERNELS[kind]
+    K = getattr(importlib.import_module(spec.module), spec.function)
+    nbt = {"f4": types.float32, "f8": types.float64, "i4": types.int32, "i8": types.int64,
+           "u1": types.uint8, "u2": types.uint16, "b1": types.boolean, "raw": getattr(types, dtype.name)}
+    sig, c_names, arrays = [], [], {}
+    for i, (_, t, nd) in enumerate(_flat_params(kind, P)):
+        if nd:
+            c_names.append(f"a{i}")
+            sig.append(types.CPointer(nbt[t]))
+            dims = [f"a{i}_{d}" for d in range(nd)]
+            c_names += dims
+            sig += [types.int64] * nd
+            arrays[i] = f"carray(a{i}, ({', '.join(dims)},))"
+        else:
+            c_names.append(f"a{i}")
+            sig.append(nbt[t])
+            arrays[i] = f"a{i}"
+    k_args = [arrays[i] for i in range(len(arrays))]
+    if spec.per_exposure:
+        k_args = [f"({', '.join(k_args[:P])},)"] + k_args[P:]
+    src = f"def entry({', '.join(c_names)}):\n    K({', '.join(k_args)})\n"
+    ns_: dict = {"K": K, "carray": carray}
     exec(compile(src, f"<mehs native entry {kind}>", "exec"), ns_)   # noqa: S102
-    compiled = cfunc(sig, nogil=True, error_model="numpy")(ns_["entry"])
+    compiled = cfunc(types.void(*sig), nogil=True, error_model="numpy")(ns_["entry"])
     _, _, (obj, bitcode) = compiled._library.serialize_using_object_code()
     mod = ll.parse_bitcode(bitcode)
     undefined = sorted({f.name for f in mod.functions

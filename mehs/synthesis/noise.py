@@ -131,18 +131,43 @@ def _instrument(y: np.ndarray) -> np.ndarray:
     return idx
 
 
+def _consecutive_pairs(probe: ProbeSamples, linearise: Callable, groups: int,
+                      key: str | None) -> None:
+    """Compute the statistics of every pair ``(j, j + 1)`` not yet kept under ``key``,
+    the pairs side by side on threads (their kernels release the GIL; each pair's
+    numbers are the same as computed alone)."""
+    if key is None:
+        return
+    P = probe.raw.shape[0]
+    todo = [j for j in range(P - 1) if (key, j, j + 1, groups) not in probe.cache]
+    from mehs.synthesis._ranges import thread_count
+
+    nthreads = min(len(todo), thread_count())
+    if nthreads < 2:
+        return
+    for j in range(P):
+        _linearised(probe, linearise, j, key)        # once each, before the threads
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-ptc") as pool:
+        futures = [pool.submit(_pair_groups, probe, linearise, j, j + 1, groups, key)
+                   for j in todo]
+        for f in futures:
+            f.result()
+
+
 def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
                  groups: int, key: str | None = None) -> dict[str, np.ndarray] | None:
     """Per-group robust statistics for exposures j < k (cached under ``key`` when given)."""
     if key is not None and (key, j, k, groups) in probe.cache:
         return probe.cache[(key, j, k, groups)]
-    out = _pair_groups_compute(probe, linearise, j, k, groups)
+    out = _pair_groups_compute(probe, linearise, j, k, groups, key)
     if key is not None:
         probe.cache[(key, j, k, groups)] = out
     return out
 
 
-#: Bits of the float32 order key that name a cell of :func:`_instrument_groups`.
+#: Bits of the float32 order key that name a cell of :func:`_group_table`.
 CELL_BITS = 18
 _NCELLS = 1 << CELL_BITS
 
@@ -160,25 +185,19 @@ def _cells(x: np.ndarray) -> np.ndarray:
     return key
 
 
-def _instrument_groups(inst: np.ndarray, bad: np.ndarray, groups: int) -> np.ndarray | None:
-    """Group 0 … ``groups − 1`` of every sample: ranges of the instrument holding about
-    equal numbers of good samples, or None without good samples.
+def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
+    """The group (0 … ``groups − 1``) of each of a run of consecutive cells of
+    :func:`_cells`, from the number of good samples in each (``good``: every cell from
+    the lowest to the highest one in use); None without good samples.
 
-    The ranges are bounded at the edges of :func:`_cells` nearest to the quantiles
-    ``k/groups`` of the good samples, so the group of a value is a table lookup of its
-    cell — neither a partition for the quantiles nor a binary search per value (which
-    cost 40 + 40 ms for the 1.7 million samples of a pair). Like quantile edges they
-    depend on the instrument only; a cell's worth of tied values (one integer level of
-    a dark scene) stays in one group, as equal quantiles would leave it. (A float64
-    instrument, from a recovered curve, is grouped by its float32 values.)
+    Groups are ranges of the instrument holding about equal numbers of good samples,
+    bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
+    a table lookup of its cell — neither a partition for the quantiles nor a binary
+    search per value. Like quantile edges they depend on the instrument only; a cell's
+    worth of tied values (one integer level of a dark scene) stays in one group, as
+    equal quantiles would leave it.
     """
-    x = np.ascontiguousarray(inst, dtype=np.float32).ravel()
-    bad = np.asarray(bad).ravel()
-    c = _cells(x)
-    counts = np.bincount(c, minlength=_NCELLS)
-    if bad.any():
-        counts -= np.bincount(c[bad], minlength=_NCELLS)
-    cum = np.cumsum(counts)                      # good samples in cells up to each
+    cum = np.cumsum(good)                        # good samples in cells up to each
     n = int(cum[-1])
     if n == 0:
         return None
@@ -188,8 +207,9 @@ def _instrument_groups(inst: np.ndarray, bad: np.ndarray, groups: int) -> np.nda
     # the group ends after that cell, or before it when that is nearer the target
     last = np.where(target - before < cum[last] - target, last - 1, last)
     # a cell's group: the number of groups that ended before it
-    table = np.cumsum(np.bincount(last + 1, minlength=_NCELLS + 1)[:_NCELLS])
-    return np.take(table.astype(np.uint8 if groups <= 256 else np.intp), c).astype(np.intp)
+    m = good.size
+    table = np.cumsum(np.bincount(last + 1, minlength=m + 1)[:m])
+    return table.astype(np.uint16)
 
 
 #: The per-group median and MAD that set the 5σ clip come from about this many samples a
@@ -207,64 +227,124 @@ def _stride(n: int, m: int, bands: int) -> int:
     return s
 
 
+def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | None) -> np.ndarray:
+    """Exposure ``j``'s linearised samples, C-contiguous (kept under ``key``: the middle
+    exposures serve two pairs)."""
+    if key is not None and (key, "y", j) in probe.cache:
+        return probe.cache[(key, "y", j)]
+    y = np.asarray(linearise(probe.raw[j], probe.dark[j], j))
+    if y.dtype not in (np.float32, np.float64):
+        y = y.astype(np.float64)
+    y = np.ascontiguousarray(y)
+    if key is not None:
+        probe.cache[(key, "y", j)] = y
+    return y
+
+
+def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
+    """The two passes of :mod:`mehs.synthesis._ptc_kernels` for linearised samples of
+    ``dtype``: their stored machine code (:mod:`mehs.synthesis._native`, no numba start-up
+    in a warm ``mehs fuse``), else numba's dispatchers."""
+    from mehs.synthesis import _native
+
+    cells = _native.native_kernel("ptc_cells", dtype)
+    sums = _native.native_kernel("ptc_sums", dtype) if cells is not None else None
+    if cells is None or sums is None:
+        from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
+
+        return ptc_cells, ptc_sums
+    return cells, sums
+
+
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
-                         groups: int) -> dict[str, np.ndarray] | None:
+                         groups: int, key: str | None = None) -> dict[str, np.ndarray] | None:
+    if not 1 <= groups < 2 ** 16:
+        raise ValueError(f"groups must lie in 1 … 65535, got {groups}")
     raw_j, raw_k = probe.raw[j], probe.raw[k]
-    y_j = linearise(raw_j, probe.dark[j], j)
-    y_k = linearise(raw_k, probe.dark[k], k)
-    r = probe.times_ms[k] / probe.times_ms[j]
-    nb = y_j.shape[-1]
+    y_j = _linearised(probe, linearise, j, key)
+    y_k = _linearised(probe, linearise, k, key)
+    if y_k.dtype != y_j.dtype:
+        y_j, y_k = y_j.astype(np.float64), y_k.astype(np.float64)
+    # float64, as the statistics are: y_k − r·y_j is formed in float64
+    r = np.float64(probe.times_ms[k] / probe.times_ms[j])
+    n, nb = y_j.shape
     if nb < 2:
         return None
-    nbr = _instrument(y_j)
-    # (np.take: 2.5× faster than fancy indexing for a column gather)
-    inst = np.take(y_j + y_k, nbr, axis=1).ravel()     # neighbour band: independent noise
-    sat = probe.saturation[None, :]
-    sat_k = raw_k >= sat
-    badf = (sat_k | (raw_j >= sat) | np.take(sat_k, nbr, axis=1)).ravel()
-    gid = _instrument_groups(inst, badf, groups)
-    if gid is None:
+    if n * nb >= 2 ** 31:
+        raise ValueError(f"{n} probed pixels x {nb} bands: too many samples for the "
+                         "photon-transfer counts (probe fewer pixels)")
+    # each sample's instrument (the neighbouring band's y_j + y_k: independent noise)
+    # as a cell of its float32 value, and whether it is saturated in either exposure
+    # or in the instrument's longer one
+    ptc_cells, ptc_sums = _kernels(y_j.dtype)
+    nbr = _instrument(y_j).astype(np.int64)
+    rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
+    rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
+            np.empty(nb, np.uint8))                  # the kernels' scratch
+    common = (y_j, y_k, rj, rk, probe.saturation, nbr, CELL_BITS, *rows)
+
+    def cells_at(step):
+        """Per-cell counts, the span of cells in use, cells and flags every step-th sample."""
+        count_all = np.zeros((2, _NCELLS), np.int32)      # (n·bands < 2**31: checked)
+        count_bad = np.zeros(_NCELLS, np.int32)
+        span = np.zeros(2, np.int32)
+        m = -(-n * nb // step)
+        cells, bad = np.empty(m, np.int32), np.empty(m, np.uint8)
+        ptc_cells(*common, count_all, count_bad, span, step, cells, bad)
+        return count_all, count_bad, span, cells, bad
+
+    # the median and MAD per group that set the clip come from an even subset
+    step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
+    count_all, count_bad, span, cells_s, bad_s = cells_at(step)
+    lo, hi = int(span[0]), int(span[1]) + 1          # the cells in use
+    n_all = count_all[0, lo:hi] + count_all[1, lo:hi]
+    n_bad = count_bad[lo:hi]
+    table = _group_table(n_all - n_bad, groups)
+    if table is None:
         return None
     # a group with more than 0.1 % saturated samples is dropped whole (dropping
     # only the saturated samples would select on their own noise)
-    nbad = np.bincount(gid[badf], minlength=groups)
-    ntot = np.bincount(gid, minlength=groups)
+    nbad = np.bincount(table, weights=n_bad, minlength=groups).astype(np.int64)
+    ntot = np.bincount(table, weights=n_all, minlength=groups).astype(np.int64)
     keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
-    use = ~badf if keep_group.all() else ~badf & np.take(keep_group, gid)
     n_use = np.where(keep_group, ntot - nbad, 0)
-    d = (y_k - r * y_j).ravel()
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 1e-5 of the variance, and symmetric trimming leaves the mean unbiased
-    step = _stride(d.size, groups * CLIP_SAMPLES, nb)
-    u = use[::step]
-    ds, gs = d[::step][u], gid[::step][u]
+    g_s = np.take(table, cells_s - lo)
+    u = (bad_s == 0) & np.take(keep_group, g_s)
+    ds = (y_k.ravel()[::step] - r * y_j.ravel()[::step])[u]
+    gs = g_s[u]
     # a stable sort of small integer keys is a radix sort in numpy (O(n))
-    order = np.argsort(gs.astype(np.uint8 if groups <= 256 else np.uint16), kind="stable")
+    order = np.argsort(gs.astype(np.uint8) if groups <= 256 else gs, kind="stable")
     ds = ds[order]
     picked = np.bincount(gs, minlength=groups)
     bounds = np.concatenate(([0], np.cumsum(picked)))
     med = np.zeros(groups)
     sig = np.zeros(groups)
+    full = None
     for gi in np.flatnonzero(n_use > 0):
         if picked[gi] < min(n_use[gi], CLIP_SAMPLES // 2):
-            dv = d[use & (gid == gi)]             # a small group: all its samples
+            if full is None:        # a small group: all its samples (rare)
+                _, _, _, cells, bad = cells_at(1)
+                gid = np.take(table, cells - lo)
+                full = (y_k - r * y_j).ravel(), gid, (bad == 0) & np.take(keep_group, gid)
+            d, gid, use = full
+            dv = d[use & (gid == gi)]
         else:
             dv = ds[bounds[gi]:bounds[gi + 1]]
         med[gi] = np.median(dv)
         sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
     # the sums are taken about each group's median: one pass, and no cancellation
-    e = d - np.take(med, gid)
-    t = np.abs(e) <= np.take(5.0 * np.maximum(sig, 1e-9), gid)
-    t &= use
-    gt = gid[t]
-    et = e[t]
-    nt = np.bincount(gt, minlength=groups).astype(np.float64)
+    nt, se, se2, syj = (np.zeros(groups) for _ in range(4))
+    lim = np.where(keep_group, 5.0 * np.maximum(sig, 1e-9), -1.0)
+    ptc_sums(*common, np.empty(nb, np.int64), np.empty(nb), np.empty(nb, np.uint8), r, lo,
+             table, med, lim, nt, se, se2, syj)
     den = np.maximum(nt, 1)
-    mean_e = np.bincount(gt, weights=et, minlength=groups) / den
-    var = np.maximum(np.bincount(gt, weights=et * et, minlength=groups) / den - mean_e ** 2, 0.0)
+    mean_e = se / den
+    var = np.maximum(se2 / den - mean_e ** 2, 0.0)
     mean_d = np.where(nt > 0, med + mean_e, 0.0)
-    yj = np.bincount(gt, weights=y_j.ravel()[t], minlength=groups) / den
+    yj = syj / den
     yk = np.where(nt > 0, mean_d + r * yj, 0.0)         # d = y_k − r·y_j
     return {"n": nt, "nt": nt, "var": var, "mean_d": mean_d, "q": yk + r * r * yj,
             "yj": yj, "yk": yk, "r": r}
@@ -301,6 +381,7 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
     """
     P = probe.raw.shape[0]
     t = probe.times_ms
+    _consecutive_pairs(probe, linearise, groups, key)
     rows, rhs, cnt, rel = [], [], [], []
     for j in range(P - 1):
         k = j + 1
@@ -366,6 +447,7 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
     L = (1 << bit_depth) - 1
     P = probe.raw.shape[0]
     dev, ratios, res3 = [], [], []
+    _consecutive_pairs(probe, linearise, groups, key)
     for j in range(P - 1):
         st = _pair_groups(probe, linearise, j, j + 1, groups, key)
         if st is None:

@@ -1,0 +1,92 @@
+"""The photon-transfer group statistics as whole-array numpy steps: the formulation
+:mod:`mehs.synthesis._ptc_kernels` replaced, kept as the reference its numbers must equal."""
+
+from __future__ import annotations
+
+import numpy as np
+
+CELL_BITS = 18
+NCELLS = 1 << CELL_BITS
+
+
+def cells_of(x: np.ndarray) -> np.ndarray:
+    """The cell of each float32 value: the top CELL_BITS bits of an int32 key that sorts
+    like the values (−0.0 and +0.0 alike)."""
+    b = np.ascontiguousarray(x, dtype=np.float32).view(np.int32)
+    m = b >> 31
+    key = ((b & np.int32(0x7FFFFFFF)) ^ m) - m
+    return (key >> (32 - CELL_BITS)) + (NCELLS >> 1)
+
+
+def instrument_groups(inst, bad, groups):
+    x = np.ascontiguousarray(inst, dtype=np.float32).ravel()
+    bad = np.asarray(bad).ravel()
+    c = cells_of(x)
+    counts = np.bincount(c, minlength=NCELLS) - np.bincount(c[bad], minlength=NCELLS)
+    cum = np.cumsum(counts)
+    n = int(cum[-1])
+    if n == 0:
+        return None
+    target = np.arange(1, groups) * (n / groups)
+    last = np.searchsorted(cum, target)
+    before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
+    last = np.where(target - before < cum[last] - target, last - 1, last)
+    table = np.cumsum(np.bincount(last + 1, minlength=NCELLS + 1)[:NCELLS])
+    return table[c]
+
+
+def pair_groups(probe, linearise, j, k, groups, clip_samples=4096):
+    """numpy's statistics of exposures j < k (mehs.synthesis.noise's former
+    ``_pair_groups_compute``, step for step)."""
+    import math
+
+    raw_j, raw_k = probe.raw[j], probe.raw[k]
+    y_j = linearise(raw_j, probe.dark[j], j)
+    y_k = linearise(raw_k, probe.dark[k], k)
+    r = probe.times_ms[k] / probe.times_ms[j]
+    nb = y_j.shape[-1]
+    nbr = np.arange(nb) ^ 1
+    nbr[nbr >= nb] = nb - 2
+    inst = np.take(y_j + y_k, nbr, axis=1).ravel()
+    sat = probe.saturation[None, :]
+    sat_k = raw_k >= sat
+    badf = (sat_k | (raw_j >= sat) | np.take(sat_k, nbr, axis=1)).ravel()
+    gid = instrument_groups(inst, badf, groups)
+    if gid is None:
+        return None
+    nbad = np.bincount(gid[badf], minlength=groups)
+    ntot = np.bincount(gid, minlength=groups)
+    keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
+    use = ~badf & np.take(keep_group, gid)
+    n_use = np.where(keep_group, ntot - nbad, 0)
+    d = (y_k - r * y_j).ravel()
+    step = max(1, d.size // (groups * clip_samples))
+    while step > 1 and math.gcd(step, nb) != 1:
+        step += 1
+    u = use[::step]
+    ds, gs = d[::step][u], gid[::step][u]
+    order = np.argsort(gs, kind="stable")
+    ds = ds[order]
+    picked = np.bincount(gs, minlength=groups)
+    bounds = np.concatenate(([0], np.cumsum(picked)))
+    med = np.zeros(groups)
+    sig = np.zeros(groups)
+    for gi in np.flatnonzero(n_use > 0):
+        if picked[gi] < min(n_use[gi], clip_samples // 2):
+            dv = d[use & (gid == gi)]
+        else:
+            dv = ds[bounds[gi]:bounds[gi + 1]]
+        med[gi] = np.median(dv)
+        sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
+    e = d - np.take(med, gid)
+    t = (np.abs(e) <= np.take(5.0 * np.maximum(sig, 1e-9), gid)) & use
+    gt, et = gid[t], e[t]
+    nt = np.bincount(gt, minlength=groups).astype(np.float64)
+    den = np.maximum(nt, 1)
+    mean_e = np.bincount(gt, weights=et, minlength=groups) / den
+    var = np.maximum(np.bincount(gt, weights=et * et, minlength=groups) / den - mean_e ** 2, 0.0)
+    mean_d = np.where(nt > 0, med + mean_e, 0.0)
+    yj = np.bincount(gt, weights=y_j.ravel()[t], minlength=groups) / den
+    yk = np.where(nt > 0, mean_d + r * yj, 0.0)
+    return {"n": nt, "nt": nt, "var": var, "mean_d": mean_d, "q": yk + r * r * yj,
+            "yj": yj, "yk": yk, "r": r}

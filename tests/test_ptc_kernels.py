@@ -1,0 +1,138 @@
+"""The photon-transfer statistics' compiled passes (issue 16) equal numpy's, bit for bit.
+
+The noise model and the linearity test of every ``mehs fuse`` rest on per-group means
+and variances of ``d = y_k − r·y_j``; :mod:`mehs.synthesis._ptc_kernels` computes them
+in two passes where numpy took ~30. The reference is the whole-array numpy formulation
+(``tests/_ptc_reference.py``), run on the same probe.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from _ptc_reference import pair_groups
+
+from mehs.synthesis import noise as N
+
+
+def _probe(seed=0, n=3000, nb=31, times=(1.0, 4.0, 16.0), gamma=1.0, sat_frac=0.05):
+    """A probe of a static scene: shot + read noise, some saturated samples, negative
+    dark-subtracted values, integer levels."""
+    rng = np.random.default_rng(seed)
+    E = np.exp(rng.uniform(np.log(0.3), np.log(400), (n, 1))) * rng.uniform(0.4, 1, (1, nb))
+    E[rng.random(n) < sat_frac] *= 50                       # bright pixels: saturate
+    dark = np.full((n, nb), 64.0, np.float32)
+    raw = []
+    for t in times:
+        mu = 4095 * (np.clip(E * t, 0, 4095) / 4095) ** gamma
+        x = rng.poisson(mu / 2.0) * 2.0 + rng.normal(0, 3, mu.shape) + 64
+        raw.append(np.clip(np.rint(x), 0, 4095))
+    raw = np.stack(raw).astype(np.float32)
+    sat = np.full(nb, 0.98 * 4095, np.float32)
+    return N.ProbeSamples(raw, np.broadcast_to(dark, raw.shape).copy(),
+                          np.asarray(times, np.float64), sat)
+
+
+def _linear(raw, dark, j):
+    return raw - dark
+
+
+def _curve64(raw, dark, j):
+    # a recovered curve's lineariser returns float64
+    return (np.maximum(raw.astype(np.float64) - dark, 0.0) / 4095.0) ** 1.1 * 4095.0
+
+
+@pytest.fixture(params=["numba", "stored"])
+def path(request, tmp_path, monkeypatch):
+    from mehs.synthesis import _native
+
+    monkeypatch.setattr(_native, "_loaded", {})
+    monkeypatch.setenv("MEHS_CACHE_DIR", "" if request.param == "numba" else str(tmp_path))
+    return request.param
+
+
+def _assert_equal(got, ref):
+    assert (got is None) == (ref is None)
+    if ref is None:
+        return
+    assert set(got) == set(ref)
+    for k in ref:
+        np.testing.assert_array_equal(np.asarray(got[k]), np.asarray(ref[k]), err_msg=k)
+
+
+@pytest.mark.parametrize("lin", [_linear, _curve64], ids=["linear-float32", "curve-float64"])
+@pytest.mark.parametrize("groups", [48, 300])        # 300: more groups than a uint8 holds
+def test_pair_statistics_equal_numpys(path, lin, groups):
+    from mehs.synthesis import _native
+
+    probe = _probe(seed=groups)
+    for j, k in ((0, 1), (1, 2)):
+        _assert_equal(N._pair_groups_compute(probe, lin, j, k, groups, "k"),
+                      pair_groups(probe, lin, j, k, groups))
+    dtype = np.float32 if lin is _linear else np.float64
+    assert _native.is_stored("ptc_sums", dtype) == (path == "stored")
+
+
+def test_small_groups_use_all_their_samples(path):
+    # few pixels, many groups: the even subset leaves groups short of CLIP_SAMPLES / 2
+    probe = _probe(seed=5, n=400, nb=9)
+    assert probe.raw[0].size < 64 * N.CLIP_SAMPLES
+    _assert_equal(N._pair_groups_compute(probe, _linear, 0, 1, 64),
+                  pair_groups(probe, _linear, 0, 1, 64))
+
+
+def test_groups_with_saturation_are_dropped_as_before(path):
+    probe = _probe(seed=7, sat_frac=0.4)
+    st = N._pair_groups_compute(probe, _linear, 1, 2, 48)
+    assert (st["nt"] == 0).any()                      # some groups dropped whole
+    _assert_equal(st, pair_groups(probe, _linear, 1, 2, 48))
+
+
+def test_nothing_usable_gives_none(path):
+    probe = _probe(seed=1, n=50, nb=5)
+    probe.raw[:] = 4095                               # saturated everywhere
+    assert N._pair_groups_compute(probe, _linear, 0, 1, 48) is None
+
+
+def test_decisions_from_the_pairs_side_by_side_are_those_of_one_at_a_time(monkeypatch):
+    """The pairs run on threads; the noise model and linearity verdict are unchanged."""
+    probe = _probe(seed=3, times=(1.0, 3.0, 9.0, 27.0))
+    lin_par = N.linearity_PTC(probe, _linear, key="k")
+    model_par, _ = N.estimate_noise_PTC(probe, _linear, key="k")
+    monkeypatch.setattr(N, "_consecutive_pairs", lambda *a, **k: None)
+    probe.cache.clear()
+    lin_seq = N.linearity_PTC(probe, _linear, key="k")
+    model_seq, _ = N.estimate_noise_PTC(probe, _linear, key="k")
+    assert lin_par["deviation"] == lin_seq["deviation"]
+    assert lin_par["ratios"] == lin_seq["ratios"]
+    assert (model_par.gain, model_par.read_noise) == (model_seq.gain, model_seq.read_noise)
+    # and the fit finds the simulated sensor: gain 2 DN/e-, read noise 3 DN
+    assert model_par.gain == pytest.approx(2.0, rel=0.05)
+    assert model_par.read_noise == pytest.approx(3.0, rel=0.15)
+
+
+def test_stored_entry_points_check_their_arrays(tmp_path, monkeypatch):
+    from mehs.synthesis import _native
+
+    monkeypatch.setattr(_native, "_loaded", {})
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    cells = _native.native_kernel("ptc_cells", np.float32)
+    assert cells is not None
+    n, nb = 10, 6
+    y = np.zeros((n, nb), np.float32)
+    rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
+            np.empty(nb, np.uint8))
+    sat = np.full(nb, 4000, np.float32)
+    nbr = (np.arange(nb) ^ 1).astype(np.int64)
+    outs = (np.zeros((2, 1 << 18), np.int32), np.zeros(1 << 18, np.int32),
+            np.zeros(2, np.int32), 1, np.zeros(n * nb, np.int32), np.zeros(n * nb, np.uint8))
+    cells(y, y, y, y, sat, nbr, 18, *rows, *outs)
+    assert outs[0].sum() == n * nb
+    with pytest.raises(TypeError, match="y_k"):
+        cells(y, y[:5], y, y, sat, nbr, 18, *rows, *outs)
+    with pytest.raises(TypeError, match="nbr"):
+        cells(y, y, y, y, sat, nbr + nb, 18, *rows, *outs)
+    with pytest.raises(TypeError, match="outputs"):
+        cells(y, y, y, y, sat, nbr, 18, *rows, *outs[:4], outs[4][:-1], outs[5])
+    with pytest.raises(TypeError, match="raw_j must be a C-contiguous float32"):
+        cells(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *outs)
