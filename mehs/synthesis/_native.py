@@ -115,15 +115,25 @@ def _check_ptc_cells(P, args) -> None:
 def _check_ptc_sums(P, args) -> None:
     _check_ptc(args)
     g_row, e_row, in_row, r, lo, table, med, lim, *acc = args[11:]
+    groups = med.shape[0]
     if any(a.shape != (args[0].shape[1],) for a in (g_row, e_row, in_row)):
         raise TypeError("native photon-transfer kernel: scratch rows must have one entry per band")
-    groups = med.shape[0]
     if lim.shape != (groups,) or any(a.shape != (groups,) for a in acc):
         raise TypeError("native photon-transfer kernel: one value per group expected")
+    # (the caller's table covers the cells ptc_cells found in the same samples)
     if int(lo) < 0 or int(lo) + table.shape[0] > (1 << int(args[6])):
         raise TypeError("native photon-transfer kernel: the cell table lies outside the cells")
     if table.size and int(table.max()) >= groups:
         raise TypeError("native photon-transfer kernel: the cell table names unknown groups")
+
+
+def _check_ptc_medians(P, args) -> None:
+    ds, bounds, med, sig, dev = args
+    if (med.shape != (bounds.shape[0] - 1,) or sig.shape != med.shape or dev.shape != ds.shape
+            or bounds.shape[0] < 1 or bounds[0] < 0 or bounds[-1] > ds.shape[0]
+            or np.any(np.diff(bounds) < 0)):
+        raise TypeError("native photon-transfer kernel: ptc_medians needs ascending group "
+                        "bounds within the values and one median and spread per group")
 
 
 @dataclass(frozen=True)
@@ -157,9 +167,13 @@ KERNELS = {
     "ptc_sums": Spec("mehs.synthesis._ptc_kernels", "ptc_sums",
                      _PTC_COMMON + (("g_row", "i8:1"), ("e_row", "f8:1"), ("in_row", "u1:1"),
                                     ("r", "f8"), ("lo", "i8"), ("table", "u2:1"),
-                                    ("med", "f8:1"), ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"),
-                                    ("se2", "f8:1"), ("syj", "f8:1")),
+                                    ("med", "f8:1"), ("lim", "f8:1"), ("nt", "f8:1"),
+                                    ("se", "f8:1"), ("se2", "f8:1"), ("syj", "f8:1")),
                      _PTC_SOURCES, _check_ptc_sums, per_exposure=False),
+    "ptc_medians": Spec("mehs.synthesis._ptc_kernels", "ptc_medians",
+                        (("ds", "raw:1"), ("bounds", "i8:1"), ("med", "f8:1"), ("sig", "f8:1"),
+                         ("dev", "f8:1")),
+                        _PTC_SOURCES, _check_ptc_medians, per_exposure=False),
 }
 #: numba's error-path helpers (see the module docstring)
 _DEAD_SYMBOLS = frozenset({

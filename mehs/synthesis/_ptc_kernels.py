@@ -99,10 +99,10 @@ def ptc_sums(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row, 
     ``nt``, ``Σe`` ``se``, ``Σe²`` ``se2`` (``e = d − med``, ``d = y_k − r·y_j`` in
     float64) and ``Σy_j`` ``syj``, added in sample order.
 
-    The first eleven arguments as :func:`ptc_cells`; ``g_row`` int64, ``e_row`` float64,
-    ``in_row`` uint8 (bands,) more scratch; ``table`` the group of each cell
-    from ``lo`` on; a group out of use has a negative ``lim``; saturated samples never
-    count.
+    The first eleven arguments as :func:`ptc_cells` (each sample's cell is found again:
+    cheaper than storing and reading them back); ``g_row`` int64, ``e_row`` float64,
+    ``in_row`` uint8 (bands,) more scratch; ``table`` the group of each cell from ``lo``
+    on; a group out of use has a negative ``lim``; saturated samples never count.
     """
     n, nb = y_j.shape
     for p in range(n):
@@ -122,3 +122,70 @@ def ptc_sums(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row, 
                 se[g] += e
                 se2[g] += e * e
                 syj[g] += np.float64(yj[b])
+
+
+@njit(cache=True, error_model="numpy")
+def _select(a, lo, hi, k):
+    """Rearrange ``a[lo:hi]`` so that ``a[k]`` holds the value of rank ``k − lo``, with no
+    larger value before it and no smaller after (Hoare's selection, FIND)."""
+    left = lo
+    right = hi - 1
+    while right > left:
+        mid = (left + right) >> 1
+        # the median of three as the pivot: sorted input stays linear
+        if a[mid] < a[left]:
+            a[mid], a[left] = a[left], a[mid]
+        if a[right] < a[left]:
+            a[right], a[left] = a[left], a[right]
+        if a[right] < a[mid]:
+            a[right], a[mid] = a[mid], a[right]
+        pivot = a[mid]
+        i = left
+        j = right
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            right = j
+        elif k >= i:
+            left = i
+        else:
+            break
+
+
+@njit(cache=True, error_model="numpy")
+def _median(a, lo, hi):
+    """``np.median(a[lo:hi])`` (``hi > lo``; no NaN), reordering the slice in place: the
+    middle value, or the mean of the middle two as numpy takes it, ``(a + b) / 2``."""
+    n = hi - lo
+    k = lo + n // 2
+    _select(a, lo, hi, k)
+    if n % 2 == 1:
+        return a[k]
+    below = a[lo]
+    for i in range(lo + 1, k):
+        below = max(below, a[i])
+    return (below + a[k]) / 2.0
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def ptc_medians(ds, bounds, med, sig, dev):
+    """Per group ``g`` of ``ds[bounds[g]:bounds[g + 1]]`` (float64, reordered in place):
+    the median ``med[g]`` and ``sig[g] = 1.4826·MAD``, numpy's ``np.median`` to the bit
+    (empty groups are left alone). ``dev``: scratch of ``ds``'s length."""
+    for g in range(bounds.shape[0] - 1):
+        lo = bounds[g]
+        hi = bounds[g + 1]
+        if hi <= lo:
+            continue
+        m = _median(ds, lo, hi)
+        for i in range(lo, hi):
+            dev[i] = abs(ds[i] - m)
+        med[g] = m
+        sig[g] = 1.4826 * _median(dev, lo, hi)

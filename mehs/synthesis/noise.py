@@ -145,14 +145,15 @@ def _consecutive_pairs(probe: ProbeSamples, linearise: Callable, groups: int,
     nthreads = min(len(todo), thread_count())
     if nthreads < 2:
         return
-    for j in range(P):
-        _linearised(probe, linearise, j, key)        # once each, before the threads
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(nthreads, thread_name_prefix="mehs-ptc") as pool:
-        futures = [pool.submit(_pair_groups, probe, linearise, j, j + 1, groups, key)
-                   for j in todo]
-        for f in futures:
+        # each exposure linearised once (numpy releases the GIL), then the pairs
+        for f in [pool.submit(_linearised, probe, linearise, j, key)
+                  for j in sorted({j for i in todo for j in (i, i + 1)})]:
+            f.result()
+        for f in [pool.submit(_pair_groups, probe, linearise, j, j + 1, groups, key)
+                  for j in todo]:
             f.result()
 
 
@@ -241,19 +242,20 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
     return y
 
 
-def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
-    """The two passes of :mod:`mehs.synthesis._ptc_kernels` for linearised samples of
+def _kernels(dtype: np.dtype) -> tuple[Callable, Callable, Callable]:
+    """The passes of :mod:`mehs.synthesis._ptc_kernels` for linearised samples of
     ``dtype``: their stored machine code (:mod:`mehs.synthesis._native`, no numba start-up
     in a warm ``mehs fuse``), else numba's dispatchers."""
     from mehs.synthesis import _native
 
-    cells = _native.native_kernel("ptc_cells", dtype)
-    sums = _native.native_kernel("ptc_sums", dtype) if cells is not None else None
-    if cells is None or sums is None:
-        from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
+    kernels = []
+    for name, dt in (("ptc_cells", dtype), ("ptc_medians", np.float64), ("ptc_sums", dtype)):
+        kernels.append(_native.native_kernel(name, dt))
+        if kernels[-1] is None:
+            from mehs.synthesis._ptc_kernels import ptc_cells, ptc_medians, ptc_sums
 
-        return ptc_cells, ptc_sums
-    return cells, sums
+            return ptc_cells, ptc_medians, ptc_sums
+    return tuple(kernels)
 
 
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
@@ -276,15 +278,17 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     # each sample's instrument (the neighbouring band's y_j + y_k: independent noise)
     # as a cell of its float32 value, and whether it is saturated in either exposure
     # or in the instrument's longer one
-    ptc_cells, ptc_sums = _kernels(y_j.dtype)
+    ptc_cells, ptc_medians, ptc_sums = _kernels(y_j.dtype)
     nbr = _instrument(y_j).astype(np.int64)
     rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
             np.empty(nb, np.uint8))                  # the kernels' scratch
     common = (y_j, y_k, rj, rk, probe.saturation, nbr, CELL_BITS, *rows)
+    # per-cell counts, the span of cells in use, and the cell and saturation of an even
+    # subset of the samples, whose median and MAD per group set the clip
+    step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
 
     def cells_at(step):
-        """Per-cell counts, the span of cells in use, cells and flags every step-th sample."""
         count_all = np.zeros((2, _NCELLS), np.int32)      # (n·bands < 2**31: checked)
         count_bad = np.zeros(_NCELLS, np.int32)
         span = np.zeros(2, np.int32)
@@ -293,8 +297,6 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
         ptc_cells(*common, count_all, count_bad, span, step, cells, bad)
         return count_all, count_bad, span, cells, bad
 
-    # the median and MAD per group that set the clip come from an even subset
-    step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
     count_all, count_bad, span, cells_s, bad_s = cells_at(step)
     lo, hi = int(span[0]), int(span[1]) + 1          # the cells in use
     n_all = count_all[0, lo:hi] + count_all[1, lo:hi]
@@ -317,24 +319,23 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     gs = g_s[u]
     # a stable sort of small integer keys is a radix sort in numpy (O(n))
     order = np.argsort(gs.astype(np.uint8) if groups <= 256 else gs, kind="stable")
-    ds = ds[order]
+    ds = np.ascontiguousarray(ds[order], dtype=np.float64)
     picked = np.bincount(gs, minlength=groups)
-    bounds = np.concatenate(([0], np.cumsum(picked)))
+    bounds = np.concatenate(([0], np.cumsum(picked))).astype(np.int64)
     med = np.zeros(groups)
     sig = np.zeros(groups)
-    full = None
-    for gi in np.flatnonzero(n_use > 0):
-        if picked[gi] < min(n_use[gi], CLIP_SAMPLES // 2):
-            if full is None:        # a small group: all its samples (rare)
-                _, _, _, cells, bad = cells_at(1)
-                gid = np.take(table, cells - lo)
-                full = (y_k - r * y_j).ravel(), gid, (bad == 0) & np.take(keep_group, gid)
-            d, gid, use = full
+    ptc_medians(ds, bounds, med, sig, np.empty_like(ds))      # np.median's numbers
+    small = np.flatnonzero((n_use > 0) & (picked < np.minimum(n_use, CLIP_SAMPLES // 2)))
+    if small.size:
+        # groups the subset leaves short (rare): all their samples
+        _, _, _, cells, bad = cells_at(1)
+        gid = np.take(table, cells - lo)
+        d = (y_k - r * y_j).ravel()
+        use = (bad == 0) & np.take(keep_group, gid)
+        for gi in small:
             dv = d[use & (gid == gi)]
-        else:
-            dv = ds[bounds[gi]:bounds[gi + 1]]
-        med[gi] = np.median(dv)
-        sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
+            med[gi] = np.median(dv)
+            sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
     # the sums are taken about each group's median: one pass, and no cancellation
     nt, se, se2, syj = (np.zeros(groups) for _ in range(4))
     lim = np.where(keep_group, 5.0 * np.maximum(sig, 1e-9), -1.0)
