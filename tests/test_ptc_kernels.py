@@ -136,3 +136,23 @@ def test_stored_entry_points_check_their_arrays(tmp_path, monkeypatch):
         cells(y, y, y, y, sat, nbr, 18, *rows, *outs[:4], outs[4][:-1], outs[5])
     with pytest.raises(TypeError, match="raw_j must be a C-contiguous float32"):
         cells(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *outs)
+
+
+def test_group_medians_are_numpys():
+    from mehs.synthesis._ptc_kernels import ptc_medians
+
+    rng = np.random.default_rng(0)
+    for trial in range(120):
+        sizes = rng.integers(0, 60 if trial % 3 else 3000, rng.integers(1, 12))
+        kind = trial % 4
+        parts = [rng.normal(0, 10, s) if kind == 0 else np.round(rng.normal(0, 3, s))
+                 if kind == 1 else np.sort(rng.normal(0, 1, s)) if kind == 2
+                 else np.full(s, 2.5) for s in sizes]            # ties, sorted, constant
+        ds = np.concatenate(parts)
+        bounds = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+        med, sig = np.zeros(sizes.size), np.zeros(sizes.size)
+        ptc_medians(ds.copy(), bounds, med, sig, np.empty_like(ds))
+        ref = [np.median(p) if p.size else 0.0 for p in parts]
+        np.testing.assert_array_equal(med, ref)
+        np.testing.assert_array_equal(
+            sig, [1.4826 * np.median(np.abs(p - m)) if p.size else 0.0 for p, m in zip(parts, ref)])
