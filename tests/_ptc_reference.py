@@ -41,8 +41,10 @@ def pair_groups(probe, linearise, j, k, groups, clip_samples=4096):
     import math
 
     raw_j, raw_k = probe.raw[j], probe.raw[k]
-    y_j = linearise(raw_j, probe.dark[j], j)
-    y_k = linearise(raw_k, probe.dark[k], k)
+    # the dark of each sample's column, written out per sample
+    reps = raw_j.shape[0] // probe.dark[j].shape[0]
+    y_j = linearise(raw_j, np.tile(probe.dark[j], (reps, 1)), j)
+    y_k = linearise(raw_k, np.tile(probe.dark[k], (reps, 1)), k)
     r = probe.times_ms[k] / probe.times_ms[j]
     nb = y_j.shape[-1]
     nbr = np.arange(nb) ^ 1

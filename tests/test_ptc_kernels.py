@@ -21,15 +21,18 @@ def _probe(seed=0, n=3000, nb=31, times=(1.0, 4.0, 16.0), gamma=1.0, sat_frac=0.
     rng = np.random.default_rng(seed)
     E = np.exp(rng.uniform(np.log(0.3), np.log(400), (n, 1))) * rng.uniform(0.4, 1, (1, nb))
     E[rng.random(n) < sat_frac] *= 50                       # bright pixels: saturate
-    dark = np.full((n, nb), 64.0, np.float32)
+    ns = 20                                                  # columns of the probed lines
+    n -= n % ns
+    E = E[:n]
+    dark = 64.0 + rng.normal(0, 1, (ns, nb)).astype(np.float32)
     raw = []
     for t in times:
         mu = 4095 * (np.clip(E * t, 0, 4095) / 4095) ** gamma
-        x = rng.poisson(mu / 2.0) * 2.0 + rng.normal(0, 3, mu.shape) + 64
+        x = rng.poisson(mu / 2.0) * 2.0 + rng.normal(0, 3, mu.shape) + np.tile(dark, (n // ns, 1))
         raw.append(np.clip(np.rint(x), 0, 4095))
     raw = np.stack(raw).astype(np.float32)
     sat = np.full(nb, 0.98 * 4095, np.float32)
-    return N.ProbeSamples(raw, np.broadcast_to(dark, raw.shape).copy(),
+    return N.ProbeSamples(raw, np.stack([dark] * len(times)).astype(np.float32),
                           np.asarray(times, np.float64), sat)
 
 

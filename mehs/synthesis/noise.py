@@ -53,9 +53,10 @@ class ProbeSamples:
     Attributes
     ----------
     raw
-        float32 ``(P, n, bands)`` raw DN (n = probed pixels).
+        float32 ``(P, n, bands)`` raw DN (n = probed pixels, whole lines one after another).
     dark
-        float32 ``(P, n, bands)`` the dark level of each sample's column (0 if none).
+        float32 ``(P, samples, bands)`` the dark level of each column of the probed lines
+        (0 if none), or ``(P, n, bands)``: one per sample.
     times_ms
         float64 ``(P,)`` ascending.
     saturation
@@ -69,6 +70,15 @@ class ProbeSamples:
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     cache: dict = field(default_factory=dict, repr=False)
 
+    def linearised(self, linearise: Callable, j: int) -> np.ndarray:
+        """``linearise(raw, dark, j)`` of exposure ``j``, ``(n, bands)``: the lines' raw
+        samples against the dark's columns, broadcast (never materialised per sample)."""
+        raw, dark = self.raw[j], self.dark[j]
+        if dark.shape[0] == raw.shape[0]:
+            return np.asarray(linearise(raw, dark, j))
+        y = np.asarray(linearise(raw.reshape(-1, *dark.shape), dark, j))
+        return y.reshape(raw.shape)
+
 
 def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> ProbeSamples:
     """Read evenly spaced whole lines (contiguous reads of a memmap) of every exposure."""
@@ -77,7 +87,7 @@ def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> Pr
     lines = np.arange(step // 2, nl, step)
     P = len(bracket.exposures)
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
-    dark = np.zeros_like(raw)
+    dark = np.zeros((P, ns, nb), dtype=np.float32)       # per column: a line's darks
     for j, e in enumerate(bracket.exposures):
         a = np.asarray(e.data)
         bil = a.transpose(0, 2, 1)
@@ -85,7 +95,7 @@ def probe_bracket(bracket, saturation: np.ndarray, max_pixels: int = 8192) -> Pr
         block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
         raw[j].reshape(lines.size, ns, nb)[...] = block
         if bracket.darks[j] is not None:
-            dark[j].reshape(lines.size, ns, nb)[...] = bracket.darks[j]
+            dark[j] = bracket.darks[j]
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
                         np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines)
 
@@ -233,7 +243,7 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
     exposures serve two pairs)."""
     if key is not None and (key, "y", j) in probe.cache:
         return probe.cache[(key, "y", j)]
-    y = np.asarray(linearise(probe.raw[j], probe.dark[j], j))
+    y = probe.linearised(linearise, j)
     if y.dtype not in (np.float32, np.float64):
         y = y.astype(np.float64)
     y = np.ascontiguousarray(y)
