@@ -234,3 +234,20 @@ def test_a_cache_that_cannot_take_entries_compiles_nothing_extra(tmp_path, monke
     assert compiled == [] and blocker.is_file()
     monkeypatch.setenv("MEHS_CACHE_DIR", "")
     assert_same_merge_bits(r, merge_bracket(stack, t, darks=darks))
+
+
+def test_an_entry_point_compiled_in_a_child_process_is_loaded(cache, monkeypatch):
+    """A first-ever fuse compiles the photon-transfer passes in a child process while it
+    compiles the merge kernel; the parent then loads the child's entry."""
+    from mehs.synthesis import _native
+
+    _reset(monkeypatch)
+    assert _native.build_in_background("ptc_pass", np.float32)
+    assert not _native.build_in_background("ptc_pass", np.float32)     # one child
+    fn = _native.native_kernel("ptc_pass", np.float32, build=False)    # waits for it
+    assert fn is not None
+    assert len(list(cache.glob("ptc_pass-float32-*.o"))) == 1
+    _reset(monkeypatch)
+    assert not _native.build_in_background("ptc_pass", np.float32)     # already stored
+    monkeypatch.setenv("MEHS_CACHE_DIR", "")
+    assert not _native.build_in_background("ptc_pass", np.float32)     # no cache: none

@@ -73,7 +73,7 @@ def test_pair_statistics_equal_numpys(path, lin, groups):
         _assert_equal(N._pair_groups_compute(probe, lin, j, k, groups, "k"),
                       pair_groups(probe, lin, j, k, groups))
     dtype = np.float32 if lin is _linear else np.float64
-    assert _native.is_stored("ptc_sums", dtype) == (path == "stored")
+    assert _native.is_stored("ptc_pass", dtype) == (path == "stored")
 
 
 def test_small_groups_use_all_their_samples(path):
@@ -114,13 +114,13 @@ def test_decisions_from_the_pairs_side_by_side_are_those_of_one_at_a_time(monkey
     assert model_par.read_noise == pytest.approx(3.0, rel=0.15)
 
 
-def test_stored_entry_points_check_their_arrays(tmp_path, monkeypatch):
+def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
     from mehs.synthesis import _native
 
     monkeypatch.setattr(_native, "_loaded", {})
     monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
-    cells = _native.native_kernel("ptc_cells", np.float32)
-    assert cells is not None
+    cells, _ = N._kernels(np.dtype(np.float32))
+    assert _native.is_stored("ptc_pass", np.float32)
     n, nb = 10, 6
     y = np.zeros((n, nb), np.float32)
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
@@ -140,22 +140,3 @@ def test_stored_entry_points_check_their_arrays(tmp_path, monkeypatch):
     with pytest.raises(TypeError, match="raw_j must be a C-contiguous float32"):
         cells(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *outs)
 
-
-def test_group_medians_are_numpys():
-    from mehs.synthesis._ptc_kernels import ptc_medians
-
-    rng = np.random.default_rng(0)
-    for trial in range(120):
-        sizes = rng.integers(0, 60 if trial % 3 else 3000, rng.integers(1, 12))
-        kind = trial % 4
-        parts = [rng.normal(0, 10, s) if kind == 0 else np.round(rng.normal(0, 3, s))
-                 if kind == 1 else np.sort(rng.normal(0, 1, s)) if kind == 2
-                 else np.full(s, 2.5) for s in sizes]            # ties, sorted, constant
-        ds = np.concatenate(parts)
-        bounds = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
-        med, sig = np.zeros(sizes.size), np.zeros(sizes.size)
-        ptc_medians(ds.copy(), bounds, med, sig, np.empty_like(ds))
-        ref = [np.median(p) if p.size else 0.0 for p in parts]
-        np.testing.assert_array_equal(med, ref)
-        np.testing.assert_array_equal(
-            sig, [1.4826 * np.median(np.abs(p - m)) if p.size else 0.0 for p, m in zip(parts, ref)])

@@ -36,6 +36,7 @@ import ctypes
 import hashlib
 import json
 import os
+import subprocess
 import sys
 import threading
 from dataclasses import dataclass
@@ -84,56 +85,41 @@ def _check_merge(P, args) -> None:
             raise TypeError(f"native merge kernel: output {k} must have shape {(nl, ns)}")
 
 
-def _check_ptc(args) -> None:
-    """The shapes the photon-transfer kernels assume."""
-    y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *scratch = args[:11]
+def _check_ptc_pass(P, args) -> None:
+    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes for its operation."""
+    (op, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:12]
+    (count_all, count_bad, span, step, cells, bad, g_row, e_row, in_row, r, lo, table, med,
+     lim, nt, se, se2, syj) = args[12:]
+    what = "native photon-transfer kernel: "
+    if op not in (0, 1):
+        raise TypeError(what + f"unknown operation {op}")
     n, nb = y_j.shape
-    if any(a.shape != (nb,) for a in scratch):
-        raise TypeError("native photon-transfer kernel: scratch rows must have one entry per band")
-    for what, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
+    for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
         if a.shape != (n, nb):
-            raise TypeError(f"native photon-transfer kernel: {what} must have shape {(n, nb)}")
+            raise TypeError(what + f"{name} must have shape {(n, nb)}")
     if sat.shape != (nb,) or nbr.shape != (nb,) or (nb and not (0 <= nbr.min() and nbr.max() < nb)):
-        raise TypeError("native photon-transfer kernel: sat and nbr must have one entry per "
-                        "band, nbr naming bands")
+        raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
     if not 1 <= int(cell_bits) <= 24:
-        raise TypeError("native photon-transfer kernel: cell_bits must lie in 1..24")
-
-
-def _check_ptc_cells(P, args) -> None:
-    _check_ptc(args)
-    n, nb = args[0].shape
-    count_all, count_bad, span, step, cells, bad = args[11:]
-    ncells = 1 << int(args[6])
-    m = -(-n * nb // max(int(step), 1))
-    if (int(step) < 1 or count_all.shape != (2, ncells) or count_bad.shape != (ncells,)
-            or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
-        raise TypeError("native photon-transfer kernel: ptc_cells' outputs do not match "
-                        "its inputs")
-
-
-def _check_ptc_sums(P, args) -> None:
-    _check_ptc(args)
-    g_row, e_row, in_row, r, lo, table, med, lim, *acc = args[11:]
-    groups = med.shape[0]
-    if any(a.shape != (args[0].shape[1],) for a in (g_row, e_row, in_row)):
-        raise TypeError("native photon-transfer kernel: scratch rows must have one entry per band")
-    if lim.shape != (groups,) or any(a.shape != (groups,) for a in acc):
-        raise TypeError("native photon-transfer kernel: one value per group expected")
-    # (the caller's table covers the cells ptc_cells found in the same samples)
-    if int(lo) < 0 or int(lo) + table.shape[0] > (1 << int(args[6])):
-        raise TypeError("native photon-transfer kernel: the cell table lies outside the cells")
+        raise TypeError(what + "cell_bits must lie in 1..24")
+    if any(a.shape != (nb,) for a in rows):
+        raise TypeError(what + "scratch rows must have one entry per band")
+    ncells = 1 << int(cell_bits)
+    if op == 0:                                                     # CELLS
+        m = -(-n * nb // max(int(step), 1))
+        if (int(step) < 1 or count_all.shape != (2, ncells) or count_bad.shape != (ncells,)
+                or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
+            raise TypeError(what + "the cells' outputs do not match the samples")
+        return
+    groups = med.shape[0]                                           # SUMS
+    if any(a.shape != (nb,) for a in (g_row, e_row, in_row)):
+        raise TypeError(what + "scratch rows must have one entry per band")
+    if lim.shape != (groups,) or any(a.shape != (groups,) for a in (nt, se, se2, syj)):
+        raise TypeError(what + "one value per group expected")
+    # (the caller's table covers the cells the CELLS pass found in the same samples)
+    if int(lo) < 0 or int(lo) + table.shape[0] > ncells:
+        raise TypeError(what + "the cell table lies outside the cells")
     if table.size and int(table.max()) >= groups:
-        raise TypeError("native photon-transfer kernel: the cell table names unknown groups")
-
-
-def _check_ptc_medians(P, args) -> None:
-    ds, bounds, med, sig, dev = args
-    if (med.shape != (bounds.shape[0] - 1,) or sig.shape != med.shape or dev.shape != ds.shape
-            or bounds.shape[0] < 1 or bounds[0] < 0 or bounds[-1] > ds.shape[0]
-            or np.any(np.diff(bounds) < 0)):
-        raise TypeError("native photon-transfer kernel: ptc_medians needs ascending group "
-                        "bounds within the values and one median and spread per group")
+        raise TypeError(what + "the cell table names unknown groups")
 
 
 @dataclass(frozen=True)
@@ -159,21 +145,15 @@ KERNELS = {
                              _check_merge),
     "invvar_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
-    "ptc_cells": Spec("mehs.synthesis._ptc_kernels", "ptc_cells",
-                      _PTC_COMMON + (("count_all", "i4:2"), ("count_bad", "i4:1"),
-                                     ("span", "i4:1"), ("step", "i8"), ("cells", "i4:1"),
-                                     ("bad", "u1:1")),
-                      _PTC_SOURCES, _check_ptc_cells, per_exposure=False),
-    "ptc_sums": Spec("mehs.synthesis._ptc_kernels", "ptc_sums",
-                     _PTC_COMMON + (("g_row", "i8:1"), ("e_row", "f8:1"), ("in_row", "u1:1"),
-                                    ("r", "f8"), ("lo", "i8"), ("table", "u2:1"),
-                                    ("med", "f8:1"), ("lim", "f8:1"), ("nt", "f8:1"),
-                                    ("se", "f8:1"), ("se2", "f8:1"), ("syj", "f8:1")),
-                     _PTC_SOURCES, _check_ptc_sums, per_exposure=False),
-    "ptc_medians": Spec("mehs.synthesis._ptc_kernels", "ptc_medians",
-                        (("ds", "raw:1"), ("bounds", "i8:1"), ("med", "f8:1"), ("sig", "f8:1"),
-                         ("dev", "f8:1")),
-                        _PTC_SOURCES, _check_ptc_medians, per_exposure=False),
+    "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
+                     (("op", "i8"),) + _PTC_COMMON
+                     + (("count_all", "i4:2"), ("count_bad", "i4:1"), ("span", "i4:1"),
+                        ("step", "i8"), ("cells", "i4:1"), ("bad", "u1:1"),
+                        ("g_row", "i8:1"), ("e_row", "f8:1"), ("in_row", "u1:1"),
+                        ("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
+                        ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"), ("se2", "f8:1"),
+                        ("syj", "f8:1")),
+                     _PTC_SOURCES, _check_ptc_pass, per_exposure=False),
 }
 #: numba's error-path helpers (see the module docstring)
 _DEAD_SYMBOLS = frozenset({
@@ -184,7 +164,10 @@ _DEAD_SYMBOLS = frozenset({
 _DTYPES = ("uint8", "uint16", "int16", "int32", "uint32", "float32", "float64")
 _MAX_EXPOSURES = 16
 
-_lock = threading.Lock()
+_memo_lock = threading.Lock()       # guards the dicts below
+_build_locks: dict[tuple, threading.Lock] = {}   # one builder per entry point
+_link_lock = threading.Lock()       # LLVM's global context is not thread-safe
+_children: dict[tuple, subprocess.Popen] = {}    # entries compiling in a child process
 _loaded: dict[tuple, Callable | None] = {}
 _engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
@@ -262,15 +245,66 @@ def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callab
     if not supported(kind, dtype, P):
         return None
     memo = (kind, dtype.name, P, str(_folder()))
-    with _lock:
+    with _memo_lock:
         if memo in _loaded and (_loaded[memo] is not None or not build):
             return _loaded[memo]
+        child = _children.pop(memo, None)
+        build_lock = _build_locks.setdefault(memo, threading.Lock())
+    if child is not None:           # compiling in a child process: its entry is loaded
+        try:
+            child.wait(timeout=600)
+        except subprocess.TimeoutExpired:
+            child.kill()
+    # (a build holds only its own entry's lock: another entry meanwhile loads, or
+    # builds in a child process)
+    with build_lock:
+        with _memo_lock:
+            if memo in _loaded and (_loaded[memo] is not None or not build):
+                return _loaded[memo]
         fn = _load(kind, dtype, P)
         if fn is None and build:
             fn = _build(kind, dtype, P)
-        if fn is not None or build:
-            _loaded[memo] = fn
+        with _memo_lock:
+            if fn is not None or build:
+                _loaded[memo] = fn
         return fn
+
+
+def build_in_background(kind: str, dtype, P: int = 0) -> bool:
+    """Start compiling ``kind``'s entry point in a child process when none is stored.
+
+    numba compiles one function at a time in a process: a first-ever ``mehs fuse``
+    compiled the photon-transfer passes after the merge kernel (2 s + 2.5 s, one core
+    idle). A later :func:`native_kernel` of the same entry waits for the child and loads
+    what it stored (or, if it failed, builds as usual). True if a child was started.
+    """
+    dtype = np.dtype(dtype)
+    if not supported(kind, dtype, P):
+        return False
+    memo = (kind, dtype.name, P, str(_folder()))
+    with _memo_lock:
+        if memo in _loaded or memo in _children:
+            return False
+    try:
+        _, stem = _key(kind, dtype, P)
+    except Exception:       # noqa: BLE001 - no llvmlite: nothing to build
+        return False
+    folder = _folder()
+    if (folder / f"{stem}.json").is_file() or not _writable(folder):
+        return False        # stored (checked when loaded), or nowhere to store it
+    code = ("import sys; sys.path.insert(0, sys.argv[4]); import numpy as np; "
+            "from mehs.synthesis import _native; "
+            "_native.native_kernel(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]))")
+    root = str(Path(__file__).resolve().parents[2])
+    try:
+        child = subprocess.Popen([sys.executable, "-c", code, kind, dtype.name, str(P), root],
+                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+    except OSError:
+        return False
+    with _memo_lock:
+        _children[memo] = child
+    return True
 
 
 def is_stored(kind: str, dtype, P: int = 0) -> bool:
@@ -315,7 +349,7 @@ def _link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
     # this moment, and importing its modules from two threads deadlocks; before that
     # module has made its lock, nothing can be compiling with numba)
     lock = getattr(sys.modules.get("numba.core.compiler_lock"), "global_compiler_lock", None)
-    with lock or contextlib.nullcontext():
+    with lock or contextlib.nullcontext(), _link_lock:
         return _link_locked(kind, dtype, P, obj, symbol, undefined)
 
 

@@ -404,6 +404,12 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     L = 1 << bracket.bit_depth
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
     sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
+    if str(response) == "auto" or noise is None or (isinstance(noise, str) and noise == "auto"):
+        from mehs.synthesis.noise import build_kernels_in_background
+
+        # a first-ever run: the photon-transfer passes compile in a child process
+        # while the merge kernel compiles here
+        build_kernels_in_background()
     # numba's import and kernel load (or first-ever compile) overlap the checks below
     warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                       darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)

@@ -252,20 +252,38 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
     return y
 
 
-def _kernels(dtype: np.dtype) -> tuple[Callable, Callable, Callable]:
-    """The passes of :mod:`mehs.synthesis._ptc_kernels` for linearised samples of
-    ``dtype``: their stored machine code (:mod:`mehs.synthesis._native`, no numba start-up
-    in a warm ``mehs fuse``), else numba's dispatchers."""
+def build_kernels_in_background() -> bool:
+    """Where the photon-transfer passes' machine code is not stored yet (a first-ever
+    run), start compiling it in a child process (:func:`mehs.synthesis._native.
+    build_in_background`); True if one was started."""
     from mehs.synthesis import _native
 
-    kernels = []
-    for name, dt in (("ptc_cells", dtype), ("ptc_medians", np.float64), ("ptc_sums", dtype)):
-        kernels.append(_native.native_kernel(name, dt))
-        if kernels[-1] is None:
-            from mehs.synthesis._ptc_kernels import ptc_cells, ptc_medians, ptc_sums
+    return _native.build_in_background("ptc_pass", np.float32)
 
-            return ptc_cells, ptc_medians, ptc_sums
-    return tuple(kernels)
+
+def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
+    """:mod:`mehs.synthesis._ptc_kernels`' ``ptc_cells`` and ``ptc_sums`` for linearised
+    samples of ``dtype``: their stored machine code (one entry point, ``ptc_pass``,
+    :mod:`mehs.synthesis._native`: no numba start-up in a warm ``mehs fuse``), else
+    numba's dispatchers."""
+    from mehs.synthesis import _native
+
+    entry = _native.native_kernel("ptc_pass", dtype)
+    if entry is None:
+        from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
+
+        return ptc_cells, ptc_sums
+    f8, i8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int64, np.int32, np.uint8))
+    unused_cells = (np.zeros((2, 0), np.int32), i4, i4, 1, i4, u1)
+    unused_sums = (i8, f8, u1, 0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
+
+    def cells(*args):
+        entry(0, *args, *unused_sums)
+
+    def sums(*args):
+        entry(1, *args[:11], *unused_cells, *args[11:])
+
+    return cells, sums
 
 
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
@@ -288,7 +306,7 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     # each sample's instrument (the neighbouring band's y_j + y_k: independent noise)
     # as a cell of its float32 value, and whether it is saturated in either exposure
     # or in the instrument's longer one
-    ptc_cells, ptc_medians, ptc_sums = _kernels(y_j.dtype)
+    ptc_cells, ptc_sums = _kernels(y_j.dtype)
     nbr = _instrument(y_j).astype(np.int64)
     rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
@@ -329,23 +347,24 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     gs = g_s[u]
     # a stable sort of small integer keys is a radix sort in numpy (O(n))
     order = np.argsort(gs.astype(np.uint8) if groups <= 256 else gs, kind="stable")
-    ds = np.ascontiguousarray(ds[order], dtype=np.float64)
+    ds = ds[order]
     picked = np.bincount(gs, minlength=groups)
-    bounds = np.concatenate(([0], np.cumsum(picked))).astype(np.int64)
+    bounds = np.concatenate(([0], np.cumsum(picked)))
     med = np.zeros(groups)
     sig = np.zeros(groups)
-    ptc_medians(ds, bounds, med, sig, np.empty_like(ds))      # np.median's numbers
-    small = np.flatnonzero((n_use > 0) & (picked < np.minimum(n_use, CLIP_SAMPLES // 2)))
-    if small.size:
-        # groups the subset leaves short (rare): all their samples
-        _, _, _, cells, bad = cells_at(1)
-        gid = np.take(table, cells - lo)
-        d = (y_k - r * y_j).ravel()
-        use = (bad == 0) & np.take(keep_group, gid)
-        for gi in small:
+    full = None
+    for gi in np.flatnonzero(n_use > 0):
+        if picked[gi] < min(n_use[gi], CLIP_SAMPLES // 2):
+            if full is None:        # a small group: all its samples (rare)
+                _, _, _, cells, bad = cells_at(1)
+                gid = np.take(table, cells - lo)
+                full = (y_k - r * y_j).ravel(), gid, (bad == 0) & np.take(keep_group, gid)
+            d, gid, use = full
             dv = d[use & (gid == gi)]
-            med[gi] = np.median(dv)
-            sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
+        else:
+            dv = ds[bounds[gi]:bounds[gi + 1]]
+        med[gi] = np.median(dv)
+        sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
     # the sums are taken about each group's median: one pass, and no cancellation
     nt, se, se2, syj = (np.zeros(groups) for _ in range(4))
     lim = np.where(keep_group, 5.0 * np.maximum(sig, 1e-9), -1.0)
