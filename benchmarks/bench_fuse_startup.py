@@ -16,9 +16,17 @@ Rows, each a fresh ``python -m mehs`` process (median of ``--repeat``):
   background thread), ``fuse_bracket`` — its response (linearity check), noise,
   merge (whose first kernel call loads the stored kernel) and ghost stages from
   ``summary["timings"]``, and the wait for the SHA-256 check at its end — and
-  ``write_fusion``.
+  ``write_fusion``;
+- the linearity check against the merge, each alone in one warm process (median of
+  ``--repeat`` alternating runs): the probe (lines read for the photon-transfer
+  statistics), the statistics themselves (:func:`mehs.synthesis.noise.linearity_PTC`:
+  two compiled passes per exposure pair, the pairs on threads; the noise model reuses
+  them) and the default merge (:func:`mehs.synthesis.merge.merge_bracket`). Inside
+  ``mehs fuse`` both share the CPUs with the SHA-256 check, so only this comparison
+  says what each costs.
 
-Targets: warm ≤ 1.2 s, first-ever ≤ 6 s. The load is printed before and after.
+Targets: warm ≤ 1.2 s, first-ever ≤ 6 s; the linearity check ≤ 20 % of the merge. The
+load is printed before and after.
 """
 
 from __future__ import annotations
@@ -119,7 +127,44 @@ def main(argv=None) -> int:
                        ("    waiting for the SHA-256 check", st.get("wait", nan)),
                        ("  in process: write_fusion", st.get("write", nan))):
         print(f"{label:<58} {sec:8.2f} {sec / t_py:14.1f}×")
-    print("targets (issue 16, 512²): warm ≤ 1.2 s; first-ever ≤ 6 s")
+    # the linearity check and the merge, each alone (no SHA-256 thread beside them)
+    code = (
+        "import json, statistics, sys, time, numpy as np\n"
+        "from mehs.cli import reuse_heap, small_pages\n"
+        "small_pages(); reuse_heap()\n"
+        "from mehs.synthesis.bracket import load_bracket\n"
+        "from mehs.synthesis.merge import merge_bracket\n"
+        "from mehs.synthesis.noise import linearity_PTC, probe_bracket\n"
+        "br = load_bracket(sys.argv[1], verify='none')\n"
+        "sat = np.full(br.shape[2], 0.98 * (2 ** br.bit_depth - 1), np.float32)\n"
+        "lin = lambda raw, dark, j: raw - dark\n"
+        "def merge():\n"
+        "    merge_bracket([e.data for e in br.exposures], br.times_ms, darks=br.darks,\n"
+        "                  bit_depth=br.bit_depth, saturation=sat)\n"
+        "merge(); linearity_PTC(probe_bracket(br, sat), lin, key='linear')   # warm\n"
+        "tp, ts, tm = [], [], []\n"
+        f"for _ in range({args.repeat}):\n"
+        "    t0 = time.perf_counter(); probe = probe_bracket(br, sat)\n"
+        "    t1 = time.perf_counter(); linearity_PTC(probe, lin, key='linear')\n"
+        "    t2 = time.perf_counter(); merge(); t3 = time.perf_counter()\n"
+        "    tp.append(t1 - t0); ts.append(t2 - t1); tm.append(t3 - t2)\n"
+        "m = statistics.median\n"
+        "print(json.dumps({'probe': m(tp), 'stats': m(ts), 'merge': m(tm)}))\n")
+    r = subprocess.run([py, "-c", code, str(scene)], capture_output=True, text=True, env=env)
+    if r.returncode:
+        print(f"linearity check vs merge failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+    else:
+        lc = json.loads(r.stdout.strip().splitlines()[-1])
+        print(f"linearity check vs merge, each alone (median of {args.repeat})")
+        print(f"{'what':<58} {'seconds':>8} {'× merge':>15}")
+        for label, sec in (("  merge (default: Poisson, ghost statistic) [reference]", lc["merge"]),
+                           ("  linearity check: photon-transfer statistics", lc["stats"]),
+                           ("  probe: lines read for them (shared with the noise model)",
+                            lc["probe"]),
+                           ("  linearity check with its probe", lc["stats"] + lc["probe"])):
+            print(f"{label:<58} {sec:8.3f} {sec / lc['merge']:14.2f}×")
+    print("targets (issue 16, 512²): warm ≤ 1.2 s; first-ever ≤ 6 s; "
+          "linearity check ≤ 0.20× the merge")
     print("after: ", load_line())
     shutil.rmtree(tmp, ignore_errors=True)
     return 0

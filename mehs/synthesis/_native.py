@@ -88,8 +88,8 @@ def _check_merge(P, args) -> None:
 def _check_ptc_pass(P, args) -> None:
     """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes for its operation."""
     (op, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:12]
-    (count_all, count_bad, span, step, cells, bad, g_row, e_row, in_row, r, lo, table, med,
-     lim, nt, se, se2, syj) = args[12:]
+    (count_all, count_bad, span, step, cells, bad, r, lo, table, med, lim, nt, se, se2,
+     syj) = args[12:]
     what = "native photon-transfer kernel: "
     if op not in (0, 1):
         raise TypeError(what + f"unknown operation {op}")
@@ -111,8 +111,6 @@ def _check_ptc_pass(P, args) -> None:
             raise TypeError(what + "the cells' outputs do not match the samples")
         return
     groups = med.shape[0]                                           # SUMS
-    if any(a.shape != (nb,) for a in (g_row, e_row, in_row)):
-        raise TypeError(what + "scratch rows must have one entry per band")
     if lim.shape != (groups,) or any(a.shape != (groups,) for a in (nt, se, se2, syj)):
         raise TypeError(what + "one value per group expected")
     # (the caller's table covers the cells the CELLS pass found in the same samples)
@@ -149,7 +147,6 @@ KERNELS = {
                      (("op", "i8"),) + _PTC_COMMON
                      + (("count_all", "i4:2"), ("count_bad", "i4:1"), ("span", "i4:1"),
                         ("step", "i8"), ("cells", "i4:1"), ("bad", "u1:1"),
-                        ("g_row", "i8:1"), ("e_row", "f8:1"), ("in_row", "u1:1"),
                         ("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
                         ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"), ("se2", "f8:1"),
                         ("syj", "f8:1")),

@@ -275,7 +275,7 @@ def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
         return ptc_cells, ptc_sums
     f8, i8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int64, np.int32, np.uint8))
     unused_cells = (np.zeros((2, 0), np.int32), i4, i4, 1, i4, u1)
-    unused_sums = (i8, f8, u1, 0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
+    unused_sums = (0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
 
     def cells(*args):
         entry(0, *args, *unused_sums)
@@ -368,8 +368,7 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     # the sums are taken about each group's median: one pass, and no cancellation
     nt, se, se2, syj = (np.zeros(groups) for _ in range(4))
     lim = np.where(keep_group, 5.0 * np.maximum(sig, 1e-9), -1.0)
-    ptc_sums(*common, np.empty(nb, np.int64), np.empty(nb), np.empty(nb, np.uint8), r, lo,
-             table, med, lim, nt, se, se2, syj)
+    ptc_sums(*common, r, lo, table, med, lim, nt, se, se2, syj)
     den = np.maximum(nt, 1)
     mean_e = se / den
     var = np.maximum(se2 / den - mean_e ** 2, 0.0)
