@@ -7,8 +7,8 @@ steps it took ~30 full passes over 1.7 million samples a pair (0.15 s for a 512�
 scene, more than the merge). Here those passes are two loops:
 
 - :func:`ptc_cells`: each sample's cell of the instrument (the neighbouring band's
-  ``y_j + y_k``, :func:`mehs.synthesis.noise._cells`' key) and its saturation flag,
-  with the per-cell counts of all and of saturated samples;
+  ``y_j + y_k``: a 0.1–0.2 % wide range of its value) and its saturation flag, with the
+  per-cell counts of all and of saturated samples;
 - :func:`ptc_sums`: after the groups (a cell → group table) and each group's median and
   MAD are known, the clipped sums ``n``, ``Σe``, ``Σe²``, ``Σy_j`` per group.
 

@@ -183,22 +183,9 @@ CELL_BITS = 18
 _NCELLS = 1 << CELL_BITS
 
 
-def _cells(x: np.ndarray) -> np.ndarray:
-    """Cell of each float32 value: the top :data:`CELL_BITS` bits of an int32 key that sorts
-    like the values (−0.0 and +0.0 alike). Cells are 0.1-0.2 % wide relative to the value
-    (2^(CELL_BITS − 9) cells a binade); every value of a cell is below every value of a later one."""
-    b = x.view(np.int32)
-    m = b >> 31                                        # −1 for a negative value, else 0
-    key = (b & np.int32(0x7FFFFFFF)) ^ m
-    key -= m                                           # ± the magnitude's bits
-    key >>= 32 - CELL_BITS
-    key += _NCELLS >> 1
-    return key
-
-
 def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """The group (0 … ``groups − 1``) of each of a run of consecutive cells of
-    :func:`_cells`, from the number of good samples in each (``good``: every cell from
+    """The group (0 … ``groups − 1``) of each of a run of consecutive cells (of the
+    instrument's value, :func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number of good samples in each (``good``: every cell from
     the lowest to the highest one in use); None without good samples.
 
     Groups are ranges of the instrument holding about equal numbers of good samples,
@@ -273,7 +260,7 @@ def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
         from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
 
         return ptc_cells, ptc_sums
-    f8, i8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int64, np.int32, np.uint8))
+    f8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int32, np.uint8))
     unused_cells = (np.zeros((2, 0), np.int32), i4, i4, 1, i4, u1)
     unused_sums = (0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
 

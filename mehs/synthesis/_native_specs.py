@@ -1,0 +1,119 @@
+"""The kernels :mod:`mehs.synthesis._native` stores, described for it (issue 16).
+
+Each :class:`Spec` names the compiled kernel, lists its parameters (from which the C
+entry point and its ctypes wrapper are made) and the source files its machine code
+depends on, and brings a shape check that runs before every call: the kernels index
+without bounds checks, so an array of the wrong extent must never reach them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+#: A kernel's parameters, in order: ``(name, type)``. Types: ``"zs:N"`` a tuple of
+#: ``P`` raw-dtype arrays of ``N`` dimensions (one per exposure); ``"raw:N"`` one
+#: raw-dtype array; ``"<numpy type>:N"`` (``f4``, ``f8``, ``i4``, ``i8``, ``u1``, ``u2``) an array
+#: of ``N`` dimensions; ``"f4"``, ``"f8"``, ``"i8"``, ``"b1"`` scalars. An array reaches the
+#: C entry point as its data pointer followed by its shape.
+_MERGE_HEAD = (("zs", "zs:3"), ("darks", "f4:3"), ("sat", "f4:1"), ("times", "f4:1"))
+_MERGE_TAIL = (("gain", "f8"), ("avar", "f4:1"), ("rel_var", "f8"), ("cal", "f4:1"),
+               ("want_chi2", "b1"), ("clip", "b1"), ("output 0", "f4:3"), ("output 1", "f4:2"),
+               ("output 2", "i4:2"), ("output 3", "f4:2"), ("output 4", "i4:2"),
+               ("output 5", "i4:2"), ("output 6", "f4:2"))
+_WEIGHTED = _MERGE_HEAD + (("L", "i8"), ("floor", "f4")) + _MERGE_TAIL
+_MERGE_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_rows.py", "_cephes.py")
+_PTC_COMMON = (("y_j", "raw:2"), ("y_k", "raw:2"), ("raw_j", "f4:2"), ("raw_k", "f4:2"),
+               ("sat", "f4:1"), ("nbr", "i8:1"), ("cell_bits", "i8"), ("key_row", "i4:1"),
+               ("cp", "i4:1"), ("sat_row", "u1:1"), ("bp", "u1:1"))
+_PTC_SOURCES = ("_ptc_kernels.py", "_cephes.py")
+
+
+def _check_merge(P, args) -> None:
+    """The shapes the merge kernels assume (they index without bounds checks)."""
+    zs, darks, sat, times = args[:4]
+    out, *aux = args[-7:]
+    avar, cal = args[-12], args[-10]
+    nl, nb, ns = out.shape
+    for j, z in enumerate(zs):
+        if z.shape != (nl, nb, ns):
+            raise TypeError(f"native merge kernel: exposure {j} has shape {z.shape}, "
+                            f"the output {(nl, nb, ns)}")
+    for what, a, shape in (("darks", darks, (P, nb, ns)), ("sat", sat, (nb,)),
+                           ("times", times, (P,)), ("avar", avar, (P,)), ("cal", cal, (nb,))):
+        if a.shape != shape:
+            raise TypeError(f"native merge kernel: {what} must have shape {shape}")
+    for k, a in enumerate(aux, start=1):
+        if a.shape != (nl, ns):
+            raise TypeError(f"native merge kernel: output {k} must have shape {(nl, ns)}")
+
+
+def _check_ptc_pass(P, args) -> None:
+    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes for its operation."""
+    (op, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:12]
+    (count_all, count_bad, span, step, cells, bad, r, lo, table, med, lim, nt, se, se2,
+     syj) = args[12:]
+    what = "native photon-transfer kernel: "
+    if op not in (0, 1):
+        raise TypeError(what + f"unknown operation {op}")
+    n, nb = y_j.shape
+    for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
+        if a.shape != (n, nb):
+            raise TypeError(what + f"{name} must have shape {(n, nb)}")
+    if sat.shape != (nb,) or nbr.shape != (nb,) or (nb and not (0 <= nbr.min() and nbr.max() < nb)):
+        raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
+    if not 1 <= int(cell_bits) <= 24:
+        raise TypeError(what + "cell_bits must lie in 1..24")
+    if any(a.shape != (nb,) for a in rows):
+        raise TypeError(what + "scratch rows must have one entry per band")
+    ncells = 1 << int(cell_bits)
+    if op == 0:                                                     # CELLS
+        m = -(-n * nb // max(int(step), 1))
+        if (int(step) < 1 or count_all.shape != (2, ncells) or count_bad.shape != (ncells,)
+                or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
+            raise TypeError(what + "the cells' outputs do not match the samples")
+        return
+    groups = med.shape[0]                                           # SUMS
+    if lim.shape != (groups,) or any(a.shape != (groups,) for a in (nt, se, se2, syj)):
+        raise TypeError(what + "one value per group expected")
+    # (the caller's table covers the cells the CELLS pass found in the same samples)
+    if int(lo) < 0 or int(lo) + table.shape[0] > ncells:
+        raise TypeError(what + "the cell table lies outside the cells")
+    if table.size and int(table.max()) >= groups:
+        raise TypeError(what + "the cell table names unknown groups")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A kernel with a stored entry point: where it lives, its parameters, the source
+    files its machine code depends on (besides this module) and a shape check."""
+
+    module: str
+    function: str
+    params: tuple
+    sources: tuple
+    check: Callable
+    per_exposure: bool = True      # takes one array per exposure (P ≥ 2)
+
+
+KERNELS = {
+    "poisson_linear": Spec("mehs.synthesis._merge_fused", "merge_chunk_poisson_linear",
+                           _MERGE_HEAD + _MERGE_TAIL, _MERGE_SOURCES, _check_merge),
+    "debevec_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_debevec_linear",
+                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
+    "robertson_linear": Spec("mehs.synthesis._merge_fused_weighted",
+                             "merge_chunk_robertson_linear", _WEIGHTED, _MERGE_SOURCES,
+                             _check_merge),
+    "invvar_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
+                          _WEIGHTED, _MERGE_SOURCES, _check_merge),
+    "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
+                     (("op", "i8"),) + _PTC_COMMON
+                     + (("count_all", "i4:2"), ("count_bad", "i4:1"), ("span", "i4:1"),
+                        ("step", "i8"), ("cells", "i4:1"), ("bad", "u1:1"),
+                        ("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
+                        ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"), ("se2", "f8:1"),
+                        ("syj", "f8:1")),
+                     _PTC_SOURCES, _check_ptc_pass, per_exposure=False),
+}
