@@ -184,9 +184,10 @@ _NCELLS = 1 << CELL_BITS
 
 
 def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """The group (0 … ``groups − 1``) of each of a run of consecutive cells (of the
-    instrument's value, :func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number of good samples in each (``good``: every cell from
-    the lowest to the highest one in use); None without good samples.
+    """The group (0 … ``groups − 1``) of each of a run of consecutive cells of the
+    instrument's value (:func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number
+    of good samples in each (``good``: every cell from the lowest to the highest one in
+    use); None without good samples.
 
     Groups are ranges of the instrument holding about equal numbers of good samples,
     bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
