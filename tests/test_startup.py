@@ -109,8 +109,21 @@ def test_cli_small_pages_turns_numpy_huge_pages_off_unless_the_user_chose(monkey
         monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE")
         assert small_pages() is True
         assert _set_madvise_hugepage(True) is False         # small_pages turned it off
+        # and in the processes it starts (build workers are spawned interpreters)
+        import multiprocessing
+
+        with multiprocessing.get_context("spawn").Pool(1) as pool:
+            assert pool.apply(_hugepages_advised) is False
     finally:
         _set_madvise_hugepage(before)
+
+
+def _hugepages_advised() -> bool:
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:
+        from numpy.core.multiarray import _set_madvise_hugepage
+    return bool(_set_madvise_hugepage(True))
 
 
 def test_console_reuses_the_heap_for_fuse_only(monkeypatch):

@@ -86,6 +86,11 @@ def small_pages() -> bool:
     allocated once and streamed through, so small pages cost no measurable
     compute. A ``NUMPY_MADVISE_HUGEPAGE`` set by the user wins; library use of mehs
     is not affected.
+
+    The choice is also written to the environment (``NUMPY_MADVISE_HUGEPAGE=0``), which
+    numpy reads at import: the worker processes of ``mehs build --workers N`` and of a
+    Dask ``LocalCluster`` are new interpreters, and with huge pages advised again two
+    workers built a 512² scene every 1.24–1.30 s instead of every 0.89 s.
     """
     import os
 
@@ -99,6 +104,7 @@ def small_pages() -> bool:
         except ImportError:                   # pragma: no cover - a numpy without it
             return False
     _set_madvise_hugepage(False)
+    os.environ["NUMPY_MADVISE_HUGEPAGE"] = "0"        # for the processes this one starts
     return True
 
 
