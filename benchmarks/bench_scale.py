@@ -14,7 +14,8 @@ and prints seconds per scene, the build's wall time extrapolated to 96 scenes,
 and the peak resident memory per worker (``ru_maxrss`` of the process that ran
 the scenes: this process for 1 worker, the largest child for the others). The
 scenes are made once, before any timing (simulator, ``window`` scene, 3
-exposures). Reference in the same run: 1 worker, which the ratios divide.
+exposures). Each child runs as the ``mehs build`` command does (numpy's huge-page
+advice off, in its workers too: :func:`mehs.cli.small_pages`). Reference in the same run: 1 worker, which the ratios divide.
 ``--quick``: 8 scenes of 128×128 (extrapolated by pixel count as well).
 """
 
@@ -39,6 +40,9 @@ PAPER_SCENES, PAPER_SIZE = 96, 512
 
 
 def child(mode: str, scenes: list[str], out: str) -> None:
+    from mehs.cli import small_pages
+
+    small_pages()          # as the `mehs build` command runs (its workers inherit it)
     from mehs.dataset.build import build_dataset
 
     t0 = time.perf_counter()
