@@ -172,3 +172,24 @@ def test_warm_merge_kernel_for_a_recovered_curve_prepares_the_stage_kernel():
     curve = ResponseCurve(g, 12, "debevec1997", parameters={"levels": "raw"})
     merge_bracket(stack, [1.0, 4.0, 16.0], darks=darks, response=curve)
     assert mine() == before
+
+
+def test_a_warm_fuse_starts_no_numba(tmp_path):
+    """With the kernels stored in the mehs cache, ``mehs fuse`` loads their machine code
+    (the merge's and the photon-transfer passes') without importing numba; a first run
+    stores them, compiling the photon-transfer passes in a child process."""
+    scene = _scene(tmp_path)
+    code = ("import sys\n"
+            "from mehs.synthesis.bracket import load_bracket\n"
+            "from mehs.synthesis.fuse import fuse_bracket\n"
+            "r = fuse_bracket(load_bracket(sys.argv[1]))\n"
+            "print('NUMBA', 'numba' in sys.modules, 'NOISE', r.summary['noise']['source'])\n")
+    env = dict(os.environ, MEHS_CACHE_DIR=str(tmp_path / "cache"), PYTHONPATH=str(ROOT))
+    runs = [subprocess.run([sys.executable, "-c", code, str(scene)], capture_output=True,
+                           text=True, env=env, timeout=600) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    kernels = sorted(p.name.split("-")[0] for p in (tmp_path / "cache" / "kernels").glob("*.o"))
+    assert kernels == ["poisson_linear", "ptc_pass"]
+    assert "NUMBA False" in runs[1].stdout, runs[1].stdout + runs[1].stderr
+    assert "photon transfer" in runs[1].stdout          # the statistics ran, natively
