@@ -188,14 +188,15 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
             "from mehs.synthesis import _native; "
             "_native.native_kernel(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]))")
     root = str(Path(__file__).resolve().parents[2])
-    try:
-        child = subprocess.Popen([sys.executable, "-c", code, kind, dtype.name, str(P), root],
-                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.DEVNULL)
-    except OSError:
-        return False
-    with _memo_lock:
-        _children[memo] = child
+    with _memo_lock:        # (one child per entry, whichever thread asks)
+        if memo in _loaded or memo in _children:
+            return False
+        try:
+            _children[memo] = subprocess.Popen(
+                [sys.executable, "-c", code, kind, dtype.name, str(P), root],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        except OSError:
+            return False
     return True
 
 
