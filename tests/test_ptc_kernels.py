@@ -127,7 +127,7 @@ def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
             np.empty(nb, np.uint8))
     sat = np.full(nb, 4000, np.float32)
     nbr = (np.arange(nb) ^ 1).astype(np.int64)
-    outs = (np.zeros((2, 1 << 18), np.int32), np.zeros(1 << 18, np.int32),
+    outs = (np.zeros(1 << 18, np.int32), np.zeros(1 << 18, np.int32),
             np.zeros(2, np.int32), 1, np.zeros(n * nb, np.int32), np.zeros(n * nb, np.uint8))
     cells(y, y, y, y, sat, nbr, 18, *rows, *outs)
     assert outs[0].sum() == n * nb

@@ -71,7 +71,7 @@ def _check_ptc_pass(P, args) -> None:
     ncells = 1 << int(cell_bits)
     if op == 0:                                                     # CELLS
         m = -(-n * nb // max(int(step), 1))
-        if (int(step) < 1 or count_all.shape != (2, ncells) or count_bad.shape != (ncells,)
+        if (int(step) < 1 or count_all.shape != (ncells,) or count_bad.shape != (ncells,)
                 or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
             raise TypeError(what + "the cells' outputs do not match the samples")
         return
@@ -110,7 +110,7 @@ KERNELS = {
                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
     "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
                      (("op", "i8"),) + _PTC_COMMON
-                     + (("count_all", "i4:2"), ("count_bad", "i4:1"), ("span", "i4:1"),
+                     + (("count_all", "i4:1"), ("count_bad", "i4:1"), ("span", "i4:1"),
                         ("step", "i8"), ("cells", "i4:1"), ("bad", "u1:1"),
                         ("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
                         ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"), ("se2", "f8:1"),

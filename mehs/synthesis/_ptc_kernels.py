@@ -65,11 +65,9 @@ def ptc_cells(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row,
     ``sat_row``, ``bp`` uint8 (bands,): scratch (the kernels allocate nothing, so that
     their stored machine code needs none of numba's runtime).
 
-    Adds to ``count_all`` (2, 2**cell_bits) (even and odd bands apart: neighbouring
-    samples often share a cell, and one counter would chain their increments) and
-    ``count_bad`` (2**cell_bits,), int32; writes ``span`` (2,) int32 the lowest and
-    highest cell seen, and ``cells`` int32 / ``bad`` uint8 (``ceil(n·bands/step)``,) of the
-    samples ``0, step, 2·step, …`` in pixel-major order.
+    Adds to ``count_all`` and ``count_bad`` (2**cell_bits,), int32; writes ``span`` (2,)
+    int32 the lowest and highest cell seen, and ``cells`` int32 / ``bad`` uint8
+    (``ceil(n·bands/step)``,) of the samples ``0, step, 2·step, …`` in pixel-major order.
     """
     n, nb = y_j.shape
     lo = np.int32((1 << cell_bits) - 1)
@@ -81,7 +79,7 @@ def ptc_cells(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row,
             lo = min(lo, cp[b])
             hi = max(hi, cp[b])
         for b in range(nb):
-            count_all[b & 1, cp[b]] += 1
+            count_all[cp[b]] += 1
         for b in range(nb):
             if bp[b] != 0:
                 count_bad[cp[b]] += 1

@@ -262,7 +262,7 @@ def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
 
         return ptc_cells, ptc_sums
     f8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int32, np.uint8))
-    unused_cells = (np.zeros((2, 0), np.int32), i4, i4, 1, i4, u1)
+    unused_cells = (i4, i4, i4, 1, i4, u1)
     unused_sums = (0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
 
     def cells(*args):
@@ -305,7 +305,7 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
 
     def cells_at(step):
-        count_all = np.zeros((2, _NCELLS), np.int32)      # (n·bands < 2**31: checked)
+        count_all = np.zeros(_NCELLS, np.int32)           # (n·bands < 2**31: checked)
         count_bad = np.zeros(_NCELLS, np.int32)
         span = np.zeros(2, np.int32)
         m = -(-n * nb // step)
@@ -315,7 +315,7 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
 
     count_all, count_bad, span, cells_s, bad_s = cells_at(step)
     lo, hi = int(span[0]), int(span[1]) + 1          # the cells in use
-    n_all = count_all[0, lo:hi] + count_all[1, lo:hi]
+    n_all = count_all[lo:hi]
     n_bad = count_bad[lo:hi]
     table = _group_table(n_all - n_bad, groups)
     if table is None:
