@@ -64,11 +64,18 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-cold", action="store_true",
                     help="no first-ever run (its compilation takes tens of seconds)")
     args = ap.parse_args(argv)
+    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_fuse_"))
+    try:                   # (a 512² scene and its fusions: ~0.7 GB, removed even on failure)
+        return _bench(args, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _bench(args, tmp: Path) -> int:
     from _load import load_line
     from bench_build import make_scene
 
     size = args.size or (128 if args.quick else 512)
-    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_fuse_"))
     scene = make_scene(tmp / "scene", size)
     env = dict(os.environ, PYTHONPATH=str(HERE.parent), MEHS_CACHE_DIR=str(tmp / "mehs_cache"))
     py = sys.executable
@@ -166,7 +173,6 @@ def main(argv=None) -> int:
     print("targets (issue 16, 512²): warm ≤ 1.2 s; first-ever ≤ 6 s; "
           "linearity check ≤ 0.20× the merge")
     print("after: ", load_line())
-    shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 
