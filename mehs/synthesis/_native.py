@@ -174,9 +174,6 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
     if not supported(kind, dtype, P):
         return False
     memo = (kind, dtype.name, P, str(_folder()))
-    with _memo_lock:
-        if memo in _loaded or memo in _children:
-            return False
     try:
         _, stem = _key(kind, dtype, P)
     except Exception:       # noqa: BLE001 - no llvmlite: nothing to build
@@ -290,17 +287,15 @@ _NP = {"f4": np.float32, "f8": np.float64, "i4": np.int32, "i8": np.int64, "u1":
 
 
 def _flat_params(kind: str, P: int) -> list[tuple[str, str, int]]:
-    """The entry point's parameters: ``(name, kind, ndim)`` with kind ``"array"`` (one
-    pointer, then ``ndim`` int64 extents), or a scalar type; a merge's exposures one by one."""
+    """The entry point's parameters: ``(name, type, ndim)``, ``ndim > 0`` for an array (its
+    pointer, then ``ndim`` int64 extents), 0 for a scalar; a merge's exposures one by one."""
     out = []
     for name, t in KERNELS[kind].params:
         base, _, nd = t.partition(":")
         if base == "zs":
             out += [(f"exposure {j}", "raw", int(nd)) for j in range(P)]
-        elif nd:
-            out.append((name, base, int(nd)))
         else:
-            out.append((name, base, 0))
+            out.append((name, base, int(nd or 0)))
     return out
 
 
@@ -393,21 +388,15 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
     spec = KERNELS[kind]
     K = getattr(importlib.import_module(spec.module), spec.function)
     nbt = {"f4": types.float32, "f8": types.float64, "i4": types.int32, "i8": types.int64,
-           "u1": types.uint8, "u2": types.uint16, "b1": types.boolean, "raw": getattr(types, dtype.name)}
-    sig, c_names, arrays = [], [], {}
+           "u1": types.uint8, "u2": types.uint16, "b1": types.boolean,
+           "raw": getattr(types, dtype.name)}
+    sig, c_names, k_args = [], [], []
     for i, (_, t, nd) in enumerate(_flat_params(kind, P)):
-        if nd:
-            c_names.append(f"a{i}")
-            sig.append(types.CPointer(nbt[t]))
-            dims = [f"a{i}_{d}" for d in range(nd)]
-            c_names += dims
-            sig += [types.int64] * nd
-            arrays[i] = f"carray(a{i}, ({', '.join(dims)},))"
-        else:
-            c_names.append(f"a{i}")
-            sig.append(nbt[t])
-            arrays[i] = f"a{i}"
-    k_args = [arrays[i] for i in range(len(arrays))]
+        # an array: its pointer and extents in, a carray over them to the kernel
+        dims = [f"a{i}_{d}" for d in range(nd)]
+        c_names += [f"a{i}", *dims]
+        sig += [types.CPointer(nbt[t]) if nd else nbt[t]] + [types.int64] * nd
+        k_args.append(f"carray(a{i}, ({', '.join(dims)},))" if nd else f"a{i}")
     if spec.per_exposure:
         k_args = [f"({', '.join(k_args[:P])},)"] + k_args[P:]
     src = f"def entry({', '.join(c_names)}):\n    K({', '.join(k_args)})\n"
