@@ -35,10 +35,15 @@ def instrument_groups(inst, bad, groups):
     return table[c]
 
 
-def pair_groups(probe, linearise, j, k, groups, clip_samples=4096):
+def pair_groups(probe, linearise, j, k, groups, clip_samples=None):
     """numpy's statistics of exposures j < k (mehs.synthesis.noise's former
-    ``_pair_groups_compute``, step for step)."""
+    ``_pair_groups_compute``, step for step; the clip's median and MAD per group, one
+    ``np.median`` call each, of the float32-rounded values, as mehs defines them)."""
     import math
+
+    from mehs.synthesis.noise import CLIP_SAMPLES
+
+    clip_samples = CLIP_SAMPLES if clip_samples is None else clip_samples
 
     raw_j, raw_k = probe.raw[j], probe.raw[k]
     # the dark of each sample's column, written out per sample
@@ -78,8 +83,8 @@ def pair_groups(probe, linearise, j, k, groups, clip_samples=4096):
             dv = d[use & (gid == gi)]
         else:
             dv = ds[bounds[gi]:bounds[gi + 1]]
-        med[gi] = np.median(dv)
-        sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]))
+        med[gi] = np.median(dv.astype(np.float32).astype(np.float64))
+        sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]).astype(np.float32).astype(np.float64))
     e = d - np.take(med, gid)
     t = (np.abs(e) <= np.take(5.0 * np.maximum(sig, 1e-9), gid)) & use
     gt, et = gid[t], e[t]

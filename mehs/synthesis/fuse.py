@@ -18,65 +18,13 @@ import numpy as np
 
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
-from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
                                   merge_bracket, warm_merge_kernel)
-from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
-                                     sample_pixels, to_levels)
-
-#: "auto" uses the linear curve while consecutive exposures agree with it within this
-#: relative error at every well-exposed signal level
-LINEARITY_TOLERANCE = 0.02
-
-
-class ResponseUndeterminedWarning(UserWarning):
-    """A recovered response curve is not determined by its bracket (see :mod:`~mehs.synthesis.response_check`)."""
-
-
-def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothness: float,
-                             samples: int | None, seed: int, shared: bool,
-                             saturation: np.ndarray) -> dict[str, Any]:
-    """Run :func:`mehs.synthesis.response_check.response_uncertainty` on a curve recovered
-    by :func:`recover_response` (raw levels) from ``bracket``."""
-    from mehs.synthesis.response_check import response_uncertainty
-
-
-    def again(*, smoothness: float, pool):
-        return recover_response(bracket, smoothness=smoothness, samples=samples, seed=seed,
-                                shared=shared, levels="raw", saturation=saturation, pool=pool)
-
-    from mehs.synthesis.merge import merge_bracket
-
-    nl, ns, nb = bracket.shape
-    rows = np.unique(np.linspace(0, nl - 1, min(nl, 64)).round().astype(np.intp))
-
-    def rows_of(data) -> np.ndarray:
-        """``data[rows]`` with the memory layout and writeability of ``data``: the merge
-        kernel then runs the specialisation the full cube compiles (a writeable copy of
-        a read-only memory map compiled a second one, ~15 s on a first-ever run)."""
-        a = np.asarray(data)
-        out = np.empty_like(a[:rows.size], order="K")
-        out[...] = a[rows]
-        out.flags.writeable = a.flags.writeable
-        return out
-
-    subset = [rows_of(e.data) for e in bracket.exposures]
-
-    def merge(c: ResponseCurve):
-        mr = merge_bracket(subset,
-                           bracket.times_ms, method="poisson", response=c, darks=bracket.darks,
-                           bit_depth=bracket.bit_depth, saturation=saturation,
-                           consistency=False, source=bracket.source)
-        usable = np.broadcast_to((mr.mask == 0)[..., None], mr.radiance.shape)
-        return np.asarray(mr.radiance, dtype=np.float64), usable
-
-    try:
-        return response_uncertainty(again, merge, curve, shape=(nl, ns), smoothness=smoothness)
-    except InputError as exc:   # a half-bracket too small to recover on its own
-        return {"determined": False, "median": None, "p95": None,
-                "reason": f"check impossible ({exc.problem})"}
-
+from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
+    LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
+    recover_response)
+from mehs.synthesis.response import ResponseCurve
 
 @dataclass
 class FusionResult:
@@ -158,165 +106,6 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
     except InputError as exc:
         fb = noise_from_bracket(bracket)
         return fb, {"fallback": f"{fb.source} ({exc.problem})"}
-
-
-def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation: np.ndarray,
-                      subtract_dark: bool, pool: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """int32 (P, M, bands) levels of M random pixels (memmaps read only there), and
-    float32 (P, M, bands) the raw dark level of each (0 where none or subtracted).
-
-    ``pool``: flat pixel indices to draw from (default every pixel); disjoint pools
-    give independent curves for the self-consistency check.
-    """
-    nl, ns, nb = bracket.shape
-    rng = np.random.default_rng(seed)
-    pool = np.arange(nl * ns) if pool is None else np.asarray(pool, dtype=np.int64)
-    m = min(pool.size, n_candidates)
-    flat = np.sort(rng.choice(pool, size=m, replace=False))
-    rows, cols = np.divmod(flat, ns)
-    out = np.empty((len(bracket.exposures), m, nb), dtype=np.int32)
-    darks = np.zeros((len(bracket.exposures), m, nb), dtype=np.float32)
-    for j, e in enumerate(bracket.exposures):
-        raw = np.asarray(e.data[rows, cols], dtype=np.float32)
-        dk = bracket.darks[j][cols] if bracket.darks[j] is not None else None
-        out[j] = to_levels(raw, dk if subtract_dark else None, bracket.bit_depth,
-                           saturation[None, :])
-        if dk is not None and not subtract_dark:
-            darks[j] = dk
-    return out, darks
-
-
-def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
-                     seed: int = 0, shared: bool = False, levels: str = "raw",
-                     saturation: np.ndarray | None = None,
-                     weighting: str = "hat", offset_iterations: int = 12,
-                     pool: np.ndarray | None = None) -> ResponseCurve:
-    """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
-
-    ``levels="raw"`` fits the curve to raw DN (the black level then passes
-    through the non-linearity, as on most sensors; the merge subtracts the
-    *linearised* dark); ``"dark-subtracted"`` fits it to ``raw − dark``.
-
-    With raw levels, Debevec and Malik's model ``g(Z_ij) = ln E_i + ln Δt_j``
-    misses the offset ``B_j`` (black level plus dark current, which grows with
-    ``Δt``) that is added before the non-linearity: the curve bends near black
-    (by a factor 2 for a gamma-0.8 sensor), and dark pixels of different
-    exposures disagree. ``offset_iterations`` rounds re-solve with per-sample
-    effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))`` the
-    linearised dark of that sample's column, ``E_i`` the pixel's current
-    estimate — which makes the model exact: ``exp(g(Z_ij)) = E_i·Δt_j + B_ij``.
-    A constant added to ``exp(g)`` is not fixed by the data (it cancels in
-    ``f(raw) − f(dark)``, so the merge does not see it) and drifts from round
-    to round while the shape converges; it is set at the end so that the curve
-    follows the plain Debevec–Malik curve over the well-exposed levels.
-    """
-    L = 1 << bracket.bit_depth
-    P = len(bracket.exposures)
-    nb = bracket.shape[2]
-    sat = np.full(nb, 0.98 * (L - 1)) if saturation is None else np.broadcast_to(saturation, (nb,))
-    n = samples or int(np.ceil(2.0 * L / (P - 1)))
-    npix = bracket.shape[0] * bracket.shape[1] if pool is None else len(pool)
-    if shared:
-        n_per = max(64, int(np.ceil(n / nb)) + 1)
-    else:
-        n_per = n
-    cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw",
-                                    pool=pool)
-    if shared:
-        Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
-    else:
-        if npix < n:
-            raise InputError(f"{npix} pixels are too few for a per-band {bracket.bit_depth}-bit "
-                             f"curve from {P} exposures ({n} needed); use a shared curve",
-                             bracket.source)
-        Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth, return_index=True)
-    lt = np.log(bracket.times_ms)
-    params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
-    curve = plain = recover_response_Debevec1997(
-        Z, lt, bit_depth=bracket.bit_depth, smoothness=smoothness,
-        weighting=weighting, shared=shared, wavelengths=bracket.wavelengths, parameters=params)
-    has_dark = levels == "raw" and all(d is not None for d in bracket.darks)
-    if has_dark and offset_iterations > 0:
-        from mehs.synthesis.response import weighting_table
-
-        # the raw dark level of every sample: (n, P, C) like Z
-        D = np.take_along_axis(cdark.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None],
-                               axis=1).transpose(1, 2, 0)
-        w = weighting_table(weighting, L)[Z]
-        t = bracket.times_ms[None, :, None]
-        lev = np.arange(L)
-        lt_cur = np.broadcast_to(np.log(t), Z.shape)
-        for _ in range(int(offset_iterations)):
-            G = curve.table(None if curve.shared else nb)
-            f = np.exp(G)
-            if curve.shared:
-                B = np.interp(D, lev, f[0])
-                gz = G[0][Z]
-            else:
-                B = np.stack([np.interp(D[:, :, c], lev, f[c]) for c in range(nb)], axis=2)
-                gz = G[np.arange(nb)[None, None, :], Z]
-            W = w.sum(axis=1)
-            lnE = np.where(W > 0, (w * (gz - lt_cur)).sum(axis=1) / np.where(W > 0, W, 1), 0.0)
-            lt_cur = np.log(t + B / np.exp(lnE)[:, None, :])
-            curve = recover_response_Debevec1997(
-                Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
-                weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
-                parameters={**params, "offset_iterations": int(offset_iterations)})
-        zmin = int(max(Z[w > 0].min(), 1)) if np.any(w > 0) else 1
-        curve = _match_constant(curve, plain, zmin)
-    return curve
-
-
-def _match_constant(curve: ResponseCurve, plain: ResponseCurve, zmin: int) -> ResponseCurve:
-    """Choose the free additive constant of ``exp(g)`` so that ``g`` follows ``plain``.
-
-    ``plain`` (Debevec–Malik without the offset) is accurate over the
-    well-exposed levels ``L/8 … 0.9·L``, where the offset is negligible; the
-    constant ``c`` that makes ``ln(exp(g) − c)`` parallel to it there is kept,
-    subject to ``exp(g) − c > 0`` at every level from ``zmin`` (the lowest
-    level seen) up.
-    """
-    L = curve.levels
-    f = np.exp(curve.table())
-    g0 = plain.table(None if plain.shared else f.shape[0])
-    if g0.shape[0] != f.shape[0]:
-        g0 = np.broadcast_to(g0, f.shape)
-    zs = np.arange(L // 8, int(0.9 * L), 16)
-    cmax = 0.98 * f[:, zmin:].min(axis=1)
-    cmin = -0.5 * f[:, L // 2]
-    frac = np.linspace(0.0, 1.0, 301)
-    c = cmin[:, None] + (cmax - cmin)[:, None] * frac[None, :]          # (C, K)
-    lg = np.log(np.maximum(f[:, None, zs] - c[:, :, None], 1e-12))      # (C, K, Z)
-    d = lg - g0[:, None, zs]
-    err = d.var(axis=2)
-    best = c[np.arange(c.shape[0]), np.argmin(err, axis=1)]
-    f2 = f - best[:, None]
-    slope = np.maximum(f2[:, zmin + 1] - f2[:, zmin], 1e-6)
-    f2[:, :zmin] = np.maximum(f2[:, zmin][:, None] - slope[:, None] * (zmin - np.arange(zmin)),
-                              1e-6 * slope[:, None])
-    f2 = np.maximum(f2, 1e-12)
-    mid = L // 2
-    g2 = np.log(f2)
-    g2 += np.log(mid) - g2[:, mid:mid + 1]
-    params = dict(curve.parameters)
-    params["offset_constant"] = best.tolist() if best.size > 1 else float(best[0])
-    return ResponseCurve(g2[0] if curve.shared else g2, curve.bit_depth, method=curve.method,
-                         smoothness=curve.smoothness, weighting=curve.weighting,
-                         wavelengths=curve.wavelengths, parameters=params)
-
-
-def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
-                   bit_depth: int) -> tuple[np.ndarray, np.ndarray]:
-    from mehs.synthesis._kernels import stratified_pick
-
-    P, M, C = cand.shape
-    L = 1 << bit_depth
-    order = np.random.default_rng(seed).permutation(M).astype(np.int64)
-    idx = stratified_pick(np.ascontiguousarray(cand), order, n_per, 64, L)   # (C, n_per)
-    Z = np.take_along_axis(cand.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None], axis=1)
-    Z[idx < 0] = L - 1    # unfilled slots: weight 0
-    return np.ascontiguousarray(Z.transpose(1, 2, 0)), idx
 
 
 def _after_file_check(fuse):
@@ -413,61 +202,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     # numba's import and kernel load (or first-ever compile) overlap the checks below
     warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                       darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)
-    auto_info: dict[str, Any] = {}
-    probe = None
-    if isinstance(response, ResponseCurve):
-        curve = response
-    elif isinstance(response, (str, Path)) and str(response) in ("auto", "linear", "debevec"):
-        kind = str(response)
-        if kind == "linear":
-            curve = ResponseCurve.linear(bracket.bit_depth)
-        else:
-            curve = None
-            if kind == "auto":
-                from mehs.synthesis.noise import linearity_PTC, probe_bracket
-
-                try:
-                    probe = probe_bracket(bracket, sat)
-                    lin = linearity_PTC(probe, lambda raw, dark, j: raw - dark,
-                                        bit_depth=bracket.bit_depth, key="linear")
-                    dev = lin["deviation"]
-                    auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
-                                 "linearity_deviation_max": lin["deviation_max"],
-                                 "linearity_levels": lin["levels"],
-                                 "linearity_resolution": lin["resolution"],
-                                 "linearity_test": "exposure ratio per signal level (p75)"}
-                    inconclusive = lin["resolution"] > LINEARITY_TOLERANCE
-                    auto_info["linearity_conclusive"] = not inconclusive
-                    if dev < LINEARITY_TOLERANCE and not inconclusive:
-                        curve = ResponseCurve.linear(bracket.bit_depth)
-                except InputError as exc:
-                    # too little signal to tell: the linear curve is the safe choice
-                    auto_info = {"linearity_check": f"skipped ({exc.problem})"}
-                    curve = ResponseCurve.linear(bracket.bit_depth)
-            if curve is None:
-                skip_scipy_linalg_import()     # before the first kernel
-                # the merge of a recovered curve runs the stage kernel: loaded (or compiled)
-                # while the curve is recovered and checked
-                warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms,
-                                  method=method, darks=bracket.darks,
-                                  bit_depth=bracket.bit_depth, saturation=sat, linear=False)
-                curve = recover_response(bracket, smoothness=smoothness, samples=samples,
-                                         seed=seed, shared=shared_response, levels="raw",
-                                         saturation=sat)
-                if check_response or auto_info.get("linearity_conclusive") is False:
-                    auto_info["check"] = check_recovered_response(
-                        bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
-                        shared=shared_response, saturation=sat)
-                if (auto_info.get("linearity_conclusive") is False
-                        and not auto_info["check"].get("determined", False)):
-                    # neither test can tell: a linear sensor is the likelier (and the
-                    # smoother) guess, but the scene is flagged, never silently trusted
-                    curve = ResponseCurve.linear(bracket.bit_depth)
-                    auto_info["assumed_linear"] = ("linearity test inconclusive (resolution "
-                                                   f"{auto_info['linearity_resolution']:.1%}) and "
-                                                   "the recovered curve undetermined")
-    else:
-        curve = ResponseCurve.load(response)
+    curve, auto_info, probe = choose_response(
+        bracket, response, method=method, saturation=sat, smoothness=smoothness,
+        samples=samples, seed=seed, shared=shared_response, check=check_response)
     if curve.bit_depth != bracket.bit_depth:
         raise InputError(f"response curve is {curve.bit_depth}-bit, the bracket "
                          f"{bracket.bit_depth}-bit", bracket.source)

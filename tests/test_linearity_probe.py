@@ -1,0 +1,106 @@
+"""The linearity test of ``response="auto"`` on a small probe, refined when unclear (issue 16).
+
+The first probe reads :data:`mehs.synthesis.noise.PROBE_PIXELS` pixels; a result that is
+not clear-cut is decided again on :data:`~mehs.synthesis.noise.PROBE_PIXELS_FINE`. The
+per-group medians that set the statistics' clip come from one sort instead of a loop of
+``np.median`` calls; they must equal ``np.median`` of each group.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mehs.cube import SpectralCube
+from mehs.synthesis import noise as N
+from mehs.synthesis.bracket import Bracket
+from mehs.synthesis.fuse_response import LINEARITY_TOLERANCE, linearity_auto
+
+
+def _bracket(response: str, size: int = 96, times=(0.05, 0.4, 3.2)) -> Bracket:
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+
+    wl = SPECIM_IQ_WAVELENGTHS[::4]
+    sc = make_scene("window", lines=size, samples=size, wavelengths=wl, seed=1)
+    sim = simulate_bracket(sc, SensorModel(response=response, seed=2), list(times), seed=3)
+    return Bracket([SpectralCube(e, sc.wavelengths) for e in sim.exposures], list(sim.darks),
+                   [None] * len(times), sim.times_ms, sc.wavelengths, bit_depth=12)
+
+
+def _sat(br: Bracket) -> np.ndarray:
+    return np.full(br.shape[2], 0.98 * 4095, np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_group_medians_equal_numpys(seed):
+    rng = np.random.default_rng(seed)
+    groups = 40
+    n = 5000
+    g = rng.integers(0, groups - 3, n)                  # the last groups stay empty
+    v = rng.normal(0, 1, n) * rng.choice([1e-3, 1.0, 1e4], n)
+    v[:7] = 0.0
+    v[7:9] = -0.0
+    med, sig = N._group_median_mad(v, g, groups)
+    for gi in range(groups):
+        dv = v[g == gi]
+        if dv.size == 0:
+            assert med[gi] == 0 and sig[gi] == 0
+            continue
+        m = np.median(dv.astype(np.float32).astype(np.float64))
+        mad = np.median(np.abs(dv - m).astype(np.float32).astype(np.float64))
+        assert med[gi] == m
+        assert sig[gi] == 1.4826 * mad
+        # float32-rounded values: within float32 precision of numpy's float64 median
+        assert med[gi] == pytest.approx(np.median(dv), rel=1e-6, abs=1e-30)
+
+
+def test_even_and_odd_group_sizes():
+    v = np.array([3.0, 1.0, 2.0, 10.0, 4.0, 1.0, 2.0])
+    g = np.array([0, 0, 0, 1, 1, 1, 1])
+    med, _ = N._group_median_mad(v, g, 2)
+    assert med.tolist() == [2.0, 3.0]
+
+
+def test_a_linear_sensor_is_settled_on_the_small_probe():
+    br = _bracket("linear")
+    assert br.shape[0] * br.shape[1] > N.PROBE_PIXELS
+    probe, lin = linearity_auto(br, _sat(br))
+    assert lin["probe_pixels"] <= N.PROBE_PIXELS and "probe_refined" not in lin
+    assert lin["deviation"] < LINEARITY_TOLERANCE / 2
+    assert lin["resolution"] < LINEARITY_TOLERANCE / 2
+    # the same verdict as the finer probe would give
+    fine = N.linearity_PTC(N.probe_bracket(br, _sat(br), max_pixels=N.PROBE_PIXELS_FINE),
+                           lambda raw, dark, j: raw - dark)
+    assert fine["deviation"] < LINEARITY_TOLERANCE and fine["resolution"] < LINEARITY_TOLERANCE
+    assert probe.raw.shape[1] == lin["probe_pixels"]
+
+
+def test_a_non_linear_sensor_is_decided_on_the_finer_probe():
+    br = _bracket("gamma")
+    probe, lin = linearity_auto(br, _sat(br))
+    assert lin.get("probe_refined") is True
+    assert N.PROBE_PIXELS < lin["probe_pixels"] <= N.PROBE_PIXELS_FINE
+    assert probe.raw.shape[1] == lin["probe_pixels"]
+    assert lin["deviation"] > LINEARITY_TOLERANCE
+
+
+def test_fuse_probes_once_and_reports_the_probe(monkeypatch):
+    from mehs.synthesis.fuse import fuse_bracket
+
+    calls = []
+    real = N.probe_bracket
+
+    def counting(*a, **k):
+        calls.append(k.get("max_pixels"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(N, "probe_bracket", counting)
+    res = fuse_bracket(_bracket("linear"), ghosts="off")
+    resp = res.summary["response"]
+    assert res.response.is_linear and resp["linearity_conclusive"] is True
+    assert resp["linearity_probe_pixels"] <= N.PROBE_PIXELS
+    # the noise model reuses the linearity test's probe and statistics
+    assert calls == [N.PROBE_PIXELS]
+    assert res.summary["noise"]["source"] == "photon transfer (bracket)"
