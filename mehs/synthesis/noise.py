@@ -101,14 +101,21 @@ def probe_bracket(bracket, saturation: np.ndarray,
     P = len(bracket.exposures)
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
     dark = np.zeros((P, ns, nb), dtype=np.float32)       # per column: a line's darks
-    for j, e in enumerate(bracket.exposures):
-        a = np.asarray(e.data)
-        bil = a.transpose(0, 2, 1)
-        # a BIL file (Specim's): gather whole lines as stored, transpose them in memory
-        block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
-        raw[j].reshape(lines.size, ns, nb)[...] = block
-        if bracket.darks[j] is not None:
-            dark[j] = bracket.darks[j]
+
+    def read(j0: int, j1: int) -> None:
+        for j in range(j0, j1):
+            a = np.asarray(bracket.exposures[j].data)
+            bil = a.transpose(0, 2, 1)
+            # a BIL file (Specim's): gather whole lines as stored, transpose them in memory
+            block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
+            raw[j].reshape(lines.size, ns, nb)[...] = block
+            if bracket.darks[j] is not None:
+                dark[j] = bracket.darks[j]
+
+    from mehs.synthesis._ranges import run_ranges
+
+    # the exposures on threads: numpy's gather and converting copy release the GIL
+    run_ranges(P, read, max_step=1, name="mehs-probe")
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
                         np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines)
 
@@ -196,18 +203,19 @@ CELL_BITS = 18
 _NCELLS = 1 << CELL_BITS
 
 
-def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """The group (0 … ``groups − 1``) of each of a run of consecutive cells of the
-    instrument's value (:func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number
-    of good samples in each (``good``: every cell from the lowest to the highest one in
-    use); None without good samples.
+def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
+    """The groups of a run of consecutive cells of the instrument's value
+    (:func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number of good samples in
+    each (``good``: every cell from the lowest to the highest one in use): int64
+    ``(groups + 1,)`` bounds, group ``k`` the cells ``bounds[k] … bounds[k + 1] − 1``
+    (possibly none); None without good samples.
 
     Groups are ranges of the instrument holding about equal numbers of good samples,
     bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
-    a table lookup of its cell — neither a partition for the quantiles nor a binary
-    search per value. Like quantile edges they depend on the instrument only; a cell's
-    worth of tied values (one integer level of a dark scene) stays in one group, as
-    equal quantiles would leave it.
+    a table lookup of its cell (:func:`_group_table`) — neither a partition for the
+    quantiles nor a binary search per value. Like quantile edges they depend on the
+    instrument only; a cell's worth of tied values (one integer level of a dark scene)
+    stays in one group, as equal quantiles would leave it.
     """
     cum = np.cumsum(good)                        # good samples in cells up to each
     n = int(cum[-1])
@@ -217,11 +225,17 @@ def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
     last = np.searchsorted(cum, target)          # the cell holding each target rank
     before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
     # the group ends after that cell, or before it when that is nearer the target
+    # (non-decreasing: a later target moves the end no earlier)
     last = np.where(target - before < cum[last] - target, last - 1, last)
-    # a cell's group: the number of groups that ended before it
-    m = good.size
-    table = np.cumsum(np.bincount(last + 1, minlength=m + 1)[:m])
-    return table.astype(np.uint16)
+    return np.concatenate(([0], last + 1, [good.size])).astype(np.int64)
+
+
+def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
+    """uint16: the group (0 … ``groups − 1``) of each cell (see :func:`_group_bounds`)."""
+    bounds = _group_bounds(good, groups)
+    if bounds is None:
+        return None
+    return np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
 
 
 #: The per-group median and MAD that set the 5σ clip come from about this many samples a
@@ -250,22 +264,27 @@ def _order_keys(x: np.ndarray) -> np.ndarray:
 def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
     """float64 (groups,) the median of the float32-rounded ``v`` of each group ``g`` (0 for
     an empty group), as ``np.median`` defines it (the mean of the two middle values of
-    an even count), from one sort of ``group << 32 | value key``: no Python loop over
-    the groups, and the sort releases the GIL, so that the exposure pairs' statistics
-    run side by side on threads (a loop of ``np.median`` calls held it for 3–7 ms a
-    pair, issue 16)."""
+    an even count), from one selection among ``group << 32 | value key``: no Python loop
+    over the groups, and the selection releases the GIL, so that the exposure pairs'
+    statistics run side by side on threads (a loop of ``np.median`` calls held it for
+    3–7 ms a pair, issue 16)."""
     keys = (g.astype(np.uint64) << np.uint64(32)) | _order_keys(v)
-    keys.sort()
-    k = keys & np.uint64(0xFFFFFFFF)
-    bits = np.where(k >> 31 != 0, k & np.uint64(0x7FFFFFFF), k ^ np.uint64(0xFFFFFFFF))
-    s = bits.astype(np.uint32).view(np.float32).astype(np.float64)
     count = np.bincount(g, minlength=groups)
     start = np.cumsum(count) - count
     has = count > 0
-    a = s[(start + (count - 1) // 2)[has]]
-    b = s[(start + count // 2)[has]]
+    lo, hi = (start + (count - 1) // 2)[has], (start + count // 2)[has]
+    if keys.size:
+        # the keys order by group, then value: each group's middle ranks are the same
+        # positions of the whole, so one selection finds them all
+        keys.partition(np.union1d(lo, hi))
+
+    def value(k):
+        k = k & np.uint64(0xFFFFFFFF)
+        bits = np.where(k >> 31 != 0, k & np.uint64(0x7FFFFFFF), k ^ np.uint64(0xFFFFFFFF))
+        return bits.astype(np.uint32).view(np.float32).astype(np.float64)
+
     out = np.zeros(groups)
-    out[has] = (a + b) / 2.0
+    out[has] = (value(keys[lo]) + value(keys[hi])) / 2.0
     return out
 
 
@@ -366,13 +385,14 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
     lo, hi = int(span[0]), int(span[1]) + 1          # the cells in use
     n_all = count_all[lo:hi]
     n_bad = count_bad[lo:hi]
-    table = _group_table(n_all - n_bad, groups)
-    if table is None:
+    bounds = _group_bounds(n_all - n_bad, groups)
+    if bounds is None:
         return None
+    table = np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
     # a group with more than 0.1 % saturated samples is dropped whole (dropping
     # only the saturated samples would select on their own noise)
-    nbad = np.bincount(table, weights=n_bad, minlength=groups).astype(np.int64)
-    ntot = np.bincount(table, weights=n_all, minlength=groups).astype(np.int64)
+    nbad = np.diff(np.concatenate(([0], np.cumsum(n_bad, dtype=np.int64)))[bounds])
+    ntot = np.diff(np.concatenate(([0], np.cumsum(n_all, dtype=np.int64)))[bounds])
     keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
     n_use = np.where(keep_group, ntot - nbad, 0)
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
