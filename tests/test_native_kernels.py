@@ -251,3 +251,28 @@ def test_an_entry_point_compiled_in_a_child_process_is_loaded(cache, monkeypatch
     assert not _native.build_in_background("ptc_pass", np.float32)     # already stored
     monkeypatch.setenv("MEHS_CACHE_DIR", "")
     assert not _native.build_in_background("ptc_pass", np.float32)     # no cache: none
+
+
+def test_a_child_compiling_elsewhere_is_neither_duplicated_nor_awaited(cache, monkeypatch):
+    """Another process's child holds the entry's ``.building`` lock: this process starts
+    no second child and :func:`building` says so (its caller then uses numpy's passes
+    instead of waiting); once the lock is gone, it builds as usual."""
+    import fcntl
+
+    from mehs.synthesis import _native
+
+    _reset(monkeypatch)
+    _, stem = _native._key("ptc_pass", np.dtype(np.float32), 0)
+    cache.mkdir(parents=True, exist_ok=True)
+    fd = os.open(cache / f"{stem}.building", os.O_CREAT | os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX)                 # "another process's child"
+    try:
+        assert _native.building("ptc_pass", np.float32)
+        assert not _native.build_in_background("ptc_pass", np.float32)
+    finally:
+        os.close(fd)
+    assert not _native.building("ptc_pass", np.float32)
+    assert _native.build_in_background("ptc_pass", np.float32)   # now this one builds
+    assert _native.building("ptc_pass", np.float32)              # its own child
+    assert _native.native_kernel("ptc_pass", np.float32, build=False) is not None
+    assert not _native.building("ptc_pass", np.float32)          # stored

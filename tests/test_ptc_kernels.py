@@ -45,13 +45,30 @@ def _curve64(raw, dark, j):
     return (np.maximum(raw.astype(np.float64) - dark, 0.0) / 4095.0) ** 1.1 * 4095.0
 
 
-@pytest.fixture(params=["numba", "stored"])
+@pytest.fixture(params=["numba", "stored", "numpy"])
 def path(request, tmp_path, monkeypatch):
+    """numba's dispatchers, the stored entry point, or (while a child process compiles
+    that entry on a first-ever run) numpy's passes of ``mehs.synthesis._ptc_numpy``."""
     from mehs.synthesis import _native
 
     monkeypatch.setattr(_native, "_loaded", {})
-    monkeypatch.setenv("MEHS_CACHE_DIR", "" if request.param == "numba" else str(tmp_path))
+    monkeypatch.setenv("MEHS_CACHE_DIR", "" if request.param != "stored" else str(tmp_path))
+    if request.param == "numpy":
+        from mehs.synthesis import _ptc_numpy
+
+        monkeypatch.setattr(_native, "building", lambda *a, **k: True)
+        real = _ptc_numpy.ptc_sums
+
+        def counted(*a):
+            NUMPY_SUMS.append(1)
+            return real(*a)
+
+        monkeypatch.setattr(_ptc_numpy, "ptc_sums", counted)
+    NUMPY_SUMS.clear()
     return request.param
+
+
+NUMPY_SUMS: list = []
 
 
 def _assert_equal(got, ref):
@@ -74,6 +91,7 @@ def test_pair_statistics_equal_numpys(path, lin, groups):
                       pair_groups(probe, lin, j, k, groups))
     dtype = np.float32 if lin is _linear else np.float64
     assert _native.is_stored("ptc_pass", dtype) == (path == "stored")
+    assert bool(NUMPY_SUMS) == (path == "numpy")       # the path under test was taken
 
 
 def test_small_groups_use_all_their_samples(path):

@@ -167,8 +167,13 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
 
     numba compiles one function at a time in a process: a first-ever ``mehs fuse``
     compiled the photon-transfer passes after the merge kernel (2 s + 2.5 s, one core
-    idle). A later :func:`native_kernel` of the same entry waits for the child and loads
-    what it stored (or, if it failed, builds as usual). True if a child was started.
+    idle). The child runs at a lower priority and outlives its parent if need be: a
+    caller with another way to do the work (:func:`building`) goes on without it, and
+    the entry is there for the next process. A later :func:`native_kernel` of the same
+    entry waits for the child and loads what it stored (or, if it failed, builds as
+    usual). The child holds a lock on ``<entry>.building`` in the cache folder while it
+    compiles, so that another process neither starts a second one nor waits. True if a
+    child was started.
     """
     dtype = np.dtype(dtype)
     if not supported(kind, dtype, P):
@@ -181,20 +186,81 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
     folder = _folder()
     if (folder / f"{stem}.json").is_file() or not _writable(folder):
         return False        # stored (checked when loaded), or nowhere to store it
-    code = ("import sys; sys.path.insert(0, sys.argv[4]); import numpy as np; "
-            "from mehs.synthesis import _native; "
-            "_native.native_kernel(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]))")
+    marker = folder / f"{stem}.building"
+    if _locked_elsewhere(marker):
+        return False        # another process's child is compiling it
+    # at a lower priority: the parent's own work (the merge kernel's compilation on a
+    # first-ever run) comes first on a machine with few cores
+    code = ("import os, sys; os.nice(10); sys.path.insert(0, sys.argv[4]); "
+            "import numpy as np; from mehs.synthesis import _native; "
+            "_native._build_as_child(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]), "
+            "sys.argv[5])")
     root = str(Path(__file__).resolve().parents[2])
     with _memo_lock:        # (one child per entry, whichever thread asks)
         if memo in _loaded or memo in _children:
             return False
         try:
             _children[memo] = subprocess.Popen(
-                [sys.executable, "-c", code, kind, dtype.name, str(P), root],
+                [sys.executable, "-c", code, kind, dtype.name, str(P), root, str(marker)],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         except OSError:
             return False
     return True
+
+
+def _build_as_child(kind: str, dtype: np.dtype, P: int, marker: str) -> None:
+    """The child process of :func:`build_in_background`: compile and store the entry
+    under an exclusive lock on ``marker`` (none taken: another child has it)."""
+    try:
+        import fcntl
+    except ImportError:     # not POSIX: no marker
+        native_kernel(kind, dtype, P)
+        return
+    fd = os.open(marker, os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return              # another child is compiling it
+    native_kernel(kind, dtype, P)       # (the lock goes with the process)
+
+
+def _locked_elsewhere(marker: Path) -> bool:
+    """Whether a process holds ``marker``'s lock (:func:`_build_as_child`)."""
+    try:
+        import fcntl
+        fd = os.open(marker, os.O_RDONLY)
+    except (ImportError, OSError):
+        return False        # not POSIX, or no child ever started
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)        # (releases the probe's own lock)
+    return False
+
+
+def building(kind: str, dtype, P: int = 0) -> bool:
+    """Whether ``kind``'s entry point is being compiled in a child process — this one's
+    (:func:`build_in_background`) or another process's — and is not stored yet: a
+    caller with another way to do the work need not wait for it."""
+    dtype = np.dtype(dtype)
+    memo = (kind, dtype.name, P, str(_folder()))
+    with _memo_lock:
+        if _loaded.get(memo) is not None:
+            return False
+        child = _children.get(memo)
+    if child is not None and child.poll() is None:
+        return True
+    if not supported(kind, dtype, P):
+        return False
+    try:
+        _, stem = _key(kind, dtype, P)
+    except Exception:       # noqa: BLE001
+        return False
+    folder = _folder()
+    return (not (folder / f"{stem}.json").is_file()
+            and _locked_elsewhere(folder / f"{stem}.building"))
 
 
 def is_stored(kind: str, dtype, P: int = 0) -> bool:

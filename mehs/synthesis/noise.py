@@ -311,7 +311,8 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
 def build_kernels_in_background() -> bool:
     """Where the photon-transfer passes' machine code is not stored yet (a first-ever
     run), start compiling it in a child process (:func:`mehs.synthesis._native.
-    build_in_background`); True if one was started."""
+    build_in_background`); True if one was started. Meanwhile :func:`_kernels` gives
+    numpy's passes: the child's entry is for the next process."""
     from mehs.synthesis import _native
 
     return _native.build_in_background("ptc_pass", np.float32)
@@ -321,9 +322,16 @@ def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
     """:mod:`mehs.synthesis._ptc_kernels`' ``ptc_cells`` and ``ptc_sums`` for linearised
     samples of ``dtype``: their stored machine code (one entry point, ``ptc_pass``,
     :mod:`mehs.synthesis._native`: no numba start-up in a warm ``mehs fuse``), else
-    numba's dispatchers."""
+    numba's dispatchers; while a child process compiles that entry (a first-ever run),
+    the same passes in numpy (:mod:`mehs.synthesis._ptc_numpy`, same bits, ~0.1 s a
+    pair), which beat waiting 3–5 s for the child."""
     from mehs.synthesis import _native
 
+    if _native.building("ptc_pass", dtype):
+        # a first-ever run: numpy's passes (same bits) rather than wait for the child
+        from mehs.synthesis._ptc_numpy import ptc_cells, ptc_sums
+
+        return ptc_cells, ptc_sums
     entry = _native.native_kernel("ptc_pass", dtype)
     if entry is None:
         from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
