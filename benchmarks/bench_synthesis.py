@@ -146,6 +146,11 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
     t_read, _ = best(read_pass, 3)
     merge_bracket(stack, t, darks=[dark] * P)                    # compile / warm
     rows.append((f"one read pass over the stack ({nbytes / 2**20:.0f} MiB)", t_read, "reference"))
+    # the merge's memory traffic without its arithmetic: what the hardware allows
+    floor = _traffic_floor(stack, dark)
+    t_floor, _ = best(floor, 5)
+    rows.append(("  compiled read of the stack + float32 write, merge's threads (floor)",
+                 t_floor, f"{t_floor / t_read:.2f}× read pass"))
     mehs_t = {}
     # best of 5: on a shared 2-core machine a parallel kernel loses whole
     # time slices to other processes, and best-of-2 varied by 2.5× between runs
@@ -218,6 +223,43 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
         os.unlink(p)
     os.rmdir(tmp)
     return rows
+
+
+def _traffic_floor(stack, dark):
+    """A callable doing the default merge's memory traffic — read every exposure's samples
+    and the darks, write one float32 per sample and the per-pixel sums — with one
+    subtraction and addition per sample instead of its arithmetic, on the merge's threads
+    and chunks: the floor a merge could reach on this machine. (The read pass, numpy's
+    uint16 → uint64 sum on one thread, is slower than this floor.)"""
+    import numba
+
+    from mehs.synthesis._ranges import run_ranges
+
+    @numba.njit(nogil=True, cache=False, error_model="numpy")
+    def kernel(zs, darks, out, msum):
+        nl, nb, ns = out.shape
+        for l in range(nl):
+            for a in range(nb):
+                for i in range(ns):
+                    acc = np.float32(0.0)
+                    for j in range(len(zs)):
+                        acc += np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                    out[l, a, i] = acc
+                    msum[l, i] += acc
+
+    views = [np.asarray(s_).transpose(0, 2, 1) for s_ in stack]
+    nl, nb, ns = views[0].shape
+    dk = np.ascontiguousarray(np.broadcast_to(dark.T, (len(views), nb, ns)))
+
+    def run():
+        out = np.empty((nl, nb, ns), np.float32)
+        msum = np.zeros((nl, ns), np.float32)
+        run_ranges(nl, lambda l0, l1: kernel(tuple(v[l0:l1] for v in views), dk, out[l0:l1],
+                                             msum[l0:l1]), max_step=128, name="floor")
+        return out
+
+    run()
+    return run
 
 
 def bench_accuracy() -> list[tuple[str, float, str]]:

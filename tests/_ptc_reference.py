@@ -18,33 +18,31 @@ def cells_of(x: np.ndarray) -> np.ndarray:
     return (key >> (32 - CELL_BITS)) + (NCELLS >> 1)
 
 
-def instrument_groups(inst, bad, groups):
-    x = np.ascontiguousarray(inst, dtype=np.float32).ravel()
-    bad = np.asarray(bad).ravel()
-    c = cells_of(x)
-    counts = np.bincount(c, minlength=NCELLS) - np.bincount(c[bad], minlength=NCELLS)
+def group_of_cells(cells_subset, groups):
+    """Quantile groups of the subset's cells: ``(lo, ends)``; a cell ``c`` is in group
+    ``#(ends <= clip(c - lo))`` (cells outside the subset's span clamp to its ends)."""
+    lo = int(cells_subset.min())
+    counts = np.bincount(cells_subset - lo)
     cum = np.cumsum(counts)
     n = int(cum[-1])
-    if n == 0:
-        return None
     target = np.arange(1, groups) * (n / groups)
     last = np.searchsorted(cum, target)
     before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
     last = np.where(target - before < cum[last] - target, last - 1, last)
-    table = np.cumsum(np.bincount(last + 1, minlength=NCELLS + 1)[:NCELLS])
-    return table[c]
+    return lo, counts.size, last + 1
 
 
 def pair_groups(probe, linearise, j, k, groups, clip_samples=None):
-    """numpy's statistics of exposures j < k (mehs.synthesis.noise's former
-    ``_pair_groups_compute``, step for step; the clip's median and MAD per group, one
-    ``np.median`` call each, of the float32-rounded values, as mehs defines them)."""
+    """numpy's statistics of exposures j < k, step for step: groups from the quantiles of
+    an even subset's instrument cells, the clip's median and MAD per group from that
+    subset (one ``np.median`` call each, of the float32-rounded values, as mehs defines
+    them; all of a group's samples when the subset holds few, none when it holds none),
+    the clipped sums over every sample, groups with > 0.1 % saturated samples dropped."""
     import math
 
     from mehs.synthesis.noise import CLIP_SAMPLES
 
     clip_samples = CLIP_SAMPLES if clip_samples is None else clip_samples
-
     raw_j, raw_k = probe.raw[j], probe.raw[k]
     # the dark of each sample's column, written out per sample
     reps = raw_j.shape[0] // probe.dark[j].shape[0]
@@ -58,35 +56,36 @@ def pair_groups(probe, linearise, j, k, groups, clip_samples=None):
     sat = probe.saturation[None, :]
     sat_k = raw_k >= sat
     badf = (sat_k | (raw_j >= sat) | np.take(sat_k, nbr, axis=1)).ravel()
-    gid = instrument_groups(inst, badf, groups)
-    if gid is None:
-        return None
-    nbad = np.bincount(gid[badf], minlength=groups)
-    ntot = np.bincount(gid, minlength=groups)
-    keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
-    use = ~badf & np.take(keep_group, gid)
-    n_use = np.where(keep_group, ntot - nbad, 0)
     d = (y_k - r * y_j).ravel()
+    c = cells_of(inst)
     step = max(1, d.size // (groups * clip_samples))
     while step > 1 and math.gcd(step, nb) != 1:
         step += 1
-    u = use[::step]
-    ds, gs = d[::step][u], gid[::step][u]
-    order = np.argsort(gs, kind="stable")
-    ds = ds[order]
-    picked = np.bincount(gs, minlength=groups)
-    bounds = np.concatenate(([0], np.cumsum(picked)))
+    sub = np.zeros(d.size, bool)
+    sub[::step] = True
+    good_sub = sub & ~badf
+    if not good_sub.any():
+        return None
+    lo, m, ends = group_of_cells(c[good_sub], groups)
+    gid = np.searchsorted(ends, np.clip(c - lo, 0, m - 1), side="right")
     med = np.zeros(groups)
     sig = np.zeros(groups)
-    for gi in np.flatnonzero(n_use > 0):
-        if picked[gi] < min(n_use[gi], clip_samples // 2):
-            dv = d[use & (gid == gi)]
+    picked = np.bincount(gid[good_sub], minlength=groups)
+    for gi in range(groups):
+        if step > 1 and 0 < picked[gi] < clip_samples // 2:
+            dv = d[~badf & (gid == gi)]
         else:
-            dv = ds[bounds[gi]:bounds[gi + 1]]
+            dv = d[good_sub & (gid == gi)]
+        if dv.size == 0:
+            continue
         med[gi] = np.median(dv.astype(np.float32).astype(np.float64))
         sig[gi] = 1.4826 * np.median(np.abs(dv - med[gi]).astype(np.float32).astype(np.float64))
+    nall = np.bincount(gid, minlength=groups)
+    nbad = np.bincount(gid[badf], minlength=groups)
+    keep = nbad <= 1e-3 * np.maximum(nall, 1)
     e = d - np.take(med, gid)
-    t = (np.abs(e) <= np.take(5.0 * np.maximum(sig, 1e-9), gid)) & use
+    lim = np.where(picked > 0, 5.0 * np.maximum(sig, 1e-9), -1.0)   # none in the subset: out
+    t = (np.abs(e) <= np.take(lim, gid)) & ~badf & np.take(keep, gid)
     gt, et = gid[t], e[t]
     nt = np.bincount(gt, minlength=groups).astype(np.float64)
     den = np.maximum(nt, 1)

@@ -48,7 +48,7 @@ def _curve64(raw, dark, j):
 @pytest.fixture(params=["numba", "stored", "numpy"])
 def path(request, tmp_path, monkeypatch):
     """numba's dispatchers, the stored entry point, or (while a child process compiles
-    that entry on a first-ever run) numpy's passes of ``mehs.synthesis._ptc_numpy``."""
+    that entry on a first-ever run) numpy's pass of ``mehs.synthesis._ptc_numpy``."""
     from mehs.synthesis import _native
 
     monkeypatch.setattr(_native, "_loaded", {})
@@ -57,13 +57,13 @@ def path(request, tmp_path, monkeypatch):
         from mehs.synthesis import _ptc_numpy
 
         monkeypatch.setattr(_native, "building", lambda *a, **k: True)
-        real = _ptc_numpy.ptc_sums
+        real = _ptc_numpy.ptc_pass
 
         def counted(*a):
             NUMPY_SUMS.append(1)
             return real(*a)
 
-        monkeypatch.setattr(_ptc_numpy, "ptc_sums", counted)
+        monkeypatch.setattr(_ptc_numpy, "ptc_pass", counted)
     NUMPY_SUMS.clear()
     return request.param
 
@@ -94,12 +94,33 @@ def test_pair_statistics_equal_numpys(path, lin, groups):
     assert bool(NUMPY_SUMS) == (path == "numpy")       # the path under test was taken
 
 
-def test_small_groups_use_all_their_samples(path):
-    # few pixels, many groups: the even subset leaves groups short of CLIP_SAMPLES / 2
+def test_few_samples_use_them_all(path):
+    # few pixels, many groups: the "subset" is every sample
     probe = _probe(seed=5, n=400, nb=9)
     assert probe.raw[0].size < 64 * N.CLIP_SAMPLES
     _assert_equal(N._pair_groups_compute(probe, _linear, 0, 1, 64),
                   pair_groups(probe, _linear, 0, 1, 64))
+
+
+def test_groups_short_in_the_subset_use_all_their_samples(path, monkeypatch):
+    # a dark scene of integer levels: whole cells of tied values fill some groups and
+    # leave their neighbours short of CLIP_SAMPLES / 2 in the even subset
+    from mehs.synthesis import _ptc_numpy
+
+    full = []
+    real = _ptc_numpy.cells_flags
+
+    def spy(*a, index=None):
+        full.append(index is None)
+        return real(*a, index=index) if index is not None else real(*a)
+
+    monkeypatch.setattr(_ptc_numpy, "cells_flags", spy)
+    probe = _probe(seed=9, n=4000, nb=60, times=(0.02, 0.08, 0.32))
+    assert probe.raw[0].size > 4 * 48 * N.CLIP_SAMPLES          # a real subset (step > 1)
+    for j, k in ((0, 1), (1, 2)):
+        _assert_equal(N._pair_groups_compute(probe, _linear, j, k, 48),
+                      pair_groups(probe, _linear, j, k, 48))
+    assert any(full)                                 # the fallback ran
 
 
 def test_groups_with_saturation_are_dropped_as_before(path):
@@ -137,24 +158,28 @@ def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
 
     monkeypatch.setattr(_native, "_loaded", {})
     monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
-    cells, _ = N._kernels(np.dtype(np.float32))
+    kernel = N._kernel(np.dtype(np.float32))
     assert _native.is_stored("ptc_pass", np.float32)
-    n, nb = 10, 6
+    n, nb, G = 10, 6, 4
     y = np.zeros((n, nb), np.float32)
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
             np.empty(nb, np.uint8))
     sat = np.full(nb, 4000, np.float32)
     nbr = (np.arange(nb) ^ 1).astype(np.int64)
-    outs = (np.zeros(1 << 18, np.int32), np.zeros(1 << 18, np.int32),
-            np.zeros(2, np.int32), 1, np.zeros(n * nb, np.int32), np.zeros(n * nb, np.uint8))
-    cells(y, y, y, y, sat, nbr, 18, *rows, *outs)
-    assert outs[0].sum() == n * nb
+    table = np.array([0, 1, 2, 3], np.uint16)
+    group = (2.0, 1 << 17, table, np.zeros(G), np.ones(G))
+    sums = tuple(np.zeros(G) for _ in range(6))
+    kernel(y, y, y, y, sat, nbr, 18, *rows, *group, *sums)
+    assert sums[0].sum() == n * nb                  # every sample counted once
     with pytest.raises(TypeError, match="y_k"):
-        cells(y, y[:5], y, y, sat, nbr, 18, *rows, *outs)
+        kernel(y, y[:5], y, y, sat, nbr, 18, *rows, *group, *sums)
     with pytest.raises(TypeError, match="nbr"):
-        cells(y, y, y, y, sat, nbr + nb, 18, *rows, *outs)
-    with pytest.raises(TypeError, match="outputs"):
-        cells(y, y, y, y, sat, nbr, 18, *rows, *outs[:4], outs[4][:-1], outs[5])
+        kernel(y, y, y, y, sat, nbr + nb, 18, *rows, *group, *sums)
+    with pytest.raises(TypeError, match="one value per group"):
+        kernel(y, y, y, y, sat, nbr, 18, *rows, *group, *sums[:5], np.zeros(G + 1))
+    with pytest.raises(TypeError, match="unknown groups"):
+        kernel(y, y, y, y, sat, nbr, 18, *rows, 2.0, 1 << 17, table + 4, *group[3:], *sums)
+    with pytest.raises(TypeError, match="outside the cells"):
+        kernel(y, y, y, y, sat, nbr, 18, *rows, 2.0, (1 << 18) - 2, *group[2:], *sums)
     with pytest.raises(TypeError, match="raw_j must be a C-contiguous float32"):
-        cells(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *outs)
-
+        kernel(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *group, *sums)

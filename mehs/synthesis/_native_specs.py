@@ -51,13 +51,10 @@ def _check_merge(P, args) -> None:
 
 
 def _check_ptc_pass(P, args) -> None:
-    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes for its operation."""
-    (op, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:12]
-    (count_all, count_bad, span, step, cells, bad, r, lo, table, med, lim, nt, se, se2,
-     syj) = args[12:]
+    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes."""
+    (y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:11]
+    (r, lo, table, med, lim, *sums) = args[11:]
     what = "native photon-transfer kernel: "
-    if op not in (0, 1):
-        raise TypeError(what + f"unknown operation {op}")
     n, nb = y_j.shape
     for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
         if a.shape != (n, nb):
@@ -68,20 +65,12 @@ def _check_ptc_pass(P, args) -> None:
         raise TypeError(what + "cell_bits must lie in 1..24")
     if any(a.shape != (nb,) for a in rows):
         raise TypeError(what + "scratch rows must have one entry per band")
-    ncells = 1 << int(cell_bits)
-    if op == 0:                                                     # CELLS
-        m = -(-n * nb // max(int(step), 1))
-        if (int(step) < 1 or count_all.shape != (ncells,) or count_bad.shape != (ncells,)
-                or span.shape != (2,) or cells.shape != (m,) or bad.shape != (m,)):
-            raise TypeError(what + "the cells' outputs do not match the samples")
-        return
-    groups = med.shape[0]                                           # SUMS
-    if lim.shape != (groups,) or any(a.shape != (groups,) for a in (nt, se, se2, syj)):
+    groups = med.shape[0]
+    if lim.shape != (groups,) or any(a.shape != (groups,) for a in sums):
         raise TypeError(what + "one value per group expected")
-    # (the caller's table covers the cells the CELLS pass found in the same samples)
-    if int(lo) < 0 or int(lo) + table.shape[0] > ncells:
+    if table.size == 0 or int(lo) < 0 or int(lo) + table.shape[0] > 1 << int(cell_bits):
         raise TypeError(what + "the cell table lies outside the cells")
-    if table.size and int(table.max()) >= groups:
+    if int(table.max()) >= groups:
         raise TypeError(what + "the cell table names unknown groups")
 
 
@@ -109,11 +98,9 @@ KERNELS = {
     "invvar_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
     "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
-                     (("op", "i8"),) + _PTC_COMMON
-                     + (("count_all", "i4:1"), ("count_bad", "i4:1"), ("span", "i4:1"),
-                        ("step", "i8"), ("cells", "i4:1"), ("bad", "u1:1"),
-                        ("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
-                        ("lim", "f8:1"), ("nt", "f8:1"), ("se", "f8:1"), ("se2", "f8:1"),
-                        ("syj", "f8:1")),
+                     _PTC_COMMON
+                     + (("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
+                        ("lim", "f8:1"), ("nall", "f8:1"), ("nbad", "f8:1"), ("nt", "f8:1"),
+                        ("se", "f8:1"), ("se2", "f8:1"), ("syj", "f8:1")),
                      _PTC_SOURCES, _check_ptc_pass, per_exposure=False),
 }

@@ -200,12 +200,11 @@ def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
 
 #: Bits of the float32 order key that name a cell of :func:`_group_table`.
 CELL_BITS = 18
-_NCELLS = 1 << CELL_BITS
 
 
 def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
     """The groups of a run of consecutive cells of the instrument's value
-    (:func:`mehs.synthesis._ptc_kernels.ptc_cells`), from the number of good samples in
+    (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number of good samples in
     each (``good``: every cell from the lowest to the highest one in use): int64
     ``(groups + 1,)`` bounds, group ``k`` the cells ``bounds[k] … bounds[k + 1] − 1``
     (possibly none); None without good samples.
@@ -311,43 +310,31 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
 def build_kernels_in_background() -> bool:
     """Where the photon-transfer passes' machine code is not stored yet (a first-ever
     run), start compiling it in a child process (:func:`mehs.synthesis._native.
-    build_in_background`); True if one was started. Meanwhile :func:`_kernels` gives
-    numpy's passes: the child's entry is for the next process."""
+    build_in_background`); True if one was started. Meanwhile :func:`_kernel` gives
+    numpy's pass: the child's entry is for the next process."""
     from mehs.synthesis import _native
 
     return _native.build_in_background("ptc_pass", np.float32)
 
 
-def _kernels(dtype: np.dtype) -> tuple[Callable, Callable]:
-    """:mod:`mehs.synthesis._ptc_kernels`' ``ptc_cells`` and ``ptc_sums`` for linearised
-    samples of ``dtype``: their stored machine code (one entry point, ``ptc_pass``,
-    :mod:`mehs.synthesis._native`: no numba start-up in a warm ``mehs fuse``), else
-    numba's dispatchers; while a child process compiles that entry (a first-ever run),
-    the same passes in numpy (:mod:`mehs.synthesis._ptc_numpy`, same bits, ~0.1 s a
-    pair), which beat waiting 3–5 s for the child."""
+def _kernel(dtype: np.dtype) -> Callable:
+    """:func:`mehs.synthesis._ptc_kernels.ptc_pass` for linearised samples of ``dtype``:
+    its stored machine code (:mod:`mehs.synthesis._native`: no numba start-up in a warm
+    ``mehs fuse``), else numba's dispatcher; while a child process compiles that entry
+    (a first-ever run), the same pass in numpy (:mod:`mehs.synthesis._ptc_numpy`, same
+    bits, tens of ms a pair), which beats waiting 3–5 s for the child."""
     from mehs.synthesis import _native
 
     if _native.building("ptc_pass", dtype):
-        # a first-ever run: numpy's passes (same bits) rather than wait for the child
-        from mehs.synthesis._ptc_numpy import ptc_cells, ptc_sums
+        from mehs.synthesis._ptc_numpy import ptc_pass
 
-        return ptc_cells, ptc_sums
+        return ptc_pass
     entry = _native.native_kernel("ptc_pass", dtype)
     if entry is None:
-        from mehs.synthesis._ptc_kernels import ptc_cells, ptc_sums
+        from mehs.synthesis._ptc_kernels import ptc_pass
 
-        return ptc_cells, ptc_sums
-    f8, i4, u1 = (np.zeros(0, t) for t in (np.float64, np.int32, np.uint8))
-    unused_cells = (i4, i4, i4, 1, i4, u1)
-    unused_sums = (0.0, 0, np.zeros(0, np.uint16), f8, f8, f8, f8, f8, f8)
-
-    def cells(*args):
-        entry(0, *args, *unused_sums)
-
-    def sums(*args):
-        entry(1, *args[:11], *unused_cells, *args[11:])
-
-    return cells, sums
+        return ptc_pass
+    return entry
 
 
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
@@ -368,61 +355,53 @@ def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: in
         raise ValueError(f"{n} probed pixels x {nb} bands: too many samples for the "
                          "photon-transfer counts (probe fewer pixels)")
     # each sample's instrument (the neighbouring band's y_j + y_k: independent noise)
-    # as a cell of its float32 value, and whether it is saturated in either exposure
-    # or in the instrument's longer one
-    ptc_cells, ptc_sums = _kernels(y_j.dtype)
+    # as a cell of its float32 value, and whether it is saturated in either exposure or
+    # in the instrument's longer one; the groups (quantiles of the instrument) and each
+    # group's median and MAD, which set the clip, from an even subset of the samples
+    from mehs.synthesis._ptc_numpy import cells_flags
+
     nbr = _instrument(y_j).astype(np.int64)
     rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
-    rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
-            np.empty(nb, np.uint8))                  # the kernels' scratch
-    common = (y_j, y_k, rj, rk, probe.saturation, nbr, CELL_BITS, *rows)
-    # per-cell counts, the span of cells in use, and the cell and saturation of an even
-    # subset of the samples, whose median and MAD per group set the clip
+    sat = probe.saturation
     step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
-
-    def cells_at(step):
-        count_all = np.zeros(_NCELLS, np.int32)           # (n·bands < 2**31: checked)
-        count_bad = np.zeros(_NCELLS, np.int32)
-        span = np.zeros(2, np.int32)
-        m = -(-n * nb // step)
-        cells, bad = np.empty(m, np.int32), np.empty(m, np.uint8)
-        ptc_cells(*common, count_all, count_bad, span, step, cells, bad)
-        return count_all, count_bad, span, cells, bad
-
-    count_all, count_bad, span, cells_s, bad_s = cells_at(step)
-    lo, hi = int(span[0]), int(span[1]) + 1          # the cells in use
-    n_all = count_all[lo:hi]
-    n_bad = count_bad[lo:hi]
-    bounds = _group_bounds(n_all - n_bad, groups)
-    if bounds is None:
+    index = np.arange(0, n * nb, step)
+    cells_s, bad_s = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, index)
+    good = cells_s[~bad_s]
+    if good.size == 0:
         return None
+    lo = int(good.min())
+    bounds = _group_bounds(np.bincount(good - lo), groups)
     table = np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
-    # a group with more than 0.1 % saturated samples is dropped whole (dropping
-    # only the saturated samples would select on their own noise)
-    nbad = np.diff(np.concatenate(([0], np.cumsum(n_bad, dtype=np.int64)))[bounds])
-    ntot = np.diff(np.concatenate(([0], np.cumsum(n_all, dtype=np.int64)))[bounds])
-    keep_group = nbad <= 1e-3 * np.maximum(ntot, 1)
-    n_use = np.where(keep_group, ntot - nbad, 0)
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
-    # < 1e-5 of the variance, and symmetric trimming leaves the mean unbiased
-    g_s = np.take(table, cells_s - lo)
-    u = (bad_s == 0) & np.take(keep_group, g_s)
-    ds = (y_k.ravel()[::step] - r * y_j.ravel()[::step])[u]
-    gs = g_s[u]
-    med, sig = _group_median_mad(ds, gs, groups)
-    picked = np.bincount(gs, minlength=groups)
-    small = (n_use > 0) & (picked < np.minimum(n_use, CLIP_SAMPLES // 2))
-    if small.any():                 # a group short in the subset: all its samples (rare)
-        _, _, _, cells, bad = cells_at(1)
-        gid = np.take(table, cells - lo)
-        sel = (bad == 0) & np.take(small, gid)
+    # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
+    g_s = np.take(table, good - lo)
+    ds = (y_k.ravel()[index] - r * y_j.ravel()[index])[~bad_s]
+    med, sig = _group_median_mad(ds, g_s, groups)
+    # A group without a sample in the subset is left out: it spans no cell or only
+    # cells between tied values (integer levels of a dark scene), where the whole probe
+    # holds about `step` times fewer samples than a statistic needs (min_group)
+    picked = np.bincount(g_s, minlength=groups)
+    small = (picked > 0) & (picked < CLIP_SAMPLES // 2)
+    if step > 1 and small.any():    # a group short in the subset: all its samples (rare)
+        cells, bad = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS)
+        gid = np.take(table, np.clip(cells.ravel() - lo, 0, table.size - 1))
+        sel = ~bad.ravel() & np.take(small, gid)
         med_s, sig_s = _group_median_mad((y_k - r * y_j).ravel()[sel], gid[sel], groups)
         med, sig = np.where(small, med_s, med), np.where(small, sig_s, sig)
-    # the sums are taken about each group's median: one pass, and no cancellation
-    nt, se, se2, syj = (np.zeros(groups) for _ in range(4))
-    lim = np.where(keep_group, 5.0 * np.maximum(sig, 1e-9), -1.0)
-    ptc_sums(*common, r, lo, table, med, lim, nt, se, se2, syj)
+    # every sample: the sums about each group's median (one pass, no cancellation) and
+    # each group's counts of all and of saturated samples
+    nall, nbad, nt, se, se2, syj = (np.zeros(groups) for _ in range(6))
+    rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
+            np.empty(nb, np.uint8))                  # the kernel's scratch
+    lim = np.where(picked > 0, 5.0 * np.maximum(sig, 1e-9), -1.0)
+    _kernel(y_j.dtype)(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, *rows, r, lo, table, med, lim,
+                       nall, nbad, nt, se, se2, syj)
+    # a group with more than 0.1 % saturated samples is dropped whole (dropping
+    # only the saturated samples would select on their own noise)
+    drop = nbad > 1e-3 * np.maximum(nall, 1)
+    for a in (nt, se, se2, syj):
+        a[drop] = 0.0
     den = np.maximum(nt, 1)
     mean_e = se / den
     var = np.maximum(se2 / den - mean_e ** 2, 0.0)
