@@ -40,7 +40,7 @@ def pair_groups(probe, linearise, j, k, groups, clip_samples=None):
     the clipped sums over every sample, groups with > 0.1 % saturated samples dropped."""
     import math
 
-    from mehs.synthesis.noise import CLIP_SAMPLES
+    from mehs.synthesis._ptc_groups import CLIP_SAMPLES
 
     clip_samples = CLIP_SAMPLES if clip_samples is None else clip_samples
     raw_j, raw_k = probe.raw[j], probe.raw[k]

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _groups_of(x, bad, groups):
     """Each value's group, from mehs's cell table over the cells in use."""
-    from mehs.synthesis.noise import _group_table
+    from mehs.synthesis._ptc_groups import _group_table
     from _ptc_reference import cells_of
 
     c = cells_of(x)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from _ptc_reference import pair_groups
 
+from mehs.synthesis import _ptc_groups as G
 from mehs.synthesis import noise as N
 
 
@@ -97,7 +98,7 @@ def test_pair_statistics_equal_numpys(path, lin, groups):
 def test_few_samples_use_them_all(path):
     # few pixels, many groups: the "subset" is every sample
     probe = _probe(seed=5, n=400, nb=9)
-    assert probe.raw[0].size < 64 * N.CLIP_SAMPLES
+    assert probe.raw[0].size < 64 * G.CLIP_SAMPLES
     _assert_equal(N._pair_groups_compute(probe, _linear, 0, 1, 64),
                   pair_groups(probe, _linear, 0, 1, 64))
 
@@ -116,7 +117,7 @@ def test_groups_short_in_the_subset_use_all_their_samples(path, monkeypatch):
 
     monkeypatch.setattr(_ptc_numpy, "cells_flags", spy)
     probe = _probe(seed=9, n=4000, nb=60, times=(0.02, 0.08, 0.32))
-    assert probe.raw[0].size > 4 * 48 * N.CLIP_SAMPLES          # a real subset (step > 1)
+    assert probe.raw[0].size > 4 * 48 * G.CLIP_SAMPLES          # a real subset (step > 1)
     for j, k in ((0, 1), (1, 2)):
         _assert_equal(N._pair_groups_compute(probe, _linear, j, k, 48),
                       pair_groups(probe, _linear, j, k, 48))
@@ -158,17 +159,17 @@ def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
 
     monkeypatch.setattr(_native, "_loaded", {})
     monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
-    kernel = N._kernel(np.dtype(np.float32))
+    kernel = G._kernel(np.dtype(np.float32))
     assert _native.is_stored("ptc_pass", np.float32)
-    n, nb, G = 10, 6, 4
+    n, nb, ng = 10, 6, 4
     y = np.zeros((n, nb), np.float32)
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
             np.empty(nb, np.uint8))
     sat = np.full(nb, 4000, np.float32)
     nbr = (np.arange(nb) ^ 1).astype(np.int64)
     table = np.array([0, 1, 2, 3], np.uint16)
-    group = (2.0, 1 << 17, table, np.zeros(G), np.ones(G))
-    sums = tuple(np.zeros(G) for _ in range(6))
+    group = (2.0, 1 << 17, table, np.zeros(ng), np.ones(ng))
+    sums = tuple(np.zeros(ng) for _ in range(6))
     kernel(y, y, y, y, sat, nbr, 18, *rows, *group, *sums)
     assert sums[0].sum() == n * nb                  # every sample counted once
     with pytest.raises(TypeError, match="y_k"):
@@ -176,7 +177,7 @@ def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
     with pytest.raises(TypeError, match="nbr"):
         kernel(y, y, y, y, sat, nbr + nb, 18, *rows, *group, *sums)
     with pytest.raises(TypeError, match="one value per group"):
-        kernel(y, y, y, y, sat, nbr, 18, *rows, *group, *sums[:5], np.zeros(G + 1))
+        kernel(y, y, y, y, sat, nbr, 18, *rows, *group, *sums[:5], np.zeros(ng + 1))
     with pytest.raises(TypeError, match="unknown groups"):
         kernel(y, y, y, y, sat, nbr, 18, *rows, 2.0, 1 << 17, table + 4, *group[3:], *sums)
     with pytest.raises(TypeError, match="outside the cells"):

@@ -1,11 +1,11 @@
 """The per-sample pass of the photon-transfer statistics, compiled (issue 16).
 
-:func:`mehs.synthesis.noise._pair_groups_compute` measures, for two exposures of the
+:func:`mehs.synthesis._ptc_groups.group_statistics` measures, for two exposures of the
 probed lines, the mean and variance of ``d = y_k − r·y_j`` per signal level: the noise
 model and the linearity test of every ``mehs fuse`` rest on it. As whole-array numpy
 steps it took ~30 full passes over a pair's samples (0.15 s for a 512² scene, more than
 the merge). The groups (cells of the instrument's value → group) and each group's
-median and MAD come from an even subset of the samples (numpy, in ``noise``); what
+median and MAD come from an even subset of the samples (numpy, in ``_ptc_groups``); what
 needs every sample is one loop, :func:`ptc_pass`: each sample's group, its saturation,
 and the clipped sums ``n``, ``Σe``, ``Σe²``, ``Σy_j`` per group.
 

@@ -194,7 +194,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
     sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
     if str(response) == "auto" or noise is None or (isinstance(noise, str) and noise == "auto"):
-        from mehs.synthesis.noise import build_kernels_in_background
+        from mehs.synthesis._ptc_groups import build_kernels_in_background
 
         # a first-ever run: the photon-transfer passes compile in a child process
         # while the merge kernel compiles here

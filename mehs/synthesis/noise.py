@@ -33,13 +33,13 @@ References
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.synthesis._ptc_groups import group_statistics
 from mehs.synthesis.merge import NoiseModel
 
 #: Instrument-quantile groups per exposure pair.
@@ -153,14 +153,6 @@ def dark_current_from_darks(darks, times_ms) -> float:
     return max(slope, 0.0) if np.isfinite(slope) else 0.0
 
 
-def _instrument(y: np.ndarray) -> np.ndarray:
-    """The neighbouring band of each band (b ↔ b ^ 1; the last odd one out uses b − 1)."""
-    nb = y.shape[-1]
-    idx = np.arange(nb) ^ 1
-    idx[idx >= nb] = nb - 2 if nb >= 2 else 0
-    return idx
-
-
 def _consecutive_pairs(probe: ProbeSamples, linearise: Callable, groups: int,
                       key: str | None) -> None:
     """Compute the statistics of every pair ``(j, j + 1)`` not yet kept under ``key``,
@@ -198,101 +190,6 @@ def _pair_groups(probe: ProbeSamples, linearise: Callable, j: int, k: int,
     return out
 
 
-#: Bits of the float32 order key that name a cell of :func:`_group_table`.
-CELL_BITS = 18
-
-
-def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """The groups of a run of consecutive cells of the instrument's value
-    (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number of good samples in
-    each (``good``: every cell from the lowest to the highest one in use): int64
-    ``(groups + 1,)`` bounds, group ``k`` the cells ``bounds[k] … bounds[k + 1] − 1``
-    (possibly none); None without good samples.
-
-    Groups are ranges of the instrument holding about equal numbers of good samples,
-    bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
-    a table lookup of its cell (:func:`_group_table`) — neither a partition for the
-    quantiles nor a binary search per value. Like quantile edges they depend on the
-    instrument only; a cell's worth of tied values (one integer level of a dark scene)
-    stays in one group, as equal quantiles would leave it.
-    """
-    cum = np.cumsum(good)                        # good samples in cells up to each
-    n = int(cum[-1])
-    if n == 0:
-        return None
-    target = np.arange(1, groups) * (n / groups)
-    last = np.searchsorted(cum, target)          # the cell holding each target rank
-    before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
-    # the group ends after that cell, or before it when that is nearer the target
-    # (non-decreasing: a later target moves the end no earlier)
-    last = np.where(target - before < cum[last] - target, last - 1, last)
-    return np.concatenate(([0], last + 1, [good.size])).astype(np.int64)
-
-
-def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """uint16: the group (0 … ``groups − 1``) of each cell (see :func:`_group_bounds`)."""
-    bounds = _group_bounds(good, groups)
-    if bounds is None:
-        return None
-    return np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
-
-
-#: The per-group median and MAD that set the 5σ clip come from about this many samples a
-#: group; a group with few samples in that subset uses all of its own. The MAD's error,
-#: ~3.6 % of σ at 1024 Gaussian samples, moves the clip by 0.2σ: it then drops < 2e-5 of
-#: a Gaussian group's samples instead of < 1e-5, and the variance is summed over all
-#: the others. (4096 until issue 16: the medians cost more than the sums they clip.)
-CLIP_SAMPLES = 1024
-
-
-def _stride(n: int, m: int, bands: int) -> int:
-    """A step through ``n`` pixel-major samples that keeps about ``m``, coprime with the
-    number of bands: the kept samples cover every band and pixel evenly."""
-    s = max(1, n // max(m, 1))
-    while s > 1 and math.gcd(s, bands) != 1:
-        s += 1
-    return s
-
-
-def _order_keys(x: np.ndarray) -> np.ndarray:
-    """uint64 keys (below 2**32) of float32-rounded ``x`` that sort like the values."""
-    b = np.ascontiguousarray(x, dtype=np.float32).view(np.uint32).astype(np.uint64)
-    return np.where(b >> 31 != 0, b ^ np.uint64(0xFFFFFFFF), b | np.uint64(0x80000000))
-
-
-def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
-    """float64 (groups,) the median of the float32-rounded ``v`` of each group ``g`` (0 for
-    an empty group), as ``np.median`` defines it (the mean of the two middle values of
-    an even count), from one selection among ``group << 32 | value key``: no Python loop
-    over the groups, and the selection releases the GIL, so that the exposure pairs'
-    statistics run side by side on threads (a loop of ``np.median`` calls held it for
-    3–7 ms a pair, issue 16)."""
-    keys = (g.astype(np.uint64) << np.uint64(32)) | _order_keys(v)
-    count = np.bincount(g, minlength=groups)
-    start = np.cumsum(count) - count
-    has = count > 0
-    lo, hi = (start + (count - 1) // 2)[has], (start + count // 2)[has]
-    if keys.size:
-        # the keys order by group, then value: each group's middle ranks are the same
-        # positions of the whole, so one selection finds them all
-        keys.partition(np.union1d(lo, hi))
-
-    def value(k):
-        k = k & np.uint64(0xFFFFFFFF)
-        bits = np.where(k >> 31 != 0, k & np.uint64(0x7FFFFFFF), k ^ np.uint64(0xFFFFFFFF))
-        return bits.astype(np.uint32).view(np.float32).astype(np.float64)
-
-    out = np.zeros(groups)
-    out[has] = (value(keys[lo]) + value(keys[hi])) / 2.0
-    return out
-
-
-def _group_median_mad(v: np.ndarray, g: np.ndarray, groups: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per group of ``g``: the median of ``v`` and its MAD scaled to σ (``1.4826·MAD``)."""
-    med = _group_medians(v, g, groups)
-    return med, 1.4826 * _group_medians(np.abs(v - np.take(med, g)), g, groups)
-
-
 def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | None) -> np.ndarray:
     """Exposure ``j``'s linearised samples, C-contiguous (kept under ``key``: the middle
     exposures serve two pairs)."""
@@ -307,109 +204,16 @@ def _linearised(probe: ProbeSamples, linearise: Callable, j: int, key: str | Non
     return y
 
 
-def build_kernels_in_background() -> bool:
-    """Where the photon-transfer passes' machine code is not stored yet (a first-ever
-    run), start compiling it in a child process (:func:`mehs.synthesis._native.
-    build_in_background`); True if one was started. Meanwhile :func:`_kernel` gives
-    numpy's pass: the child's entry is for the next process."""
-    from mehs.synthesis import _native
-
-    return _native.build_in_background("ptc_pass", np.float32)
-
-
-def _kernel(dtype: np.dtype) -> Callable:
-    """:func:`mehs.synthesis._ptc_kernels.ptc_pass` for linearised samples of ``dtype``:
-    its stored machine code (:mod:`mehs.synthesis._native`: no numba start-up in a warm
-    ``mehs fuse``), else numba's dispatcher; while a child process compiles that entry
-    (a first-ever run), the same pass in numpy (:mod:`mehs.synthesis._ptc_numpy`, same
-    bits, tens of ms a pair), which beats waiting 3–5 s for the child."""
-    from mehs.synthesis import _native
-
-    if _native.building("ptc_pass", dtype):
-        from mehs.synthesis._ptc_numpy import ptc_pass
-
-        return ptc_pass
-    entry = _native.native_kernel("ptc_pass", dtype)
-    if entry is None:
-        from mehs.synthesis._ptc_kernels import ptc_pass
-
-        return ptc_pass
-    return entry
-
-
 def _pair_groups_compute(probe: ProbeSamples, linearise: Callable, j: int, k: int,
                          groups: int, key: str | None = None) -> dict[str, np.ndarray] | None:
-    if not 1 <= groups < 2 ** 16:
-        raise ValueError(f"groups must lie in 1 … 65535, got {groups}")
-    raw_j, raw_k = probe.raw[j], probe.raw[k]
+    """:func:`mehs.synthesis._ptc_groups.group_statistics` of exposures j < k of the probe."""
     y_j = _linearised(probe, linearise, j, key)
     y_k = _linearised(probe, linearise, k, key)
     if y_k.dtype != y_j.dtype:
         y_j, y_k = y_j.astype(np.float64), y_k.astype(np.float64)
     # float64, as the statistics are: y_k − r·y_j is formed in float64
     r = np.float64(probe.times_ms[k] / probe.times_ms[j])
-    n, nb = y_j.shape
-    if nb < 2:
-        return None
-    if n * nb >= 2 ** 31:
-        raise ValueError(f"{n} probed pixels x {nb} bands: too many samples for the "
-                         "photon-transfer counts (probe fewer pixels)")
-    # each sample's instrument (the neighbouring band's y_j + y_k: independent noise)
-    # as a cell of its float32 value, and whether it is saturated in either exposure or
-    # in the instrument's longer one; the groups (quantiles of the instrument) and each
-    # group's median and MAD, which set the clip, from an even subset of the samples
-    from mehs.synthesis._ptc_numpy import cells_flags
-
-    nbr = _instrument(y_j).astype(np.int64)
-    rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
-    sat = probe.saturation
-    step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
-    index = np.arange(0, n * nb, step)
-    cells_s, bad_s = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, index)
-    good = cells_s[~bad_s]
-    if good.size == 0:
-        return None
-    lo = int(good.min())
-    bounds = _group_bounds(np.bincount(good - lo), groups)
-    table = np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
-    # robust centre and spread per group (median, MAD): samples beyond 5σ — a
-    # moving object, a hot pixel — are dropped; for Gaussian noise that loses
-    # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
-    g_s = np.take(table, good - lo)
-    ds = (y_k.ravel()[index] - r * y_j.ravel()[index])[~bad_s]
-    med, sig = _group_median_mad(ds, g_s, groups)
-    # A group without a sample in the subset is left out: it spans no cell or only
-    # cells between tied values (integer levels of a dark scene), where the whole probe
-    # holds about `step` times fewer samples than a statistic needs (min_group)
-    picked = np.bincount(g_s, minlength=groups)
-    small = (picked > 0) & (picked < CLIP_SAMPLES // 2)
-    if step > 1 and small.any():    # a group short in the subset: all its samples (rare)
-        cells, bad = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS)
-        gid = np.take(table, np.clip(cells.ravel() - lo, 0, table.size - 1))
-        sel = ~bad.ravel() & np.take(small, gid)
-        med_s, sig_s = _group_median_mad((y_k - r * y_j).ravel()[sel], gid[sel], groups)
-        med, sig = np.where(small, med_s, med), np.where(small, sig_s, sig)
-    # every sample: the sums about each group's median (one pass, no cancellation) and
-    # each group's counts of all and of saturated samples
-    nall, nbad, nt, se, se2, syj = (np.zeros(groups) for _ in range(6))
-    rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
-            np.empty(nb, np.uint8))                  # the kernel's scratch
-    lim = np.where(picked > 0, 5.0 * np.maximum(sig, 1e-9), -1.0)
-    _kernel(y_j.dtype)(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, *rows, r, lo, table, med, lim,
-                       nall, nbad, nt, se, se2, syj)
-    # a group with more than 0.1 % saturated samples is dropped whole (dropping
-    # only the saturated samples would select on their own noise)
-    drop = nbad > 1e-3 * np.maximum(nall, 1)
-    for a in (nt, se, se2, syj):
-        a[drop] = 0.0
-    den = np.maximum(nt, 1)
-    mean_e = se / den
-    var = np.maximum(se2 / den - mean_e ** 2, 0.0)
-    mean_d = np.where(nt > 0, med + mean_e, 0.0)
-    yj = syj / den
-    yk = np.where(nt > 0, mean_d + r * yj, 0.0)         # d = y_k − r·y_j
-    return {"n": nt, "nt": nt, "var": var, "mean_d": mean_d, "q": yk + r * r * yj,
-            "yj": yj, "yk": yk, "r": r}
+    return group_statistics(y_j, y_k, probe.raw[j], probe.raw[k], probe.saturation, r, groups)
 
 
 def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current: float = 0.0,
