@@ -37,7 +37,8 @@ CELL_BITS = 18
 def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
     """The groups of a run of consecutive cells of the instrument's value
     (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number of good samples in
-    each (``good``: every cell from the lowest to the highest one in use): int64
+    each (``good``: every cell from the lowest to the highest one in use, counted over
+    the even subset of :func:`group_statistics`): int64
     ``(groups + 1,)`` bounds, group ``k`` the cells ``bounds[k] … bounds[k + 1] − 1``
     (possibly none); None without good samples.
 

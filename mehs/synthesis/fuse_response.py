@@ -241,7 +241,7 @@ def linearity_auto(bracket: Bracket, saturation: np.ndarray):
 
     The first probe (:data:`mehs.synthesis.noise.PROBE_PIXELS`) keeps the test cheap —
     under a fifth of the merge of a 512² scene (issue 16) — and settles a linear
-    sensor's bracket by a wide margin: its resolution (3 standard errors) is 0.3–0.8 %
+    sensor's bracket by a wide margin: its resolution (3 standard errors) is 0.4–0.9 %
     on the simulator's scenes against the 2 % tolerance. A result within a factor 2 of
     the tolerance (deviation or resolution above half of it) is decided again on
     :data:`~mehs.synthesis.noise.PROBE_PIXELS_FINE` pixels (resolution halved): a

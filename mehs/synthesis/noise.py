@@ -46,12 +46,13 @@ from mehs.synthesis.merge import NoiseModel
 PTC_GROUPS = 48
 
 #: Pixels (whole lines, evenly spaced) read for the photon-transfer statistics: 0.8
-#: million samples a pair at 204 bands. Measured on the simulator's scenes (512², four
-#: kinds, brackets ×8 and ×30 apart, three seeds each): the noise model's gain within
-#: 0.1–4.9 % of the sensor's (8192 pixels: 0.6–3.6 %; the error is mostly the method's
-#: bias, not sampling), the linearity test's resolution 0.3–0.8 % against its 2 %
-#: tolerance (8192: 0.2–0.5 %). Half the pixels of before, so that the test costs under
-#: a fifth of a 512² merge (issue 16).
+#: million samples a pair at 204 bands. ``benchmarks/bench_noise_probe.py`` (512², four
+#: scene kinds, brackets ×8 and ×30 apart, three seeds; the simulator's sensor the
+#: truth): the noise model's gain error median 1.3 %, max 3.9 % (8192 pixels: 1.8 % /
+#: 3.1 %; 16384: 1.6 % / 3.4 % — the error is the method's bias, not sampling); the
+#: linearity test's resolution 0.38–0.89 % against its 2 % tolerance (8192: 0.26–0.64 %).
+#: Half the pixels of before, so that the test costs under a fifth of a 512² merge
+#: (issue 16).
 PROBE_PIXELS = 4096
 #: The probe of a linearity test whose first answer was not clear-cut
 #: (:func:`mehs.synthesis.fuse_response.linearity_auto`).
