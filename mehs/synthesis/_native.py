@@ -179,14 +179,12 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
     if not supported(kind, dtype, P):
         return False
     memo = (kind, dtype.name, P, str(_folder()))
-    try:
-        _, stem = _key(kind, dtype, P)
-    except Exception:       # noqa: BLE001 - no llvmlite: nothing to build
-        return False
-    folder = _folder()
-    if (folder / f"{stem}.json").is_file() or not _writable(folder):
+    files = _entry_files(kind, dtype, P)
+    if files is None:
+        return False        # no llvmlite: nothing to build
+    meta, marker = files
+    if meta.is_file() or not _writable(meta.parent):
         return False        # stored (checked when loaded), or nowhere to store it
-    marker = folder / f"{stem}.building"
     if _locked_elsewhere(marker):
         return False        # another process's child is compiling it
     # at a lower priority: the parent's own work (the merge kernel's compilation on a
@@ -252,15 +250,19 @@ def building(kind: str, dtype, P: int = 0) -> bool:
         child = _children.get(memo)
     if child is not None and child.poll() is None:
         return True
-    if not supported(kind, dtype, P):
-        return False
+    files = _entry_files(kind, dtype, P) if supported(kind, dtype, P) else None
+    return files is not None and not files[0].is_file() and _locked_elsewhere(files[1])
+
+
+def _entry_files(kind: str, dtype: np.dtype, P: int) -> tuple[Path, Path] | None:
+    """The stored entry's metadata file and its child's ``.building`` lock file in the
+    cache folder (None without llvmlite to key them)."""
     try:
         _, stem = _key(kind, dtype, P)
-    except Exception:       # noqa: BLE001
-        return False
+    except Exception:       # noqa: BLE001 - no llvmlite, no metadata
+        return None
     folder = _folder()
-    return (not (folder / f"{stem}.json").is_file()
-            and _locked_elsewhere(folder / f"{stem}.building"))
+    return folder / f"{stem}.json", folder / f"{stem}.building"
 
 
 def is_stored(kind: str, dtype, P: int = 0) -> bool:

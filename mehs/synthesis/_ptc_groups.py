@@ -34,20 +34,19 @@ def _instrument(y: np.ndarray) -> np.ndarray:
 CELL_BITS = 18
 
 
-def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """The groups of a run of consecutive cells of the instrument's value
-    (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number of good samples in
-    each (``good``: every cell from the lowest to the highest one in use, counted over
-    the even subset of :func:`group_statistics`): int64
-    ``(groups + 1,)`` bounds, group ``k`` the cells ``bounds[k] … bounds[k + 1] − 1``
-    (possibly none); None without good samples.
+def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
+    """uint16: the group (0 … ``groups − 1``) of each of a run of consecutive cells of the
+    instrument's value (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number
+    of good samples in each (``good``: every cell from the lowest to the highest one in
+    use, counted over the even subset of :func:`group_statistics`); None without good
+    samples.
 
     Groups are ranges of the instrument holding about equal numbers of good samples,
     bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
-    a table lookup of its cell (:func:`_group_table`) — neither a partition for the
-    quantiles nor a binary search per value. Like quantile edges they depend on the
-    instrument only; a cell's worth of tied values (one integer level of a dark scene)
-    stays in one group, as equal quantiles would leave it.
+    a table lookup of its cell — neither a partition for the quantiles nor a binary
+    search per value. Like quantile edges they depend on the instrument only; a cell's
+    worth of tied values (one integer level of a dark scene) stays in one group, as
+    equal quantiles would leave it (a group may then span no cell).
     """
     cum = np.cumsum(good)                        # good samples in cells up to each
     n = int(cum[-1])
@@ -59,14 +58,7 @@ def _group_bounds(good: np.ndarray, groups: int) -> np.ndarray | None:
     # the group ends after that cell, or before it when that is nearer the target
     # (non-decreasing: a later target moves the end no earlier)
     last = np.where(target - before < cum[last] - target, last - 1, last)
-    return np.concatenate(([0], last + 1, [good.size])).astype(np.int64)
-
-
-def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """uint16: the group (0 … ``groups − 1``) of each cell (see :func:`_group_bounds`)."""
-    bounds = _group_bounds(good, groups)
-    if bounds is None:
-        return None
+    bounds = np.concatenate(([0], last + 1, [good.size]))
     return np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
 
 
@@ -189,8 +181,7 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     if good.size == 0:
         return None
     lo = int(good.min())
-    bounds = _group_bounds(np.bincount(good - lo), groups)
-    table = np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
+    table = _group_table(np.bincount(good - lo), groups)     # (good samples: not None)
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased

@@ -279,7 +279,6 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
     argument, see there); returns ``(curve, auto_info, probe)``: ``auto_info`` the
     linearity test's and the check's figures for the summary, ``probe`` the
     photon-transfer samples of the linearity test (None if it did not run)."""
-    sat = saturation
     auto_info: dict[str, Any] = {}
     probe = None
     if isinstance(response, ResponseCurve):
@@ -292,7 +291,7 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
     curve = None
     if kind == "auto":
         try:
-            probe, lin = linearity_auto(bracket, sat)
+            probe, lin = linearity_auto(bracket, saturation)
             dev = lin["deviation"]
             auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
                          "linearity_deviation_max": lin["deviation_max"],
@@ -314,13 +313,13 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
         # while the curve is recovered and checked
         warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms,
                           method=method, darks=bracket.darks,
-                          bit_depth=bracket.bit_depth, saturation=sat, linear=False)
+                          bit_depth=bracket.bit_depth, saturation=saturation, linear=False)
         curve = recover_response(bracket, smoothness=smoothness, samples=samples,
-                                 seed=seed, shared=shared, levels="raw", saturation=sat)
+                                 seed=seed, shared=shared, levels="raw", saturation=saturation)
         if check or auto_info.get("linearity_conclusive") is False:
             auto_info["check"] = check_recovered_response(
                 bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
-                shared=shared, saturation=sat)
+                shared=shared, saturation=saturation)
         if (auto_info.get("linearity_conclusive") is False
                 and not auto_info["check"].get("determined", False)):
             # neither test can tell: a linear sensor is the likelier (and the
