@@ -156,11 +156,11 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
         om = np.empty((P, ns), dtype=np.float32)
         cs = np.empty((P, ns), dtype=np.float32)
         lev = np.zeros((P, ns), dtype=np.int32)
-        scratch = np.empty((16, ns), dtype=np.float32)
-        sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa, XP, q, ex, lv, gz = (
+        scratch = np.empty((18, ns), dtype=np.float32)
+        sy, st, st2, sav, nv, nc, X, num, den, ysat, nsa, XP, q, ex, lv, gz, s1, s2 = (
             scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5],
             scratch[6], scratch[7], scratch[8], scratch[9], scratch[10], scratch[11],
-            scratch[12], scratch[13], scratch[14], scratch[15])
+            scratch[12], scratch[13], scratch[14], scratch[15], scratch[16], scratch[17])
         for i in range(ns):
             nsa[i] = f0
         had_bad = False
@@ -289,17 +289,40 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
             for i in range(ns):
                 num[i] = f0
                 den[i] = f0
-            for j in range(P):
-                tj = times[j]
-                aj = avar[j]
-                okj = ok[j]
-                omj = om[j]
+            if method == DEBEVEC:
+                # as the one-pass Debevec kernel takes it: Σω²·var = g·x·Σω²/t +
+                # Σ(ω/t)²·a + rel·x²·Σω², the sums taken without x (same bits)
+                for i in range(ns):
+                    s1[i] = f0
+                    s2[i] = f0
+                for j in range(P):
+                    tj = times[j]
+                    aj = avar[j]
+                    okj = ok[j]
+                    omj = om[j]
+                    for i in range(ns):
+                        w = omj[i]
+                        r = w / tj
+                        num[i] += okj[i] * w
+                        s1[i] += okj[i] * w * r
+                        s2[i] += okj[i] * r * r * aj
+                        den[i] += okj[i] * w * w
                 for i in range(ns):
                     xi = X[i]
                     x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
-                    v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
-                    num[i] += okj[i] * omj[i]
-                    den[i] += okj[i] * omj[i] * omj[i] * v
+                    den[i] = g32 * x * s1[i] + s2[i] + rel32 * x * x * den[i]
+            else:
+                for j in range(P):
+                    tj = times[j]
+                    aj = avar[j]
+                    okj = ok[j]
+                    omj = om[j]
+                    for i in range(ns):
+                        xi = X[i]
+                        x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
+                        v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
+                        num[i] += okj[i] * omj[i]
+                        den[i] += okj[i] * omj[i] * omj[i] * v
             if want_chi2:
                 # about the pooled estimate XP (not the method's), as for Poisson
                 _chi2_sums(times, avar, g32, rel32, ok, y, om, XP, sy, st2, sav)
