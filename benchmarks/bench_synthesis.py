@@ -56,7 +56,7 @@ def bench_response(quick: bool) -> list[tuple[str, float, str]]:
     from mehs.synthesis.response import recover_response_Debevec1997, sample_pixels, to_levels
 
     rng = np.random.default_rng(0)
-    P, C, M = 3, 204, 16384
+    C, M = 204, 16384
     t = np.array([1.0, 4.0, 16.0])
     E = np.exp(rng.uniform(np.log(0.5), np.log(4000), (M, C)))
     raw = np.stack([4095 * (np.clip(E * tt, 0, 4095) / 4095) ** 0.8
