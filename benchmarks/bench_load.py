@@ -1,28 +1,35 @@
 """Slowdown of the BLAS-heavy hot paths when one other CPU-bound process competes for the cores.
 
-    python benchmarks/bench_load.py [--quick] [--repeat N]
+    python benchmarks/bench_load.py [--quick] [--repeat N] [--rounds N]
 
-For each path the median of ``--repeat`` calls is timed twice in this run:
-without and with one competing busy process (a Python loop spinning on one
-core, started here and stopped after the timing). The printed ratio
-``loaded / unloaded`` is what the target of issue 16 is about (≤ 1.5×); it does
-not depend on how fast the machine is. Each path runs as mehs runs it (numpy's
-BLAS pinned to one thread, :mod:`mehs._blas`) and, as the reference, with the
-BLAS left at its default thread count (the behaviour before issue 16), so both
-ratios come from the same run under the same background load, which is printed
-beside every phase (1-minute load average and the CPU share used by others).
+Each path runs, once as mehs runs it (numpy's BLAS pinned to one thread,
+:mod:`mehs._blas`) and once with the BLAS left at its default thread count (the
+behaviour before issue 16, the reference), in a child process of its own: the
+median of ``--repeat`` calls is timed without and with one competing busy
+process (a Python loop spinning on one core, started by the child and stopped
+after the timing), in ``--rounds`` alternating pairs of phases. One process for
+all rows let one row's leftovers decide another's ratio (mehs's one-thread Smits
+measured 1.14×, 1.45×, 1.87× and 2.00× in four runs, 1.00× on its own). The
+printed times are the medians over the rounds, with the range of the rounds'
+ratios beside them. The ratio ``loaded / unloaded`` is what the target of issue
+16 is about (≤ 1.5×); it does not depend on how fast the machine is. The load
+each child saw is printed beside its row (1-minute load average and the CPU
+share used by others, before its first phase).
 
 Paths: Smits 1999 and Mallett 2019 on a 512×512 RGB image, and the
-"resample from a memory map" stage (a 512×512×204 uint16 BIL file → 31 bands).
+"resample from a memory map" stage (a 512×512×204 uint16 BIL file → 31 bands);
+the "floor" row is a one-thread read of that file with no BLAS at all.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import multiprocessing as mp
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -68,31 +75,21 @@ def median_time(fn, repeat: int) -> float:
     return statistics.median(ts)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="256² images and 5 repeats")
-    ap.add_argument("--repeat", type=int, default=None)
-    args = ap.parse_args(argv)
-    n = 256 if args.quick else 512
-    repeat = args.repeat or (5 if args.quick else 9)
+PATHS = ("floor", "smits", "mallett", "resample")
+MODES = ("1 thread", "BLAS default")
 
+
+def _child(args) -> None:
+    """Time one path in one mode (this process only), print a JSON line."""
     import mehs.ssr.baselines as baselines
     import mehs.synthesis.resample as resample
     from mehs.cube import SpectralCube
     from mehs.rgb import WAVELENGTHS_31
 
-    rng = np.random.default_rng(0)
-    rgb = rng.gamma(1.0, 1.0, (n, n, 3)).astype(np.float32)
-    nb = 204
-    wl = np.linspace(397.32, 1003.58, nb)
-    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_load_"))
-    path = tmp / "cube.bil"
-    mm = np.memmap(path, dtype=np.uint16, mode="w+", shape=(n, nb, n))
-    mm[:] = rng.integers(0, 4096, (n, nb, n), dtype=np.uint16)
-    mm.flush()
-    del mm
-    view = np.memmap(path, dtype=np.uint16, mode="r", shape=(n, nb, n)).transpose(0, 2, 1)
-    cube = SpectralCube(view, wl)
+    n, nb = args.n, 204
+    rgb = np.random.default_rng(0).gamma(1.0, 1.0, (n, n, 3)).astype(np.float32)
+    view = np.memmap(args.file, dtype=np.uint16, mode="r", shape=(n, nb, n)).transpose(0, 2, 1)
+    cube = SpectralCube(view, np.linspace(397.32, 1003.58, nb))
 
     def read_pass():  # no BLAS: what the scheduler alone does to a 1-thread pass
         acc = 0
@@ -100,57 +97,83 @@ def main(argv=None) -> int:
             acc += int(np.asarray(view[l0:l0 + 32]).astype(np.float32).sum(dtype=np.float64))
         return acc
 
-    paths = [
-        ("floor: read + convert the memmap (no BLAS)", resample, read_pass),
-        (f"Smits 1999, {n}×{n}", baselines,
-         lambda: baselines.RGB_to_spectra_Smits1999(rgb)),
-        (f"Mallett 2019, {n}×{n}", baselines,
-         lambda: baselines.RGB_to_spectra_Mallett2019(rgb)),
-        (f"resample memmap {n}×{n}×{nb} uint16 BIL → 31", resample,
-         lambda: resample.resample_cube(cube, WAVELENGTHS_31)),
-    ]
-    pinned = {m: m.single_thread_blas for _, m, _ in paths}
+    module, fn = {
+        "floor": (resample, read_pass),
+        "smits": (baselines, lambda: baselines.RGB_to_spectra_Smits1999(rgb)),
+        "mallett": (baselines, lambda: baselines.RGB_to_spectra_Mallett2019(rgb)),
+        "resample": (resample, lambda: resample.resample_cube(cube, WAVELENGTHS_31)),
+    }[args.child]
+    if args.mode != "1 thread":
+        module.single_thread_blas = contextlib.nullcontext
+    res = {"load": load_line(), "unloaded": [], "loaded": []}
+    for _ in range(args.rounds):
+        time.sleep(0.3)
+        res["unloaded"].append(median_time(fn, args.repeat))
+        with competing_process(1):
+            res["loaded"].append(median_time(fn, args.repeat))
+    print(json.dumps(res))
 
-    def run(module, fn, mode):
-        module.single_thread_blas = pinned[module] if mode == "1 thread" else contextlib.nullcontext
-        try:
-            return median_time(fn, repeat)
-        finally:
-            module.single_thread_blas = pinned[module]
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="256² images and 5 repeats")
+    ap.add_argument("--repeat", type=int, default=None)
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="alternating unloaded / loaded phase pairs (default 3)")
+    ap.add_argument("--child", choices=PATHS, help=argparse.SUPPRESS)
+    ap.add_argument("--mode", choices=MODES, help=argparse.SUPPRESS)
+    ap.add_argument("--file", help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    n = 256 if args.quick else 512
+    repeat = args.repeat or (5 if args.quick else 9)
+    rounds = max(1, args.rounds)
+    if args.child:
+        _child(args)
+        return 0
 
     from threadpoolctl import threadpool_info
 
+    nb = 204
+    tmp = Path(tempfile.mkdtemp(prefix="mehs_bench_load_"))
+    path = tmp / "cube.bil"
+    mm = np.memmap(path, dtype=np.uint16, mode="w+", shape=(n, nb, n))
+    mm[:] = np.random.default_rng(0).integers(0, 4096, (n, nb, n), dtype=np.uint16)
+    mm.flush()
+    del mm
     blas = [f"{i['internal_api']} {i['num_threads']} threads" for i in threadpool_info()
             if i["user_api"] == "blas"]
     print(f"{os.cpu_count()} CPUs; numpy BLAS default: {', '.join(blas) or 'unknown'}; "
-          f"median of {repeat}")
-    modes = ("1 thread", "BLAS default")
-
-    def modes_of(label):
-        return modes[:1] if label.startswith("floor") else modes
-    res: dict[tuple[str, str, bool], float] = {}
-    print("unloaded phase: ", load_line())
-    for label, module, fn in paths:
-        for mode in modes_of(label):
-            res[label, mode, False] = run(module, fn, mode)
-    with competing_process(1):
-        print("loaded phase:   ", load_line(), "(+1 busy process of this benchmark)")
-        for label, module, fn in paths:
-            for mode in modes_of(label):
-                res[label, mode, True] = run(module, fn, mode)
-    print(f"{'path':<46} {'BLAS':<13} {'unloaded s':>10} {'loaded s':>9} {'slowdown':>9}")
-    for label, _, _ in paths:
-        for mode in modes_of(label):
-            a, b = res[label, mode, False], res[label, mode, True]
-            tag = ("scheduler floor" if label.startswith("floor") else
-                   "mehs" if mode == "1 thread" else "reference (before issue 16)")
-            print(f"{label:<46} {mode:<13} {a:10.4f} {b:9.4f} {b / a:8.2f}×  {tag}")
-    print("target (issue 16): mehs slowdown with one competing busy process ≤ 1.5×; "
-          "the floor row is\n"
-          "what the same competition does to a single-threaded pass that uses no BLAS at all")
-    del view, cube
-    os.unlink(path)
-    os.rmdir(tmp)
+          f"median of {repeat} calls per phase, {rounds} alternating unloaded / loaded "
+          "rounds, one child process per row")
+    print("before:", load_line())
+    labels = {"floor": "floor: read + convert the memmap (no BLAS)",
+              "smits": f"Smits 1999, {n}×{n}", "mallett": f"Mallett 2019, {n}×{n}",
+              "resample": f"resample memmap {n}×{n}×{nb} uint16 BIL → 31"}
+    print(f"{'path':<46} {'BLAS':<13} {'unloaded s':>10} {'loaded s':>9} {'slowdown':>9}  "
+          f"{'rounds':<13} {'':<28} load before the row")
+    try:
+        for key in PATHS:
+            for mode in (MODES[:1] if key == "floor" else MODES):
+                out = subprocess.run(
+                    [sys.executable, __file__, "--child", key, "--mode", mode, "--file",
+                     str(path), "--n", str(n), "--repeat", str(repeat), "--rounds",
+                     str(rounds)], capture_output=True, text=True, check=True).stdout
+                r = json.loads(out.strip().splitlines()[-1])
+                ua, la = r["unloaded"], r["loaded"]
+                a, b = statistics.median(ua), statistics.median(la)
+                per = [y / x for x, y in zip(ua, la)]
+                tag = ("scheduler floor" if key == "floor" else
+                       "mehs" if mode == "1 thread" else "reference (before issue 16)")
+                print(f"{labels[key]:<46} {mode:<13} {a:10.4f} {b:9.4f} {b / a:8.2f}×  "
+                      f"{min(per):.2f}–{max(per):.2f}×    {tag:<28} {r['load']}")
+    finally:
+        os.unlink(path)
+        os.rmdir(tmp)
+    print("target (issue 16): mehs slowdown with one competing busy process ≤ 1.5×; the floor "
+          "row is\nwhat the same competition does to a single-threaded pass that uses no BLAS "
+          "at all")
+    print("after: ", load_line())
     return 0
 
 
