@@ -289,17 +289,16 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
             for i in range(ns):
                 num[i] = f0
                 den[i] = f0
-            if method == DEBEVEC:
-                # as the one-pass Debevec kernel takes it: Σω²·var = g·x·Σω²/t +
-                # Σ(ω/t)²·a + rel·x²·Σω², the sums taken without x (same bits)
-                for i in range(ns):
-                    s1[i] = f0
-                    s2[i] = f0
-                for j in range(P):
-                    tj = times[j]
-                    aj = avar[j]
-                    okj = ok[j]
-                    omj = om[j]
+                s1[i] = f0
+                s2[i] = f0
+            for j in range(P):
+                tj = times[j]
+                aj = avar[j]
+                okj = ok[j]
+                omj = om[j]
+                if method == DEBEVEC:
+                    # as the one-pass Debevec kernel takes it: Σω²·var = g·x·Σω²/t +
+                    # Σ(ω/t)²·a + rel·x²·Σω², the sums taken without x (same bits)
                     for i in range(ns):
                         w = omj[i]
                         r = w / tj
@@ -307,22 +306,18 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                         s1[i] += okj[i] * w * r
                         s2[i] += okj[i] * r * r * aj
                         den[i] += okj[i] * w * w
-                for i in range(ns):
-                    xi = X[i]
-                    x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
-                    den[i] = g32 * x * s1[i] + s2[i] + rel32 * x * x * den[i]
-            else:
-                for j in range(P):
-                    tj = times[j]
-                    aj = avar[j]
-                    okj = ok[j]
-                    omj = om[j]
+                else:
                     for i in range(ns):
                         xi = X[i]
                         x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
                         v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
                         num[i] += okj[i] * omj[i]
                         den[i] += okj[i] * omj[i] * omj[i] * v
+            if method == DEBEVEC:
+                for i in range(ns):
+                    xi = X[i]
+                    x = xi if (xi >= f0) & (xi < np.float32(np.inf)) else f0
+                    den[i] = g32 * x * s1[i] + s2[i] + rel32 * x * x * den[i]
             if want_chi2:
                 # about the pooled estimate XP (not the method's), as for Poisson
                 _chi2_sums(times, avar, g32, rel32, ok, y, om, XP, sy, st2, sav)
