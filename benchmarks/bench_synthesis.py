@@ -13,6 +13,10 @@
    Robertson (radiance only — ``consistency=False`` — as OpenCV computes no
    ghost statistic), and the default (Poisson) merge vs the fastest OpenCV
    merge. numba and OpenCV run with the same thread count (printed; ``--threads``).
+   Where pfstools is installed (``apt-get install pfstools``), its noise-aware merge
+   (``pfshdrcalibrate``, Hanji et al. 2020) too: 68 three-band processes, as many at a time
+   as the other contenders' threads, its process start-up timed apart
+   (:mod:`_pfstools`).
 3. Merge accuracy against simulator truth (non-linear "gamma" sensor):
    mehs vs OpenCV MergeDebevec on the same stack (given the same Debevec curve).
 
@@ -32,6 +36,7 @@ import sys
 import tempfile
 import time
 import tracemalloc
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -205,6 +210,9 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
                      t_u, "reference"))
     fastest = min(cv_t, key=lambda k: cv_t[k][0])
     t_p = mehs_t["poisson", True]
+    pfs_rows, pfs_t = bench_pfstools(stack, t, dark, threads,
+                                     merge_bracket(stack, t, darks=[dark] * P).radiance)
+    rows += pfs_rows
     rows += [
         ("ratios (reference time / mehs time; > 1: mehs faster)", 0.0, load_line()),
         ("  default merge (poisson) vs read pass", 0.0,
@@ -214,6 +222,12 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
         (f"  poisson vs OpenCV {fastest} (fastest), kernel vs kernel", 0.0,
          f"{cv_t[fastest][0] / t_p:.1f}× (target ≥ 5×)"),
     ]
+    if pfs_t is not None:
+        rows += [("  poisson vs pfstools pfshdrcalibrate, user's task", 0.0,
+                  f"{pfs_t[1] / t_p:.1f}×"),
+                 ("  poisson vs pfstools pfshdrcalibrate, kernel vs kernel", 0.0,
+                  f"{pfs_t[0] / t_p:.1f}× (process start-up subtracted; reading and "
+                  "writing its PFS streams included)")]
     for name in ("debevec", "robertson"):
         tk, tu = cv_t[name]
         tm = mehs_t[name, False]
@@ -225,6 +239,77 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
         os.unlink(p)
     os.rmdir(tmp)
     return rows
+
+
+def bench_pfstools(stack, t, dark, threads, mehs_rad):
+    """pfstools' noise-aware merge (``pfshdrcalibrate -r linear -c none``) on the same
+    bracket, 68 three-band processes, ``threads`` at a time (:mod:`_pfstools`).
+
+    Returns the rows and ``(kernel seconds, user's task seconds)``, or None for the times
+    where pfstools is not installed. Its output is checked against mehs's Poisson merge
+    (up to pfstools' absolute scale) so that a broken invocation cannot pass as fast.
+    """
+    import _pfstools as pfs
+
+    if not pfs.available():
+        return [("pfstools pfshdrcalibrate", 0.0,
+                 "not installed (apt-get install pfstools): skipped")], None
+    nl, ns, nb = stack[0].shape
+    bits = 12
+    starts = list(range(0, nb, 3))
+
+    def band_idx(b0):
+        return [min(b, nb - 1) for b in range(b0, b0 + 3)]   # a short last group repeats
+
+    def stream(b0):
+        idx = band_idx(b0)
+        return pfs.bracket_stream([np.ascontiguousarray(s_[:, :, idx]) for s_ in stack], t,
+                                  dark[None, :, idx], bits)
+
+    def arrange():
+        with ThreadPoolExecutor(threads) as pool:
+            return list(pool.map(stream, starts))
+
+    # the saturation level mehs uses by default (0.98 of full scale), in pfstools' terms
+    off = pfs.saturation_offset(0.98 * (2 ** bits - 1), float(np.max(dark)), bits)
+    t_arr, streams = best(arrange, 2)
+    t_k, merged = best(lambda: pfs.merge_all(streams, bits, off, threads), 3)
+    # the same processes on 4×4-pixel streams: their start-up (shared libraries, parsing
+    # arguments), which a merge inside one process does not pay
+    tiny = [pfs.bracket_stream([np.ascontiguousarray(s_[:4, :4, band_idx(b0)]) for s_ in stack],
+                               t, dark[None, :4, band_idx(b0)], bits) for b0 in starts]
+    t_s, _ = best(lambda: pfs.merge_all(tiny, bits, off, threads), 3)
+    del streams
+    out = np.empty((nl, ns, nb), np.float32)
+
+    def one(b0):
+        out[:, :, band_idx(b0)] = pfs.read_rgb(pfs.merge_stream(stream(b0), bits, off))
+
+    def task():
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(one, starts))
+        return out
+
+    t_u, _ = best(task, 2)
+    # agreement with mehs where the longest exposure holds >= 10 % of full scale
+    # (pfstools' absolute scale divided out; it returns 0 for some darker pixels)
+    first = pfs.read_rgb(merged[0])
+    ref = np.asarray(mehs_rad[:, :, band_idx(0)])
+    ok = np.isfinite(first) & (ref * float(np.max(t)) > 0.1 * (2 ** bits - 1))
+    scale = np.median(first[ok] / ref[ok])
+    dev = np.abs(first[ok] / scale / ref[ok] - 1)
+    rows = [(f"arrange for pfstools: {len(starts)} dark-subtracted 3-band PFS streams", t_arr,
+             "outside the kernel timing below"),
+            (f"pfshdrcalibrate, {len(starts)} processes, pre-written streams (kernel)", t_k,
+             f"reference: pfstools {pfs.version() or '?'}, Hanji 2020 noise-aware merge; "
+             f"{threads} processes at a time (each single-threaded)"),
+            (f"  of which process start-up ({len(starts)} runs on 4×4-pixel streams)", t_s,
+             "subtracted in the kernel ratio below"),
+            ("pfshdrcalibrate, user's task (regroup + stream + merge + read back)", t_u,
+             "reference"),
+            ("  pfstools vs mehs poisson, bands 0-2, well exposed (scale divided out)", 0.0,
+             f"median |rel diff| {np.median(dev):.4f}, p99 {np.percentile(dev, 99):.3f}")]
+    return rows, (t_k - t_s, t_u)
 
 
 def _traffic_floor(stack, dark):
