@@ -276,7 +276,7 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
     # the saturation level mehs uses by default (0.98 of full scale), in pfstools' terms
     off = pfs.saturation_offset(0.98 * (2 ** bits - 1), float(np.max(dark)), bits)
     t_arr, streams = best(arrange, 2)
-    t_k, merged = best(lambda: pfs.merge_all(streams, bits, off, threads), 3)
+    t_k, _ = best(lambda: pfs.merge_all(streams, bits, off, threads), 3)
     # the same processes on 4×4-pixel streams: their start-up (shared libraries, parsing
     # arguments), which a merge inside one process does not pay
     tiny = [pfs.bracket_stream([np.ascontiguousarray(s_[:4, :4, band_idx(b0)]) for s_ in stack],
@@ -294,13 +294,18 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
         return out
 
     t_u, _ = best(task, 2)
-    # agreement with mehs where the longest exposure holds >= 10 % of full scale
-    # (pfstools' absolute scale divided out; it returns 0 for some darker pixels)
-    first = pfs.read_rgb(merged[0])
-    ref = np.asarray(mehs_rad[:, :, band_idx(0)])
-    ok = np.isfinite(first) & (ref * float(np.max(t)) > 0.1 * (2 ** bits - 1))
-    scale = np.median(first[ok] / ref[ok])
-    dev = np.abs(first[ok] / scale / ref[ok] - 1)
+    # agreement with mehs, every band, where the longest exposure holds >= 10 % of full
+    # scale; pfstools' output scale differs from one image (group) to the next by up to
+    # 50 % (its absolute calibration), so each group's median ratio is divided out
+    ref = np.asarray(mehs_rad)
+    good = np.isfinite(out) & (ref * float(np.max(t)) > 0.1 * (2 ** bits - 1))
+    dev = []
+    for b0 in starts:
+        idx = band_idx(b0)
+        ok = good[:, :, idx]
+        ratio = out[:, :, idx][ok] / ref[:, :, idx][ok]
+        dev.append(np.abs(ratio / np.median(ratio) - 1))
+    dev = np.concatenate(dev)
     rows = [(f"arrange for pfstools: {len(starts)} dark-subtracted 3-band PFS streams", t_arr,
              "outside the kernel timing below"),
             (f"pfshdrcalibrate, {len(starts)} processes, pre-written streams (kernel)", t_k,
@@ -310,7 +315,7 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
              "subtracted in the kernel ratio below"),
             ("pfshdrcalibrate, user's task (regroup + stream + merge + read back)", t_u,
              "reference"),
-            ("  pfstools vs mehs poisson, bands 0-2, well exposed (scale divided out)", 0.0,
+            ("  pfstools vs mehs poisson, well exposed, each 3-band image's scale out", 0.0,
              f"median |rel diff| {np.median(dev):.4f}, p99 {np.percentile(dev, 99):.3f}")]
     return rows, (t_k - t_s, t_u)
 
