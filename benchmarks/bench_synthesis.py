@@ -248,8 +248,8 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
     """pfstools' noise-aware merge (``pfshdrcalibrate -r linear -c none``) on the same
     bracket, 68 three-band processes, ``threads`` at a time (:mod:`_pfstools`).
 
-    Returns the rows and ``(kernel seconds, user's task seconds)``, or None for the times
-    where pfstools is not installed. Its output is checked against mehs's Poisson merge
+    Returns the rows and ``(kernel seconds less its process start-up, user's task
+    seconds)``, or None for the times where pfstools is not installed. Its output is checked against mehs's Poisson merge
     (up to pfstools' absolute scale) so that a broken invocation cannot pass as fast.
     """
     import _pfstools as pfs
@@ -264,10 +264,11 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
     def band_idx(b0):
         return [min(b, nb - 1) for b in range(b0, b0 + 3)]   # a short last group repeats
 
-    def stream(b0):
+    def stream(b0, n=None):
+        # (n: only the first n × n pixels)
         idx = band_idx(b0)
-        return pfs.bracket_stream([np.ascontiguousarray(s_[:, :, idx]) for s_ in stack], t,
-                                  dark[None, :, idx], bits)
+        return pfs.bracket_stream([np.ascontiguousarray(s_[:n, :n, idx]) for s_ in stack], t,
+                                  dark[None, :n, idx], bits)
 
     def arrange():
         with ThreadPoolExecutor(threads) as pool:
@@ -279,8 +280,7 @@ def bench_pfstools(stack, t, dark, threads, mehs_rad):
     t_k, _ = best(lambda: pfs.merge_all(streams, bits, off, threads), 3)
     # the same processes on 4×4-pixel streams: their start-up (shared libraries, parsing
     # arguments), which a merge inside one process does not pay
-    tiny = [pfs.bracket_stream([np.ascontiguousarray(s_[:4, :4, band_idx(b0)]) for s_ in stack],
-                               t, dark[None, :4, band_idx(b0)], bits) for b0 in starts]
+    tiny = [stream(b0, 4) for b0 in starts]
     t_s, _ = best(lambda: pfs.merge_all(tiny, bits, off, threads), 3)
     streams.clear()                 # (600 MB at 512²)
     out = np.empty((nl, ns, nb), np.float32)
