@@ -319,3 +319,16 @@ def test_fault_spec_parsing():
     for bad in ("camera:fault@1", "lamp:timeout@1", "camera:melt@3", "camera:timeout@0"):
         with pytest.raises(InputError):
             parse_faults(bad)
+
+
+def test_gige_vision_fault_spec_parsing():
+    from mehs.capture.genicam_sim import GvFault, split_faults
+
+    gv, rest = split_faults("camera:unplug@20/4ms, camera:incomplete@40x2, stage:disconnect@10,"
+                            "camera:pixfmt@3/0.25ms")
+    assert gv == [GvFault("unplug", 20, 1, 4000), GvFault("incomplete", 40, 2, None),
+                  GvFault("pixfmt", 3, 1, 250)]
+    assert rest == "stage:disconnect@10"
+    for bad in ("camera:unplug@0", "camera:unplug@3/0ms", "camera:unplug@3/4", "camera:melt@3/4ms"):
+        with pytest.raises(InputError, match="bad"):
+            split_faults(bad)

@@ -5,7 +5,6 @@ with the install hint otherwise. One fake camera at a time (GVCP port 3956
 on 127.0.0.1), so these tests never run their simulators concurrently.
 """
 
-import json
 import subprocess
 
 import numpy as np
@@ -19,7 +18,7 @@ pytestmark = pytest.mark.skipif(_why is not None, reason=f"Aravis unavailable: {
 from mehs.capture import scenefolder as sf  # noqa: E402
 from mehs.capture.scene import make_scene  # noqa: E402
 from mehs.capture.sensor import SensorModel, exposure_seed_for  # noqa: E402
-from mehs.capture.simulate import simulate_bracket, world_radiance_line  # noqa: E402
+from mehs.capture.simulate import world_radiance_line  # noqa: E402
 from mehs.errors import DeviceError  # noqa: E402
 from mehs.io.atomic import sha256_file  # noqa: E402
 from _simdevice import MEHS, start_sim_device, stop  # noqa: E402
@@ -188,6 +187,25 @@ def test_lost_packets_are_counted_and_recovered(tmp_path, serial_scene, scan):
         assert info["lost_buffers"] == 2 or any("2 frames lost" in r for r in info["rejected_passes"])
 
 
+def test_fault_bound_to_an_exposure_time_hits_that_exposure(tmp_path, serial_scene):
+    from mehs.capture.genicam import GenicamCamera
+    from mehs.capture.session import capture_scene
+    from mehs.capture.zaber import ZaberStage
+
+    out = tmp_path / "scene"
+    # the 40th and 41st 4-ms frames; exposure 0 (1 ms) is 16 dark + 16 white + 24 lines = 56
+    dev, _ = _sim(faults="camera:incomplete@40x2/4ms")
+    with dev, ZaberStage.open(dev.stage_url) as stage, GenicamCamera.open(dev.camera_url, timeout=0.5) as cam:
+        doc = capture_scene(stage, cam, out, times_ms=TIMES[:2], lines=SIZE, progress=False)
+        assert dev.camera._relay.dropped_frames == [56 + 40, 56 + 41]
+    lost = [sum("lost / incomplete" in e for e in rec["device_events"]) for rec in doc["exposures"]]
+    assert lost == [0, 2], [rec["device_events"] for rec in doc["exposures"]]
+    ser = sf.read_scene_json(serial_scene)
+    for rec, ref in zip(doc["exposures"], ser["exposures"]):
+        assert rec["status"] == "complete"
+        np.testing.assert_array_equal(raw_of(out, rec), raw_of(serial_scene, ref))
+
+
 def test_wrong_pixel_format_mid_scan_is_a_clear_error(tmp_path):
     from mehs.capture.genicam import GenicamCamera
     from mehs.capture.session import capture_scene
@@ -236,9 +254,11 @@ def test_list_cameras_finds_the_simulated_camera(capsys):
 
 def test_cli_unplug_during_continuous_scan_then_resume(tmp_path):
     out = tmp_path / "scene"
-    # exposure 0: 8 stop-and-go reference frames + ≈ 2 frames/line over 16 lines of travel
-    # (≈ 45 frames); exposure 1's scan starts near frame 55
-    proc, urls = start_sim("--faults", "camera:unplug@70", size=12)
+    # the 20th 4-ms frame: after exposure 1's 8 stop-and-go reference frames, 12 frames into
+    # its scan (≈ 2 frames per line over 16 lines of travel, ≥ 32). Counting all frames
+    # instead made the test depend on the machine's speed: exposure 0 took 48 frames on a
+    # quiet machine, over 70 on a busy one, and the fault then hit exposure 0.
+    proc, urls = start_sim("--faults", "camera:unplug@20/4ms", size=12)
     try:
         r = capture(urls, out, "--times", "1,4", "--scan", "continuous", "--dark-lines", "4",
                     "--white-lines", "4", size=12)

@@ -22,7 +22,9 @@ Python callback at once); inside it ``arv_buffer_get_data`` reports size 0,
 so the frame size comes from the registers (the fake camera allocated
 ``Width·Height·bpp/8`` at acquisition start).
 
-Faults (``camera:KIND@N[xCOUNT]``, N = 1-based frame count):
+Faults (``camera:KIND@N[xCOUNT][/Tms]``, N = 1-based frame count; with ``/Tms`` only
+frames exposed for T ms are counted, so that a fault lands in a chosen exposure of a
+bracket however many frames a free-running continuous scan took before it):
 ``unplug`` — the camera disappears at frame N (GVCP and GVSP stop);
 ``incomplete`` — frame N's data packets are dropped on the way (the
 receiver gets a leader and trailer only: an incomplete buffer);
@@ -55,7 +57,7 @@ from mehs.capture.simulate import motion_phase, world_radiance_line
 from mehs.errors import DeviceError, InputError
 
 GV_FAULT_KINDS = ("unplug", "incomplete", "pixfmt")
-_GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt)@(\d+)(?:x(\d+))?$")
+_GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt)@(\d+)(?:x(\d+))?(?:/(\d+(?:\.\d+)?)ms)?$")
 #: Trigger-mode polling rate of the fake camera (Aravis's default, 25 Hz, caps step scans at ~24 lines/s).
 TRIGGER_POLL_HZ = 2000.0
 
@@ -65,6 +67,8 @@ class GvFault:
     kind: str
     at: int
     count: int = 1
+    #: count only the frames of this exposure time (µs); None: every frame
+    exposure_us: int | None = None
 
     def fires(self, n: int) -> bool:
         return self.at <= n < self.at + self.count
@@ -80,9 +84,12 @@ def split_faults(spec: str | None) -> tuple[list[GvFault], str]:
         if m:
             if int(m[2]) < 1 or int(m[3] or 1) < 1:
                 raise InputError(f"bad fault {item!r}: N and COUNT start at 1")
-            gv.append(GvFault(m[1], int(m[2]), int(m[3] or 1)))
+            exp_us = None if m[4] is None else round(float(m[4]) * 1000.0)
+            if exp_us is not None and exp_us < 1:
+                raise InputError(f"bad fault {item!r}: the exposure time must be at least 1 µs")
+            gv.append(GvFault(m[1], int(m[2]), int(m[3] or 1), exp_us))
         elif item.startswith("camera:"):
-            raise InputError(f"bad GigE Vision camera fault {item!r}: use camera:KIND@N[xCOUNT] with "
+            raise InputError(f"bad GigE Vision camera fault {item!r}: use camera:KIND@N[xCOUNT][/Tms] with "
                              f"KIND one of {', '.join(GV_FAULT_KINDS)}")
         else:
             rest.append(item)
@@ -172,6 +179,8 @@ class GenicamSimCamera:
         self.interface = interface or self.Aravis.GV_FAKE_CAMERA_DEFAULT_INTERFACE
         self.lens_capped = False
         self.frames = 0
+        self._fault_frames = [0] * len(self.faults)   # frames each fault has counted
+        self._drop: set[int] = set()             # frame numbers an exposure-bound fault drops
         self.fired: list[tuple[int, str]] = []
         self.unplugged = threading.Event()
         self.errors: list[str] = []
@@ -265,7 +274,10 @@ class GenicamSimCamera:
         return int(v)
 
     def _drop_frame(self, frame_number: int) -> bool:
-        return any(f.kind == "incomplete" and f.fires(frame_number) for f in self.faults)
+        # (the relay numbers frames as _fill_checked does, which runs before each is sent)
+        return frame_number in self._drop or any(
+            f.kind == "incomplete" and f.exposure_us is None and f.fires(frame_number)
+            for f in self.faults)
 
     # ------------------------------------------------------------ frames
     def _fill(self, buf, _data, exposure_us, _gain, pixel_format) -> None:
@@ -281,8 +293,17 @@ class GenicamSimCamera:
             return
         self.frames += 1
         n = self.frames
-        for f in self.faults:
-            if f.fires(n) and f.kind in ("unplug", "pixfmt"):
+        for k, f in enumerate(self.faults):
+            # the fake camera keeps the exposure in whole µs: a time within 1 µs is the same
+            if f.exposure_us is not None and abs(exposure_us - f.exposure_us) > 1:
+                continue
+            self._fault_frames[k] += 1
+            if not f.fires(self._fault_frames[k]):
+                continue
+            if f.kind == "incomplete":
+                if f.exposure_us is not None:
+                    self._drop.add(n)
+            else:
                 self.fired.append((n, f.kind))
                 if f.kind == "unplug":
                     # dispose from another thread: this one is the camera's own
