@@ -159,6 +159,7 @@ def test_one_pass_poisson_kernel_equals_the_stage_kernel_to_the_bit(seed, P, con
                             4096, gain, avar, rel_var, cal, want_chi2, clip, *outs)
 
     monkeypatch.setattr(_merge_fused, "merge_chunk_poisson_linear", stage)
+    monkeypatch.setattr(_merge_fused, "merge_chunk_poisson_linear_radiance", stage)
     ref = merge_bracket(stack, t, **kw)
     if consistency:
         assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
@@ -197,6 +198,7 @@ def test_one_pass_weighted_kernel_equals_the_stage_kernel_to_the_bit(seed, P, me
                     floor, gain, avar, rel_var, cal, code, want_chi2, clip, *outs)
 
     monkeypatch.setitem(_merge_fused_weighted.WEIGHTED_LINEAR, code, stage)
+    monkeypatch.setitem(_merge_fused_weighted.WEIGHTED_LINEAR_RADIANCE, code, stage)
     ref = merge_bracket(stack, t, **kw)
     assert seen                                                # the one-pass kernel was used
     if consistency:

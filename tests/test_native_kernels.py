@@ -43,17 +43,19 @@ def cache(tmp_path, monkeypatch):
     return tmp_path / "cache" / "kernels"
 
 
-@pytest.mark.parametrize("method,P,dtype", [("poisson", 3, np.uint16),
-                                            ("debevec", 2, np.int16),
-                                            ("inverse-variance", 4, np.uint16)])
-def test_stored_kernel_gives_the_numba_kernels_bits(cache, monkeypatch, method, P, dtype):
+@pytest.mark.parametrize("method,P,dtype,consistency", [("poisson", 3, np.uint16, True),
+                                                        ("debevec", 2, np.int16, True),
+                                                        ("inverse-variance", 4, np.uint16, False)])
+def test_stored_kernel_gives_the_numba_kernels_bits(cache, monkeypatch, method, P, dtype,
+                                                    consistency):
     from mehs.synthesis import _native
 
     stack, t, darks = _bracket(P, dtype)
-    kw = dict(method=method, darks=darks, noise=NoiseModel(1.5, 3.0, relative=0.01))
+    kw = dict(method=method, darks=darks, noise=NoiseModel(1.5, 3.0, relative=0.01),
+              consistency=consistency)
     stored = merge_bracket(stack, t, **kw)
     kind = {"poisson": "poisson_linear", "debevec": "debevec_linear",
-            "inverse-variance": "invvar_linear"}[method]
+            "inverse-variance": "invvar_linear"}[method] + ("" if consistency else "_radiance")
     assert _native.is_stored(kind, dtype, P)                    # the native path ran
     assert len(list(cache.glob(f"{kind}-*.o"))) == 1
     monkeypatch.setenv("MEHS_CACHE_DIR", "")                    # numba's dispatcher

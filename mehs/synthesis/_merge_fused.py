@@ -76,17 +76,28 @@ def merge_chunk_poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, 
     """Poisson merge ``X = Σy / Σt`` of a chunk of lines (BIL) from a linear sensor.
 
     Arguments as :func:`mehs.synthesis._merge_kernels.merge_chunk_poisson` (without the
-    look-up tables of a non-linear curve).
+    look-up tables of a non-linear curve). The merge calls it for the χ² ghost statistic;
+    without the statistic it calls :func:`merge_chunk_poisson_linear_radiance`.
     """
-    # One sample loop each with and without the statistic, ``want_chi2`` a constant in
-    # each: with it a run-time flag, LLVM kept the test inside the vectorised loop and
-    # the χ²-free merge paid for the statistic's registers (spills): 25 % slower.
-    if want_chi2:
-        _poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, True, clip,
-                        out, chi2, dof, snr, nsat, nvalid, msum)
-    else:
-        _poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, False, clip,
-                        out, chi2, dof, snr, nsat, nvalid, msum)
+    _poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, want_chi2, clip,
+                    out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_poisson_linear_radiance(zs, darks, sat, times, gain, avar, rel_var, cal,
+                                        want_chi2, clip, out, chi2, dof, snr, nsat, nvalid,
+                                        msum):
+    """:func:`merge_chunk_poisson_linear` without the χ² statistic, whatever ``want_chi2``
+    says (``chi2`` and ``dof`` are left as they are).
+
+    Its own kernel, the statistic off as a compile-time constant: with a run-time flag
+    LLVM kept the flag's test inside the vectorised sample loop, and the radiance-only
+    merge carried the statistic's registers (about 45 spills and reloads per 16 samples;
+    25 % slower). One kernel with both loops would double the first-ever compile of
+    ``mehs fuse``, which needs only one.
+    """
+    _poisson_linear(zs, darks, sat, times, gain, avar, rel_var, cal, False, clip,
+                    out, chi2, dof, snr, nsat, nvalid, msum)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

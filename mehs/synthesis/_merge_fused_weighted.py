@@ -211,44 +211,65 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                     dof_l[i] += np.int32(ne) - np.int32(1) if m2 else np.int32(0)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _merge_weighted_flag(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, method,
-                         want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
-    """:func:`_merge_weighted` with ``want_chi2`` a compile-time constant in each branch:
-    as a run-time flag LLVM kept its test inside the vectorised sample loop, and the
-    radiance-only merge paid for the statistic's registers (spills)."""
-    if want_chi2:
-        _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, method,
-                        True, clip, out, chi2, dof, snr, nsat, nvalid, msum)
-    else:
-        _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, method,
-                        False, clip, out, chi2, dof, snr, nsat, nvalid, msum)
-
-
 @njit(nogil=True, cache=True, error_model="numpy")
 def merge_chunk_debevec_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
                                want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
     """Debevec & Malik's log-domain mean of a linear sensor (see :func:`_merge_weighted`)."""
-    _merge_weighted_flag(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, DEBEVEC,
-                         want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, DEBEVEC,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def merge_chunk_robertson_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
                                  want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
     """Robertson et al.'s ``w·t²``-weighted mean of a linear sensor (see :func:`_merge_weighted`)."""
-    _merge_weighted_flag(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, ROBERTSON,
-                         want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, ROBERTSON,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def merge_chunk_invvar_linear(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal,
                               want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum):
     """Inverse-variance weights of a linear sensor (see :func:`_merge_weighted`)."""
-    _merge_weighted_flag(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, INVVAR,
-                         want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, INVVAR,
+                    want_chi2, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+# The radiance-only kernels: the statistic off as a compile-time constant, whatever
+# ``want_chi2`` says (see merge_chunk_poisson_linear_radiance for why: spills in the
+# vectorised loop with a run-time flag; one kernel with both loops would double a
+# first-ever compile).
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_debevec_linear_radiance(zs, darks, sat, times, L, floor, gain, avar, rel_var,
+                                        cal, want_chi2, clip, out, chi2, dof, snr, nsat,
+                                        nvalid, msum):
+    """:func:`merge_chunk_debevec_linear` without the χ² statistic."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, DEBEVEC,
+                    False, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_robertson_linear_radiance(zs, darks, sat, times, L, floor, gain, avar,
+                                          rel_var, cal, want_chi2, clip, out, chi2, dof, snr,
+                                          nsat, nvalid, msum):
+    """:func:`merge_chunk_robertson_linear` without the χ² statistic."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, ROBERTSON,
+                    False, clip, out, chi2, dof, snr, nsat, nvalid, msum)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def merge_chunk_invvar_linear_radiance(zs, darks, sat, times, L, floor, gain, avar, rel_var,
+                                       cal, want_chi2, clip, out, chi2, dof, snr, nsat,
+                                       nvalid, msum):
+    """:func:`merge_chunk_invvar_linear` without the χ² statistic."""
+    _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, INVVAR,
+                    False, clip, out, chi2, dof, snr, nsat, nvalid, msum)
 
 
 #: the one-pass kernel of each weighted method code
 WEIGHTED_LINEAR = {DEBEVEC: merge_chunk_debevec_linear, ROBERTSON: merge_chunk_robertson_linear,
                    INVVAR: merge_chunk_invvar_linear}
+#: ... and its radiance-only kernel (no χ² statistic)
+WEIGHTED_LINEAR_RADIANCE = {DEBEVEC: merge_chunk_debevec_linear_radiance,
+                            ROBERTSON: merge_chunk_robertson_linear_radiance,
+                            INVVAR: merge_chunk_invvar_linear_radiance}

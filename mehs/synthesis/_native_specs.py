@@ -87,16 +87,18 @@ class Spec:
     per_exposure: bool = True      # takes one array per exposure (P ≥ 2)
 
 
+_POISSON = _MERGE_HEAD + _MERGE_TAIL
 KERNELS = {
+    # each merge twice: with the χ² ghost statistic, and radiance-only ("_radiance")
     "poisson_linear": Spec("mehs.synthesis._merge_fused", "merge_chunk_poisson_linear",
-                           _MERGE_HEAD + _MERGE_TAIL, _MERGE_SOURCES, _check_merge),
-    "debevec_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_debevec_linear",
-                           _WEIGHTED, _MERGE_SOURCES, _check_merge),
-    "robertson_linear": Spec("mehs.synthesis._merge_fused_weighted",
-                             "merge_chunk_robertson_linear", _WEIGHTED, _MERGE_SOURCES,
-                             _check_merge),
-    "invvar_linear": Spec("mehs.synthesis._merge_fused_weighted", "merge_chunk_invvar_linear",
-                          _WEIGHTED, _MERGE_SOURCES, _check_merge),
+                           _POISSON, _MERGE_SOURCES, _check_merge),
+    "poisson_linear_radiance": Spec("mehs.synthesis._merge_fused",
+                                    "merge_chunk_poisson_linear_radiance", _POISSON,
+                                    _MERGE_SOURCES, _check_merge),
+    **{f"{m}_linear{v}": Spec("mehs.synthesis._merge_fused_weighted",
+                              f"merge_chunk_{m}_linear{v}", _WEIGHTED, _MERGE_SOURCES,
+                              _check_merge)
+       for m in ("debevec", "robertson", "invvar") for v in ("", "_radiance")},
     "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
                      _PTC_COMMON
                      + (("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),

@@ -201,7 +201,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         build_kernels_in_background()
     # numba's import and kernel load (or first-ever compile) overlap the checks below
     warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
-                      darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat)
+                      darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat,
+                      consistency=ghosts != "off")
     curve, auto_info, probe = choose_response(
         bracket, response, method=method, saturation=sat, smoothness=smoothness,
         samples=samples, seed=seed, shared=shared_response, check=check_response)

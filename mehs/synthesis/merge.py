@@ -145,6 +145,9 @@ _CODES = {"debevec": 0, "robertson": 1, "poisson": 2, "inverse-variance": 3}
 #: the one-pass kernel of each weighted method (linear curve, hat weighting)
 _WEIGHTED_KINDS = {_CODES["debevec"]: "debevec_linear", _CODES["robertson"]: "robertson_linear",
                    _CODES["inverse-variance"]: "invvar_linear"}
+#: the suffix of a one-pass kernel's radiance-only variant (no χ² statistic: its own
+#: machine code, see mehs.synthesis._merge_fused.merge_chunk_poisson_linear_radiance)
+_RADIANCE = "_radiance"
 
 
 def _numba_kernel(kind: str | None, code: int):
@@ -155,10 +158,14 @@ def _numba_kernel(kind: str | None, code: int):
     skip_scipy_linalg_import()
     if kind == "poisson_linear":
         from mehs.synthesis._merge_fused import merge_chunk_poisson_linear as kernel
+    elif kind == "poisson_linear_radiance":
+        from mehs.synthesis._merge_fused import merge_chunk_poisson_linear_radiance as kernel
     elif kind is not None:
-        from mehs.synthesis._merge_fused_weighted import WEIGHTED_LINEAR
+        from mehs.synthesis._merge_fused_weighted import (WEIGHTED_LINEAR,
+                                                          WEIGHTED_LINEAR_RADIANCE)
 
-        kernel = WEIGHTED_LINEAR[code]
+        table = WEIGHTED_LINEAR_RADIANCE if kind.endswith(_RADIANCE) else WEIGHTED_LINEAR
+        kernel = table[code]
     elif code == _CODES["poisson"]:
         from mehs.synthesis._merge_kernels import merge_chunk_poisson as kernel
     else:
@@ -354,6 +361,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = "poisson_linear" if linear else None
     else:
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
+    if kind is not None and not consistency:
+        kind += _RADIANCE
     native = None
     if kind is not None and same_dtype:
         from mehs.synthesis import _native
@@ -363,6 +372,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     kernel = native or _numba_kernel(kind, code)
     t32 = t.astype(np.float32)
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
+
+    fused_poisson = kind is not None and kind.startswith("poisson_linear")
 
     def work(l0: int, l1: int) -> None:
         parts = [np.asarray(v[l0:l1]) for v in views]
@@ -378,7 +389,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
-        if kind == "poisson_linear":
+        if fused_poisson:
             kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, bool(consistency),
                    bool(clip_negative), *outs)
         elif kind is not None:               # a weighted method's one-pass kernel
@@ -420,14 +431,16 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 
 def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                       method: str = "poisson", darks: Sequence[np.ndarray | None] | None = None,
-                      bit_depth: int = 12, saturation: Any = None, linear: bool = True):
+                      bit_depth: int = 12, saturation: Any = None, linear: bool = True,
+                      consistency: bool = True):
     """Start loading (or, on a first-ever run, compiling) the kernel a merge will need.
 
     Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
     returns the thread: the kernel's specialisation depends only on the arrays' types
-    (dtype, layout, read-only flag, number of exposures), the method and whether the
+    (dtype, layout, read-only flag, number of exposures), the method, whether the
     response curve is linear (``linear=False``: any recovered curve, whose values do
-    not matter here), so that line gives the same one as the whole cube. Linking the
+    not matter here) and, for a linear one, whether the merge computes the ghost
+    statistic (``consistency``), so that line gives the same one as the whole cube. Linking the
     stored kernel (:mod:`mehs.synthesis._native`, tens of ms), or importing numba and
     loading its cached kernel (0.3–0.6 s), or compiling (seconds), then overlaps the
     work a caller does before the merge (file checks, the linearity test); a later
@@ -446,7 +459,8 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                 np.log(np.maximum(np.arange(float(1 << bit_depth)), 0.5)), bit_depth,
                 "warm-up")
             merge_bracket([a[:1] for a in arrays], times_ms, method=method, darks=darks,
-                          bit_depth=bit_depth, saturation=saturation, response=curve)
+                          bit_depth=bit_depth, saturation=saturation, response=curve,
+                          consistency=consistency)
         except Exception:   # noqa: BLE001 - the real merge reports it
             pass
 
