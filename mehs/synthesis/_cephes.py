@@ -8,6 +8,14 @@ them vectorises like plain arithmetic. The stage kernels' row forms
 (:func:`mehs.synthesis._merge_rows._exp_row`, ``_log_accumulate_row``) are loops over
 them, so the one-pass and the stage kernels take the same ``ln`` and ``exp``.
 
+Both are compiled with ``fastmath={"contract"}`` and nothing else: each ``c·v + d`` of
+the polynomials may become one fused multiply-add (one rounding instead of two, so as
+accurate or more; the ≤ 2 ulp bound is tested). They are not inlined at numba's level,
+where the caller's flags would apply; LLVM inlines them and keeps their instructions'
+flags, so the kernels' own arithmetic stays uncontracted. With the polynomials as FMAs
+the Debevec merge (three ``ln`` and one ``exp`` per sample) takes 17 % less time
+(issue 16). On a CPU without FMA the results differ in the last bit, as libm's do.
+
 References
 ----------
 - Moshier, S. L. (1992). Cephes Mathematical Library, ``expf.c`` / ``logf.c``.
@@ -57,7 +65,7 @@ def f32_from_bits(typingctx, b):
     return types.float32(b), codegen
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"contract"})
 def logf(x):
     """``ln x`` for a positive, finite, normal float32 ``x`` (Cephes ``logf``)."""
     f1 = np.float32(1.0)
@@ -78,7 +86,7 @@ def logf(x):
     return v + y + e * _LN2_HI
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath={"contract"})
 def expf(x):
     """``exp x`` in float32 (Cephes ``expf``): 0 below ≈ −87.3, inf above ≈ 88.7, NaN kept."""
     f0 = np.float32(0.0)
