@@ -204,3 +204,38 @@ def test_one_pass_weighted_kernel_equals_the_stage_kernel_to_the_bit(seed, P, me
     if consistency:
         assert ref.dof.max() > 0 and (ref.mask & 1).any()       # the rare paths were taken
     assert_same_merge_bits(fused, ref)
+
+
+def test_the_merge_runs_the_radiance_only_kernel_without_the_statistic(monkeypatch):
+    """``consistency=False`` runs each one-pass method's ``*_radiance`` kernel (the statistic
+    off at compile time), ``True`` the statistic's; ``fuse`` warms the one it will run."""
+    from mehs.cube import SpectralCube
+    from mehs.synthesis import fuse as fuse_mod
+    from mehs.synthesis import merge as merge_mod
+    from mehs.synthesis.bracket import Bracket
+
+    kinds = []
+    real = merge_mod._numba_kernel
+    monkeypatch.setattr(merge_mod, "_numba_kernel",
+                        lambda kind, code: kinds.append(kind) or real(kind, code))
+    stack, t, darks = _stress_bracket(0, 3)
+    for method in ("poisson", "debevec", "robertson", "inverse-variance"):
+        for consistency in (True, False):
+            r = merge_mod.merge_bracket(stack, t, method=method, darks=darks,
+                                        consistency=consistency)
+            assert (r.dof.max() > 0) == consistency
+    assert kinds == [k + v for k in ("poisson_linear", "debevec_linear", "robertson_linear",
+                                     "invvar_linear") for v in ("", "_radiance")]
+    warmed = []
+    monkeypatch.setattr(fuse_mod, "warm_merge_kernel",
+                        lambda *a, **kw: warmed.append(kw.get("consistency")))
+    monkeypatch.setattr(fuse_mod, "merge_bracket", lambda *a, **kw: (_ for _ in ()).throw(
+        RuntimeError(f"merge consistency={kw['consistency']}")))
+    wl = np.linspace(400, 1000, stack[0].shape[2])
+    br = Bracket([SpectralCube(s, wl) for s in stack],
+                 [d if d is None else d.astype(np.float32) for d in darks], [None] * 3,
+                 list(t), wl, bit_depth=12)
+    for ghosts, want in (("detect", True), ("off", False)):
+        with pytest.raises(RuntimeError, match=f"consistency={want}"):
+            fuse_mod.fuse_bracket(br, response="linear", ghosts=ghosts)
+    assert warmed == [True, False]
