@@ -197,8 +197,9 @@ def test_one_pass_weighted_kernel_equals_the_stage_kernel_to_the_bit(seed, P, me
         merge_chunk(zs, darks, sat, times, True, False, glut, np.exp(glut), wlut, True, True,
                     floor, gain, avar, rel_var, cal, code, want_chi2, clip, *outs)
 
-    monkeypatch.setitem(_merge_fused_weighted.WEIGHTED_LINEAR, code, stage)
-    monkeypatch.setitem(_merge_fused_weighted.WEIGHTED_LINEAR_RADIANCE, code, stage)
+    name = {"debevec": "debevec", "robertson": "robertson", "inverse-variance": "invvar"}[method]
+    monkeypatch.setattr(_merge_fused_weighted, f"merge_chunk_{name}_linear", stage)
+    monkeypatch.setattr(_merge_fused_weighted, f"merge_chunk_{name}_linear_radiance", stage)
     ref = merge_bracket(stack, t, **kw)
     assert seen                                                # the one-pass kernel was used
     if consistency:

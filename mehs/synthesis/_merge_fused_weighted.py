@@ -264,12 +264,3 @@ def merge_chunk_invvar_linear_radiance(zs, darks, sat, times, L, floor, gain, av
     """:func:`merge_chunk_invvar_linear` without the χ² statistic."""
     _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, INVVAR,
                     False, clip, out, chi2, dof, snr, nsat, nvalid, msum)
-
-
-#: the one-pass kernel of each weighted method code
-WEIGHTED_LINEAR = {DEBEVEC: merge_chunk_debevec_linear, ROBERTSON: merge_chunk_robertson_linear,
-                   INVVAR: merge_chunk_invvar_linear}
-#: ... and its radiance-only kernel (no χ² statistic)
-WEIGHTED_LINEAR_RADIANCE = {DEBEVEC: merge_chunk_debevec_linear_radiance,
-                            ROBERTSON: merge_chunk_robertson_linear_radiance,
-                            INVVAR: merge_chunk_invvar_linear_radiance}

@@ -445,7 +445,6 @@ def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
 
 def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]:
     """numba-compile the entry point: (object code, its symbol, the symbols it needs)."""
-    import importlib
 
     import llvmlite.binding as ll
     from numba import carray, cfunc, types
@@ -454,7 +453,7 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
 
     skip_scipy_linalg_import()
     spec = KERNELS[kind]
-    K = getattr(importlib.import_module(spec.module), spec.function)
+    K = spec.dispatcher()
     nbt = {"f4": types.float32, "f8": types.float64, "i4": types.int32, "i8": types.int64,
            "u1": types.uint8, "u2": types.uint16, "b1": types.boolean,
            "raw": getattr(types, dtype.name)}

@@ -8,6 +8,7 @@ without bounds checks, so an array of the wrong extent must never reach them.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Callable
 
@@ -85,6 +86,10 @@ class Spec:
     sources: tuple
     check: Callable
     per_exposure: bool = True      # takes one array per exposure (P ≥ 2)
+
+    def dispatcher(self) -> Callable:
+        """The numba kernel itself (imports its module, and so numba)."""
+        return getattr(importlib.import_module(self.module), self.function)
 
 
 _POISSON = _MERGE_HEAD + _MERGE_TAIL

@@ -199,10 +199,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         # a first-ever run: the photon-transfer passes compile in a child process
         # while the merge kernel compiles here
         build_kernels_in_background()
+    ghost_statistic = ghosts != "off"    # the merge's χ²: its own kernel, warmed here
     # numba's import and kernel load (or first-ever compile) overlap the checks below
     warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                       darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat,
-                      consistency=ghosts != "off")
+                      consistency=ghost_statistic)
     curve, auto_info, probe = choose_response(
         bracket, response, method=method, saturation=sat, smoothness=smoothness,
         samples=samples, seed=seed, shared=shared_response, check=check_response)
@@ -240,7 +241,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
-                       consistency=ghosts != "off", source=bracket.source)
+                       consistency=ghost_statistic, source=bracket.source)
     timings["merge_s"] = time.perf_counter() - t1
     mask = mr.mask
     radiance = mr.radiance
@@ -248,7 +249,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_fraction = 0.0
     ref_used = None
     gres = None
-    if ghosts != "off":
+    if ghost_statistic:
         from mehs.synthesis.ghost import deghost_from_reference, detect_ghosts
 
         t2 = time.perf_counter()

@@ -156,16 +156,10 @@ def _numba_kernel(kind: str | None, code: int):
     from mehs.synthesis._numba_start import skip_scipy_linalg_import
 
     skip_scipy_linalg_import()
-    if kind == "poisson_linear":
-        from mehs.synthesis._merge_fused import merge_chunk_poisson_linear as kernel
-    elif kind == "poisson_linear_radiance":
-        from mehs.synthesis._merge_fused import merge_chunk_poisson_linear_radiance as kernel
-    elif kind is not None:
-        from mehs.synthesis._merge_fused_weighted import (WEIGHTED_LINEAR,
-                                                          WEIGHTED_LINEAR_RADIANCE)
+    if kind is not None:                 # a one-pass kernel: the one the native path stores
+        from mehs.synthesis._native_specs import KERNELS
 
-        table = WEIGHTED_LINEAR_RADIANCE if kind.endswith(_RADIANCE) else WEIGHTED_LINEAR
-        kernel = table[code]
+        kernel = KERNELS[kind].dispatcher()
     elif code == _CODES["poisson"]:
         from mehs.synthesis._merge_kernels import merge_chunk_poisson as kernel
     else:
