@@ -180,7 +180,7 @@ class GenicamSimCamera:
         self.lens_capped = False
         self.frames = 0
         self._fault_frames = [0] * len(self.faults)   # frames each fault has counted
-        self._drop: set[int] = set()             # frame numbers an exposure-bound fault drops
+        self._drop: set[int] = set()             # frame numbers an incomplete fault drops
         self.fired: list[tuple[int, str]] = []
         self.unplugged = threading.Event()
         self.errors: list[str] = []
@@ -275,9 +275,7 @@ class GenicamSimCamera:
 
     def _drop_frame(self, frame_number: int) -> bool:
         # (the relay numbers frames as _fill_checked does, which runs before each is sent)
-        return frame_number in self._drop or any(
-            f.kind == "incomplete" and f.exposure_us is None and f.fires(frame_number)
-            for f in self.faults)
+        return frame_number in self._drop
 
     # ------------------------------------------------------------ frames
     def _fill(self, buf, _data, exposure_us, _gain, pixel_format) -> None:
@@ -301,8 +299,7 @@ class GenicamSimCamera:
             if not f.fires(self._fault_frames[k]):
                 continue
             if f.kind == "incomplete":
-                if f.exposure_us is not None:
-                    self._drop.add(n)
+                self._drop.add(n)
             else:
                 self.fired.append((n, f.kind))
                 if f.kind == "unplug":
