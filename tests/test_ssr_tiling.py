@@ -124,7 +124,7 @@ def test_onnx_tiles_equal_whole_image(tmp_path):
     model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 224 ** 2}
     tiled = model.predict(rgb)
     assert model._tiling_probe["margin"] == 64
-    assert len(calls) >= 4 and max(max(c) for c in calls) <= 224
+    assert len(calls) >= 4 and max(h * w for h, w in calls) <= 224 ** 2
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
 
 
@@ -271,8 +271,8 @@ def _brute_force(shape, bpp, margin, blend, align, max_bytes, fixed=0.0, out=0.0
     ov = 2 * margin + blend
     smallest = -(-(ov + align) // align) * align
     best = None
-    for th in range(smallest, -(-h // align) * align + 1, align):
-        for tw in range(smallest, -(-w // align) * align + 1, align):
+    for th in range(smallest, max(-(-h // align) * align, smallest) + 1, align):
+        for tw in range(smallest, max(-(-w // align) * align, smallest) + 1, align):
             if fixed + bpp * min(th, h) * min(tw, w) + out > max_bytes:
                 continue
             n = len(tile_starts(h, th, ov, align)) * len(tile_starts(w, tw, ov, align))
@@ -287,6 +287,9 @@ def _brute_force(shape, bpp, margin, blend, align, max_bytes, fixed=0.0, out=0.0
     ((300, 1000), 20, 8, 8, 60_000),         # strips along the short side
     ((257, 131), 9, 4, 4, 9_000),            # odd sizes, a finer grid
     ((500, 500), 30, 0, 16, 90_000),
+    ((64, 300), 32, 16, 8, 8_192),           # shorter than the smallest tile: one row
+    ((1000, 64), 32, 16, 8, 6_400),          # narrower than it: one column
+    ((300, 260), 64, 16, 32, 50_176),        # a full-width strip fits, its aligned width not
 ])
 def test_plan_computes_the_fewest_pixels_within_the_budget(shape, margin, blend, align,
                                                            budget_px):

@@ -169,22 +169,25 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, b
     overlap = 2 * margin + blend
     # a tile must keep some weighted core beyond its two margins and the ramp
     smallest = _round_up(overlap + align, align)
-    if smallest * smallest > max_px:
-        need = memory(smallest ** 2) + out_bytes
+    # (an axis shorter than that is one tile long: no overlap along it)
+    if min(smallest, h) * min(smallest, w) > max_px:
+        need = memory(min(smallest, h) * min(smallest, w)) + out_bytes
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
                          f"{need / 2**20:.0f} MiB with the output, more than the "
                          f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or "
                          "more memory")
     # per width limit, the width that covers the image's width with the fewest pixels
     best_w, cur = [], None
-    for tw in range(smallest, _round_up(w, align) + 1, align):
+    for tw in range(smallest, max(_round_up(w, align), smallest) + 1, align):
         c = (_covered(w, tw, overlap, align), len(tile_starts(w, tw, overlap, align)), tw)
         cur = c if cur is None or c[:2] < cur[:2] else cur
         best_w.append(cur)
-    best = None
-    for th in range(smallest, _round_up(h, align) + 1, align):
+    best, top = None, max(_round_up(w, align), smallest)
+    for th in range(smallest, max(_round_up(h, align), smallest) + 1, align):
         rows = min(th, h)
-        limit = min(int(max_px // rows) // align * align, _round_up(w, align))
+        fit = int(max_px // rows)
+        # a tile as wide as the image needs only its w columns, whatever the grid
+        limit = top if fit >= w else min(fit // align * align, top)
         if limit < smallest:
             break
         cov_w, n_w, tw = best_w[(limit - smallest) // align]
