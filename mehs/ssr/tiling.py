@@ -27,10 +27,12 @@ memory per counted byte.
 
 Limits. A network with a *global* operation is not tile-invariant: the
 channel attention of :mod:`mehs.ssr.net.layers` averages each feature map over
-the whole input (squeeze-and-excitation), so a tile sees its own averages and
-the result differs slightly from whole-image inference; the ramp hides the
-seams, and large tiles (the default: as large as the memory budget allows) keep
-the averages close.
+the whole input (squeeze-and-excitation), so by default a tile sees its own
+averages and the result differs slightly from whole-image inference; the ramp
+hides the seams, and large tiles (the default: as large as the memory budget
+allows) keep the averages close. ``{"statistics": "image"}`` makes them the
+whole image's at the cost of one more run over the tiles
+(:mod:`mehs.ssr.tiling_global`).
 
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
 to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
@@ -59,6 +61,7 @@ from mehs.ssr.allocator import (ALLOCATOR_OVERHEAD, HEAP_PIXELS,  # noqa: F401 (
 from mehs.ssr.allocator import trim_heap as _trim_heap
 from mehs.ssr.tiling_blend import (TilingPlan, _covered,  # noqa: F401 (public here)
                                    predict_tiled, tile_starts)
+from mehs.ssr.tiling_global import statistics_mode
 from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,  # noqa: F401 (public here)
                                     PROBE_CHUNK_SHARE, _round_up, torch_align,
                                     torch_bytes_per_pixel, torch_memory_probe,
@@ -230,14 +233,19 @@ SMALL_IMAGE = 256 * 256
 
 
 def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
-                       probes: dict[str, Callable[[], object]]) -> np.ndarray:
+                       probes: dict[str, Callable[[], object]],
+                       image_means: Callable[..., np.ndarray] | None = None) -> np.ndarray:
     """The hook of the torch / ONNX SSR models: run ``fn`` whole or in tiles.
 
     ``model.tiling`` selects: ``"auto"`` (the default; tiles only when the image
     would exceed the memory budget), ``"off"`` (always whole), or a dict of
     options: :func:`plan_tiles` keywords (``bytes_per_pixel``, ``fixed_bytes``,
     ``margin``, ``blend``, ``align``, ``max_bytes``: the memory of one tile) and
-    ``max_rss`` (the process cap of :func:`default_budget`). Missing ones come
+    ``max_rss`` (the process cap of :func:`default_budget`) and ``statistics``:
+    ``"tile"`` (the default; each tile its own global-pooling means) or ``"image"``
+    (``image_means(fn, rgb, plan)`` stitches the tiles with image-wide means, equal
+    to whole-image inference at about twice the time; :mod:`mehs.ssr.tiling_global`;
+    also ``MEHS_TILE_STATISTICS``). Missing ones come
     from ``probes[name]()``, each called at most once per model (cached in
     ``model._tiling_probe``) and only when needed: the memory probe (a number,
     or a dict as :func:`torch_memory_probe` returns) for images above
@@ -252,6 +260,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     if mode != "auto" and not isinstance(mode, dict):
         raise InputError(f"tiling must be 'auto', 'off' or a dict of options, got {mode!r}")
     opts = dict(mode) if isinstance(mode, dict) else {}
+    statistics = statistics_mode(opts)
     if mode == "auto" and rgb.shape[0] * rgb.shape[1] <= SMALL_IMAGE:
         return fn(rgb)
     t0 = time.perf_counter()
@@ -310,6 +319,13 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                           fixed_bytes=fixed, out_bytes=out_bytes, overhead=overhead, **opts)
     record.update(budget=budget, plan=plan, summary=plan_summary((h, w), plan),
                   heap_reuse=reuse, probe_seconds=time.perf_counter() - t0)
+    record["statistics"] = statistics
+    if statistics == "image":
+        if image_means is None:
+            raise InputError("image-wide tiling statistics need a torch network (an ONNX "
+                             "graph's poolings cannot be reached); use statistics 'tile'")
+        with reused_heap(reuse):
+            return image_means(fn, rgb, plan)
     with reused_heap(reuse):
         return predict_tiled(fn, rgb, plan)
 
@@ -360,7 +376,31 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
-    return tiled_network_call(model, run, rgb, probes)
+    return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
+
+
+def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
+    """The ``image_means`` of :func:`tiled_network_call` for ``model.network``.
+
+    A network without global poolings is local: plain tiles already equal the whole
+    image. One with global operations that are not poolings (a measured margin of
+    :data:`GLOBAL_MARGIN`: spectral-wise or non-local attention) is refused.
+    """
+    from mehs.ssr.net.layers import ChannelAttention
+    from mehs.ssr.tiling_global import predict_tiled_image_means
+
+    net = model.network
+
+    def stitch(fn, rgb, plan):
+        margin = model.__dict__.get("_tiling_probe", {}).get("margin")
+        if getattr(net, "max_tile_pixels", None) is not None or margin == GLOBAL_MARGIN:
+            raise InputError(f"{getattr(model, 'name', type(net).__name__)}: its global "
+                             "operations are not average poolings, so tiles cannot equal "
+                             "the whole image; use tiling statistics 'tile' or 'off'")
+        if not any(isinstance(m, ChannelAttention) for m in net.modules()):
+            return predict_tiled(fn, rgb, plan)
+        return predict_tiled_image_means(fn, rgb, plan)
+    return stitch
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the

@@ -25,6 +25,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from mehs.ssr.net.pooling import pooled_mean
+
 
 class ChannelAttention(nn.Module):
     """Squeeze-and-excitation: GAP → 1×1 conv to ``C/r`` → ReLU → 1×1 conv to ``C`` → sigmoid → × input.
@@ -43,7 +45,8 @@ class ChannelAttention(nn.Module):
             nn.init.zeros_(self.excite.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        s = x.mean(dim=(2, 3), keepdim=True)
+        # (the image-wide mean when tiles run under mehs.ssr.net.pooling.ImageMeans)
+        s = pooled_mean(self, x)
         s = torch.sigmoid(self.excite(F.relu(self.squeeze(s))))
         return x * s
 

@@ -1,0 +1,135 @@
+"""Global average pooling that tiled inference can make image-wide (issue 16).
+
+The channel attention of mehs's networks (squeeze-and-excitation,
+:class:`mehs.ssr.net.layers.ChannelAttention`) scales each feature map by a function of
+its mean over the *whole* input. Run tile by tile, each tile sees its own means, so
+the output differs from whole-image inference however wide the margin (up to ~1e-3
+of the output's range for a trained paper network). A mean is a sum over pixels,
+though, and sums can be assembled from tiles. Such layers call :func:`pooled_mean`;
+inside an :class:`ImageMeans` context it
+
+- adds, for the tile about to run, each layer's sum over the part of the image that
+  tile *owns* (the owned parts partition the padded image on the pooling grid, and
+  lie where the tile's features equal the whole image's: at least a margin from a
+  shared edge), and
+- hands every layer the image-wide means of the previous run instead of the tile's.
+
+:func:`mehs.ssr.tiling_global.predict_tiled_image_means` runs the tiles until the
+means it hands out are the means the run measures (a fixed point: whole-image
+inference is the only one), which takes one collecting run and one more.
+
+Shapes: ``x`` is ``(1, C, h, w)`` (tiles run one at a time); means are ``(1, C, 1, 1)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+
+import torch
+
+from mehs.errors import InputError
+
+_ACTIVE: contextvars.ContextVar["ImageMeans | None"] = contextvars.ContextVar(
+    "mehs_image_means", default=None)
+
+
+def pooled_mean(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``x.mean(dim=(2, 3), keepdim=True)``, or the image-wide mean inside :class:`ImageMeans`."""
+    ctx = _ACTIVE.get()
+    if ctx is None:
+        return x.mean(dim=(2, 3), keepdim=True)
+    return ctx.mean(module, x)
+
+
+class ImageMeans:
+    """Image-wide means of every :func:`pooled_mean` layer, assembled from tiles.
+
+    Use :meth:`active` around the tiles' runs, :meth:`enter` before each tile, and
+    :meth:`finish` after each full run over the image.
+    """
+
+    def __init__(self) -> None:
+        self._sums: dict[torch.nn.Module, torch.Tensor] = {}
+        self._counts: dict[torch.nn.Module, int] = {}
+        self._means: dict[torch.nn.Module, torch.Tensor] | None = None
+        self._tile: tuple | None = None
+
+    @contextlib.contextmanager
+    def active(self):
+        token = _ACTIVE.set(self)
+        try:
+            yield self
+        finally:
+            _ACTIVE.reset(token)
+
+    def enter(self, y: tuple[int, int], x: tuple[int, int], own_y: tuple[int, int],
+              own_x: tuple[int, int], last_y: bool, last_x: bool) -> None:
+        """The next network call is the tile spanning rows ``y`` and columns ``x``
+        (``(start, end)``, image pixels); it owns rows ``own_y`` and columns ``own_x``,
+        to the end of the padded image where ``last_y`` / ``last_x``."""
+        self._tile = (y, x, own_y, own_x, last_y, last_x)
+
+    def mean(self, module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+        if self._tile is not None:
+            self._collect(module, x)
+        if self._means is not None:
+            m = self._means.get(module)
+            if m is None:
+                raise InputError(f"a global pooling ({type(module).__name__}) ran that the "
+                                 "collecting run did not see; image-wide means need every "
+                                 "tile to run the same layers")
+            return m.to(dtype=x.dtype, device=x.device)
+        return x.mean(dim=(2, 3), keepdim=True)
+
+    def _collect(self, module: torch.nn.Module, x: torch.Tensor) -> None:
+        (y0, y1), (x0, x1), (oy0, oy1), (ox0, ox1), last_y, last_x = self._tile
+        if x.dim() != 4 or x.shape[0] != 1:
+            raise InputError(f"image-wide means need (1, C, h, w) features, got {tuple(x.shape)}")
+        h, w = int(x.shape[2]), int(x.shape[3])
+        rows = self._owned(y1 - y0, h, oy0 - y0, oy1 - y0, last_y)
+        cols = self._owned(x1 - x0, w, ox0 - x0, ox1 - x0, last_x)
+        part = x[0, :, rows[0]:rows[1], cols[0]:cols[1]]
+        # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64; a
+        # float64 sum cast the whole feature map first (+90 MB at 1024×512)
+        s = part.sum(dim=(1, 2)).to(torch.float64)
+        if module in self._sums:
+            self._sums[module] += s
+            self._counts[module] += part.shape[1] * part.shape[2]
+        else:
+            self._sums[module] = s
+            self._counts[module] = part.shape[1] * part.shape[2]
+
+    @staticmethod
+    def _owned(n: int, m: int, lo: int, hi: int, last: bool) -> tuple[int, int]:
+        """The owned span ``[lo, hi)`` of a tile of ``n`` pixels in a feature map of ``m``."""
+        # the map covers the tile padded up to the pooling grid (only the image's last
+        # tile is padded): each feature is s pixels
+        s = -(-n // m)
+        if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
+            raise InputError(f"a {n}-pixel tile gave a {m}-pixel feature map whose cells do "
+                             f"not fall on the owned span [{lo}, {hi}): image-wide means "
+                             "need the tiles on the network's pooling grid")
+        return lo // s, (m if last else hi // s)
+
+    def finish(self) -> float:
+        """End a run over the image: its sums become the means handed out next.
+
+        Returns the largest change of any mean since the previous run, relative to
+        that layer's largest mean (``inf`` after the first run).
+        """
+        if not self._sums:
+            raise InputError("no global pooling ran: nothing to make image-wide")
+        new = {k: (v / self._counts[k]).to(torch.float32).view(1, -1, 1, 1)
+               for k, v in self._sums.items()}
+        change = float("inf")
+        if self._means is not None:
+            change = 0.0
+            for k, m in new.items():
+                old = self._means.get(k)
+                if old is None:
+                    return float("inf")
+                scale = float(m.abs().max()) or 1.0
+                change = max(change, float((m - old).abs().max()) / scale)
+        self._means, self._sums, self._counts, self._tile = new, {}, {}, None
+        return change

@@ -1,0 +1,126 @@
+"""Tiled inference with image-wide global poolings: tiles that equal the whole image.
+
+:mod:`mehs.ssr.tiling` runs each tile with its own channel-attention means, which is
+fast but not whole-image inference (the paper's network: interior differences up to
+~1e-3 of the output's range). With ``model.tiling = {"statistics": "image"}`` (or
+``MEHS_TILE_STATISTICS=image``) it calls :func:`predict_tiled_image_means` instead:
+
+1. a collecting run over the tiles, each with its own means, sums every pooling
+   layer's features over the part of the image each tile owns
+   (:class:`mehs.ssr.net.pooling.ImageMeans`): image-wide means;
+2. the tiles run again with those means and collect again; the output of a run is
+   returned once the means it was given and the means it measured agree to
+   ``tol`` (relative to each layer's largest mean), else one more run.
+
+The owned parts of an axis are split at a multiple of the pooling grid inside each
+overlap, at least ``margin`` from either tile's edge, where a tile's features are the
+whole image's. Whole-image inference is the only fixed point, so the result equals
+it to float rounding. Why one collecting run is nearly enough: a tile's own mean
+errs by ``μ_t − μ``, and over the image those errors average out (``Σ area_t (μ_t − μ)
+≈ 0``), so the collected means are off only to second order.
+
+The cost is one extra run over the tiles (about twice the single-pass time); the
+memory is the single pass's. Only global *average* poolings through
+:func:`mehs.ssr.net.pooling.pooled_mean` are made image-wide: a network with other
+global operations (spectral-wise attention over all pixels, non-local blocks) is
+refused rather than answered approximately.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Callable
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.ssr.net.pooling import ImageMeans
+from mehs.ssr.tiling_blend import TilingPlan, predict_tiled, tile_starts
+
+#: Relative agreement of the means given to and measured by a run that ends it.
+IMAGE_MEANS_TOL = 1e-5
+#: Runs over the tiles at most (the first only collects).
+MAX_RUNS = 4
+#: ``model.tiling["statistics"]`` values.
+STATISTICS = ("tile", "image")
+
+
+def statistics_mode(opts: dict) -> str:
+    """``opts["statistics"]`` (removed from ``opts``), else ``MEHS_TILE_STATISTICS``, else "tile"."""
+    mode = opts.pop("statistics", None)
+    if mode is None:
+        mode = os.environ.get("MEHS_TILE_STATISTICS", "").strip() or "tile"
+    if mode not in STATISTICS:
+        raise InputError(f"tiling statistics must be one of {STATISTICS}, got {mode!r} "
+                         "(model.tiling['statistics'] or MEHS_TILE_STATISTICS)")
+    return mode
+
+
+def owned_spans(n: int, tile: int, plan: TilingPlan) -> dict[int, tuple[int, int, bool]]:
+    """Per tile origin along an axis of ``n``: the span ``[lo, hi)`` it owns, and whether it is last.
+
+    The spans partition ``[0, n)`` (the last runs on into the padding); each split is
+    the multiple of ``plan.align`` nearest the middle of the overlap that lies at least
+    ``plan.margin`` inside both tiles.
+    """
+    starts = tile_starts(n, tile, plan.overlap, plan.align)
+    ends = [n if k == len(starts) - 1 else s + tile for k, s in enumerate(starts)]
+    cuts = [0]
+    for k in range(len(starts) - 1):
+        lo, hi = starts[k + 1] + plan.margin, ends[k] - plan.margin
+        a = plan.align
+        mid = (starts[k + 1] + ends[k]) / 2
+        c = int(round(mid / a)) * a
+        if not lo <= c <= hi:
+            c = -(-lo // a) * a
+        if not lo <= c <= hi:
+            raise InputError(f"tiles at {starts[k]} and {starts[k + 1]} overlap by "
+                             f"{ends[k] - starts[k + 1]} px: no multiple of the {a}-pixel grid "
+                             f"lies {plan.margin} px inside both; image-wide statistics need a "
+                             f"blend of at least {a} px")
+        cuts.append(c)
+    cuts.append(n)
+    return {s: (cuts[k], cuts[k + 1], k == len(starts) - 1) for k, s in enumerate(starts)}
+
+
+def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
+                              plan: TilingPlan, *, tol: float = IMAGE_MEANS_TOL,
+                              max_runs: int = MAX_RUNS) -> np.ndarray:
+    """:func:`mehs.ssr.tiling_blend.predict_tiled` with image-wide pooling means.
+
+    ``fn`` must run a torch network whose global poolings go through
+    :func:`mehs.ssr.net.pooling.pooled_mean`, in this thread. Returns float32
+    ``(H, W, B)``; records nothing. Warns when the means have not settled to ``tol``
+    after ``max_runs`` runs (the last run's output is returned).
+    """
+    if plan.tile is None:
+        return np.asarray(fn(rgb), dtype=np.float32)
+    if max_runs < 2:
+        raise InputError(f"image-wide means need at least 2 runs over the tiles, got {max_runs}")
+    h, w = rgb.shape[:2]
+    rows, cols = owned_spans(h, plan.tile, plan), owned_spans(w, plan.width, plan)
+    means = ImageMeans()
+
+    def enter(y0: int, y1: int, x0: int, x1: int) -> None:
+        ry, rx = rows[y0], cols[x0]
+        means.enter((y0, y1), (x0, x1), ry[:2], rx[:2], ry[2], rx[2])
+
+    change = float("inf")
+    with means.active():
+        for y0 in rows:                          # the collecting run: outputs not kept
+            y1 = h if rows[y0][2] else y0 + plan.tile
+            for x0 in cols:
+                x1 = w if cols[x0][2] else x0 + plan.width
+                enter(y0, y1, x0, x1)
+                fn(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
+        means.finish()
+        for _ in range(max_runs - 1):
+            out = predict_tiled(fn, rgb, plan, on_tile=enter)
+            change = means.finish()
+            if change <= tol:
+                return out
+    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
+                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
+                  "inference by about as much", RuntimeWarning, stacklevel=2)
+    return out

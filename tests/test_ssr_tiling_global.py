@@ -1,0 +1,117 @@
+"""Tiles of a network with channel attention equal the whole image with image-wide means (issue 16)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mehs.errors import InputError
+from mehs.ssr.tiling import TilingPlan, tile_starts
+
+torch = pytest.importorskip("torch")
+
+from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
+from mehs.ssr.tiling import tiled_torch_call  # noqa: E402
+from mehs.ssr.tiling_global import owned_spans  # noqa: E402
+
+
+def _attentive_net(seed=0, gain=20.0):
+    """The paper's network (tiny preset) with its channel attention made strongly
+    image-dependent, as training makes it (at initialisation the scales hardly move,
+    and per-tile means would pass any test)."""
+    torch.manual_seed(seed)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, ChannelAttention):
+                m.squeeze.weight.mul_(gain)
+                m.excite.weight.mul_(gain)
+    return net
+
+
+def _rgb(h, w, seed=3):
+    # strong left-right contrast: tiles' own means differ much from the image's
+    rng = np.random.default_rng(seed)
+    x = rng.gamma(1.0, 1.0, (h, w, 3)).astype(np.float32)
+    x[:, : w // 3] *= 4.0
+    x[: h // 2, :, 1] *= 0.2
+    return x
+
+
+def _run(net, rgb, **tiling):
+    model = SimpleNamespace(network=net, device="cpu", name="hdrssr",
+                            tiling=tiling or "off")
+    return tiled_torch_call(model, rgb), model
+
+
+@pytest.mark.parametrize("shape,tile", [((64, 300), (64, 128)),      # strips, a padded last one
+                                        ((130, 170), (72, 88))])     # a grid, odd sizes
+def test_image_means_make_tiles_equal_the_whole_image(shape, tile):
+    net = _attentive_net()
+    rgb = _rgb(*shape)
+    whole, _ = _run(net, rgb)
+    opts = dict(bytes_per_pixel=1.0, max_bytes=tile[0] * tile[1], blend=16)
+    per_tile, m1 = _run(net, rgb, **opts)
+    image, m2 = _run(net, rgb, statistics="image", **opts)
+    plan = m2._tiling_last["plan"]
+    assert plan.tile is not None and m2._tiling_last["summary"]["tiles"] >= 3
+    assert m2._tiling_last["statistics"] == "image"
+    scale = np.abs(whole).max()
+    # each tile's own means: a clear difference (this is what the option is for)
+    assert np.abs(per_tile - whole).max() > 1e-4 * scale
+    np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * scale)
+
+
+def test_image_means_from_the_environment(monkeypatch):
+    net = _attentive_net(seed=1)
+    rgb = _rgb(64, 300, seed=4)
+    whole, _ = _run(net, rgb)
+    monkeypatch.setenv("MEHS_TILE_STATISTICS", "image")
+    image, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
+    assert m._tiling_last["statistics"] == "image"
+    np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+    monkeypatch.setenv("MEHS_TILE_STATISTICS", "exact")
+    with pytest.raises(InputError, match="statistics must be one of"):
+        _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
+
+
+def test_owned_spans_partition_the_axis_inside_the_exact_zones():
+    for n, tile, margin, blend, align in [(300, 128, 16, 16, 8), (1000, 160, 30, 8, 8),
+                                          (257, 96, 9, 4, 4), (130, 72, 16, 16, 8)]:
+        plan = TilingPlan(tile, margin, blend, align)
+        spans = owned_spans(n, tile, plan)
+        starts = tile_starts(n, tile, plan.overlap, align)
+        assert list(spans) == starts
+        bounds = [spans[s][:2] for s in starts]
+        assert bounds[0][0] == 0 and bounds[-1][1] == n and spans[starts[-1]][2]
+        for (a, b), (c, d) in zip(bounds, bounds[1:]):
+            assert b == c and a < b and b % align == 0
+        for k, s in enumerate(starts):
+            lo, hi, last = spans[s]
+            end = n if last else s + tile
+            assert k == 0 or lo >= s + margin           # a margin inside the tile
+            assert last or hi <= end - margin
+
+
+def test_owned_spans_need_room_on_the_grid():
+    with pytest.raises(InputError, match="blend of at least 8"):
+        owned_spans(300, 64, TilingPlan(64, 4, 0, 8))      # overlap 8: only pixel 60
+
+
+def test_networks_without_poolings_or_with_other_global_operations():
+    # local: plain tiles are exact already, and image statistics change nothing
+    from mehs.ssr.tiling_probes import GLOBAL_MARGIN
+
+    torch.manual_seed(2)
+    net = build_network(arch="galliani", preset="tiny").eval()     # dropout, no attention
+    rgb = _rgb(64, 300)
+    plain, _ = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
+    image, _ = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128, statistics="image")
+    np.testing.assert_array_equal(plain, image)
+    # a global operation other than a pooling: the margin probe reached everywhere
+    model = SimpleNamespace(network=_attentive_net(), device="cpu", name="global",
+                            tiling=dict(bytes_per_pixel=1.0, max_bytes=64 * 200,
+                                        statistics="image"),
+                            _tiling_probe={"margin": GLOBAL_MARGIN, "align": 8})
+    with pytest.raises(InputError, match="not average poolings"):
+        tiled_torch_call(model, _rgb(64, 400))
