@@ -185,7 +185,9 @@ def main(argv=None) -> int:
     summary = t["last"].get("summary") or {"tile": shape, "tiles": 1, "computed": 1.0}
     plan = (f"{summary['tile'][1]}×{summary['tile'][0]} × {summary['tiles']}, "
             f"{summary['computed']:.3f}× px"
-            + (", tiles on the reused C heap" if t["last"].get("heap_reuse") else ""))
+            + (", tiles on the reused C heap" if t["last"].get("heap_reuse") else "")
+            + (f", {t['last']['image_runs']} runs for image-wide means"
+               if t["last"].get("image_runs") else ""))
     budget = t["last"].get("budget")
     print(f"{'mode':<6} {'seconds':>8} {'× whole':>8} {'CPU s':>7} {'× whole':>8} "
           f"{'peak RSS GB':>12} {'before GB':>10} {'probes s':>9}  "

@@ -115,3 +115,46 @@ def test_networks_without_poolings_or_with_other_global_operations():
                             _tiling_probe={"margin": GLOBAL_MARGIN, "align": 8})
     with pytest.raises(InputError, match="not average poolings"):
         tiled_torch_call(model, _rgb(64, 400))
+
+
+def test_collecting_run_stops_at_the_last_pooling():
+    # only the first tile of the collecting run goes through the basis branches after the
+    # last attention layer; the final run's tiles all do
+    net = _attentive_net(seed=2)
+    done = []
+    net.register_forward_hook(lambda *a: done.append(1))   # completed forwards only
+    rgb = _rgb(64, 300, seed=6)
+    # (margin and grid given: no probe runs a forward of its own)
+    _, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128, statistics="image",
+                margin=16, align=8)
+    n, runs = m._tiling_last["summary"]["tiles"], m._tiling_last["image_runs"]
+    assert n >= 3 and runs >= 2 and m._tiling_last["image_means_change"] <= 1e-5
+    assert len(done) == 1 + n * (runs - 1)
+
+
+class _SharedAttention(torch.nn.Module):
+    """One attention layer called twice per forward: each call pools its own input."""
+
+    def __init__(self):
+        super().__init__()
+        nn = torch.nn
+        self.a, self.b = nn.Conv2d(3, 8, 3, padding=1), nn.Conv2d(8, 8, 3, padding=1)
+        self.out = nn.Conv2d(8, 5, 3, padding=1)
+        self.ca = ChannelAttention(8, 2)
+        with torch.no_grad():
+            self.ca.squeeze.weight.mul_(20.0)
+            self.ca.excite.weight.mul_(20.0)
+
+    def forward(self, x):
+        x = self.ca(torch.relu(self.a(x)))
+        return self.out(self.ca(torch.relu(self.b(x))))
+
+
+def test_a_layer_called_twice_pools_each_call_image_wide():
+    torch.manual_seed(7)
+    net = _SharedAttention().eval()
+    rgb = _rgb(48, 200, seed=8)
+    whole, _ = _run(net, rgb)
+    image, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=48 * 64, statistics="image")
+    assert m._tiling_last["summary"]["tiles"] >= 3
+    np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * np.abs(whole).max())

@@ -399,7 +399,8 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
                              "the whole image; use tiling statistics 'tile' or 'off'")
         if not any(isinstance(m, ChannelAttention) for m in net.modules()):
             return predict_tiled(fn, rgb, plan)
-        return predict_tiled_image_means(fn, rgb, plan)
+        return predict_tiled_image_means(fn, rgb, plan,
+                                         record=model.__dict__.get("_tiling_last"))
     return stitch
 
 

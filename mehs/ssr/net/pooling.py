@@ -42,6 +42,10 @@ def pooled_mean(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
     return ctx.mean(module, x)
 
 
+class PoolingsCollected(Exception):
+    """Raised out of a collecting forward once its last pooling is summed (see :meth:`ImageMeans.enter`)."""
+
+
 class ImageMeans:
     """Image-wide means of every :func:`pooled_mean` layer, assembled from tiles.
 
@@ -50,10 +54,15 @@ class ImageMeans:
     """
 
     def __init__(self) -> None:
-        self._sums: dict[torch.nn.Module, torch.Tensor] = {}
-        self._counts: dict[torch.nn.Module, int] = {}
-        self._means: dict[torch.nn.Module, torch.Tensor] | None = None
+        # keyed by (layer, its n-th call in one forward): a layer called twice pools twice
+        self._sums: dict[tuple, torch.Tensor] = {}
+        self._counts: dict[tuple, int] = {}
+        self._means: dict[tuple, torch.Tensor] | None = None
         self._tile: tuple | None = None
+        self._calls: dict[torch.nn.Module, int] = {}
+        self._last: tuple | None = None       # the last pooling of a forward, once known
+        self._previous: tuple | None = None
+        self._stop = False
 
     @contextlib.contextmanager
     def active(self):
@@ -64,25 +73,40 @@ class ImageMeans:
             _ACTIVE.reset(token)
 
     def enter(self, y: tuple[int, int], x: tuple[int, int], own_y: tuple[int, int],
-              own_x: tuple[int, int], last_y: bool, last_x: bool) -> None:
+              own_x: tuple[int, int], last_y: bool, last_x: bool, *,
+              stop_early: bool = False) -> None:
         """The next network call is the tile spanning rows ``y`` and columns ``x``
         (``(start, end)``, image pixels); it owns rows ``own_y`` and columns ``own_x``,
-        to the end of the padded image where ``last_y`` / ``last_x``."""
+        to the end of the padded image where ``last_y`` / ``last_x``.
+
+        ``stop_early``: once the last pooling of a forward is known (after one whole
+        forward), :class:`PoolingsCollected` is raised right after it: a collecting run
+        needs nothing after it (the paper network's heads: 45 % of its forward).
+        """
+        if self._last is None and self._calls:
+            self._last = self._previous
         self._tile = (y, x, own_y, own_x, last_y, last_x)
+        self._calls = {}
+        self._stop = stop_early
 
     def mean(self, module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+        k = self._calls.get(module, 0)
+        self._calls[module] = k + 1
+        key = self._previous = (module, k)
         if self._tile is not None:
-            self._collect(module, x)
+            self._collect(key, x)
+            if self._stop and key == self._last:
+                raise PoolingsCollected
         if self._means is not None:
-            m = self._means.get(module)
+            m = self._means.get(key)
             if m is None:
-                raise InputError(f"a global pooling ({type(module).__name__}) ran that the "
-                                 "collecting run did not see; image-wide means need every "
-                                 "tile to run the same layers")
+                raise InputError(f"a global pooling ({type(module).__name__}, call {k + 1}) "
+                                 "ran that the collecting run did not see; image-wide means "
+                                 "need every tile to run the same layers")
             return m.to(dtype=x.dtype, device=x.device)
         return x.mean(dim=(2, 3), keepdim=True)
 
-    def _collect(self, module: torch.nn.Module, x: torch.Tensor) -> None:
+    def _collect(self, key: tuple, x: torch.Tensor) -> None:
         (y0, y1), (x0, x1), (oy0, oy1), (ox0, ox1), last_y, last_x = self._tile
         if x.dim() != 4 or x.shape[0] != 1:
             raise InputError(f"image-wide means need (1, C, h, w) features, got {tuple(x.shape)}")
@@ -93,12 +117,12 @@ class ImageMeans:
         # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64; a
         # float64 sum cast the whole feature map first (+90 MB at 1024×512)
         s = part.sum(dim=(1, 2)).to(torch.float64)
-        if module in self._sums:
-            self._sums[module] += s
-            self._counts[module] += part.shape[1] * part.shape[2]
+        if key in self._sums:
+            self._sums[key] += s
+            self._counts[key] += part.shape[1] * part.shape[2]
         else:
-            self._sums[module] = s
-            self._counts[module] = part.shape[1] * part.shape[2]
+            self._sums[key] = s
+            self._counts[key] = part.shape[1] * part.shape[2]
 
     @staticmethod
     def _owned(n: int, m: int, lo: int, hi: int, last: bool) -> tuple[int, int]:
@@ -132,4 +156,5 @@ class ImageMeans:
                 scale = float(m.abs().max()) or 1.0
                 change = max(change, float((m - old).abs().max()) / scale)
         self._means, self._sums, self._counts, self._tile = new, {}, {}, None
+        self._stop = False
         return change
