@@ -51,13 +51,14 @@ def test_image_means_make_tiles_equal_the_whole_image(shape, tile):
     rgb = _rgb(*shape)
     whole, _ = _run(net, rgb)
     opts = dict(bytes_per_pixel=1.0, max_bytes=tile[0] * tile[1], blend=16)
-    per_tile, m1 = _run(net, rgb, **opts)
-    image, m2 = _run(net, rgb, statistics="image", **opts)
+    per_tile, m1 = _run(net, rgb, statistics="tile", **opts)
+    image, m2 = _run(net, rgb, **opts)                  # the default: "auto"
     plan = m2._tiling_last["plan"]
     assert plan.tile is not None and m2._tiling_last["summary"]["tiles"] >= 3
     assert m2._tiling_last["statistics"] == "image"
+    assert m1._tiling_last["statistics"] == "tile"
     scale = np.abs(whole).max()
-    # each tile's own means: a clear difference (this is what the option is for)
+    # each tile's own means: a clear difference (this is what image-wide means are for)
     assert np.abs(per_tile - whole).max() > 1e-4 * scale
     np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * scale)
 
@@ -66,6 +67,10 @@ def test_image_means_from_the_environment(monkeypatch):
     net = _attentive_net(seed=1)
     rgb = _rgb(64, 300, seed=4)
     whole, _ = _run(net, rgb)
+    monkeypatch.setenv("MEHS_TILE_STATISTICS", "tile")
+    per_tile, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
+    assert m._tiling_last["statistics"] == "tile"
+    assert np.abs(per_tile - whole).max() > 1e-4 * np.abs(whole).max()
     monkeypatch.setenv("MEHS_TILE_STATISTICS", "image")
     image, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
     assert m._tiling_last["statistics"] == "image"
@@ -115,6 +120,10 @@ def test_networks_without_poolings_or_with_other_global_operations():
                             _tiling_probe={"margin": GLOBAL_MARGIN, "align": 8})
     with pytest.raises(InputError, match="not average poolings"):
         tiled_torch_call(model, _rgb(64, 400))
+    # by default such a network keeps each tile's own statistics
+    model.tiling = dict(bytes_per_pixel=1.0, max_bytes=64 * 200)
+    tiled_torch_call(model, _rgb(64, 400))
+    assert model._tiling_last["statistics"] == "tile"
 
 
 def test_collecting_run_stops_at_the_last_pooling():

@@ -25,14 +25,16 @@ Tiles run with glibc's heap kept for reuse (:func:`mehs.ssr.allocator.reused_hea
 no tensor page is faulted in twice), planned for that allocator's larger resident
 memory per counted byte.
 
-Limits. A network with a *global* operation is not tile-invariant: the
-channel attention of :mod:`mehs.ssr.net.layers` averages each feature map over
-the whole input (squeeze-and-excitation), so by default a tile sees its own
-averages and the result differs slightly from whole-image inference; the ramp
-hides the seams, and large tiles (the default: as large as the memory budget
-allows) keep the averages close. ``{"statistics": "image"}`` makes them the
-whole image's at the cost of one more run over the tiles
-(:mod:`mehs.ssr.tiling_global`).
+Global operations. A network with one is not tile-invariant: the channel
+attention of :mod:`mehs.ssr.net.layers` averages each feature map over the whole
+input (squeeze-and-excitation), so a tile with its own averages would differ
+slightly from whole-image inference. Where a network's only global operations are
+such poolings, the tiles run with the whole image's means instead, at the cost of
+one more, partial run over the tiles (:mod:`mehs.ssr.tiling_global`;
+``{"statistics": "tile"}`` turns it off). Other global operations (MST++'s
+spectral-wise attention, AWAN's non-local blocks) keep each tile's own: the ramp
+hides the seams, and large tiles (as large as the memory budget allows) keep the
+statistics close.
 
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
 to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
@@ -241,11 +243,12 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     would exceed the memory budget), ``"off"`` (always whole), or a dict of
     options: :func:`plan_tiles` keywords (``bytes_per_pixel``, ``fixed_bytes``,
     ``margin``, ``blend``, ``align``, ``max_bytes``: the memory of one tile) and
-    ``max_rss`` (the process cap of :func:`default_budget`) and ``statistics``:
-    ``"tile"`` (the default; each tile its own global-pooling means) or ``"image"``
-    (``image_means(fn, rgb, plan)`` stitches the tiles with image-wide means, equal
-    to whole-image inference at about twice the time; :mod:`mehs.ssr.tiling_global`;
-    also ``MEHS_TILE_STATISTICS``). Missing ones come
+    ``max_rss`` (the process cap of :func:`default_budget`) and ``statistics``
+    (also ``MEHS_TILE_STATISTICS``; :mod:`mehs.ssr.tiling_global`): ``"auto"`` (the
+    default) and ``"image"`` call ``image_means(fn, rgb, plan, strict)``, which
+    stitches the tiles with image-wide global-pooling means where the network allows
+    (equal to whole-image inference; ``strict``: refuse a network that does not),
+    ``"tile"`` gives each tile its own. Missing ones come
     from ``probes[name]()``, each called at most once per model (cached in
     ``model._tiling_probe``) and only when needed: the memory probe (a number,
     or a dict as :func:`torch_memory_probe` returns) for images above
@@ -319,14 +322,13 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                           fixed_bytes=fixed, out_bytes=out_bytes, overhead=overhead, **opts)
     record.update(budget=budget, plan=plan, summary=plan_summary((h, w), plan),
                   heap_reuse=reuse, probe_seconds=time.perf_counter() - t0)
-    record["statistics"] = statistics
-    if statistics == "image":
-        if image_means is None:
-            raise InputError("image-wide tiling statistics need a torch network (an ONNX "
-                             "graph's poolings cannot be reached); use statistics 'tile'")
-        with reused_heap(reuse):
-            return image_means(fn, rgb, plan)
+    record["statistics"] = "tile"
+    if statistics == "image" and image_means is None:
+        raise InputError("image-wide tiling statistics need a torch network (an ONNX "
+                         "graph's poolings cannot be reached); use statistics 'tile'")
     with reused_heap(reuse):
+        if statistics != "tile" and image_means is not None:
+            return image_means(fn, rgb, plan, statistics == "image")
         return predict_tiled(fn, rgb, plan)
 
 
@@ -384,23 +386,29 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
 
     A network without global poolings is local: plain tiles already equal the whole
     image. One with global operations that are not poolings (a measured margin of
-    :data:`GLOBAL_MARGIN`: spectral-wise or non-local attention) is refused.
+    :data:`GLOBAL_MARGIN`: spectral-wise or non-local attention) gets each tile's own
+    statistics, or is refused when ``strict``. ``_tiling_last["statistics"]`` says
+    which ran ("image" or "tile").
     """
     from mehs.ssr.net.layers import ChannelAttention
     from mehs.ssr.tiling_global import predict_tiled_image_means
 
     net = model.network
 
-    def stitch(fn, rgb, plan):
+    def stitch(fn, rgb, plan, strict):
+        record = model.__dict__.setdefault("_tiling_last", {})
         margin = model.__dict__.get("_tiling_probe", {}).get("margin")
         if getattr(net, "max_tile_pixels", None) is not None or margin == GLOBAL_MARGIN:
-            raise InputError(f"{getattr(model, 'name', type(net).__name__)}: its global "
-                             "operations are not average poolings, so tiles cannot equal "
-                             "the whole image; use tiling statistics 'tile' or 'off'")
-        if not any(isinstance(m, ChannelAttention) for m in net.modules()):
+            if strict:
+                raise InputError(f"{getattr(model, 'name', type(net).__name__)}: its global "
+                                 "operations are not average poolings, so tiles cannot "
+                                 "equal the whole image; use tiling statistics 'tile' or "
+                                 "'off'")
             return predict_tiled(fn, rgb, plan)
-        return predict_tiled_image_means(fn, rgb, plan,
-                                         record=model.__dict__.get("_tiling_last"))
+        if not any(isinstance(m, ChannelAttention) for m in net.modules()):
+            return predict_tiled(fn, rgb, plan)       # local: plain tiles are exact
+        record["statistics"] = "image"
+        return predict_tiled_image_means(fn, rgb, plan, record=record)
     return stitch
 
 

@@ -1,9 +1,11 @@
 """Tiled inference with image-wide global poolings: tiles that equal the whole image.
 
-:mod:`mehs.ssr.tiling` runs each tile with its own channel-attention means, which is
-fast but not whole-image inference (the paper's network: interior differences up to
-~1e-3 of the output's range). With ``model.tiling = {"statistics": "image"}`` (or
-``MEHS_TILE_STATISTICS=image``) it calls :func:`predict_tiled_image_means` instead:
+Run tile by tile with each tile's own channel-attention means, the paper's network is
+not whole-image inference (interior differences up to ~1e-3 of the output's range
+where the attention depends strongly on the image). So by default
+(``model.tiling["statistics"]`` / ``MEHS_TILE_STATISTICS``: ``"auto"``) a torch
+network whose only global operations are average poolings through
+:func:`mehs.ssr.net.pooling.pooled_mean` is tiled by :func:`predict_tiled_image_means`:
 
 1. a collecting run over the tiles, each with its own means, sums every pooling
    layer's features over the part of the image each tile owns
@@ -19,13 +21,15 @@ overlap, at least ``margin`` from either tile's edge, where a tile's features ar
 whole image's. Whole-image inference is the only fixed point, so the result equals
 it to float rounding. Why one collecting run is nearly enough: a tile's own mean
 errs by ``μ_t − μ``, and over the image those errors average out (``Σ area_t (μ_t − μ)
-≈ 0``), so the collected means are off only to second order.
+≈ 0``), so the collected means are off only to second order (one more run when the
+attention depends strongly on the image).
 
-The cost is one extra, partial run over the tiles (the paper network: about 1.55×
-the single-pass time); the memory is the single pass's. Only global *average* poolings through
-:func:`mehs.ssr.net.pooling.pooled_mean` are made image-wide: a network with other
-global operations (spectral-wise attention over all pixels, non-local blocks) is
-refused rather than answered approximately.
+The cost is one extra, partial run over the tiles (the paper network: about 1.3×
+the single-pass time); the memory is the single pass's. Other global operations
+(spectral-wise attention over all pixels, non-local blocks) cannot be assembled this
+way: ``"auto"`` then gives each tile its own statistics, ``"image"`` refuses the
+network rather than answer approximately, and ``"tile"`` always uses each tile's own
+(the fastest; so do ONNX graphs, whose poolings cannot be reached).
 """
 
 from __future__ import annotations
@@ -45,14 +49,14 @@ IMAGE_MEANS_TOL = 1e-5
 #: Runs over the tiles at most (the first only collects).
 MAX_RUNS = 4
 #: ``model.tiling["statistics"]`` values.
-STATISTICS = ("tile", "image")
+STATISTICS = ("auto", "image", "tile")
 
 
 def statistics_mode(opts: dict) -> str:
-    """``opts["statistics"]`` (removed from ``opts``), else ``MEHS_TILE_STATISTICS``, else "tile"."""
+    """``opts["statistics"]`` (removed from ``opts``), else ``MEHS_TILE_STATISTICS``, else "auto"."""
     mode = opts.pop("statistics", None)
     if mode is None:
-        mode = os.environ.get("MEHS_TILE_STATISTICS", "").strip() or "tile"
+        mode = os.environ.get("MEHS_TILE_STATISTICS", "").strip() or "auto"
     if mode not in STATISTICS:
         raise InputError(f"tiling statistics must be one of {STATISTICS}, got {mode!r} "
                          "(model.tiling['statistics'] or MEHS_TILE_STATISTICS)")
