@@ -1,0 +1,449 @@
+"""One scene of the ME HS dataset, as a build worker makes it.
+
+:func:`build_scene` hashes a scene's inputs into its key, and unless the dataset
+already holds that key reads the bracket (or HS cube), fuses it, resamples to the
+31 bands 400..700 nm, makes the RGB pair and preview and writes them all into
+``scenes/.tmp-<id>/``. Committing that folder and the manifest is the main
+process's part (:mod:`mehs.dataset.build`); a worker never touches either, so an
+interrupted build leaves no half scene listed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import math
+import shutil
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from mehs import __version__
+from mehs.dataset import manifest as mf
+from mehs.dataset.parallel import report_stage
+from mehs.dataset.scene_list import SceneSource
+from mehs.errors import InputError, MehsError
+from mehs.io.atomic import sha256_file
+
+TMP_PREFIX = ".tmp-"
+
+
+@dataclass(frozen=True)
+class BuildParams:
+    """Parameters that change a scene's outputs (they enter the scene key).
+
+    Attributes
+    ----------
+    method
+        Merge estimator name (a key of ``mehs.synthesis.merge.MERGE_METHODS``).
+    response
+        Path of a response-curve file to use for every scene, or ``None`` to
+        recover one per scene.
+    ghosts
+        Ghost handling passed to ``fuse_bracket`` (``"detect"`` by default).
+    seed
+        Seed of every random choice (response sampling); also the split seed.
+    resample
+        Resampling method to 31 bands (``"gaussian"``, ``"linear"``, ``"box"``).
+    fwhm
+        Target band FWHM in nm for Gaussian/box resampling.
+    calibration
+        Path of a radiometric calibration (``mehs calibrate``): cubes in
+        radiance instead of DN/ms.
+    allow_partial
+        Fuse a scene whose capture did not finish from its complete exposures.
+    """
+
+    method: str = "poisson"
+    response: str | None = None
+    ghosts: str = "detect"
+    seed: int = 0
+    resample: str = "gaussian"
+    fwhm: float = 10.0
+    calibration: str | None = None
+    allow_partial: bool = False
+
+    def __post_init__(self):
+        # a bad value would otherwise fail every scene one by one and still
+        # write a dataset of failed scenes
+        from mehs.synthesis.resample import RESAMPLING_METHODS
+
+        if self.resample not in RESAMPLING_METHODS:
+            raise InputError(f"unknown resampling method {self.resample!r}; use one of "
+                             f"{sorted(RESAMPLING_METHODS)}")
+        if not (math.isfinite(self.fwhm) and self.fwhm > 0):
+            raise InputError(f"target FWHM must be a positive number of nm, got {self.fwhm}")
+
+
+@dataclass
+class SceneTask:
+    """Everything a worker needs to build one scene (picklable)."""
+
+    source: SceneSource
+    dataset: str
+    params: BuildParams
+    previous_key: str | None = None
+    response_sha256: str | None = None
+
+
+def input_files(source: SceneSource) -> dict[str, Path]:
+    """Files a scene is built from, by a stable relative name → absolute path.
+
+    Scene folders: ``scene.json`` and every file of the exposure folders that
+    ``scene.json`` lists as complete (not ``truth/``). Specim IQ folders: every
+    file, prefixed ``<k>/`` for the k-th folder. HS cubes: the header and data file.
+    """
+    out: dict[str, Path] = {}
+    if source.kind == "scene":
+        from mehs.capture.scenefolder import read_scene_json
+
+        root = Path(source.paths[0])
+        meta = read_scene_json(root)  # checks the structure: a damaged file is a named error
+        out["scene.json"] = root / "scene.json"
+        for exp in meta["exposures"]:
+            if exp.get("status") != "complete":
+                continue
+            folder = root / exp["folder"]
+            if not folder.is_dir():
+                raise InputError(f"exposure folder {exp['folder']} is missing", root)
+            for f in sorted(folder.rglob("*")):
+                if f.is_file():
+                    out[f.relative_to(root).as_posix()] = f
+    elif source.kind == "specim":
+        for k, folder in enumerate(source.paths):
+            for f in sorted(Path(folder).rglob("*")):
+                if f.is_file():
+                    out[f"{k}/{f.relative_to(folder).as_posix()}"] = f
+    else:
+        hdr = Path(source.paths[0])
+        out[hdr.name] = hdr
+        for ext in (".dat", ".raw", ".img", ".bil", ".bsq", ".bip", ""):
+            data = hdr.with_suffix(ext)
+            if data != hdr and data.is_file():
+                out[data.name] = data
+                break
+    return out
+
+
+def _params_for_key(task: SceneTask) -> dict[str, Any]:
+    p = asdict(task.params)
+    p["response"] = task.response_sha256  # the curve's content, not where it lives
+    if p.get("calibration"):
+        p["calibration"] = sha256_file(p["calibration"])
+    if not p.get("allow_partial"):
+        p.pop("allow_partial", None)  # keys of complete scenes stay what they were
+    if task.source.kind == "hs":
+        for k in ("method", "response", "ghosts"):
+            p.pop(k)
+    return p
+
+
+def build_scene(task: SceneTask) -> dict[str, Any]:
+    """Build one scene into ``scenes/.tmp-<id>/`` (worker entry point; never raises).
+
+    BLAS runs single-threaded here (:mod:`mehs.dataset.threads`): a
+    multi-threaded BLAS splits a product differently for different thread
+    counts (which follow ``--workers``), and the last bits of ``hs.dat``
+    changed with them. The compiled kernels
+    parallelise over lines/bands without cross-thread reductions, so with one
+    BLAS thread the bytes are the same for any ``--workers`` or ``--scheduler``.
+
+    Returns
+    -------
+    dict
+        ``{"id", "key", "outcome": "skipped"|"built"|"failed", "entry"}`` where
+        ``entry`` is the manifest entry (status judged later by the main
+        process) and, for failures, ``"error"`` and ``"error_kind"``
+        (``"input"`` for a :class:`MehsError`, deterministic and not retried;
+        ``"internal"`` otherwise, retried on the next run).
+    """
+    from mehs.dataset.threads import one_blas_thread
+
+    with one_blas_thread():
+        return _build_scene(task)
+
+
+def _build_scene(task: SceneTask) -> dict[str, Any]:
+    sid = task.source.scene_id
+    run: dict[str, Any] = {"started": _now(), "stage_seconds": {}}
+    t_all = time.perf_counter()
+    key = None
+    hashes: dict[str, str] = {}
+    try:
+        report_stage(sid, "hash")
+        with _timed(run, "hash"):
+            files = input_files(task.source)
+            hashes = {name: sha256_file(p) for name, p in files.items()}
+        key = mf.scene_key(hashes, _params_for_key(task), __version__)
+        if task.previous_key == key:
+            return {"id": sid, "key": key, "outcome": "skipped", "entry": None}
+        tmp = Path(task.dataset) / "scenes" / f"{TMP_PREFIX}{sid}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        if task.source.kind == "hs":
+            quality, extra_prov = _build_from_cube(task, tmp, run)
+        else:
+            quality, extra_prov = _build_from_bracket(task, tmp, run, hashes)
+        report_stage(sid, "hash outputs")
+        with _timed(run, "hash"):
+            outs = _outputs(tmp)
+            out_files = {name: f"scenes/{sid}/{f.name}" for name, f in outs.items()}
+            out_sha = {name: sha256_file(f) for name, f in outs.items()}
+        outcome, error, kind = "built", None, None
+    except MehsError as exc:
+        outcome, error, kind = "failed", str(exc), "input"
+        out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
+    except Exception as exc:  # noqa: BLE001 - recorded, reported and retried next run
+        outcome, error, kind = "failed", f"{type(exc).__name__}: {exc}", "internal"
+        out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
+        run["traceback"] = traceback.format_exc()
+    run["finished"] = _now()
+    run["seconds"] = round(time.perf_counter() - t_all, 3)
+    entry = {
+        "id": sid, "status": "fail" if error else "pass", "reasons": [],
+        "files": out_files, "sha256": out_sha, "quality": quality,
+        "key": key if kind != "internal" else None,
+        "provenance": {"kind": task.source.kind, "inputs": list(task.source.paths),
+                       "input_sha256": hashes, "params": asdict(task.params),
+                       "response_sha256": task.response_sha256,
+                       "software_version": __version__, "run": run, **extra_prov},
+    }
+    if error:
+        entry["error"] = error
+    return {"id": sid, "key": key, "outcome": outcome, "entry": entry,
+            "error": error, "error_kind": kind}
+
+
+_OUTPUT_NAMES = {"hs": "hs.hdr", "hs_data": "hs.dat", "hdr_rgb": "hdr_rgb.exr",
+                 "ldr_rgb": "ldr_rgb.png", "mask": "mask.png", "preview": "preview.png",
+                 "response": "response.json", "fusion": "fusion.json"}
+
+
+def _outputs(folder: Path) -> dict[str, Path]:
+    return {k: folder / n for k, n in _OUTPUT_NAMES.items() if (folder / n).is_file()}
+
+
+@contextlib.contextmanager
+def _timed(run: dict[str, Any], stage: str):
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        st = run["stage_seconds"]
+        st[stage] = round(st.get(stage, 0.0) + time.perf_counter() - t0, 4)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _check_recorded_hashes(root: Path, hashes: dict[str, str]) -> None:
+    """Compare input hashes with the SHA-256 that ``scene.json`` recorded per file."""
+    import json
+
+    from mehs.errors import FormatError
+
+    doc = json.loads((root / "scene.json").read_text(encoding="utf-8"))
+    for exp in doc.get("exposures", []):
+        if exp.get("status") != "complete":
+            continue
+        for rel, digest in (exp.get("files") or {}).items():
+            if hashes.get(rel) != digest:
+                raise FormatError("SHA-256 does not match scene.json (file altered, "
+                                  "truncated or missing)", root / rel)
+
+
+def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
+                        hashes: dict[str, str]) -> tuple[dict, dict]:
+    import numpy as np
+
+    from mehs.io.atomic import write_json_atomic
+
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    sid = task.source.scene_id
+    p = task.params
+    report_stage(sid, "read")
+    with _timed(run, "read"):
+        if task.source.kind == "scene":
+            # the inputs were just hashed for the key: check those hashes against the ones
+            # recorded at capture instead of letting load_bracket hash 300 MB again
+            _check_recorded_hashes(Path(task.source.paths[0]), hashes)
+            bracket = load_bracket(task.source.load_arg, verify="size",
+                                   allow_partial=p.allow_partial)
+        else:
+            bracket = load_bracket(task.source.load_arg)
+    report_stage(sid, "fuse")
+    with _timed(run, "fuse"):
+        result = fuse_bracket(bracket, method=p.method, response=p.response or "auto",
+                              ghosts=p.ghosts, seed=p.seed, calibration=p.calibration)
+    del bracket
+    summary = dict(result.summary or {})
+    # wall-clock figures belong to the volatile provenance, never to a data file
+    for name, sec in (summary.pop("timings", None) or {}).items():
+        if name != "total_s":
+            run["stage_seconds"][f"fuse.{name.removesuffix('_s')}"] = round(float(sec), 4)
+    mask = np.asarray(result.mask, dtype=np.uint8)
+    quality = _quality(summary, mask)
+    quality["n_exposures"] = len(summary["exposure_ratios"])
+    chk = (summary.get("response") or {}).get("check") or {}
+    quality["response_undetermined"] = bool(summary.get("response_undetermined", False))
+    quality["response_uncertainty"] = chk.get("median")
+    quality["radiometric_unit"] = summary.get("units")
+    cube = result.radiance
+    with _timed(run, "write"):
+        result.response.save(tmp / "response.json")
+        write_json_atomic(tmp / "fusion.json", _jsonable(summary))
+    del result
+    _finish_scene(task, cube, mask, tmp, run, quality)
+    return quality, {}
+
+
+def _jsonable(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+def _quality(summary: dict, mask) -> dict[str, Any]:
+    import numpy as np
+
+    n = max(1, mask.size)
+    q = {
+        "dynamic_range_stops": summary.get("dynamic_range_stops"),
+        "saturated_fraction": float(np.count_nonzero(mask & 1) / n),
+        "ghost_fraction": float(np.count_nonzero(mask & 2) / n),
+        "invalid_fraction": float(np.count_nonzero(mask & 4) / n),
+        "exposure_ratios": summary.get("exposure_ratios"),
+    }
+    return _jsonable(q)
+
+
+def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]:
+    import numpy as np
+
+    from mehs.io.envi import read_envi
+
+    sid = task.source.scene_id
+    report_stage(sid, "read")
+    with _timed(run, "read"):
+        cube = read_envi(task.source.paths[0], memmap=True)
+        data = np.asarray(cube.data, dtype=np.float32)
+        bad = ~np.isfinite(data)
+        nonfinite = bad.any(axis=2)
+        if bad.any():
+            data = np.where(bad, np.float32(0), data)
+        cube = cube.with_data(data)
+    mask = np.where(nonfinite | ~(data > 0).any(axis=2), np.uint8(4), np.uint8(0))
+    # no bracket: exposure, saturation and ghost figures are unknown, not zero
+    quality = {**_quality({}, mask), "exposure_ratios": None, "saturated_fraction": None,
+               "ghost_fraction": None}
+    _finish_scene(task, cube, mask, tmp, run, quality)
+    return quality, {"source_bands": int(cube.bands)}
+
+
+def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: dict) -> None:
+    """Resample to 31 bands, make the RGB pair and preview, write everything into ``tmp``."""
+    import numpy as np
+
+    from mehs.io.envi import write_envi
+    from mehs.io.exr import write_exr_rgb
+    from mehs.preview import tonemap, write_png
+    from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb
+
+    sid = task.source.scene_id
+    p = task.params
+    report_stage(sid, "resample")
+    with _timed(run, "resample"):
+        hs = to_31_bands(cube, method=p.resample, fwhm=p.fwhm)  # refuses NaN/Inf
+        data = np.ascontiguousarray(hs.data, dtype=np.float32)
+    report_stage(sid, "rgb")
+    with _timed(run, "rgb"):
+        hdr = hdr_rgb(data, WAVELENGTHS_31)
+        scale = half_float_scale(float(hdr.max()) if hdr.size else 0.0)
+        if scale != 1.0:
+            # a power of two commutes exactly with float rounding: HS and RGB stay paired
+            data = data * np.float32(scale)
+            hdr = hdr * np.float32(scale)
+        ldr, exposure = ldr_rgb(hdr)
+        preview = tonemap(hdr)
+    if quality.get("dynamic_range_stops") is None:
+        quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
+    quality["ldr_exposure"] = float(exposure)
+    quality["peak_hdr_rgb"] = float(hdr.max()) if hdr.size else 0.0
+    quality["radiance_scale"] = scale
+    report_stage(sid, "write")
+    with _timed(run, "write"):
+        hs = hs.with_data(data, units=cube.units, integration_time_ms=None, source=None,
+                          metadata={"mehs radiance scale": repr(scale)})
+        write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
+        write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True,
+                      header={"mehsRadianceScale": scale})
+        write_png(tmp / "ldr_rgb.png", ldr)
+        write_png(tmp / "mask.png", mask)
+        write_png(tmp / "preview.png", preview)
+
+
+def half_float_scale(peak: float) -> float:
+    """``2**-k`` (k ≥ 0 smallest) so that ``peak · 2**-k`` fits half floats (≤ 65504).
+
+    Fused radiance is in DN/ms and light sources exceed the half-float range of
+    the pseudo-HDR-RGB EXR; the HS cube and its RGB images are then stored
+    scaled by the same power of two (exact in floating point), recorded as
+    ``quality.radiance_scale`` and in both file headers.
+    """
+    import math
+
+    from mehs.io.exr import HALF_MAX
+
+    if not (peak > HALF_MAX) or not math.isfinite(peak):
+        return 1.0
+    return 2.0 ** -math.ceil(math.log2(peak / HALF_MAX))
+
+
+def to_31_bands(cube, *, method: str = "gaussian", fwhm: float = 10.0):
+    """The cube on the 31 bands 400..700 nm (unchanged if already on them)."""
+    import numpy as np
+
+    from mehs.rgb import WAVELENGTHS_31
+
+    if cube.bands == 31 and np.allclose(cube.wavelengths, WAVELENGTHS_31, atol=1e-6):
+        return cube
+    from mehs.synthesis.resample import resample_cube
+
+    return resample_cube(cube, WAVELENGTHS_31, method=method, fwhm=fwhm)
+
+
+def dynamic_range_stops(rgb, mask=None) -> float | None:
+    """log2 of the ratio between the 99.9th and 0.1th percentile of positive luminance.
+
+    Percentiles instead of max/min keep single hot or dead pixels from deciding it.
+    """
+    import numpy as np
+
+    from mehs.rgb import luminance
+
+    Y = luminance(rgb)
+    ok = Y > 0
+    if mask is not None:
+        ok &= np.asarray(mask) == 0
+    vals = Y[ok]
+    if vals.size < 2:
+        return None
+    lo, hi = np.percentile(vals, [0.1, 99.9])
+    return float(np.log2(hi / lo)) if lo > 0 else None
