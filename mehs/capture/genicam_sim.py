@@ -52,7 +52,8 @@ from mehs.capture import pixfmt
 from mehs.capture.aravis import import_aravis
 from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
-from mehs.capture.simdevice import DeviceServer, SimStage, SimWorld
+from mehs.capture.simdevice import SimStage, SimWorld
+from mehs.capture.simserver import DeviceServer
 from mehs.capture.simulate import motion_phase, world_radiance_line
 from mehs.errors import DeviceError, InputError
 
