@@ -10,7 +10,7 @@ after mehs has checked the header and the file size itself — SPy's image
 classes keep an open file handle per image, turn a failed memmap into ``None``
 and require keys (``byte order``) that real files omit, so validating first
 and mapping directly gives clear errors instead of wrong numbers. The header
-text itself is parsed here with SPy's rules, because SPy's
+text itself is parsed with SPy's rules (:mod:`mehs.io.envi_text`), because SPy's
 ``read_envi_header`` refuses headers that real software writes (a UTF-8
 byte-order mark, code-page-1252 bytes).
 
@@ -54,6 +54,7 @@ from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
 from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, envi_dtypes,
                                format_acquisition_date, parse_acquisition_date)
+from mehs.io.envi_text import read_header_pairs
 from mehs.io.envi_write import write_envi  # the writer, part of this module's interface
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
 
@@ -153,96 +154,6 @@ def find_data_file(header_path: str | Path, interleave: str | None = None) -> Pa
     raise FormatError(f"data file not found (tried {', '.join(tried[:8])}, …)", hp)
 
 
-class _HeaderSyntaxError(ValueError):
-    pass
-
-
-def _decode_header(raw: bytes) -> str:
-    """Header bytes → text, tolerating what real writers put there.
-
-    Windows tools save headers with a UTF-8 or UTF-16 byte-order mark and
-    in code page 1252 (``µm``, ``°C`` in descriptions); SPy's parser reads
-    them with the locale's codec and rejects the BOM as "not ENVI".
-    """
-    if raw.startswith(b"\xef\xbb\xbf"):
-        return raw[3:].decode("utf-8", errors="replace")
-    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
-        return raw.decode("utf-16", errors="replace")
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError:
-        return raw.decode("cp1252", errors="replace")
-
-
-def _parse_header_text(text: str) -> dict[str, Any] | None:
-    """``key = value`` / ``key = {…}`` pairs of an ENVI header text (``None``: not ENVI).
-
-    The same reading as SPy's ``read_envi_header`` (keys lower-cased, ``;``
-    comment lines, ``{…}`` split at commas, ``description`` kept whole),
-    plus what real headers need: any line ending (CR LF from Specim
-    Lumo/IQ software), a brace block closed on its own line or followed by
-    stray text, and a trailing comma before ``}`` (no empty last item).
-    """
-    lines = text.splitlines()
-    if not lines or not lines[0].strip().startswith("ENVI"):
-        return None
-    out: dict[str, Any] = {}
-    i = 1
-    while i < len(lines):
-        line = lines[i]
-        i += 1
-        if "=" not in line or line.lstrip().startswith(";"):
-            continue
-        key, _, val = line.partition("=")
-        key, val = key.strip().lower(), val.strip()
-        if not val.startswith("{"):
-            out[key] = val
-            continue
-        parts = [val]
-        depth = val.count("{") - val.count("}")
-        while depth > 0:
-            if i >= len(lines):
-                raise _HeaderSyntaxError(f"'{key}' = {{ … is never closed")
-            nxt = lines[i].strip()
-            i += 1
-            if nxt.startswith(";"):
-                continue
-            parts.append(nxt)
-            depth += nxt.count("{") - nxt.count("}")
-        block = "\n".join(parts)
-        # up to the brace that closes the first one; anything after is stray
-        d = 0
-        for j, ch in enumerate(block):
-            d += (ch == "{") - (ch == "}")
-            if d == 0:
-                block = block[:j + 1]
-                break
-        inner = block[1:-1]
-        if key == "description":
-            out[key] = inner.strip()
-            continue
-        items = [v.strip() for v in inner.split(",")]
-        if len(items) > 1 and items[-1] == "":
-            items.pop()  # "{a, b,}": a trailing comma, not an empty last value
-        out[key] = items
-    return out
-
-
-def _parse_raw_header(hp: Path) -> dict[str, Any]:
-    try:
-        raw = hp.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read header ({exc.strerror})", hp) from None
-    try:
-        h = _parse_header_text(_decode_header(raw))
-    except _HeaderSyntaxError:
-        raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
-                          "binary content)", hp) from None
-    if h is None:
-        raise FormatError("not an ENVI header (first line is not 'ENVI')", hp)
-    return h
-
-
 def _int_field(h: dict, key: str, hp: Path, *, default: int | None = None,
                minimum: int = 1) -> int:
     if key not in h:
@@ -279,7 +190,7 @@ def read_envi_header(path: str | Path) -> EnviHeader:
         ``header offset + lines·samples·bands·itemsize``.
     """
     hp = find_header_file(path)
-    h = _parse_raw_header(hp)
+    h = read_header_pairs(hp)
     samples = _int_field(h, "samples", hp)
     lines = _int_field(h, "lines", hp)
     bands = _int_field(h, "bands", hp)

@@ -1,0 +1,106 @@
+"""The text of an ENVI header: bytes → text → ``key = value`` pairs.
+
+SPy's rules (keys lower-cased, ``;`` comments, ``{…}`` split at commas,
+``description`` kept whole), extended for what real writers produce: byte-order
+marks, code page 1252, CR LF line ends, a brace block closed on its own line or
+followed by stray text, a trailing comma. :mod:`mehs.io.envi` turns the pairs into
+a checked :class:`~mehs.io.envi.EnviHeader`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from mehs.errors import FormatError, InputError
+
+
+class HeaderSyntaxError(ValueError):
+    """A ``{…}`` block that never closes."""
+
+
+def decode_header(raw: bytes) -> str:
+    """Header bytes → text, tolerating what real writers put there.
+
+    Windows tools save headers with a UTF-8 or UTF-16 byte-order mark and
+    in code page 1252 (``µm``, ``°C`` in descriptions); SPy's parser reads
+    them with the locale's codec and rejects the BOM as "not ENVI".
+    """
+    if raw.startswith(b"\xef\xbb\xbf"):
+        return raw[3:].decode("utf-8", errors="replace")
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return raw.decode("utf-16", errors="replace")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("cp1252", errors="replace")
+
+
+def parse_header_text(text: str) -> dict[str, Any] | None:
+    """``key = value`` / ``key = {…}`` pairs of an ENVI header text (``None``: not ENVI).
+
+    The same reading as SPy's ``read_envi_header`` (keys lower-cased, ``;``
+    comment lines, ``{…}`` split at commas, ``description`` kept whole),
+    plus what real headers need: any line ending (CR LF from Specim
+    Lumo/IQ software), a brace block closed on its own line or followed by
+    stray text, and a trailing comma before ``}`` (no empty last item).
+    """
+    lines = text.splitlines()
+    if not lines or not lines[0].strip().startswith("ENVI"):
+        return None
+    out: dict[str, Any] = {}
+    i = 1
+    while i < len(lines):
+        line = lines[i]
+        i += 1
+        if "=" not in line or line.lstrip().startswith(";"):
+            continue
+        key, _, val = line.partition("=")
+        key, val = key.strip().lower(), val.strip()
+        if not val.startswith("{"):
+            out[key] = val
+            continue
+        parts = [val]
+        depth = val.count("{") - val.count("}")
+        while depth > 0:
+            if i >= len(lines):
+                raise HeaderSyntaxError(f"'{key}' = {{ … is never closed")
+            nxt = lines[i].strip()
+            i += 1
+            if nxt.startswith(";"):
+                continue
+            parts.append(nxt)
+            depth += nxt.count("{") - nxt.count("}")
+        block = "\n".join(parts)
+        # up to the brace that closes the first one; anything after is stray
+        d = 0
+        for j, ch in enumerate(block):
+            d += (ch == "{") - (ch == "}")
+            if d == 0:
+                block = block[:j + 1]
+                break
+        inner = block[1:-1]
+        if key == "description":
+            out[key] = inner.strip()
+            continue
+        items = [v.strip() for v in inner.split(",")]
+        if len(items) > 1 and items[-1] == "":
+            items.pop()  # "{a, b,}": a trailing comma, not an empty last value
+        out[key] = items
+    return out
+
+
+def read_header_pairs(hp: Path) -> dict[str, Any]:
+    """The key/value pairs of the ENVI header file ``hp`` (named errors for unreadable or non-ENVI)."""
+    try:
+        raw = hp.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read header ({exc.strerror})", hp) from None
+    try:
+        h = parse_header_text(decode_header(raw))
+    except HeaderSyntaxError:
+        raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
+                          "binary content)", hp) from None
+    if h is None:
+        raise FormatError("not an ENVI header (first line is not 'ENVI')", hp)
+    return h
