@@ -80,6 +80,25 @@ def test_image_means_from_the_environment(monkeypatch):
         _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128)
 
 
+@pytest.mark.parametrize("margin,blend", [(9, 2), (41, 2), (57, 3)])
+def test_a_margin_off_the_grid_still_gets_image_wide_means(margin, blend):
+    # a user's margin and blend that leave no grid line a margin inside both tiles of an
+    # overlap: the margin goes up to the grid instead of the default mode failing
+    net = _attentive_net(seed=2)
+    rgb = _rgb(64, 300, seed=5)
+    whole, _ = _run(net, rgb)
+    out, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 160, margin=margin,
+                  blend=blend)
+    plan = m._tiling_last["plan"]
+    assert plan.margin % plan.align == 0 and plan.margin >= margin
+    assert m._tiling_last["statistics"] == "image" and m._tiling_last["summary"]["tiles"] >= 2
+    np.testing.assert_allclose(out, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+    # each tile's own means keep the margin as given
+    _, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 160, margin=margin,
+                blend=blend, statistics="tile")
+    assert m._tiling_last["plan"].margin == margin
+
+
 def test_owned_spans_partition_the_axis_inside_the_exact_zones():
     for n, tile, margin, blend, align in [(300, 128, 16, 16, 8), (1000, 160, 30, 8, 8),
                                           (257, 96, 9, 4, 4), (130, 72, 16, 16, 8)]:

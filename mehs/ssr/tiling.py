@@ -304,6 +304,10 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         return fn(rgb)
     align = get("align")
     margin = get("margin")
+    if statistics != "tile" and image_means is not None:
+        # image-wide means split the overlaps on the grid at a margin from both tiles'
+        # edges: a margin on the grid always leaves such a split (probed margins are)
+        margin = _round_up(margin, align)
     if tile_budget is None:
         budget = default_budget(max_rss)            # after the margin probe's garbage
     # tiles on the C heap (no page faulted in twice: 1.7-1.9x faster per pixel here),
