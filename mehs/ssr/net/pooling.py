@@ -114,9 +114,10 @@ class ImageMeans:
         rows = self._owned(y1 - y0, h, oy0 - y0, oy1 - y0, last_y)
         cols = self._owned(x1 - x0, w, ox0 - x0, ox1 - x0, last_x)
         part = x[0, :, rows[0]:rows[1], cols[0]:cols[1]]
-        # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64; a
-        # float64 sum cast the whole feature map first (+90 MB at 1024×512)
-        s = part.sum(dim=(1, 2)).to(torch.float64)
+        # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64 on the
+        # CPU (a float64 sum cast the whole feature map first: +90 MB at 1024×512; Apple's
+        # MPS devices have no float64)
+        s = part.sum(dim=(1, 2)).to(device="cpu", dtype=torch.float64)
         if key in self._sums:
             self._sums[key] += s
             self._counts[key] += part.shape[1] * part.shape[2]
