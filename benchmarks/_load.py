@@ -33,3 +33,11 @@ def load_line() -> str:
     if busy is not None:
         text += f"; other processes busy {busy:.2f} CPU"
     return text
+
+
+def run_reporting_load(main) -> None:
+    """Run ``main()`` between a "before:" and an "after:" load line; exit with its status."""
+    print("before:", load_line(), flush=True)
+    rc = main()
+    print("after: ", load_line())
+    raise SystemExit(rc)

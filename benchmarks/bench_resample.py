@@ -21,7 +21,6 @@ Times are medians of repeated runs; ratios are "reference time / this time"
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
@@ -117,9 +116,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from _load import load_line  # the load this run saw (issue 16)
+    from _load import run_reporting_load  # the load this run saw (issue 16)
 
-    print("before:", load_line(), flush=True)
-    rc = main()
-    print("after: ", load_line())
-    sys.exit(rc)
+    run_reporting_load(main)

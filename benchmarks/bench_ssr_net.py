@@ -91,9 +91,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from _load import load_line  # the load this run saw (issue 16)
+    from _load import run_reporting_load  # the load this run saw (issue 16)
 
-    print("before:", load_line(), flush=True)
-    rc = main()
-    print("after: ", load_line())
-    raise SystemExit(rc)
+    run_reporting_load(main)
