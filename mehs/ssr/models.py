@@ -206,6 +206,10 @@ class OnnxModel(SSRModel):
             raise FormatError(f"onnxruntime cannot load the model ({exc})", path) from None
         self.path = path
         self.name = name or path.stem
+        # what a graph rebuilt for image-wide tiling means (mehs.ssr.tiling_onnx) also
+        # needs: its extra inputs' values for a plain run, and the one output wanted
+        self._run_feeds: dict = {}
+        self._run_outputs: list[str] | None = None
         inputs = self.session.get_inputs()
         if len(inputs) != 1:
             raise FormatError(f"the model has {len(inputs)} inputs; SSR models take one", path)
@@ -253,13 +257,22 @@ class OnnxModel(SSRModel):
         return tiled_onnx_call(self, self._predict_whole, rgb)  # tiles when memory is short
 
     def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
+        y = self.session.run(self._run_outputs, {self.input_name: self._graph_input(rgb),
+                                                 **self._run_feeds})[0]
+        return self._spectra(y, rgb.shape[:2])
+
+    def _graph_input(self, rgb: np.ndarray) -> np.ndarray:
+        """``(H, W, 3)`` → the graph's input tensor (its layout and float type)."""
         x = rgb[None]
         if self.layout == "NCHW":
             x = x.transpose(0, 3, 1, 2)
         dtype = np.float16 if "float16" in self.input_type else np.float32
-        x = np.ascontiguousarray(x, dtype=dtype)
-        y = np.asarray(self.session.run(None, {self.input_name: x})[0])
-        h, w = rgb.shape[:2]
+        return np.ascontiguousarray(x, dtype=dtype)
+
+    def _spectra(self, y, shape: tuple[int, int]) -> np.ndarray:
+        """The graph's output for an ``H × W`` input → float32 ``(H, W, B)``."""
+        y = np.asarray(y)
+        h, w = shape
         if y.ndim != 4 or y.shape[0] != 1:
             raise InputError(f"{self.name}: output shape {y.shape} is not (1, B, H, W) or (1, H, W, B)")
         if y.shape[2:] == (h, w) and (y.shape[1:3] != (h, w) or self.layout == "NCHW"):

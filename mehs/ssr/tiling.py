@@ -34,7 +34,8 @@ one more, partial run over the tiles (:mod:`mehs.ssr.tiling_global`;
 ``{"statistics": "tile"}`` turns it off). Other global operations (MST++'s
 spectral-wise attention, AWAN's non-local blocks) keep each tile's own: the ramp
 hides the seams, and large tiles (as large as the memory budget allows) keep the
-statistics close.
+statistics close. ONNX graphs get the same, rebuilt to take and report their
+poolings' means and probed once (:mod:`mehs.ssr.tiling_onnx`).
 
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
 to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
@@ -328,8 +329,9 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                   heap_reuse=reuse, probe_seconds=time.perf_counter() - t0)
     record["statistics"] = "tile"
     if statistics == "image" and image_means is None:
-        raise InputError("image-wide tiling statistics need a torch network (an ONNX "
-                         "graph's poolings cannot be reached); use statistics 'tile'")
+        raise InputError("image-wide tiling statistics need a torch network or an ONNX "
+                         "model file (a bare function's poolings cannot be reached); use "
+                         "statistics 'tile'")
     with reused_heap(reuse):
         if statistics != "tile" and image_means is not None:
             return image_means(fn, rgb, plan, statistics == "image")
@@ -437,6 +439,11 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
         return {"bytes_per_pixel": max(1024.0, 1.25 * max(0, _rss() - before) / n ** 2),
                 "out_bytes_per_pixel": 4.0 * y.shape[-1]}
 
+    stitcher = None
+    if hasattr(model, "session") and hasattr(model, "path"):     # an OnnxModel
+        from mehs.ssr.tiling_onnx import onnx_image_means_stitcher
+
+        stitcher = onnx_image_means_stitcher(model)
     return tiled_network_call(model, fn, rgb, {
         "bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
-        "align": lambda: ONNX_DEFAULT_ALIGN})
+        "align": lambda: ONNX_DEFAULT_ALIGN}, image_means=stitcher)

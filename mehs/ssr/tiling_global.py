@@ -29,7 +29,7 @@ the single-pass time); the memory is the single pass's. Other global operations
 (spectral-wise attention over all pixels, non-local blocks) cannot be assembled this
 way: ``"auto"`` then gives each tile its own statistics, ``"image"`` refuses the
 network rather than answer approximately, and ``"tile"`` always uses each tile's own
-(the fastest; so do ONNX graphs, whose poolings cannot be reached).
+(the fastest). ONNX graphs: :mod:`mehs.ssr.tiling_onnx`.
 """
 
 from __future__ import annotations
@@ -41,7 +41,6 @@ from typing import Callable
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.net.pooling import ImageMeans, PoolingsCollected
 from mehs.ssr.tiling_blend import TilingPlan, predict_tiled, tile_starts
 
 #: Relative agreement of the means given to and measured by a run that ends it.
@@ -103,6 +102,9 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     over the tiles, the collecting one included) and ``image_means_change`` (the last
     run's relative change of the means).
     """
+    # torch only here: tiling.py imports this module for ONNX models too
+    from mehs.ssr.net.pooling import ImageMeans, PoolingsCollected
+
     record = {} if record is None else record
     if plan.tile is None:
         return np.asarray(fn(rgb), dtype=np.float32)

@@ -1,0 +1,414 @@
+"""Image-wide global-pooling means for tiled ONNX inference (issue 16).
+
+An ONNX graph's global average poolings (squeeze-and-excitation: the channel
+attention of the paper's network, exported by ``mehs train-ssr``) see only a tile's
+pixels when the graph runs tile by tile, so tiled output differs from whole-image
+inference. As for torch networks (:mod:`mehs.ssr.tiling_global`), the means can be
+assembled from the tiles, once the graph lets them in and out. :func:`means_graph`
+rebuilds the graph with the ``onnx`` package so that every global average pooling
+(``GlobalAveragePool``, or ``ReduceMean`` over axes 2 and 3 keeping them)
+
+- hands on a mean given as an input (``mehs_mean_<k>``, taken when ``mehs_given``
+  is true) instead of its own, and
+- outputs its feature map's sum over the part of the tile the tile owns
+  (``mehs_sum_<k>``, float32 ``(1, C)``) and the map's shape (``mehs_map_<k>``): the
+  owned span comes in tile pixels (``mehs_owned``: rows ``[y0, y1)``, columns
+  ``[x0, x1)``) and the graph divides it by each map's pixel size.
+
+:func:`predict_tiled_onnx_image_means` then runs the tiles as
+:func:`mehs.ssr.tiling_global.predict_tiled_image_means` does: a collecting run, then
+runs with the collected means until the means given and measured agree.
+
+Whether a graph's only global operations are such poolings cannot be read off a graph
+in general (a reduction over a reshaped image, an attention matrix, a ``GlobalMaxPool``).
+So it is measured, once per model: a probe image, tiled with image-wide means on the
+model's tiling grid and margin, must equal its whole-image inference to
+:data:`PROBE_TOL` of its range. Otherwise ``statistics="auto"`` gives each tile its own
+means, and ``"image"`` refuses.
+
+The rebuilt graph replaces the model's session (one onnxruntime arena, not two); a
+plain run feeds ``mehs_given = false`` and asks for the spectra only, and the pooling
+then hands on its own mean through a ``Where``: the same numbers as the original graph.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Callable
+
+import numpy as np
+
+from mehs.errors import InputError
+from mehs.ssr.tiling_blend import TilingPlan, predict_tiled
+from mehs.ssr.tiling_global import IMAGE_MEANS_TOL, MAX_RUNS, owned_spans
+
+#: Whole-image agreement a probe of the rebuilt graph must show (relative to the range).
+PROBE_TOL = 1e-5
+#: Owned-span end of an image's last tile, which runs on into the network's padding
+#: (``Slice`` clamps it to the map).
+OPEN_END = 2 ** 40
+_GIVEN, _OWNED = "mehs_given", "mehs_owned"
+
+
+def find_poolings(model) -> list[int]:
+    """Indices in ``model.graph.node`` of the global average poolings of ``model`` (an
+    ``onnx.ModelProto``).
+
+    ``GlobalAveragePool`` nodes, and ``ReduceMean`` nodes over axes ``{2, 3}`` (or
+    ``{-2, -1}``) that keep their dimensions, with the axes as an attribute (opset < 18)
+    or as a constant input.
+    """
+    from onnx import helper, numpy_helper
+
+    consts = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    for n in model.graph.node:
+        if n.op_type == "Constant":
+            for a in n.attribute:
+                if a.name == "value":
+                    consts[n.output[0]] = numpy_helper.to_array(a.t)
+    found = []
+    for i, n in enumerate(model.graph.node):
+        if n.domain not in ("", "ai.onnx"):
+            continue
+        if n.op_type == "GlobalAveragePool":
+            found.append(i)
+            continue
+        if n.op_type != "ReduceMean":
+            continue
+        attrs = {a.name: helper.get_attribute_value(a) for a in n.attribute}
+        if int(attrs.get("keepdims", 1)) == 0:
+            continue
+        axes = attrs.get("axes")
+        if axes is None and len(n.input) > 1 and n.input[1] in consts:
+            axes = consts[n.input[1]].ravel().tolist()
+        if axes is not None and sorted(int(a) for a in axes) in ([2, 3], [-2, -1]):
+            found.append(i)
+    return found
+
+
+def means_graph(model, input_name: str, layout: str):
+    """A copy of ``model`` whose global average poolings take given means and report
+    their owned sums (see the module notes), or ``None`` when it has none.
+
+    Returns ``(graph, k)``: the new ``onnx.ModelProto`` and the number of poolings.
+    """
+    import copy
+
+    from onnx import NodeProto, TensorProto, helper
+
+    model = copy.deepcopy(model)
+    g = model.graph
+    poolings = set(find_poolings(model))
+    if not poolings:
+        return None, 0
+    opset = next((o.version for o in model.opset_import if o.domain in ("", "ai.onnx")), 13)
+    elem = next(i.type.tensor_type.elem_type for i in g.input if i.name == input_name)
+    taken = ({o for n in g.node for o in n.output} | {i.name for i in g.input}
+             | {t.name for t in g.initializer})
+    count = [0]
+
+    def name(base: str) -> str:
+        while True:
+            count[0] += 1
+            cand = f"mehs/{base}_{count[0]}"
+            if cand not in taken:
+                taken.add(cand)
+                return cand
+
+    def node(op: str, inputs: list[str], out: str | None = None, **attrs) -> tuple[str, object]:
+        out = out or name(op)
+        return out, helper.make_node(op, inputs, [out], name=name(op + "_node"), **attrs)
+
+    def ints(values) -> tuple[str, object]:
+        return node("Constant", [], value=helper.make_tensor(
+            name(""), TensorProto.INT64, [len(values)], [int(v) for v in values]))
+
+    head = []                       # nodes that need only the graph's inputs
+
+    def add(pair) -> str:
+        head.append(pair[1])
+        return pair[0]
+
+    dims = (2, 3) if layout == "NCHW" else (1, 2)
+    c = {k: add(ints([k])) for k in (0, 1, 2, 3, 4)}
+    one = c[1]
+    axes23 = add(ints([2, 3]))
+    shape_in = add(node("Shape", [input_name]))
+    tile_h = add(node("Slice", [shape_in, c[dims[0]], c[dims[0] + 1]]))
+    tile_w = add(node("Slice", [shape_in, c[dims[1]], c[dims[1] + 1]]))
+    owned = [add(node("Slice", [_OWNED, c[i], c[i + 1]])) for i in range(4)]
+
+    nodes, outputs, inputs = list(head), [], []
+    k = 0
+    for index, original in enumerate(g.node):
+        n = NodeProto()
+        n.CopyFrom(original)
+        if index not in poolings:
+            nodes.append(n)
+            continue
+        x, y = n.input[0], n.output[0]
+        own = name("own_mean")
+        n.output[0] = own
+        nodes.append(n)
+        mean_in = f"mehs_mean_{k}"
+        inputs.append(helper.make_tensor_value_info(mean_in, elem, [1, None, 1, 1]))
+        nodes.append(helper.make_node("Where", [_GIVEN, mean_in, own], [y], name=name("Where")))
+        extra = []
+
+        def emit(pair) -> str:
+            extra.append(pair[1])
+            return pair[0]
+
+        shape_x = emit(node("Shape", [x]))
+        cells = []
+        for axis, size in ((2, tile_h), (3, tile_w)):
+            m = emit(node("Slice", [shape_x, c[axis], c[axis + 1]]))
+            # pixels per cell of the map: ceil(tile / map), as the network pads the tile
+            cells.append(emit(node("Div", [emit(node("Sub", [emit(node("Add", [size, m])), one])),
+                                           m])))
+        starts = emit(node("Concat", [emit(node("Div", [owned[0], cells[0]])),
+                                      emit(node("Div", [owned[2], cells[1]]))], axis=0))
+        ends = emit(node("Concat", [emit(node("Div", [owned[1], cells[0]])),
+                                    emit(node("Div", [owned[3], cells[1]]))], axis=0))
+        part = emit(node("Slice", [x, starts, ends, axes23]))
+        # float16 maps summed in float32 (a sum overflows half floats)
+        part32 = part if elem == TensorProto.FLOAT else emit(node("Cast", [part],
+                                                                   to=TensorProto.FLOAT))
+        sum_out, map_out = f"mehs_sum_{k}", f"mehs_map_{k}"
+        if opset >= 13:
+            emit(node("ReduceSum", [part32, axes23], sum_out, keepdims=0))
+        else:
+            emit(node("ReduceSum", [part32], sum_out, axes=[2, 3], keepdims=0))
+        emit(node("Identity", [shape_x], map_out))
+        nodes.extend(extra)
+        outputs += [helper.make_tensor_value_info(sum_out, TensorProto.FLOAT, [1, None]),
+                    helper.make_tensor_value_info(map_out, TensorProto.INT64, [4])]
+        k += 1
+    del g.node[:]
+    g.node.extend(nodes)
+    g.input.extend([helper.make_tensor_value_info(_GIVEN, TensorProto.BOOL, []),
+                    helper.make_tensor_value_info(_OWNED, TensorProto.INT64, [4])] + inputs)
+    g.output.extend(outputs)
+    return model, k
+
+
+class OnnxImageMeans:
+    """An :class:`~mehs.ssr.models.OnnxModel` switched to its means graph.
+
+    Construction rebuilds the graph (:func:`means_graph`) and replaces the model's
+    session with it; :attr:`k` is the number of poolings (0: nothing was changed).
+    """
+
+    def __init__(self, model):
+        import onnx
+        import onnxruntime as ort
+
+        self.model = model
+        proto = onnx.load(str(model.path))
+        graph, self.k = means_graph(proto, model.input_name, model.layout)
+        if not self.k:
+            return
+        old = model.session
+        try:
+            session = ort.InferenceSession(graph.SerializeToString(),
+                                           providers=old.get_providers())
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise InputError(f"{model.name}: its graph cannot take image-wide pooling means "
+                             f"({exc})", model.path) from None
+        types = {i.name: i.type for i in session.get_inputs()}
+        self.dtype = np.float16 if "float16" in types.get("mehs_mean_0", "") else np.float32
+        self.spectra = old.get_outputs()[0].name
+        self.extras = [f"mehs_{what}_{i}" for i in range(self.k) for what in ("sum", "map")]
+        self._old = (old, model._run_outputs, model._run_feeds)
+        model.session = session
+        model._run_outputs = [self.spectra]
+        model._run_feeds = self.feeds(None, None)
+
+    def keep(self) -> None:
+        """Keep the rebuilt graph (the original session and its arena are released)."""
+        self._old = None
+
+    def restore(self) -> None:
+        """Put the original graph back."""
+        if self.k and self._old is not None:
+            self.model.session, self.model._run_outputs, self.model._run_feeds = self._old
+            self._old = None
+
+    def feeds(self, means: list[np.ndarray] | None, owned: np.ndarray | None) -> dict:
+        none = np.zeros((1, 1, 1, 1), dtype=self.dtype)
+        return {_GIVEN: np.array(means is not None),
+                _OWNED: np.zeros(4, np.int64) if owned is None else owned,
+                **{f"mehs_mean_{i}": none if means is None else means[i].astype(self.dtype)
+                   for i in range(self.k)}}
+
+    def run(self, rgb: np.ndarray, owned: np.ndarray, last: tuple[bool, bool],
+            means: list[np.ndarray] | None, sums: list, counts: list,
+            spectra: bool = True) -> np.ndarray | None:
+        """One tile: adds each pooling's owned sum and pixel count into ``sums``/``counts``."""
+        m = self.model
+        outs = m.session.run(([self.spectra] if spectra else []) + self.extras,
+                             {m.input_name: m._graph_input(rgb), **self.feeds(means, owned)})
+        tile = rgb.shape[:2]
+        extra = outs[1:] if spectra else outs
+        for i in range(self.k):
+            s, shape = np.asarray(extra[2 * i], np.float64), np.asarray(extra[2 * i + 1])
+            cells = [_owned_cells(tile[a], int(shape[2 + a]), int(owned[2 * a]),
+                                  int(owned[2 * a + 1]), last[a], m.name) for a in (0, 1)]
+            n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])
+            sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)
+            counts[i] += n
+        return m._spectra(outs[0], tile) if spectra else None
+
+
+def _owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str) -> tuple[int, int]:
+    """The cells ``[lo // s, hi // s)`` of an ``m``-cell map of an ``n``-pixel tile axis
+    (``s`` pixels a cell), checked to fall on the owned span's pixels."""
+    s = -(-n // m)
+    if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
+        raise InputError(f"{what}: a {n}-pixel tile gave a {m}-cell pooled map whose cells "
+                         f"do not fall on the owned span [{lo}, {hi}): image-wide means need "
+                         "the tiles on the network's pooling grid (model.tiling['align'])")
+    return lo // s, (m if last else hi // s)
+
+
+def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan: TilingPlan,
+                                   *, tol: float = IMAGE_MEANS_TOL, max_runs: int = MAX_RUNS,
+                                   record: dict | None = None) -> np.ndarray:
+    """:func:`mehs.ssr.tiling_blend.predict_tiled` of the model behind ``means`` with
+    image-wide pooling means; float32 ``(H, W, B)``. ``record`` as
+    :func:`mehs.ssr.tiling_global.predict_tiled_image_means`."""
+    record = {} if record is None else record
+    model = means.model
+    if plan.tile is None:
+        return model._predict_whole(rgb)
+    if max_runs < 2:
+        raise InputError(f"image-wide means need at least 2 runs over the tiles, got {max_runs}")
+    h, w = rgb.shape[:2]
+    rows, cols = owned_spans(h, plan.tile, plan), owned_spans(w, plan.width, plan)
+
+    def span(y0: int, x0: int) -> tuple[np.ndarray, tuple[bool, bool]]:
+        ry, rx = rows[y0], cols[x0]
+        return (np.array([ry[0] - y0, OPEN_END if ry[2] else ry[1] - y0,
+                          rx[0] - x0, OPEN_END if rx[2] else rx[1] - x0], np.int64),
+                (ry[2], rx[2]))
+
+    def fresh():
+        return [None] * means.k, [0] * means.k
+
+    sums, counts = fresh()
+    for y0 in rows:                               # the collecting run: spectra not asked for
+        y1 = h if rows[y0][2] else y0 + plan.tile
+        for x0 in cols:
+            x1 = w if cols[x0][2] else x0 + plan.width
+            owned, last = span(y0, x0)
+            means.run(np.ascontiguousarray(rgb[y0:y1, x0:x1]), owned, last, None, sums,
+                      counts, spectra=False)
+    given = [(s / c).astype(np.float32).reshape(1, -1, 1, 1) for s, c in zip(sums, counts)]
+    change = float("inf")
+    for run in range(2, max_runs + 1):
+        sums, counts = fresh()
+        here: dict = {}
+
+        def on_tile(y0, y1, x0, x1):
+            here["span"] = span(y0, x0)
+
+        def fn(tile: np.ndarray) -> np.ndarray:
+            owned, last = here["span"]
+            return means.run(tile, owned, last, given, sums, counts)
+
+        out = predict_tiled(fn, rgb, plan, on_tile=on_tile)
+        new = [(s / c).astype(np.float32).reshape(1, -1, 1, 1) for s, c in zip(sums, counts)]
+        change = max(float(np.abs(a - b).max()) / (float(np.abs(a).max()) or 1.0)
+                     for a, b in zip(new, given))
+        given = new
+        record.update(image_runs=run, image_means_change=change)
+        if change <= tol:
+            return out
+    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
+                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
+                  "inference by about as much", RuntimeWarning, stacklevel=2)
+    return out
+
+
+def _probe_image(h: int, w: int) -> np.ndarray:
+    """Strong left-right and top-bottom contrast: a tile's own means differ from the image's."""
+    rng = np.random.default_rng(7)
+    x = rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32)
+    x[:, : w // 3] *= 4.0
+    x[: h // 2, :, 1] *= 0.2
+    return x
+
+
+def probe_image_means(means: OnnxImageMeans, plan: TilingPlan) -> tuple[bool, float]:
+    """Whether tiles with image-wide means equal whole-image inference on a probe.
+
+    The probe has two tiles side by side on ``plan``'s grid, margin and blend (the
+    smallest such tiles). Returns ``(agrees, max |tiled − whole| / max |whole|)``.
+    """
+    a = plan.align
+    side = -(-(plan.overlap + a) // a) * a        # the smallest tile on the grid
+    step = (side - plan.overlap) // a * a
+    probe_plan = TilingPlan(side, plan.margin, plan.blend, a, side)
+    rgb = _probe_image(side, side + step)
+    whole = means.model._predict_whole(rgb)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        tiled = predict_tiled_onnx_image_means(means, rgb, probe_plan)
+    scale = float(np.abs(whole).max()) or 1.0
+    diff = float(np.abs(tiled - whole).max()) / scale
+    return bool(np.isfinite(diff) and diff <= PROBE_TOL), diff
+
+
+def onnx_image_means_stitcher(model) -> Callable[..., np.ndarray]:
+    """The ``image_means`` of :func:`mehs.ssr.tiling.tiled_network_call` for an ONNX model.
+
+    The first call rebuilds the graph and probes it (kept in ``model._tiling_probe``:
+    ``image_means`` True/False and ``image_means_probe_diff``); a graph without global
+    average poolings, or whose probe disagrees, gets each tile's own statistics, or is
+    refused when ``strict``.
+    """
+    def stitch(fn, rgb, plan, strict):
+        record = model.__dict__.setdefault("_tiling_last", {})
+        probe = model.__dict__.setdefault("_tiling_probe", {})
+        state = model.__dict__.get("_onnx_image_means")
+        if "image_means" not in probe:
+            probe.update(_probe_onnx_image_means(model, plan))
+            state = model.__dict__.get("_onnx_image_means")
+        if not probe["image_means"]:
+            if strict:
+                why = probe["image_means_why"]
+                raise InputError(f"{model.name}: image-wide tiling statistics do not make its "
+                                 f"tiles equal the whole image: {why}; use statistics 'tile' "
+                                 "or 'off'", getattr(model, "path", None))
+            return predict_tiled(fn, rgb, plan)
+        record["statistics"] = "image"
+        return predict_tiled_onnx_image_means(state, rgb, plan, record=record)
+    return stitch
+
+
+def _probe_onnx_image_means(model, plan: TilingPlan) -> dict:
+    """Rebuild and probe ``model``'s graph once; what :func:`onnx_image_means_stitcher` keeps."""
+    try:
+        state = OnnxImageMeans(model)
+    except (InputError, ImportError) as exc:     # onnx missing, or a graph it cannot rebuild
+        return {"image_means": False, "image_means_poolings": None,
+                "image_means_probe_diff": None, "image_means_why": str(exc)}
+    if not state.k:
+        return {"image_means": False, "image_means_poolings": 0, "image_means_probe_diff": None,
+                "image_means_why": "it has no global average pooling (GlobalAveragePool, "
+                                   "ReduceMean over axes 2 and 3)"}
+    try:
+        ok, diff = probe_image_means(state, plan)
+        why = (None if ok else
+               f"with image-wide pooling means its tiles still differ from the whole image "
+               f"by {diff:.1e} of the range on a probe (other global operations, or a "
+               "margin too small: model.tiling['margin'])")
+    except InputError as exc:
+        ok, diff, why = False, None, str(exc)
+    if ok:
+        state.keep()
+        model.__dict__["_onnx_image_means"] = state
+    else:
+        state.restore()
+    return {"image_means": ok, "image_means_poolings": state.k,
+            "image_means_probe_diff": diff, "image_means_why": why}
