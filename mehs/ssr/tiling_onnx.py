@@ -23,7 +23,8 @@ Whether a graph's only global operations are such poolings cannot be read off a 
 in general (a reduction over a reshaped image, an attention matrix, a ``GlobalMaxPool``).
 So it is measured, once per model: a probe image, tiled with image-wide means on the
 model's tiling grid and margin, must equal its whole-image inference to
-:data:`PROBE_TOL` of its range. Otherwise ``statistics="auto"`` gives each tile its own
+:data:`PROBE_TOL` of its range (all but 0.1 % of its values: see
+:func:`probe_image_means`). Otherwise ``statistics="auto"`` gives each tile its own
 means, and ``"image"`` refuses.
 
 The rebuilt graph replaces the model's session (one onnxruntime arena, not two); a
@@ -42,8 +43,10 @@ from mehs.errors import InputError
 from mehs.ssr.tiling_blend import TilingPlan, predict_tiled
 from mehs.ssr.tiling_global import IMAGE_MEANS_TOL, MAX_RUNS, owned_spans
 
-#: Whole-image agreement a probe of the rebuilt graph must show (relative to the range).
+#: Whole-image agreement a probe of the rebuilt graph must show (relative to the range),
+#: by all but a 1e-3 share of its values.
 PROBE_TOL = 1e-5
+PROBE_QUANTILE = 0.999
 #: Owned-span end of an image's last tile, which runs on into the network's padding
 #: (``Slice`` clamps it to the map).
 OPEN_END = 2 ** 40
@@ -209,16 +212,27 @@ class OnnxImageMeans:
         if not self.k:
             return
         old = model.session
+        self.spectra = old.get_outputs()[0].name
+        self.extras = [f"mehs_{what}_{i}" for i in range(self.k) for what in ("sum", "map")]
+        # both sessions draw on one process-wide arena: two arenas would each keep
+        # their peak
+        _register_shared_arena(ort)
+        so = ort.SessionOptions()
+        so.add_session_config_entry("session.use_env_allocators", "1")
+        providers = old.get_providers()
         try:
-            session = ort.InferenceSession(graph.SerializeToString(),
-                                           providers=old.get_providers())
+            session = ort.InferenceSession(graph.SerializeToString(), sess_options=so,
+                                           providers=providers)
+            # the collecting run needs the graph up to the last pooling only (onnxruntime
+            # runs every node of a session, asked for its outputs or not)
+            collect = pruned_graph(graph, self.extras)
+            self.collect = None if collect is None else ort.InferenceSession(
+                collect.SerializeToString(), sess_options=so, providers=providers)
         except Exception as exc:  # onnxruntime raises its own exception types
             raise InputError(f"{model.name}: its graph cannot take image-wide pooling means "
                              f"({exc})", model.path) from None
         types = {i.name: i.type for i in session.get_inputs()}
         self.dtype = np.float16 if "float16" in types.get("mehs_mean_0", "") else np.float32
-        self.spectra = old.get_outputs()[0].name
-        self.extras = [f"mehs_{what}_{i}" for i in range(self.k) for what in ("sum", "map")]
         self._old = (old, model._run_outputs, model._run_feeds)
         model.session = session
         model._run_outputs = [self.spectra]
@@ -246,8 +260,12 @@ class OnnxImageMeans:
             spectra: bool = True) -> np.ndarray | None:
         """One tile: adds each pooling's owned sum and pixel count into ``sums``/``counts``."""
         m = self.model
-        outs = m.session.run(([self.spectra] if spectra else []) + self.extras,
-                             {m.input_name: m._graph_input(rgb), **self.feeds(means, owned)})
+        feeds = {m.input_name: m._graph_input(rgb), **self.feeds(means, owned)}
+        session = m.session if spectra or self.collect is None else self.collect
+        if session is not m.session:
+            names = {i.name for i in session.get_inputs()}
+            feeds = {k: v for k, v in feeds.items() if k in names}
+        outs = session.run(([self.spectra] if spectra else []) + self.extras, feeds)
         tile = rgb.shape[:2]
         extra = outs[1:] if spectra else outs
         for i in range(self.k):
@@ -258,6 +276,49 @@ class OnnxImageMeans:
             sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)
             counts[i] += n
         return m._spectra(outs[0], tile) if spectra else None
+
+
+_ARENA = []
+
+
+def _register_shared_arena(ort) -> None:
+    """Register onnxruntime's process-wide CPU arena once (``session.use_env_allocators``)."""
+    if not _ARENA:
+        info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0,
+                                 ort.OrtMemType.DEFAULT)
+        ort.create_and_register_allocator(info, None)
+        _ARENA.append(info)
+
+
+def pruned_graph(model, outputs: list[str]):
+    """A copy of ``model`` with only the nodes that ``outputs`` need, and those outputs;
+    ``None`` when a node holds a subgraph (its outer names are not followed here)."""
+    import copy
+
+    from onnx import AttributeProto
+
+    g = model.graph
+    if any(a.type in (AttributeProto.GRAPH, AttributeProto.GRAPHS)
+           for n in g.node for a in n.attribute):
+        return None
+    needed, keep = set(outputs), []
+    for n in reversed(g.node):
+        if any(o in needed for o in n.output):
+            keep.append(n)
+            needed.update(i for i in n.input if i)
+    out = copy.deepcopy(model)
+    del out.graph.node[:]
+    out.graph.node.extend(reversed(keep))
+    kept_out = [o for o in out.graph.output if o.name in outputs]
+    del out.graph.output[:]
+    out.graph.output.extend(kept_out)
+    inits = [t for t in out.graph.initializer if t.name in needed]
+    del out.graph.initializer[:]
+    out.graph.initializer.extend(inits)
+    ins = [i for i in out.graph.input if i.name in needed]
+    del out.graph.input[:]
+    out.graph.input.extend(ins)
+    return out
 
 
 def _owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str) -> tuple[int, int]:
@@ -355,8 +416,14 @@ def probe_image_means(means: OnnxImageMeans, plan: TilingPlan) -> tuple[bool, fl
         warnings.simplefilter("ignore", RuntimeWarning)
         tiled = predict_tiled_onnx_image_means(means, rgb, probe_plan)
     scale = float(np.abs(whole).max()) or 1.0
-    diff = float(np.abs(tiled - whole).max()) / scale
-    return bool(np.isfinite(diff) and diff <= PROBE_TOL), diff
+    d = np.abs(tiled - whole) / scale
+    if not np.isfinite(d).all():
+        return False, float("inf")
+    # a quantile, not the largest: a graph that restores luminance itself divides by its
+    # output's X+Y+Z, and an untrained network's is near zero at a few pixels, which
+    # magnifies float rounding there; other global operations move most values
+    diff = float(np.quantile(d, PROBE_QUANTILE))
+    return diff <= PROBE_TOL, diff
 
 
 def onnx_image_means_stitcher(model) -> Callable[..., np.ndarray]:
