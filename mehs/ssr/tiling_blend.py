@@ -64,6 +64,23 @@ def tile_starts(n: int, tile: int, overlap: int, align: int) -> list[int]:
     return starts
 
 
+def owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str = "") -> tuple[int, int]:
+    """The cells ``[lo // s, hi // s)`` of an ``m``-cell pooled map of an ``n``-pixel tile
+    axis that the tile owns (owned pixels ``[lo, hi)``; to the map's end when ``last``).
+
+    The map covers the tile padded up to the pooling grid (only the image's last tile
+    is padded): each cell is ``s = ceil(n / m)`` pixels, and the owned span must fall on
+    cell boundaries.
+    """
+    s = -(-n // m)
+    if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
+        raise InputError(f"{what + ': ' if what else ''}a {n}-pixel tile gave a {m}-cell "
+                         f"pooled map whose cells do not fall on the owned span [{lo}, {hi}): "
+                         "image-wide means need the tiles on the network's pooling grid "
+                         "(model.tiling['align'])")
+    return lo // s, (m if last else hi // s)
+
+
 def _ramp(length: int, lo_inner: bool, hi_inner: bool, margin: int, blend: int) -> np.ndarray:
     """float32 ``(length,)``: 0 in the margin at an inner edge, then a ``blend`` ramp to 1."""
     w = np.ones(length, dtype=np.float32)

@@ -89,6 +89,13 @@ def owned_spans(n: int, tile: int, plan: TilingPlan) -> dict[int, tuple[int, int
     return {s: (cuts[k], cuts[k + 1], k == len(starts) - 1) for k, s in enumerate(starts)}
 
 
+def warn_unsettled(change: float, max_runs: int) -> None:
+    """The warning of a run over the tiles whose image-wide means did not settle."""
+    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
+                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
+                  "inference by about as much", RuntimeWarning, stacklevel=3)
+
+
 def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
                               plan: TilingPlan, *, tol: float = IMAGE_MEANS_TOL,
                               max_runs: int = MAX_RUNS, record: dict | None = None
@@ -136,7 +143,5 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
             record.update(image_runs=run, image_means_change=change)
             if change <= tol:
                 return out
-    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
-                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
-                  "inference by about as much", RuntimeWarning, stacklevel=2)
+    warn_unsettled(change, max_runs)
     return out

@@ -40,8 +40,8 @@ from typing import Callable
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.tiling_blend import TilingPlan, predict_tiled
-from mehs.ssr.tiling_global import IMAGE_MEANS_TOL, MAX_RUNS, owned_spans
+from mehs.ssr.tiling_blend import TilingPlan, owned_cells, predict_tiled
+from mehs.ssr.tiling_global import IMAGE_MEANS_TOL, MAX_RUNS, owned_spans, warn_unsettled
 
 #: Whole-image agreement a probe of the rebuilt graph must show (relative to the range),
 #: by all but a 1e-3 share of its values.
@@ -270,7 +270,7 @@ class OnnxImageMeans:
         extra = outs[1:] if spectra else outs
         for i in range(self.k):
             s, shape = np.asarray(extra[2 * i], np.float64), np.asarray(extra[2 * i + 1])
-            cells = [_owned_cells(tile[a], int(shape[2 + a]), int(owned[2 * a]),
+            cells = [owned_cells(tile[a], int(shape[2 + a]), int(owned[2 * a]),
                                   int(owned[2 * a + 1]), last[a], m.name) for a in (0, 1)]
             n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])
             sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)
@@ -319,17 +319,6 @@ def pruned_graph(model, outputs: list[str]):
     del out.graph.input[:]
     out.graph.input.extend(ins)
     return out
-
-
-def _owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str) -> tuple[int, int]:
-    """The cells ``[lo // s, hi // s)`` of an ``m``-cell map of an ``n``-pixel tile axis
-    (``s`` pixels a cell), checked to fall on the owned span's pixels."""
-    s = -(-n // m)
-    if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
-        raise InputError(f"{what}: a {n}-pixel tile gave a {m}-cell pooled map whose cells "
-                         f"do not fall on the owned span [{lo}, {hi}): image-wide means need "
-                         "the tiles on the network's pooling grid (model.tiling['align'])")
-    return lo // s, (m if last else hi // s)
 
 
 def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan: TilingPlan,
@@ -385,9 +374,7 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
         record.update(image_runs=run, image_means_change=change)
         if change <= tol:
             return out
-    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
-                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
-                  "inference by about as much", RuntimeWarning, stacklevel=2)
+    warn_unsettled(change, max_runs)
     return out
 
 

@@ -29,6 +29,7 @@ import contextvars
 import torch
 
 from mehs.errors import InputError
+from mehs.ssr.tiling_blend import owned_cells
 
 _ACTIVE: contextvars.ContextVar["ImageMeans | None"] = contextvars.ContextVar(
     "mehs_image_means", default=None)
@@ -111,8 +112,8 @@ class ImageMeans:
         if x.dim() != 4 or x.shape[0] != 1:
             raise InputError(f"image-wide means need (1, C, h, w) features, got {tuple(x.shape)}")
         h, w = int(x.shape[2]), int(x.shape[3])
-        rows = self._owned(y1 - y0, h, oy0 - y0, oy1 - y0, last_y)
-        cols = self._owned(x1 - x0, w, ox0 - x0, ox1 - x0, last_x)
+        rows = owned_cells(y1 - y0, h, oy0 - y0, oy1 - y0, last_y)
+        cols = owned_cells(x1 - x0, w, ox0 - x0, ox1 - x0, last_x)
         part = x[0, :, rows[0]:rows[1], cols[0]:cols[1]]
         # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64 on the
         # CPU (a float64 sum cast the whole feature map first: +90 MB at 1024×512; Apple's
@@ -124,18 +125,6 @@ class ImageMeans:
         else:
             self._sums[key] = s
             self._counts[key] = part.shape[1] * part.shape[2]
-
-    @staticmethod
-    def _owned(n: int, m: int, lo: int, hi: int, last: bool) -> tuple[int, int]:
-        """The owned span ``[lo, hi)`` of a tile of ``n`` pixels in a feature map of ``m``."""
-        # the map covers the tile padded up to the pooling grid (only the image's last
-        # tile is padded): each feature is s pixels
-        s = -(-n // m)
-        if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
-            raise InputError(f"a {n}-pixel tile gave a {m}-pixel feature map whose cells do "
-                             f"not fall on the owned span [{lo}, {hi}): image-wide means "
-                             "need the tiles on the network's pooling grid")
-        return lo // s, (m if last else hi // s)
 
     def finish(self) -> float:
         """End a run over the image: its sums become the means handed out next.
