@@ -178,3 +178,14 @@ def test_onnx_tiling_runs_without_torch(tmp_path):
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=300)
     assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr[-3000:]
+
+
+def test_owned_cells_follow_the_padded_grid():
+    from mehs.ssr.tiling_blend import owned_cells
+
+    assert owned_cells(256, 64, 64, 192, False) == (16, 48)        # 4 px a cell
+    assert owned_cells(188, 12, 32, 2 ** 40, True) == (2, 12)      # last tile, padded to 192
+    with pytest.raises(InputError, match="do not fall on the owned span"):
+        owned_cells(256, 64, 66, 192, False)                       # off the grid
+    with pytest.raises(InputError, match="do not fall on the owned span"):
+        owned_cells(250, 64, 64, 192, False)                       # an inner tile padded
