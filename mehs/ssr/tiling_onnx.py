@@ -206,6 +206,8 @@ class OnnxImageMeans:
         import onnx
         import onnxruntime as ort
 
+        from mehs.ssr.models import onnx_session_options
+
         self.model = model
         proto = onnx.load(str(model.path))
         graph, self.k = means_graph(proto, model.input_name, model.layout)
@@ -217,7 +219,7 @@ class OnnxImageMeans:
         # both sessions draw on one process-wide arena: two arenas would each keep
         # their peak
         _register_shared_arena(ort)
-        so = ort.SessionOptions()
+        so = onnx_session_options()
         so.add_session_config_entry("session.use_env_allocators", "1")
         providers = old.get_providers()
         try:
