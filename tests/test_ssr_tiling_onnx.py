@@ -189,3 +189,18 @@ def test_owned_cells_follow_the_padded_grid():
         owned_cells(256, 64, 66, 192, False)                       # off the grid
     with pytest.raises(InputError, match="do not fall on the owned span"):
         owned_cells(250, 64, 64, 192, False)                       # an inner tile padded
+
+
+def test_release_memory_returns_the_arena_before_a_budget_is_measured(tmp_path):
+    # the tiling budget is what the process does not hold: an arena kept from a large
+    # whole-image run would leave a later tiled call almost none
+    def rss():
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    model = OnnxModel(se_graph(tmp_path / "se.onnx"))
+    model.tiling = "off"
+    model.predict(_rgb(1024, 1024))
+    held = rss()
+    model.release_memory()
+    assert held - rss() > 150 * 2 ** 20          # the run's ~400 MB arena, most of it back

@@ -284,6 +284,25 @@ class OnnxModel(SSRModel):
                                                  **self._run_feeds})[0]
         return self._spectra(y, rgb.shape[:2])
 
+    def release_memory(self) -> None:
+        """Return the memory onnxruntime's arena keeps from earlier runs to the system.
+
+        The arena keeps the peak of the largest run so far; the tiling budget is what
+        the process does not hold (:func:`mehs.ssr.tiling.default_budget`), so after a
+        large whole-image run a tiled call would find almost none. A tiny run with the
+        arena-shrinkage option frees every arena region not in use.
+        """
+        import onnxruntime as ort
+
+        ro = ort.RunOptions()
+        ro.add_run_config_entry("memory.enable_memory_arena_shrinkage", "cpu:0")
+        x = np.zeros((32, 32, 3), dtype=np.float32)
+        try:
+            self.session.run(self._run_outputs, {self.input_name: self._graph_input(x),
+                                                 **self._run_feeds}, ro)
+        except Exception:  # noqa: BLE001 - a graph that refuses 32×32: nothing released
+            pass
+
     def _graph_input(self, rgb: np.ndarray) -> np.ndarray:
         """``(H, W, 3)`` → the graph's input tensor (its layout and float type)."""
         x = rgb[None]

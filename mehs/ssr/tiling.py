@@ -440,6 +440,8 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
                 "out_bytes_per_pixel": 4.0 * y.shape[-1]}
 
     stitcher = None
+    if rgb.shape[0] * rgb.shape[1] > SMALL_IMAGE and hasattr(model, "release_memory"):
+        model.release_memory()      # before the budget is measured: the arena is reusable
     if hasattr(model, "session") and hasattr(model, "path"):     # an OnnxModel
         from mehs.ssr.tiling_onnx import onnx_image_means_stitcher
 
