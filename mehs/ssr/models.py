@@ -302,6 +302,9 @@ class OnnxModel(SSRModel):
                                                  **self._run_feeds}, ro)
         except Exception:  # noqa: BLE001 - a graph that refuses 32×32: nothing released
             pass
+        from mehs.ssr.allocator import trim_heap
+
+        trim_heap()     # arena regions below the mmap threshold were freed to the C heap
 
     def _graph_input(self, rgb: np.ndarray) -> np.ndarray:
         """``(H, W, 3)`` → the graph's input tensor (its layout and float type)."""
