@@ -22,9 +22,11 @@ from mehs.errors import InputError  # noqa: E402
 from mehs.ssr.models import OnnxModel  # noqa: E402
 
 
-def se_graph(path, *, pooling="reducemean", opset=17, other_global=False, seed=0):
+def se_graph(path, *, pooling="reducemean", opset=17, other_global=False, seed=0,
+             nhwc=False):
     """Write the test graph; ``pooling``: "reducemean" or "gap"; ``other_global``: a
-    GlobalMaxPool gate besides the average pooling (not tile-invariant)."""
+    GlobalMaxPool gate besides the average pooling (not tile-invariant); ``nhwc``:
+    NHWC input and output around the NCHW body."""
     rng = np.random.default_rng(seed)
     init = []
 
@@ -37,9 +39,10 @@ def se_graph(path, *, pooling="reducemean", opset=17, other_global=False, seed=0
         init.append(numpy_helper.from_array(np.array(values, np.int64), name))
         return name
 
-    nodes = [
-        helper.make_node("Conv", ["rgb", w("w1", 8, 3, 3, 3), w("b1", 8)], ["c1"],
-                         pads=[1, 1, 1, 1]),
+    nodes = [helper.make_node("Transpose", ["rgb"], ["x"], perm=[0, 3, 1, 2])] if nhwc else []
+    nodes += [
+        helper.make_node("Conv", ["x" if nhwc else "rgb", w("w1", 8, 3, 3, 3), w("b1", 8)],
+                         ["c1"], pads=[1, 1, 1, 1]),
         helper.make_node("Relu", ["c1"], ["r1"]),
         helper.make_node("MaxPool", ["r1"], ["d"], kernel_shape=[2, 2], strides=[2, 2]),
         helper.make_node("Conv", ["d", w("w2", 8, 8, 3, 3), w("b2", 8)], ["c2"],
@@ -70,11 +73,15 @@ def se_graph(path, *, pooling="reducemean", opset=17, other_global=False, seed=0
         roi = "roi"
     nodes += [helper.make_node("Resize", [last, roi, "scales"], ["u"], mode="nearest"),
               helper.make_node("Add", ["u", "r1"], ["s"]),
-              helper.make_node("Conv", ["s", w("w5", 31, 8, 3, 3), w("b5", 31)], ["spectra"],
-                               pads=[1, 1, 1, 1])]
+              helper.make_node("Conv", ["s", w("w5", 31, 8, 3, 3), w("b5", 31)],
+                               ["y" if nhwc else "spectra"], pads=[1, 1, 1, 1])]
+    if nhwc:
+        nodes.append(helper.make_node("Transpose", ["y"], ["spectra"], perm=[0, 2, 3, 1]))
+    shape_in, shape_out = ([1, "h", "w", 3], [1, "h", "w", 31]) if nhwc else \
+        ([1, 3, "h", "w"], [1, 31, "h", "w"])
     graph = helper.make_graph(
-        nodes, "se", [helper.make_tensor_value_info("rgb", TensorProto.FLOAT, [1, 3, "h", "w"])],
-        [helper.make_tensor_value_info("spectra", TensorProto.FLOAT, [1, 31, "h", "w"])], init)
+        nodes, "se", [helper.make_tensor_value_info("rgb", TensorProto.FLOAT, shape_in)],
+        [helper.make_tensor_value_info("spectra", TensorProto.FLOAT, shape_out)], init)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
     model.ir_version = 8
     onnx.checker.check_model(model)
@@ -98,10 +105,12 @@ def _predict(model, rgb, tiling):
     return model.predict(rgb)
 
 
-@pytest.mark.parametrize("pooling,opset", [("reducemean", 17), ("reducemean", 18),
-                                           ("reducemean", 11), ("gap", 13)])
-def test_onnx_image_means_make_tiles_equal_the_whole_image(tmp_path, pooling, opset):
-    path = se_graph(tmp_path / "se.onnx", pooling=pooling, opset=opset)
+@pytest.mark.parametrize("pooling,opset,nhwc", [("reducemean", 17, False),
+                                                ("reducemean", 18, False),
+                                                ("reducemean", 11, False), ("gap", 13, False),
+                                                ("reducemean", 17, True)])
+def test_onnx_image_means_make_tiles_equal_the_whole_image(tmp_path, pooling, opset, nhwc):
+    path = se_graph(tmp_path / "se.onnx", pooling=pooling, opset=opset, nhwc=nhwc)
     rgb = _rgb(256, 640)
     whole = _predict(OnnxModel(path), rgb, "off")
     scale = np.abs(whole).max()
