@@ -38,3 +38,13 @@ def has_mallinfo2() -> bool:
     except (OSError, AttributeError):
         return False
     return True
+
+
+def contrast_rgb(h: int, w: int, seed: int = 3) -> np.ndarray:
+    """float32 ``(h, w, 3)`` with strong left-right and top-bottom contrast: a tile's own
+    global-pooling means differ much from the whole image's (tiling tests)."""
+    rng = np.random.default_rng(seed)
+    x = rng.gamma(1.0, 1.0, (h, w, 3)).astype(np.float32)
+    x[:, : w // 3] *= 4.0
+    x[: h // 2, :, 1] *= 0.2
+    return x

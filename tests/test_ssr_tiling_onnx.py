@@ -12,6 +12,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from _checks import contrast_rgb
 
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
@@ -89,12 +90,7 @@ def se_graph(path, *, pooling="reducemean", opset=17, other_global=False, seed=0
     return path
 
 
-def _rgb(h, w, seed=3):
-    rng = np.random.default_rng(seed)
-    x = rng.gamma(1.0, 1.0, (h, w, 3)).astype(np.float32)
-    x[:, : w // 3] *= 4.0
-    x[: h // 2, :, 1] *= 0.2
-    return x
+_rgb = contrast_rgb
 
 
 TILES = {"bytes_per_pixel": 1.0, "max_bytes": 256 * 288}
