@@ -268,6 +268,11 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     if mode == "auto" and rgb.shape[0] * rgb.shape[1] <= SMALL_IMAGE:
         return fn(rgb)
     t0 = time.perf_counter()
+    release = getattr(model, "release_memory", None)
+    if release is not None:
+        # memory an ONNX arena keeps from earlier runs is reusable: returned before the
+        # memory probe and the budget measure what the process holds
+        release()
     tile_budget = opts.pop("max_bytes", None)
     if tile_budget is None:
         tile_budget = env_max_bytes()
@@ -305,7 +310,8 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         return fn(rgb)
     align = get("align")
     margin = get("margin")
-    if statistics != "tile" and image_means is not None:
+    wide = statistics != "tile" and image_means is not None
+    if wide:
         # image-wide means split the overlaps on the grid at a margin from both tiles'
         # edges: a margin on the grid always leaves such a split (probed margins are)
         margin = _round_up(margin, align)
@@ -333,7 +339,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                          "model file (a bare function's poolings cannot be reached); use "
                          "statistics 'tile'")
     with reused_heap(reuse):
-        if statistics != "tile" and image_means is not None:
+        if wide:
             return image_means(fn, rgb, plan, statistics == "image")
         return predict_tiled(fn, rgb, plan)
 
@@ -440,8 +446,6 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
                 "out_bytes_per_pixel": 4.0 * y.shape[-1]}
 
     stitcher = None
-    if rgb.shape[0] * rgb.shape[1] > SMALL_IMAGE and hasattr(model, "release_memory"):
-        model.release_memory()      # before the budget is measured: the arena is reusable
     if hasattr(model, "session") and hasattr(model, "path"):     # an OnnxModel
         from mehs.ssr.tiling_onnx import onnx_image_means_stitcher
 

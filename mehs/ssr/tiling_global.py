@@ -89,6 +89,16 @@ def owned_spans(n: int, tile: int, plan: TilingPlan) -> dict[int, tuple[int, int
     return {s: (cuts[k], cuts[k + 1], k == len(starts) - 1) for k, s in enumerate(starts)}
 
 
+def tile_windows(rows: dict, cols: dict, plan: TilingPlan, h: int, w: int):
+    """``(y0, y1, x0, x1)`` of every tile in raster order, from :func:`owned_spans` of
+    both axes (an axis's last tile runs to the image's edge), as
+    :func:`mehs.ssr.tiling_blend.predict_tiled` visits them."""
+    for y0 in rows:
+        y1 = h if rows[y0][2] else y0 + plan.tile
+        for x0 in cols:
+            yield y0, y1, x0, (w if cols[x0][2] else x0 + plan.width)
+
+
 def warn_unsettled(change: float, max_runs: int) -> None:
     """The warning of a run over the tiles whose image-wide means did not settle."""
     warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
@@ -127,15 +137,12 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
 
     change = float("inf")
     with means.active():
-        for y0 in rows:                          # the collecting run: outputs not kept
-            y1 = h if rows[y0][2] else y0 + plan.tile
-            for x0 in cols:
-                x1 = w if cols[x0][2] else x0 + plan.width
-                enter(y0, y1, x0, x1, stop_early=True)
-                try:
-                    fn(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
-                except PoolingsCollected:      # nothing after the last pooling is needed
-                    pass
+        for y0, y1, x0, x1 in tile_windows(rows, cols, plan, h, w):   # outputs not kept
+            enter(y0, y1, x0, x1, stop_early=True)
+            try:
+                fn(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
+            except PoolingsCollected:          # nothing after the last pooling is needed
+                pass
         means.finish()
         for run in range(2, max_runs + 1):
             out = predict_tiled(fn, rgb, plan, on_tile=enter)

@@ -41,7 +41,8 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import TilingPlan, owned_cells, predict_tiled
-from mehs.ssr.tiling_global import IMAGE_MEANS_TOL, MAX_RUNS, owned_spans, warn_unsettled
+from mehs.ssr.tiling_global import (IMAGE_MEANS_TOL, MAX_RUNS, owned_spans, tile_windows,
+                                    warn_unsettled)
 
 #: Whole-image agreement a probe of the rebuilt graph must show (relative to the range),
 #: by all but a 1e-3 share of its values.
@@ -348,13 +349,10 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
         return [None] * means.k, [0] * means.k
 
     sums, counts = fresh()
-    for y0 in rows:                               # the collecting run: spectra not asked for
-        y1 = h if rows[y0][2] else y0 + plan.tile
-        for x0 in cols:
-            x1 = w if cols[x0][2] else x0 + plan.width
-            owned, last = span(y0, x0)
-            means.run(np.ascontiguousarray(rgb[y0:y1, x0:x1]), owned, last, None, sums,
-                      counts, spectra=False)
+    for y0, y1, x0, x1 in tile_windows(rows, cols, plan, h, w):   # spectra not asked for
+        owned, last = span(y0, x0)
+        means.run(np.ascontiguousarray(rgb[y0:y1, x0:x1]), owned, last, None, sums, counts,
+                  spectra=False)
     given = [(s / c).astype(np.float32).reshape(1, -1, 1, 1) for s, c in zip(sums, counts)]
     change = float("inf")
     for run in range(2, max_runs + 1):
@@ -426,10 +424,8 @@ def onnx_image_means_stitcher(model) -> Callable[..., np.ndarray]:
     def stitch(fn, rgb, plan, strict):
         record = model.__dict__.setdefault("_tiling_last", {})
         probe = model.__dict__.setdefault("_tiling_probe", {})
-        state = model.__dict__.get("_onnx_image_means")
         if "image_means" not in probe:
             probe.update(_probe_onnx_image_means(model, plan))
-            state = model.__dict__.get("_onnx_image_means")
         if not probe["image_means"]:
             if strict:
                 why = probe["image_means_why"]
@@ -438,7 +434,8 @@ def onnx_image_means_stitcher(model) -> Callable[..., np.ndarray]:
                                  "or 'off'", getattr(model, "path", None))
             return predict_tiled(fn, rgb, plan)
         record["statistics"] = "image"
-        return predict_tiled_onnx_image_means(state, rgb, plan, record=record)
+        return predict_tiled_onnx_image_means(model.__dict__["_onnx_image_means"], rgb, plan,
+                                              record=record)
     return stitch
 
 
