@@ -46,7 +46,7 @@ def _check_cube(cube, *, half: bool = False) -> SpectralCube:
     # checked before the first file is written: the EXR writer refuses NaN (and
     # values beyond half range) only band by band, which left the earlier bands'
     # files behind as a partial export
-    from mehs.io.exr import HALF_MAX
+    from mehs.io.exr import FLOAT32_MAX, HALF_MAX
 
     data = cube.data
     step = max(1, (1 << 24) // max(1, data[0].size))
@@ -57,11 +57,14 @@ def _check_cube(cube, *, half: bool = False) -> SpectralCube:
             bad = int(np.count_nonzero(~np.isfinite(np.asarray(data, dtype=np.float32))))
             raise InputError(f"the cube holds {bad} NaN/Inf values; an EXR export would "
                              "carry them into the renderer", cube.source)
-        if half and block.size:
+        if block.size:
             peak = max(peak, float(np.abs(block).max()))
-    if peak > HALF_MAX:
+    if half and peak > HALF_MAX:
         raise InputError(f"value {peak:.6g} exceeds the half-float range (±{HALF_MAX:g}); "
                          "export 32-bit float (no --half) or rescale", cube.source)
+    if peak > FLOAT32_MAX:
+        raise InputError(f"value {peak:.6g} exceeds the 32-bit float range "
+                         f"(±{FLOAT32_MAX:.6g}) of an EXR; rescale", cube.source)
     return cube
 
 

@@ -52,6 +52,12 @@ def test_per_wavelength_prefix_and_errors(tmp_path, hs_cube):
         export_per_wavelength(hs_cube.data, tmp_path)
     with pytest.raises(InputError, match="half-float"):
         export_per_wavelength(hs_cube, tmp_path / "h", half=True)
+    # a float64 value beyond float32's range is refused before any band is written
+    big = np.array(hs_cube.data, dtype=np.float64)
+    big[1, 1, 5] = 1e39
+    with pytest.raises(InputError, match="32-bit float range"):
+        export_per_wavelength(SpectralCube(big, hs_cube.wavelengths), tmp_path / "f")
+    assert not (tmp_path / "f").exists() or not any((tmp_path / "f").iterdir())
 
 
 def test_spectral_exr_reads_back_with_same_wavelengths_and_data(tmp_path, hs_cube):

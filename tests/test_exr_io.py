@@ -145,6 +145,9 @@ def test_writer_refuses_bad_values_and_leaves_nothing(tmp_path):
         write_exr_rgb(tmp_path / "x.exr", img)
     with pytest.raises(InputError, match="half-float range"):
         write_exr_rgb(tmp_path / "y.exr", np.full((2, 2, 3), 1e5, np.float32), half=True)
+    # finite in float64, Inf once stored as 32-bit float
+    with pytest.raises(InputError, match="32-bit float range"):
+        write_exr_rgb(tmp_path / "w.exr", np.full((2, 2, 3), 1e39), half=False)
     with pytest.raises(InputError, match="channel names"):
         write_exr(tmp_path / "z.exr", np.ones((2, 2, 5)))
     with pytest.raises(InputError, match="unique"):

@@ -50,6 +50,7 @@ EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 #: Largest finite half-float value.
 HALF_MAX = 65504.0
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 #: Header attribute recording the written channel order.
 ORDER_ATTR = "mehsChannelOrder"
@@ -150,12 +151,15 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     if finite is not None and not finite.all():
         bad = int((~finite).sum())
         raise InputError(f"refusing to write {bad} NaN/Inf values to an EXR", path)
-    if half:
-        peak = float(np.abs(img).max())
-        if peak > HALF_MAX:
-            raise InputError(
-                f"value {peak:.6g} exceeds the half-float range (±{HALF_MAX:g}); "
-                "write 32-bit float or rescale", path)
+    # a finite float64 beyond float32's range would become Inf in the conversion below
+    peak = float(np.abs(img).max()) if img.size else 0.0
+    if half and peak > HALF_MAX:
+        raise InputError(
+            f"value {peak:.6g} exceeds the half-float range (±{HALF_MAX:g}); "
+            "write 32-bit float or rescale", path)
+    if peak > FLOAT32_MAX:
+        raise InputError(f"value {peak:.6g} exceeds the 32-bit float range "
+                         f"(±{FLOAT32_MAX:.6g}); rescale", path)
 
     pixels = {c: np.ascontiguousarray(img[:, :, i], dtype=dtype) for i, c in enumerate(channels)}
     hdr: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION,
