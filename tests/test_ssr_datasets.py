@@ -244,3 +244,33 @@ def test_detection_survives_one_truncated_file(arad1k):
     with pytest.raises(FormatError, match="truncated") as e:
         next(p for p in ps if p.hs_path == first).hs_array()
     assert str(first) in str(e.value)
+
+
+@pytest.mark.parametrize("content", [b"", b"MATLAB 5.0 MAT-file".ljust(100, b" ")],
+                         ids=["empty", "short-v5"])
+def test_empty_or_short_mat_files_raise_a_format_error_naming_the_file(tmp_path, content):
+    """An interrupted download (0 bytes, or a v5 header cut short) is a FormatError naming the
+    file, not scipy's MatReadError / IndexError; format detection skips it."""
+    bad = tmp_path / "Train_Spec" / "ARAD_1K_0001.mat"
+    bad.parent.mkdir()
+    bad.write_bytes(content)
+    with pytest.raises(FormatError) as e:
+        read_source_cube("arad1k", bad)
+    assert str(bad) in str(e.value)
+    write_mat73(tmp_path / "Train_Spec" / "ARAD_1K_0002.mat",
+                {"cube": _cube(), "bands": WAVELENGTHS_31[None, :]})
+    assert detect_format(tmp_path) == "arad1k"
+
+
+def test_complex_or_text_variables_are_refused_naming_the_file(tmp_path):
+    cplx = tmp_path / "c.mat"
+    scipy.io.savemat(cplx, {"rad": _cube().astype(np.complex64), "bands": WAVELENGTHS_31})
+    with pytest.raises(FormatError, match="real numbers") as e:
+        read_source_cube("icvl", cplx)
+    assert str(cplx) in str(e.value)
+    txt = write_mat73(tmp_path / "t.mat", {"cube": _cube(), "bands": WAVELENGTHS_31[None, :]})
+    with h5py.File(txt, "r+") as f:
+        del f["bands"]
+        f["bands"] = np.bytes_("400:700")
+    with pytest.raises(FormatError, match="'bands' must be numbers"):
+        read_source_cube("arad1k", txt)

@@ -128,13 +128,18 @@ def read_mat_variables(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.
             raise FormatError(f"unreadable or truncated MATLAB v7.3 (HDF5) file ({exc})", path) from None
         return out
     import scipy.io
+    from scipy.io.matlab import MatReadError
 
+    if path.stat().st_size == 0:
+        raise FormatError("empty file (an interrupted download?)", path)
     try:
         mat = scipy.io.loadmat(path, variable_names=list(keys))
         present = [n for n, *_ in scipy.io.whosmat(path)]
     except NotImplementedError as exc:
         raise FormatError(f"MATLAB file version not supported ({exc})", path) from None
-    except (ValueError, TypeError, OSError, EOFError, AssertionError) as exc:
+    # (a short v5 file ends inside its header: scipy raises IndexError or MatReadError)
+    except (MatReadError, ValueError, TypeError, OSError, EOFError, AssertionError,
+            IndexError) as exc:
         raise FormatError(f"unreadable or truncated MATLAB file ({exc})", path) from None
     for k in keys:
         if k not in mat:
@@ -146,7 +151,14 @@ def read_mat_variables(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.
 
 def _mat_cube(path: Path, cube_key: str) -> tuple[np.ndarray, np.ndarray, dict]:
     v = read_mat_variables(path, (cube_key, "bands"))
-    cube, bands = v[cube_key], np.asarray(v["bands"], dtype=np.float64).reshape(-1)
+    cube = v[cube_key]
+    try:
+        bands = np.asarray(v["bands"], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise FormatError(f"'bands' must be numbers (nm), got {v['bands'].dtype}", path) from None
+    # MATLAB v7.3 stores a complex array as a compound of (real, imag); v5 as complex
+    if cube.dtype.kind not in "fiub":
+        raise FormatError(f"{cube_key!r} must be real numbers, got {cube.dtype}", path)
     if cube.ndim != 3:
         raise FormatError(f"{cube_key!r} must be 3-D (rows × columns × bands), got shape "
                           f"{cube.shape}", path)
@@ -192,8 +204,11 @@ def read_cave(folder: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
             img = img[..., 0]
         if depth is None:
             depth = img.dtype
-        if img.dtype != depth or img.dtype not in (np.uint8, np.uint16):
-            raise FormatError(f"band PNGs must all be 8- or 16-bit, got {img.dtype}", p)
+        if img.dtype not in (np.uint8, np.uint16):
+            raise FormatError(f"band PNGs must be 8- or 16-bit, got {img.dtype}", p)
+        if img.dtype != depth:
+            raise FormatError(f"band PNG is {img.dtype}, the first band {depth}: a scene's "
+                              "bands must share one bit depth", p)
         if planes and img.shape != planes[0].shape:
             raise FormatError(f"band is {img.shape}, the first band {planes[0].shape}", p)
         planes.append(img)

@@ -46,6 +46,7 @@ def _cave_scene_dirs(root: Path) -> list[Path]:
 def _mat_keys(path: Path) -> set[str]:
     """Variable names of a MATLAB file (v7.3 or v5); empty if it cannot be read."""
     import h5py
+    from scipy.io.matlab import MatReadError
 
     try:
         if h5py.is_hdf5(str(path)):
@@ -54,7 +55,8 @@ def _mat_keys(path: Path) -> set[str]:
         import scipy.io
 
         return {n for n, *_ in scipy.io.whosmat(path)}
-    except (ValueError, TypeError, OSError, NotImplementedError, EOFError):
+    except (MatReadError, ValueError, TypeError, OSError, NotImplementedError, EOFError,
+            IndexError, AssertionError):
         return set()
 
 
