@@ -182,6 +182,12 @@ def test_end_to_end_is_not_restored_and_fallbacks_are_counted(ds):
     assert any("fell back to a flat spectrum" in n and n.startswith("neg") for n in res.config["notes"])
     # e2e output used as is: its value is the green channel in every band
     assert by[("e2e", False)]["restore_fallback"] is None
+    # with a border crop the fallbacks are counted in the scored region too: a fraction
+    # of the pixels scored, never above 1 (they were counted over the whole image)
+    cropped = evaluate(ds, [Negative()], preprocess="off", split=None, restore=True, crop=3)
+    c = cropped.summary[0]
+    assert 0.9 < c["restore_fallback_fraction"] <= 1.0
+    assert c["restore_fallback"] < n_lit
 
 
 def test_mrae_rule_and_pixels_are_recorded(ds, tmp_path):

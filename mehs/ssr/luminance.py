@@ -62,7 +62,8 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray, *
     return_fallback
         Also return the number of pixels that got the flat-spectrum fallback
         while the input has light (so a caller can report it; the evaluation
-        always does).
+        always does); ``"mask"``: those pixels as a boolean array of the leading
+        shape (so an evaluation can count them within its cropped, masked region).
     overwrite
         Write the result into ``S`` (when it is a writeable array of the output
         dtype) instead of a new array: for a caller that owns ``S``, such as a
@@ -72,7 +73,7 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray, *
     -------
     ndarray
         Shape ``(..., B)``, float32 for float32 ``S`` (float64 otherwise); always finite.
-        With ``return_fallback``: ``(spectra, n_fallback)``.
+        With ``return_fallback``: ``(spectra, n_fallback)`` (or the mask for ``"mask"``).
     """
     S = np.asarray(S)
     rgb = np.asarray(rgb)
@@ -99,5 +100,6 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray, *
         out = np.where(good[..., None], out, fill[..., None])
     if return_fallback:
         # black input pixels (X+Y+Z = 0) come out black either way: not a substitution
-        return out, int(np.count_nonzero(~good & (np.abs(np.nan_to_num(target)) > 0)))
+        fell = ~good & (np.abs(np.nan_to_num(target)) > 0)
+        return out, (fell if return_fallback == "mask" else int(np.count_nonzero(fell)))
     return out

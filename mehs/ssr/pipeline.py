@@ -57,7 +57,9 @@ def predict(model, rgb: np.ndarray, *, preprocess: bool = False, restore: bool =
     ``preprocessing`` (or ``preprocess=True`` for the paper's fixed-scale
     operator) is applied unless the model applies its own. ``wavelengths``
     (the dataset's bands) selects the model's output bands; default: all.
-    With ``return_stats`` returns ``(cube, {"restore_fallback": int | None})``.
+    With ``return_stats`` returns ``(cube, stats)``: ``stats["restore_fallback"]`` the
+    number of pixels whose restoration fell back to a flat spectrum (``None`` without
+    restoration), ``stats["restore_fallback_mask"]`` those pixels, ``(H, W)`` bool or ``None``.
     """
     name = getattr(model, "name", "model")
     rgb = check_rgb(rgb, name)
@@ -65,7 +67,7 @@ def predict(model, rgb: np.ndarray, *, preprocess: bool = False, restore: bool =
     own_pp = applies_preprocessing(model)
     x = spec(rgb) if spec is not None and not own_pp else rgb
     model_wl = np.asarray(model.wavelengths, dtype=np.float64)
-    stats: dict[str, Any] = {"restore_fallback": None}
+    stats: dict[str, Any] = {"restore_fallback": None, "restore_fallback_mask": None}
     inner = getattr(model, "standard_spectrum", None)
     restores_inside = trained_for(model).output == "shape" and own_pp
     if restore and restores_inside and callable(inner):
@@ -73,7 +75,9 @@ def predict(model, rgb: np.ndarray, *, preprocess: bool = False, restore: bool =
     else:
         S = check_output(np.asarray(model(x)), rgb.shape, model_wl, name)
     if restore and not (restores_inside and not callable(inner)):
-        out, stats["restore_fallback"] = restore_luminance(S, rgb, model_wl, return_fallback=True)
+        out, fell = restore_luminance(S, rgb, model_wl, return_fallback="mask")
+        stats["restore_fallback"] = int(np.count_nonzero(fell))
+        stats["restore_fallback_mask"] = fell
     elif restore:
         out = restore_luminance(S, rgb, model_wl)  # a no-op on an already restored output
     elif spec is not None and not own_pp:

@@ -207,6 +207,20 @@ class EvaluationResult:
                              timing=self.timing)
 
 
+def _scored_count(flags: np.ndarray | None, valid: np.ndarray | None, crop: int) -> int | None:
+    """How many of the flagged pixels ``(H, W)`` lie in the region the metrics score (the
+    border crop and the valid mask of :func:`mehs.ssr.metrics.image_metrics`), so that a
+    count and ``n_pixels`` share one denominator; ``None`` for no flags."""
+    if flags is None:
+        return None
+    flags = np.asarray(flags, dtype=bool)
+    if valid is not None:
+        flags = flags & np.asarray(valid, dtype=bool)
+    if crop:
+        flags = flags[crop:-crop, crop:-crop]
+    return int(np.count_nonzero(flags))
+
+
 def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
              preprocess: Sequence[str] | str = ("off", "on"),
              inputs: Sequence[str] | str = ("hdr",),
@@ -348,7 +362,9 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
                     key = config_key(inp, p, r, name)
                     band_acc.setdefault(key, []).append(m.pop("band_mrae"))
                     rows.append({"scene": pair.id, "input": inp, "preprocess": p, "restore": r,
-                                 "model": name, **m, "restore_fallback": st["restore_fallback"],
+                                 "model": name, **m,
+                                 "restore_fallback": _scored_count(st["restore_fallback_mask"],
+                                                                   valid, crop),
                                  "seconds": dt})
                     if want_fig:
                         smap = sam_map(pred, gt)
