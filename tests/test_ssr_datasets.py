@@ -12,7 +12,7 @@ import scipy.io
 
 from mehs.errors import FormatError, InputError
 from mehs.io.ssr_datasets import SourceOptions, read_source_cube
-from mehs.rgb import WAVELENGTHS_31, ldr_rgb, spectra_to_linear_sRGB
+from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB
 from mehs.ssr.sources import detect_format, load_source
 
 H, W = 12, 10
@@ -48,10 +48,18 @@ def write_mat73(path: Path, variables: dict) -> Path:
     return path
 
 
+def _ntire_rgb8(cube: np.ndarray) -> np.ndarray:
+    """An 8-bit RGB image made as the NTIRE 2022 code makes ARAD-1K's (``save_jpg``): the
+    cube projected through a camera response (here the pseudo-HDR-RGB's), scaled so the
+    mean is 18 % of 255, clipped and truncated to uint8, with no tone curve."""
+    rgb = spectra_to_linear_sRGB(cube, WAVELENGTHS_31)
+    rgb = rgb * (0.18 / rgb.mean()) * 255
+    return rgb.clip(0, 255).astype(np.uint8)
+
+
 def _jpg(path: Path, cube: np.ndarray) -> None:
-    ldr, _ = ldr_rgb(spectra_to_linear_sRGB(cube, WAVELENGTHS_31))
     path.parent.mkdir(parents=True, exist_ok=True)
-    assert cv2.imwrite(str(path), np.ascontiguousarray(np.asarray(ldr, np.uint8)[..., ::-1]),
+    assert cv2.imwrite(str(path), np.ascontiguousarray(_ntire_rgb8(cube)[..., ::-1]),
                        [cv2.IMWRITE_JPEG_QUALITY, 98])
 
 
@@ -90,7 +98,8 @@ def test_arad1k_reads_shape_bands_scale_and_splits(arad1k):
                                                                      crop=(8, 6), scale=2.0))
     np.testing.assert_array_equal(wl2, [450, 550, 650])
     np.testing.assert_allclose(data2, 2 * cubes["ARAD_1K_0001"][2:10, 2:8][..., [5, 15, 25]])
-    assert info2["options"] == {"bands": (450.0, 550.0, 650.0), "crop": (8, 6), "scale": 2.0}
+    assert info2["options"] == {"bands": (450.0, 550.0, 650.0), "crop": (8, 6), "scale": 2.0,
+                                "rgb_encoding": "auto"}
     ps = load_source(root)
     assert ps.splits == {"train": ["ARAD_1K_0001", "ARAD_1K_0002"], "val": ["ARAD_1K_0003"]}
     p = next(q for q in ps if q.id == "ARAD_1K_0003")
@@ -274,3 +283,34 @@ def test_complex_or_text_variables_are_refused_naming_the_file(tmp_path):
         f["bands"] = np.bytes_("400:700")
     with pytest.raises(FormatError, match="'bands' must be numbers"):
         read_source_cube("arad1k", txt)
+
+
+def test_ntire_rgb_images_are_read_as_linear_and_others_as_srgb(tmp_path):
+    """NTIRE 2020's ``*_clean.png`` (and 2022's JPGs) are camera projections scaled to 8 bits
+    without a tone curve: read linearly, the LDR input is the HDR one up to exposure and
+    quantisation; decoded as sRGB (as before) its ratio to the HDR varied 0.4–2×."""
+    root = tmp_path / "NTIRE2020"
+    cube = _cube(seed=4, h=24, w=20)
+    write_mat73(root / "NTIRE2020_Train_Spectral" / "ARAD_HS_0001.mat",
+                {"cube": cube, "bands": WAVELENGTHS_31[None, :].astype(np.float64)})
+    png = root / "NTIRE2020_Train_Clean" / "ARAD_HS_0001_clean.png"
+    png.parent.mkdir(parents=True)
+    assert cv2.imwrite(str(png), np.ascontiguousarray(_ntire_rgb8(cube)[..., ::-1]))
+    assert detect_format(root) == "arad1k"
+
+    def ratio(opts):
+        p = load_source(root, options=opts)[0] if opts else load_source(root)[0]
+        ldr, hdr = p.rgb("ldr"), p.rgb("hdr")
+        ok = (ldr * p.info["ldr_exposure_used"] > 20 / 255) & (ldr < 0.9 * ldr.max())
+        return ldr[ok] / hdr[ok], p.info["ldr_encoding"]
+
+    r, enc = ratio(None)
+    assert enc == "linear"
+    np.testing.assert_allclose(r, np.median(r), rtol=0.03)         # 8-bit truncation only
+    r, enc = ratio(SourceOptions(rgb_encoding="srgb"))
+    assert enc == "srgb" and r.max() / r.min() > 1.5
+    with pytest.raises(InputError, match="rgb_encoding"):
+        SourceOptions(rgb_encoding="gamma")
+    # CAVE's RGB renderings stay sRGB unless told otherwise
+    assert SourceOptions().rgb_encoding_for("cave") == "srgb"
+    assert SourceOptions(rgb_encoding="linear").rgb_encoding_for("cave") == "linear"

@@ -18,6 +18,11 @@ def add_source_arguments(parser) -> None:
                         help="public datasets: central crop of every scene, e.g. 256x256")
     parser.add_argument("--hs-scale", type=float, default=1.0,
                         help="public datasets: multiply the stored values (default 1: as stored)")
+    parser.add_argument("--rgb-encoding", choices=("auto", "linear", "srgb"), default="auto",
+                        help="public datasets: how their own 8-bit RGB images encode light; auto: "
+                             "linear for ARAD-1K and ARAD/BGU-HS (the NTIRE challenges' camera "
+                             "projections, no tone curve), sRGB for the others "
+                             "(default: %(default)s)")
 
 
 def apply_source_arguments(args, dataset) -> None:
@@ -27,8 +32,9 @@ def apply_source_arguments(args, dataset) -> None:
     from mehs.errors import InputError
     from mehs.io.ssr_datasets import SourceOptions
 
+    encoding = getattr(args, "rgb_encoding", "auto")
     explicit = (args.source_format != "auto" or args.hs_bands != "visible" or args.hs_crop
-                or args.hs_scale != 1.0)
+                or args.hs_scale != 1.0 or encoding != "auto")
     if not explicit:
         return
     if not (math.isfinite(args.hs_scale) and args.hs_scale > 0):
@@ -52,6 +58,8 @@ def apply_source_arguments(args, dataset) -> None:
     if fmt == "auto":
         fmt = detect_format(dataset)
         if fmt is None:
-            raise InputError("--hs-bands/--hs-crop/--hs-scale apply to public SSR datasets, and "
+            raise InputError("--hs-bands/--hs-crop/--hs-scale/--rgb-encoding apply to public "
+                             "SSR datasets, and "
                              "this folder is not one (give --format)", dataset)
-    remember_source(dataset, fmt, SourceOptions(bands=bands, crop=crop, scale=float(args.hs_scale)))
+    remember_source(dataset, fmt, SourceOptions(bands=bands, crop=crop, scale=float(args.hs_scale),
+                                                rgb_encoding=encoding))

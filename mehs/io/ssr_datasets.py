@@ -59,6 +59,7 @@ _CAVE_BANDS = np.arange(400.0, 701.0, 10.0)
 _KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
 _KAUST_KEYS = ("img", "cube", "rad", "data", "hsi", "reflectance")
 _RGB_EXT = (".jpg", ".jpeg", ".png", ".bmp")
+RGB_ENCODINGS = ("auto", "linear", "srgb")
 _SPLIT_WORDS = {"train": "train", "valid": "val", "val": "val", "test": "test"}
 
 
@@ -75,11 +76,31 @@ class SourceOptions:
         ``(height, width)`` of a central crop, or ``None``.
     scale
         Multiplies the stored values (1 = as stored).
+    rgb_encoding
+        How the dataset's own 8-bit RGB images encode light: ``"linear"`` (values
+        proportional to the camera's signal), ``"srgb"`` (the sRGB transfer curve), or
+        ``"auto"`` (default): linear for ARAD-1K and ARAD/BGU-HS, whose RGB images
+        the NTIRE 2020/2022 challenge code made by projecting the cube through a
+        camera response and scaling to 8 bits without a tone curve
+        (``SpectralUtils.imTo8bit``, ``NTIRE2022Util.save_jpg``); sRGB for the others
+        (CAVE's ``*_RGB.bmp`` are display renderings).
     """
 
     bands: Any = "visible"
     crop: tuple[int, int] | None = None
     scale: float = 1.0
+    rgb_encoding: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.rgb_encoding not in RGB_ENCODINGS:
+            raise InputError(f"rgb_encoding must be one of {', '.join(RGB_ENCODINGS)}, "
+                             f"got {self.rgb_encoding!r}")
+
+    def rgb_encoding_for(self, fmt: str) -> str:
+        """The encoding of ``fmt``'s RGB images: the option, or the format's own for auto."""
+        if self.rgb_encoding != "auto":
+            return self.rgb_encoding
+        return "linear" if fmt in ("arad1k", "arad") else "srgb"
 
     def record(self) -> dict:
         d = asdict(self)

@@ -179,9 +179,12 @@ class SourcePair(Pair):
                 ch, cw = self.options.crop
                 h, w = img.shape[:2]
                 img = img[(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
-            lin = srgb_decode_8bit(img)
+            encoding = self.options.rgb_encoding_for(self.fmt)
+            lin = (srgb_decode_8bit(img) if encoding == "srgb"
+                   else img.astype(np.float32) / np.float32(255.0))
             exposure = self._estimate_exposure(lin) if lin.shape == hdr.shape else None
-            self.info.update({"ldr_source": "dataset RGB image", "ldr_exposure_used": exposure})
+            self.info.update({"ldr_source": "dataset RGB image", "ldr_encoding": encoding,
+                              "ldr_exposure_used": exposure})
             if exposure is None:
                 raise InputError(f"the RGB image is {img.shape[:2]} (or too dark to match), the "
                                  f"cube {hdr.shape[:2]}", self.ldr_path)
