@@ -400,3 +400,64 @@ def test_unclosed_brace_and_bad_numbers(tmp_path):
     hp = _good_pair(tmp_path, name="neg", keys_drop=("lines",), extra="lines = -2\n")
     with pytest.raises(FormatError, match=r"neg\.hdr: header key 'lines' = -2"):
         read_envi(hp)
+
+
+def test_a_named_data_file_is_read_and_several_candidates_are_refused(tmp_path):
+    """An ENVI header does not name its data file: ``read_envi("x.img")`` reads x.img, and
+    ``x.hdr`` beside both x.raw and x.img is refused as ambiguous (mehs read x.raw, SPy
+    x.img: one of them silently wrong)."""
+    small = _cube(np.uint16, shape=(2, 3, 4))
+    write_envi(tmp_path / "x.hdr", small)                       # x.raw
+    nines = small.with_data(np.full(small.data.shape, 9, np.uint16))
+    (tmp_path / "x.img").write_bytes(np.ascontiguousarray(
+        nines.data.transpose(0, 2, 1)).astype("<u2").tobytes())  # the same layout (bil)
+    np.testing.assert_array_equal(read_envi(tmp_path / "x.img").data, nines.data)
+    np.testing.assert_array_equal(read_envi(tmp_path / "x.raw").data, small.data)
+    with pytest.raises(FormatError, match="several files") as e:
+        read_envi(tmp_path / "x.hdr")
+    assert "x.raw" in str(e.value) and "x.img" in str(e.value)
+
+
+def test_overwriting_with_another_data_extension_replaces_the_old_data(tmp_path):
+    """Rewriting ``out.hdr`` with ``.dat`` over an ``out.raw`` pair removes out.raw (the old
+    header's data), so the new pair reads back; a stray file of the stem that was not the
+    old header's data is refused before anything is written."""
+    ones = _cube(np.float32, shape=(2, 3, 4))
+    sevens = ones.with_data(np.full(ones.data.shape, 7, np.float32))
+    write_envi(tmp_path / "out.hdr", ones, data_ext=".raw")
+    write_envi(tmp_path / "out.hdr", sevens, data_ext=".dat")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.dat", "out.hdr"]
+    np.testing.assert_array_equal(read_envi(tmp_path / "out.hdr").data, sevens.data)
+    (tmp_path / "new.img").write_bytes(b"someone else's")
+    with pytest.raises(InputError, match="new.img would also read"):
+        write_envi(tmp_path / "new.hdr", ones)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.img", "out.dat", "out.hdr"]
+
+
+@pytest.mark.parametrize("unit,scale", [("Centimeters", 1e-7), ("cm", 1e-7), ("Meters", 1e-9),
+                                        ("m", 1e-9), ("Angstroms", 10.0),
+                                        ("Millimeters", 1e-6)])
+def test_every_envi_length_unit_converts_to_nm(tmp_path, unit, scale):
+    """The ENVI header spec's length units (SPy passes them through as stored)."""
+    wl = np.array([400.0, 500.0, 600.0])
+    hdr = ("ENVI\nsamples = 1\nlines = 1\nbands = 3\nheader offset = 0\ndata type = 4\n"
+           "interleave = bip\nbyte order = 0\nwavelength units = " + unit + "\n"
+           "wavelength = {" + ", ".join(repr(float(w * scale)) for w in wl) + "}\n")
+    hp = write_raw_envi(tmp_path, "u", np.ones(3, "<f4"), hdr)
+    np.testing.assert_allclose(read_envi(hp).wavelengths, wl, rtol=1e-9)
+    bad = write_raw_envi(tmp_path, "w", np.ones(3, "<f4"),
+                         hdr.replace(f"units = {unit}", "units = Wavenumber"))
+    with pytest.raises(FormatError, match="Wavenumber"):
+        read_envi(bad)
+
+
+def test_float_to_integer_rounds_before_the_range_check(tmp_path):
+    """"Round to nearest and must fit": -0.3 → 0 and 65535.3 → 65535 fit uint16; -0.6 → -1
+    does not."""
+    ok = np.array([[[-0.3, 65535.3, 2.5]]])
+    hp = write_envi(tmp_path / "a.hdr", SpectralCube(ok, [400.0, 500.0, 600.0]),
+                    dtype=np.uint16)
+    np.testing.assert_array_equal(read_envi(hp).data, [[[0, 65535, 2]]])
+    with pytest.raises(InputError, match="do not fit"):
+        write_envi(tmp_path / "b.hdr", SpectralCube(ok - 0.3, [400.0, 500.0, 600.0]),
+                   dtype=np.uint16)

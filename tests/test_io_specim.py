@@ -227,3 +227,17 @@ def test_scene_exposure_style_id(tmp_path):
     assert back.capture_id == "0_12.5ms"
     (out / "manifest.xml").unlink()  # ".5ms" must not be taken for a file extension
     assert read_specim_folder(out).capture_id == "0_12.5ms"
+
+
+def test_overwrite_removes_the_old_captures_extra_parts(tmp_path):
+    """Overwriting a capture that had a white reference and a reflectance with one that has
+    neither leaves neither behind (the reader found them by their standard names)."""
+    out = write_specim_folder(tmp_path / "444", make_capture(whitedark=True))
+    new = make_capture(seed=1, white=False, reflectance=False)
+    write_specim_folder(out, new, overwrite=True)
+    back = read_specim_folder(out)
+    assert back.whiteref is None and back.whitedarkref is None and back.reflectance is None
+    np.testing.assert_array_equal(back.raw.data, new.raw.data)
+    np.testing.assert_array_equal(back.darkref.data, new.darkref.data)
+    names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
+    assert not any("WHITE" in n or "REFLECTANCE" in n for n in names), names

@@ -42,6 +42,7 @@ References
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -59,7 +60,7 @@ from mehs.io.envi_write import write_envi  # the writer, part of this module's i
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
 
 __all__ = ["EnviHeader", "read_envi_header", "read_envi", "write_envi",
-           "find_data_file", "find_header_file", "parse_acquisition_date",
+           "data_file_candidates", "find_data_file", "find_header_file", "parse_acquisition_date",
            "format_acquisition_date", "DATA_EXTENSIONS"]
 
 #: Data-file extensions tried after the header's stem (then upper-case), in order.
@@ -138,19 +139,46 @@ def find_header_file(path: str | Path) -> Path:
                       f"{p.with_suffix('.hdr').name} and {p.name}.hdr)", p)
 
 
-def find_data_file(header_path: str | Path, interleave: str | None = None) -> Path:
-    """The data file of an ENVI header: same stem with a known extension, or none."""
+def data_file_candidates(header_path: str | Path, interleave: str | None = None) -> list[Path]:
+    """Every existing file that could be an ENVI header's data: its stem with a known
+    extension (``DATA_EXTENSIONS``, either case), one entry per distinct file."""
     hp = Path(header_path)
     stem = hp.with_suffix("")
     exts = list(DATA_EXTENSIONS)
     if interleave and f".{interleave}" not in exts:
         exts.append(f".{interleave}")
-    tried = []
+    found: list[Path] = []
     for ext in exts + [e.upper() for e in exts if e]:
         cand = stem.with_name(stem.name + ext)
-        tried.append(cand.name)
-        if cand.is_file() and cand != hp:
-            return cand
+        if not cand.is_file() or cand == hp:
+            continue
+        # (x.raw and x.RAW are one file on a case-insensitive file system)
+        if any(os.path.samefile(cand, f) for f in found):
+            continue
+        found.append(cand)
+    return found
+
+
+def find_data_file(header_path: str | Path, interleave: str | None = None) -> Path:
+    """The data file of an ENVI header: the one file with its stem and a known extension.
+
+    Raises
+    ------
+    FormatError
+        None found, or several (an ENVI header does not name its data file, so which
+        one is meant cannot be told: open the data file itself, e.g.
+        ``read_envi("x.img")``, or remove the stale one).
+    """
+    hp = Path(header_path)
+    found = data_file_candidates(hp, interleave)
+    if len(found) == 1:
+        return found[0]
+    if found:
+        raise FormatError(
+            f"several files could be this header's data ({', '.join(f.name for f in found)}); "
+            "open the data file itself, or remove the stale one", hp)
+    stem = hp.with_suffix("")
+    tried = [stem.name + e for e in DATA_EXTENSIONS]
     raise FormatError(f"data file not found (tried {', '.join(tried[:8])}, …)", hp)
 
 
@@ -224,7 +252,10 @@ def read_envi_header(path: str | Path) -> EnviHeader:
     if _has_frame_offsets(h):
         raise FormatError("ENVI frame offsets are not supported", hp)
     dtype = dtype.newbyteorder("<" if bo == 0 else ">")
-    data_path = find_data_file(hp, inter)
+    given = Path(path)
+    # a data file the caller named is the one read (several may share the header's stem)
+    data_path = (given if given.suffix.lower() != ".hdr" and given.is_file()
+                 else find_data_file(hp, inter))
     expected = offset + lines * samples * bands * dtype.itemsize
     actual = data_path.stat().st_size
     if actual != expected:
@@ -266,7 +297,9 @@ def _float_list(val: Any, key: str, n: int, hp: Path) -> np.ndarray:
 
 _UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nm": 1.0, "micrometers": 1e3,
                "micrometer": 1e3, "microns": 1e3, "micron": 1e3, "um": 1e3, "µm": 1e3,
-               "millimeters": 1e6, "mm": 1e6}
+               "millimeters": 1e6, "millimeter": 1e6, "mm": 1e6, "centimeters": 1e7,
+               "centimeter": 1e7, "cm": 1e7, "meters": 1e9, "meter": 1e9, "m": 1e9,
+               "angstroms": 0.1, "angstrom": 0.1, "å": 0.1}
 
 
 _START_TIME_RE = re.compile(r"^(?:(UTC)\s*TIME\s*:)?\s*(\d{1,2}:\d{2}(?::\d{2}(?:\.\d+)?)?)$",
@@ -303,8 +336,10 @@ def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
             warnings.warn(f"{hp}: wavelength units {h['wavelength units']!r}; "
                           "assuming nanometres", stacklevel=3)
         else:
-            raise FormatError(f"wavelength units {h['wavelength units']!r} are not "
-                              "a length (nanometers/micrometers)", hp)
+            raise FormatError(f"wavelength units {h['wavelength units']!r} are not a "
+                              "length mehs converts (Nanometers, Micrometers, Millimeters, "
+                              "Centimeters, Meters, Angstroms); wavenumbers and "
+                              "frequencies are refused", hp)
     try:
         wl = validate_wavelengths(wl * scale, nb, hp)
     except InputError as exc:

@@ -148,9 +148,10 @@ def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
     offset = 0
     for a, b in ranges:
         chunk = np.asarray(take(a, b))
-        _check_cast(chunk, dt)
         if round_:
+            # rounded first: 65535.3 stores as 65535, -0.3 as 0 ("round to nearest, must fit")
             chunk = np.rint(chunk)
+        _check_cast(chunk, dt)
         chunk = chunk.astype(file_dt, order="C", copy=False)
         chunk.tofile(fh)
         fh.flush()
@@ -221,6 +222,20 @@ def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
         for p in (hp, dp):
             if p.exists():
                 raise InputError("refusing to overwrite an existing file", p)
+    # An ENVI header does not name its data file: another file with the header's stem and a
+    # data extension would make the new pair ambiguous to every reader (mehs refuses it,
+    # SPy and ENVI pick by their own order). The old header's own data file is replaced
+    # with it; any other is refused before anything is written.
+    from mehs.io.envi import data_file_candidates
+
+    old_data = None
+    others = [f for f in data_file_candidates(hp, inter) if not (dp.exists() and
+                                                                 os.path.samefile(f, dp))]
+    if others and hp.is_file() and len(others) == 1:
+        old_data = others.pop()
+    if others:
+        raise InputError(f"{', '.join(f.name for f in others)} would also read as this "
+                         f"header's data; remove it or write with its extension", hp)
     from spectral.io.envi import write_envi_header
 
     try:
@@ -231,6 +246,8 @@ def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
                 os.fsync(fh.fileno())
             if hp.exists():
                 hp.unlink()  # old header must not describe the new data, even briefly
+            if old_data is not None:
+                old_data.unlink(missing_ok=True)   # the replaced pair's data (another name)
     except InputError as exc:
         raise InputError(exc.problem, exc.path or dp) from None
     with atomic_path(hp, overwrite=overwrite) as tmp:

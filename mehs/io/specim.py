@@ -357,7 +357,8 @@ def write_specim_folder(path: str | Path, capture: SpecimCapture, *,
     overwrite
         If false (default), refuse (InputError) when ``path`` exists and is not
         empty — raw captures are never overwritten. If true, files of the same
-        names are replaced one by one (each atomically).
+        names are replaced one by one (each atomically), and the old capture's
+        references and reflectance that the new one lacks are removed.
     """
     dest = Path(path)
     cid = str(capture.capture_id)
@@ -401,6 +402,16 @@ def _write_contents(root: Path, cap: SpecimCapture, cid: str, *, overwrite: bool
     if not isinstance(cap.raw, SpectralCube):
         raise InputError("a capture needs a raw SpectralCube", root)
     cube("raw", f"capture/{cid}", cap.raw, np.uint16, ".raw")
+    if overwrite:
+        # a reference or result the new capture lacks must not survive from the old one:
+        # the reader finds them by their standard names, manifest or not
+        stale = [f"capture/{prefix}{cid}" for kind, prefix in REFERENCE_PREFIXES.items()
+                 if getattr(cap, kind) is None]
+        if cap.reflectance is None:
+            stale.append(f"results/REFLECTANCE_{cid}")
+        for rel in stale:
+            for ext in (".hdr", ".raw", ".dat", ".png"):      # the header first
+                (root / f"{rel}{ext}").unlink(missing_ok=True)
     for kind, prefix in REFERENCE_PREFIXES.items():
         ref = getattr(cap, kind)
         if ref is not None:
