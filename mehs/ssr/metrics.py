@@ -21,7 +21,9 @@ RMSE
 PSNR
     ``10·log10(peak² / MSE)`` with **peak = the maximum of the ground truth over
     the valid pixels of that image** by default (HDR data has no fixed range);
-    pass ``peak=1`` for the NTIRE/MST++ convention on [0, 1] data. The MSE is
+    pass ``peak=1`` for the NTIRE/MST++ peak on [0, 1] data (MST++'s ``Loss_PSNR`` also
+    clamps both images to [0, 1] first; mehs scores the prediction as given, so a
+    prediction outside [0, 1] scores lower here than there). The MSE is
     floored at ``peak²·10⁻¹²`` so identical images give 120 dB, not inf.
 
 A metric with no usable element returns ``None`` (never NaN); the summaries
