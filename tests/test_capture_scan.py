@@ -129,3 +129,19 @@ def test_missing_aravis_names_the_install_steps(monkeypatch, tmp_path):
     assert "apt-get install" in aravis.aravis_available()
     assert issubclass(aravis.AravisUnavailable, DeviceError)
     assert aravis.is_genicam_url("genicam://X") and not aravis.is_genicam_url("socket://h:1")
+
+
+def test_stage_speed_settings_are_in_zabers_unit():
+    """``set maxspeed`` counts 1/1.6384 microsteps/s (Zaber's default 153600 is 93750
+    microsteps/s); the simulated stage moves at that speed, so a scan that sent
+    microsteps/s as the setting would run at 61 % of its plan."""
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simdevice import SimWorld
+    from mehs.capture.zaber import speed_from_setting, speed_setting
+
+    assert speed_setting(93750) == 153600 and speed_from_setting(153600) == 93750
+    w = SimWorld(make_scene(lines=8, samples=4), SensorModel(), speed=20000)
+    assert w.maxspeed == speed_setting(20000)
+    w.start_move(2000)
+    assert w._move[3] == pytest.approx(0.1, rel=1e-4)          # 2000 microsteps at 20000/s

@@ -24,6 +24,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from mehs.capture.zaber import speed_setting
 from mehs.errors import DeviceError, DeviceTimeout
 
 #: The stage covers one line pitch in ``oversample`` frame periods.
@@ -206,7 +207,8 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
     p_to = int(start_position) + (int(lines) - 1) * int(pitch) + run_up
     stage.move_abs(p_from)
     old_speed = _stage_speed(stage)
-    stage.query(f"set maxspeed {speed}")
+    # (the setting is in Zaber's speed unit, not microsteps/s)
+    stage.query(f"set maxspeed {speed_setting(speed)}")
     positions: list[tuple[float, int]] = []
     lost0 = getattr(camera, "lost_buffers", 0)
     source = camera.stream(rate) if hasattr(camera, "stream") else _SerialStream(camera)

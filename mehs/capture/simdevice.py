@@ -35,7 +35,7 @@ from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
 from mehs.capture.simulate import (WHITE_TILE_LINES, motion_phase, white_tile_first_line,
                                    world_radiance_line)
-from mehs.capture.zaber import format_reply, lrc
+from mehs.capture.zaber import format_reply, lrc, speed_from_setting, speed_setting
 from mehs.capture.simserver import DeviceServer, PtyServer
 from mehs.errors import InputError
 
@@ -123,7 +123,7 @@ class SimWorld:
         self._move: tuple[float, float, float, float] | None = None  # from, to, t0, duration
         self._stall_at: float | None = None
         self.flags: set[str] = set()
-        self.maxspeed = int(self.speed)
+        self.maxspeed = speed_setting(self.speed)    # the device's unit, as a real stage's
         # camera
         self.t_ms = 10.0
         self.shutter_open = True
@@ -158,7 +158,7 @@ class SimWorld:
 
     def start_move(self, target: float, *, stall: bool = False) -> None:
         self._update()
-        dur = abs(target - self.pos) / max(self.maxspeed, 1)
+        dur = abs(target - self.pos) / speed_from_setting(max(self.maxspeed, 1))
         self._move = (self.pos, float(target), time.monotonic(), dur)
         self._stall_at = 0.5 if stall else None
 
@@ -205,7 +205,7 @@ class SimWorld:
 
 
 # ---------------------------------------------------------------- protocol handlers
-_CMD_RE = re.compile(r"^/(?P<dev>\d+)?(?: (?P<axis>\d+))?(?: (?P<id>\d{2}))?(?: (?P<cmd>[^:]*?))?"
+_CMD_RE = re.compile(r"^/(?P<dev>\d+)?(?: (?P<axis>\d+))?(?: (?P<id>\d{1,2}))?(?: (?P<cmd>[^:]*?))?"
                      r"(?::(?P<cc>[0-9A-Fa-f]{2}))?$")
 
 

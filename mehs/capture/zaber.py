@@ -44,6 +44,21 @@ from typing import Any, Callable
 from mehs.capture.transport import Channel, PartialReply, SerialDriver
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
+#: Zaber's speed settings (``maxspeed``, ``move vel``) count in 1/1.6384 microsteps/s:
+#: a setting of 1.6384 is one microstep per second (Zaber, "A-Series speed conversion";
+#: the default maxspeed 153600 is 93750 microsteps/s).
+SPEED_UNITS_PER_MICROSTEP_S = 1.6384
+
+
+def speed_setting(microsteps_per_s: float) -> int:
+    """The ``set maxspeed`` value for a speed in microsteps/s (at least 1)."""
+    return max(1, int(round(float(microsteps_per_s) * SPEED_UNITS_PER_MICROSTEP_S)))
+
+
+def speed_from_setting(value: float) -> float:
+    """Microsteps/s of a ``maxspeed`` value."""
+    return float(value) / SPEED_UNITS_PER_MICROSTEP_S
+
 _REPLY_RE = re.compile(
     r"^@(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{2}) )?(?P<reply>OK|RJ) "
     r"(?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2}) (?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
