@@ -332,3 +332,31 @@ def test_gige_vision_fault_spec_parsing():
     for bad in ("camera:unplug@0", "camera:unplug@3/0ms", "camera:unplug@3/4", "camera:melt@3/4ms"):
         with pytest.raises(InputError, match="bad"):
             split_faults(bad)
+
+
+def test_a_lost_home_is_repeated_until_the_reference_is_set():
+    """A ``home`` lost on the way in leaves an unreferenced stage IDLE at 0 with ``WR``: that
+    is not "homed" (it was taken for done). Home is safe to repeat, so it is sent again, and
+    the stage counts as homed once ``WR`` is gone."""
+    port = ExpectedPort([
+        (b"/1 1 home\n", None),                                  # lost: no reply
+        (b"/1 1\n", b"@01 1 OK IDLE WR 0\r\n"),
+        (b"/1 1 get pos\n", b"@01 1 OK IDLE WR 0\r\n"),
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE WR 01 WR\r\n"),
+        (b"/1 1 home\n", b"@01 1 OK BUSY WR 0\r\n"),             # sent again
+        (b"/1 1\n", b"@01 1 OK IDLE -- 0\r\n"),
+        (b"/1 1 get pos\n", b"@01 1 OK IDLE -- 0\r\n"),
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),
+    ])
+    stage = ZaberStage(port, retry_delay_s=0)
+    stage.home()
+    port.assert_done()
+    # a home that ends with WR still set is a fault, not success
+    port = ExpectedPort([
+        (b"/1 1 home\n", b"@01 1 OK BUSY WR 0\r\n"),
+        (b"/1 1\n", b"@01 1 OK IDLE WR 0\r\n"),
+        (b"/1 1 get pos\n", b"@01 1 OK IDLE WR 0\r\n"),
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE WR 01 WR\r\n"),
+    ])
+    with pytest.raises(StageFault, match="WR"):
+        ZaberStage(port, retry_delay_s=0).home()

@@ -326,7 +326,10 @@ class ZaberStage(SerialDriver):
                 if st["status"] == "BUSY":
                     r = self.last_reply
                     break  # it received the command and is moving; wait for it below
-                if target is not None and st["position"] == target:
+                # (a lost home is done only once WR, "no reference position", is gone:
+                # an unhomed stage may rest at 0 too; Zaber lists home as safe to repeat)
+                homed = command != "home" or "WR" not in st["warnings"]
+                if target is not None and st["position"] == target and homed:
                     return self._finish(target, wait, moved=False)
                 if target is None or issues >= self.retries:
                     raise DeviceError(f"{command!r} may not have been executed and cannot be "
@@ -342,8 +345,11 @@ class ZaberStage(SerialDriver):
             self.wait_idle(target=target)
 
     def home(self, *, wait: bool = True) -> None:
-        """Home the axis (clears ``WR``)."""
+        """Home the axis (clears ``WR``); with ``wait``, a ``WR`` left after it is a fault."""
         self._motion("home", 0, wait)
+        if wait and "WR" in self.warnings():
+            raise StageFault("homing ended without a reference position (WR still set)",
+                             self.name)
 
     def move_abs(self, position: int, *, wait: bool = True) -> None:
         """Move to ``position`` (microsteps); waits until IDLE there when ``wait``."""
