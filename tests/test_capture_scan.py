@@ -145,3 +145,22 @@ def test_stage_speed_settings_are_in_zabers_unit():
     assert w.maxspeed == speed_setting(20000)
     w.start_move(2000)
     assert w._move[3] == pytest.approx(0.1, rel=1e-4)          # 2000 microsteps at 20000/s
+
+
+def test_genicam_wavelengths_take_offset_y_in_binned_rows():
+    """SFNC: binning shrinks the image first, then OffsetY selects rows of the binned image;
+    the calibration polynomial counts full-resolution rows (binning 2, OffsetY 10 = row 20)."""
+    from mehs.capture.genicam import GenicamCamera
+
+    feats = {"Width": 8, "Height": 4, "BinningVertical": 2, "OffsetY": 10,
+             "WavelengthCoefficientA": 1e-4, "WavelengthCoefficientB": 1.35,
+             "WavelengthCoefficientC": 400.0}
+    cam = GenicamCamera.__new__(GenicamCamera)
+    cam._calibration = None
+    cam._has = lambda f: f in feats
+    cam._int = lambda f: int(feats[f])
+    cam._float = lambda f: float(feats[f])
+    coeffs = (feats["WavelengthCoefficientA"], feats["WavelengthCoefficientB"],
+              feats["WavelengthCoefficientC"])
+    np.testing.assert_allclose(cam.wavelengths(),
+                               np.round(polynomial_wavelengths(coeffs, 4, binning=2, offset=20), 3))

@@ -236,8 +236,11 @@ class GenicamCamera:
             raise DeviceError("the camera has no wavelength calibration features "
                               f"({', '.join(names)}); give the vendor calibration with --wavelengths FILE",
                               self.name)
-        off = self._int("OffsetY") if self._has("OffsetY") else 0
-        wl = polynomial_wavelengths([self._float(f) for f in names], bands, self.binning(), off)
+        # SFNC: binning shrinks the image first, then OffsetY picks the region inside the
+        # binned image; the polynomial is in full-resolution sensor rows
+        binning = self.binning()
+        off = (self._int("OffsetY") if self._has("OffsetY") else 0) * binning
+        wl = polynomial_wavelengths([self._float(f) for f in names], bands, binning, off)
         return np.round(wl, 3)
 
     def fwhm(self) -> np.ndarray:
