@@ -240,3 +240,42 @@ def test_the_merge_runs_the_radiance_only_kernel_without_the_statistic(monkeypat
         with pytest.raises(RuntimeError, match=f"consistency={want}"):
             fuse_mod.fuse_bracket(br, response="linear", ghosts=ghosts)
     assert warmed == [True, False]
+
+
+def test_a_bit_depth_that_contradicts_the_curve_is_refused():
+    """12-bit raws with a 16-bit curve merged with 0.98·65535 as saturation and clipped
+    samples as valid (a 3000 DN/ms pixel came out 533): now an InputError; without
+    ``bit_depth`` the curve's depth is used."""
+    from mehs.errors import InputError
+    from mehs.synthesis.merge import merge_bracket
+
+    stack, t, darks = _stress_bracket(0, 3)
+    with pytest.raises(InputError, match="16-bit"):
+        merge_bracket(stack, t, darks=darks, bit_depth=12, response=ResponseCurve.linear(16))
+    a = merge_bracket(stack, t, darks=darks, response=ResponseCurve.linear(12))
+    b = merge_bracket(stack, t, darks=darks, bit_depth=12)
+    np.testing.assert_array_equal(np.asarray(a.radiance), np.asarray(b.radiance))
+
+
+def test_float_raws_through_a_raw_level_curve_round_to_the_nearest_level():
+    """Dark subtracted after linearisation (a curve recovered on raw levels): a float raw
+    DN is the nearest level, not the one below (truncation biased the radiance by −0.9 %,
+    −2 % at low signal); with the curve ``ln z`` the merge equals the linear one to the
+    rounding."""
+    from mehs.synthesis.fuse import _lineariser
+    from mehs.synthesis.merge import merge_bracket
+
+    rng = np.random.default_rng(0)
+    E = np.exp(rng.uniform(np.log(2), np.log(100), (16, 16, 4)))
+    t = np.array([1.0, 4.0, 16.0])
+    dark = np.full((16, 4), 40.0, np.float32)
+    stack = [(E * tt + 40.0).astype(np.float32) for tt in t]
+    g = np.log(np.maximum(np.arange(4096.0), 0.5))
+    curve = ResponseCurve(g, 12, method="debevec1997", parameters={"levels": "raw"})
+    r = merge_bracket(stack, t, response=curve, darks=[dark] * 3, consistency=False)
+    assert r.info["dark_mode"] == "linear"
+    rel = np.asarray(r.radiance) / E - 1
+    assert abs(rel.mean()) < 2e-3
+    lin = _lineariser(curve, "linear", 12, [True] * 3)
+    np.testing.assert_allclose(lin(np.array([[52.7, 52.2]]), np.array([[40.0, 40.0]]), 0),
+                               [[13.0, 12.0]], rtol=1e-12)

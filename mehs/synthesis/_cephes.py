@@ -28,6 +28,11 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
+from mehs.synthesis._numba_cache import drop_stale_kernel_caches
+
+# the bottom of the kernel modules' imports: runs before any of their cached code loads
+drop_stale_kernel_caches()
+
 _LOG2E = np.float32(1.44269504088896341)
 _LN2_HI = np.float32(0.693359375)
 _LN2_LO = np.float32(-2.12194440e-4)

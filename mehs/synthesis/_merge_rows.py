@@ -173,7 +173,9 @@ def _select_row(zs, l, a, cb, darks, s, times, avar, linear, dark_after, elut, L
             if dark_after:
                 zs_ = min(int(s), L - 1)
                 for i in range(ns):
-                    zi = min(int(zr[i]), L - 1)
+                    # (rounded, as the other dark mode does: a float raw DN of 52.7 is
+                    # level 53, not 52)
+                    zi = min(max(int(np.rint(np.float32(zr[i]))), 0), L - 1)
                     lj[i] = zi
                     yj[i] = elut[cb, zi] - dr[i]
                     ysat[i] = elut[cb, zs_] - dr[i]

@@ -41,3 +41,65 @@ def notice_compiling(what: str, where: str = "the mehs cache") -> bool:
 
 
 _told = False
+
+
+#: The kernel modules whose numba functions inline each other's (``inline="always"``, and
+#: LLVM-inlined helpers): numba's cache checks only the source file of the function it
+#: compiled, so an edit to ``_merge_rows.py`` alone left ``_merge_kernels``' cached
+#: machine code in use — the old arithmetic, silently (an editable install after a
+#: ``git pull``). :func:`drop_stale_kernel_caches` keys them on all their sources.
+KERNEL_MODULES = ("_cephes", "_merge_rows", "_merge_kernels", "_merge_fused",
+                  "_merge_fused_weighted", "_ptc_kernels")
+_STAMP = "mehs-kernel-sources.sha256"
+_checked = False
+
+
+def drop_stale_kernel_caches() -> None:
+    """Remove numba's cached kernels of :data:`KERNEL_MODULES` when any of their sources
+    changed since they were cached (once per process; before any of them loads)."""
+    global _checked
+    if _checked:
+        return
+    _checked = True
+    import hashlib
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    try:
+        h = hashlib.sha256()
+        for m in KERNEL_MODULES:
+            h.update((here / f"{m}.py").read_bytes())
+        digest = h.hexdigest()
+        from numba.core.caching import CacheImpl
+    except (OSError, ImportError):
+        return
+
+    def _probe():
+        pass
+
+    dirs = set()
+    for m in KERNEL_MODULES:
+        for cls in CacheImpl._locator_classes:      # numba's own order: the first one it uses
+            try:
+                loc = cls.from_function(_probe, str(here / f"{m}.py"))
+            except Exception:                       # noqa: BLE001 - a locator numba would skip
+                loc = None
+            if loc is not None:
+                dirs.add(Path(loc.get_cache_path()))
+                break
+    for d in dirs:
+        stamp = d / _STAMP
+        try:
+            if stamp.read_text().strip() == digest:
+                continue
+        except OSError:
+            pass
+        try:
+            for f in d.iterdir():
+                if f.suffix in (".nbi", ".nbc") and f.name.split(".")[0] in KERNEL_MODULES:
+                    f.unlink(missing_ok=True)
+            tmp = d / f".{_STAMP}.{os.getpid()}"
+            tmp.write_text(digest + "\n")
+            os.replace(tmp, stamp)
+        except OSError:
+            continue

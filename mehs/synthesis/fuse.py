@@ -97,8 +97,13 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
         darks = bracket.darks
         if not curve.is_linear and all(d is not None for d in darks):
             # the dark's growth in linearised DN (through the curve, as the merge does)
-            e = np.exp(curve.table()[0])
-            darks = [np.interp(d, np.arange(e.size), e) for d in darks]
+            # (each band through its own curve when the curves are per band)
+            e = np.exp(curve.table())
+            lv = np.arange(e.shape[-1])
+            darks = [np.interp(d, lv, e[0]) if e.shape[0] == 1 else
+                     np.stack([np.interp(np.asarray(d)[..., b], lv, e[b])
+                               for b in range(np.asarray(d).shape[-1])], axis=-1)
+                     for d in darks]
         dc = dark_current_from_darks(darks, bracket.times_ms)
         model, diag = estimate_noise_PTC(probe, lin, dark_current=dc, linear=curve.is_linear,
                                          key="linear" if curve.is_linear else None)
@@ -337,7 +342,8 @@ def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int,
     e = np.exp(curve.table())
 
     def lut(z):
-        zi = np.clip(z, 0, L - 1).astype(np.intp)
+        # rounded to the nearest level, as the merge kernel does (not truncated)
+        zi = np.rint(np.clip(z, 0, L - 1)).astype(np.intp)
         return e[0][zi] if curve.shared else e[np.arange(zi.shape[-1]), zi]
 
     def interp(zf):

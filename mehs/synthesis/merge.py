@@ -171,7 +171,7 @@ def _numba_kernel(kind: str | None, code: int):
 
 def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                   method: str = "poisson", response: ResponseCurve | None = None,
-                  darks: Sequence[np.ndarray | None] | None = None, bit_depth: int = 12,
+                  darks: Sequence[np.ndarray | None] | None = None, bit_depth: int | None = None,
                   saturation: float | np.ndarray | None = None,
                   noise: NoiseModel | tuple[float, float] | None = None,
                   noise_floor: float | None = None, weighting: str = "hat",
@@ -194,6 +194,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         A :class:`ResponseCurve`; None or a linear curve means a linear sensor.
     darks
         Per exposure ``(samples, bands)`` dark levels (or None = 0).
+    bit_depth
+        The raws' bit depth; default the response curve's, else 12. One that differs
+        from the curve's raises :class:`InputError`.
     saturation
         Raw DN at or above which a sample is saturated: scalar or per band
         ``(bands,)``; default ``0.98·(2**bit_depth − 1)``.
@@ -250,12 +253,17 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     order = np.argsort(t, kind="stable")
     arrays = [arrays[i] for i in order]
     t = t[order]
+    if bit_depth is None:
+        bit_depth = response.bit_depth if response is not None else 12
+    elif response is not None and response.bit_depth != int(bit_depth):
+        # (the curve's depth used to win silently: 12-bit data merged through a 16-bit
+        # curve took 0.98·65535 as saturation, and clipped samples as valid)
+        raise InputError(f"the response curve is for {response.bit_depth}-bit data but "
+                         f"bit_depth={bit_depth} was given", source)
     L = 1 << int(bit_depth)
     if response is None:
         response = ResponseCurve.linear(bit_depth)
-    if response.bit_depth != bit_depth:
-        bit_depth = response.bit_depth
-        L = response.levels
+    L = response.levels
     linear = response.is_linear
     glut = response.table(None if response.shared else nb).astype(np.float32)
     if not response.shared and glut.shape[0] != nb:
