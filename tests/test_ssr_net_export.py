@@ -65,6 +65,8 @@ def test_torch_luminance_restoration_equals_the_evaluation_function():
     with torch.no_grad():
         S = net(x)
         S[0, :, 0, 0] = 0.0  # a zero shape takes the guarded (flat) path in both
+        S[0, :, 1, 1] *= 1e-9 / float(net.xyz_sum(S)[0, 0, 1, 1])  # dim but valid: kept in both
+        S[0, :, 2, 2] = -1.0  # X+Y+Z < 0: flat in both
         ours = net.restore_luminance(S, x)[0].permute(1, 2, 0).numpy()
     theirs = restore_luminance(S[0].permute(1, 2, 0).numpy(), rgb, WAVELENGTHS_31)
     np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-6 * np.abs(theirs).max())
@@ -101,3 +103,22 @@ def test_model_rejects_bad_input(tmp_path):
     bad[1, 1, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         model(bad)
+
+
+def test_train_network_uses_the_architectures_recipe_by_default(monkeypatch, tmp_path):
+    """The library call trains AWAN at its paper's learning-rate range, as the CLI does (it
+    used the default recipe, 10× AWAN's rate)."""
+    from mehs.ssr.net import train as T
+
+    asked = []
+    real = T.TrainConfig.for_arch.__func__
+
+    def spy(cls, arch, **kw):
+        asked.append(arch)
+        raise KeyboardInterrupt      # enough: the recipe was chosen from the architecture
+
+    monkeypatch.setattr(T.TrainConfig, "for_arch", classmethod(spy))
+    with pytest.raises(KeyboardInterrupt):
+        T.train_network([], tmp_path / "run", net_config=NetConfig(arch="awan"), progress=False)
+    assert asked == ["awan"]
+    assert real(T.TrainConfig, "awan").lr_max < T.TrainConfig().lr_max

@@ -238,10 +238,14 @@ class SSRNetwork(nn.Module):
         carrying the input's ``X+Y+Z``)."""
         have = self.xyz_sum(S)
         target = self.rgb_xyz_sum(rgb)
-        good = have > XYZ_SUM_EPS
+        # the numpy guard exactly: X+Y+Z > 0 (not > 1e-8: a dim but valid shape kept its
+        # form there and went flat here, 46° apart), and a finite result
+        good = (have > 0) & torch.isfinite(have)
         factor = target / torch.where(good, have, torch.ones_like(have))
+        out = S * factor
+        good = good & torch.isfinite(out).all(dim=1, keepdim=True)
         flat = (target / self.xyz_sum_weights.sum()).expand_as(S)
-        return torch.where(good, S * factor, flat)
+        return torch.where(good, out, flat)
 
     def spectra(self, rgb: torch.Tensor) -> torch.Tensor:
         """Full conversion linear RGB ``(N, 3, H, W)`` → spectra ``(N, L, H, W)``."""

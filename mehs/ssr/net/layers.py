@@ -62,7 +62,7 @@ class DenseLayer(nn.Sequential):
         if attention:
             layers.append(ChannelAttention(growth, reduction))
         if dropout > 0:
-            layers.append(nn.Dropout2d(dropout))
+            layers.append(nn.Dropout(dropout))
         super().__init__(*layers)
 
 
@@ -125,7 +125,7 @@ class TransitionDown(nn.Sequential):
         layers = [nn.BatchNorm2d(channels), nn.ReLU(inplace=True),
                   nn.Conv2d(channels, channels, kernel_size=1, bias=False)]
         if dropout > 0:
-            layers.append(nn.Dropout2d(dropout))
+            layers.append(nn.Dropout(dropout))
         super().__init__(*layers, nn.MaxPool2d(2))
 
 

@@ -291,7 +291,8 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
     """
     out_dir = check_output_dir(out_dir)
     net_config = net_config or NetConfig()
-    tc = train_config or TrainConfig()
+    # (the architecture's recipe, as the CLI uses: AWAN trains at its paper's 2e-4 range)
+    tc = train_config or TrainConfig.for_arch(net_config.arch)
     last = out_dir / "last.pt"
     state = None
     if last.exists():
