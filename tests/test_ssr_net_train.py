@@ -134,3 +134,25 @@ def test_augmentation_keeps_pairs_aligned():
     x, y, m = sample_batch(pairs, 3, 4, np.random.default_rng(1))
     assert x.shape == (3, 3, 4, 4) and y.shape == (3, 6, 4, 4) and m.shape == (3, 1, 4, 4)
     assert m.dtype == torch.bool
+
+
+def test_mrae_loss_is_ntires_and_selectable():
+    """``TrainConfig(loss="mrae")``: |ŷ − y| / y over valid elements with y > 0 (NTIRE's MRAE,
+    MST++'s training loss), computed here against numpy; unknown names are refused."""
+    from mehs.ssr.net.base import masked_mrae
+
+    rng = np.random.default_rng(0)
+    y = rng.uniform(0.1, 1, (2, 31, 5, 4)).astype(np.float32)
+    y[0, 3, 1, 1] = 0.0                                   # excluded, not a division by 0
+    p = y + rng.normal(0, 0.05, y.shape).astype(np.float32)
+    valid = np.ones((2, 1, 5, 4), bool)
+    valid[1, 0, 2, :] = False
+    got = float(masked_mrae(torch.from_numpy(p), torch.from_numpy(y), torch.from_numpy(valid)))
+    m = np.broadcast_to(valid, y.shape) & (y > 0)
+    assert got == pytest.approx(float(np.mean(np.abs(p - y)[m] / y[m])), rel=1e-5)
+    assert TrainConfig(loss="mrae").loss == "mrae"
+    with pytest.raises(InputError, match="loss"):
+        TrainConfig(loss="l1")
+    net = build_network(NetConfig.from_dict(dict(variant="hdrssr", **TINY)))
+    with pytest.raises(InputError, match="unknown loss"):
+        net.loss(torch.zeros(1, 31, 4, 4), torch.ones(1, 31, 4, 4), kind="huber")

@@ -61,6 +61,9 @@ def configure(parser):
                         help="η_max (default 0.002; AWAN 0.0002 as in the paper)")
     parser.add_argument("--lr-min", type=float, default=None,
                         help="η_min (default 0.0001; AWAN 0.00001 as in the paper)")
+    parser.add_argument("--loss", choices=("mse", "mrae"), default="mse",
+                        help="training loss: mse (default; the paper's end-to-end loss) or "
+                             "mrae (NTIRE / MST++'s); recorded in the checkpoint")
     parser.add_argument("--t0", type=int, default=20, help="warm-restart period T0 in epochs (default 20)")
     parser.add_argument("--no-onnx", dest="onnx", action="store_false",
                         help="do not export OUT/model.onnx at the end")
@@ -167,7 +170,7 @@ def run(args):
     lr = {k: v for k, v in (("lr_max", args.lr_max), ("lr_min", args.lr_min)) if v is not None}
     tc = TrainConfig.for_arch(args.arch, epochs=args.epochs, batch=args.batch, patch=args.patch,
                               patches_per_image=args.patches_per_image, T0=args.t0,
-                              seed=args.seed, device=args.device, **lr)
+                              seed=args.seed, device=args.device, loss=args.loss, **lr)
     lr_max, lr_min = tc.lr_max, tc.lr_min
     print(f"training {args.arch} ({args.preset}, {args.mode}) on {len(pairs)} scene(s)"
           f"{f', validating on {len(val)}' if val else ''} ({args.input.upper()}-RGB, "

@@ -168,6 +168,19 @@ def masked_mse(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) ->
     return ((pred - target) ** 2 * w).sum() / torch.clamp(n, min=1.0)
 
 
+def masked_mrae(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean relative absolute error ``|ŷ − y| / y`` over valid elements with ``y > 0``
+    (NTIRE's MRAE, MST++'s ``Loss_MRAE``, without its division by a zero target)."""
+    pos = (target > 0) & valid
+    w = pos.to(pred.dtype)
+    rel = (pred - target).abs() / torch.where(pos, target, torch.ones_like(target))
+    return (rel * w).sum() / torch.clamp(w.sum(), min=1.0)
+
+
+#: Training losses by name (``TrainConfig.loss``).
+LOSSES = {"mse": masked_mse, "mrae": masked_mrae}
+
+
 class SSRNetwork(nn.Module):
     """Base of every zoo network. Subclasses build their layers in ``__init__`` (after
     calling ``super().__init__(config)``) and implement :meth:`body`
@@ -265,12 +278,16 @@ class SSRNetwork(nn.Module):
         return hs / torch.where(ok, s, torch.ones_like(s)), ok
 
     def loss(self, pred: torch.Tensor, hs: torch.Tensor,
-             valid: torch.Tensor | None = None) -> torch.Tensor:
-        """MSE of the learning mode over valid pixels (``valid`` ``(N, 1, H, W)`` bool)."""
+             valid: torch.Tensor | None = None, kind: str = "mse") -> torch.Tensor:
+        """The learning mode's loss over valid pixels (``valid`` ``(N, 1, H, W)`` bool):
+        ``kind`` ``"mse"`` (default; the paper's end-to-end loss, §4.1) or ``"mrae"``
+        (NTIRE / MST++'s training loss)."""
+        if kind not in LOSSES:
+            raise InputError(f"unknown loss {kind!r}; use one of {', '.join(LOSSES)}")
         target, ok = self.target(hs)
         if valid is not None:
             ok = ok & valid
-        return masked_mse(pred, target, ok)
+        return LOSSES[kind](pred, target, ok)
 
 
 def count_parameters(module: nn.Module) -> int:
