@@ -279,3 +279,35 @@ def test_float_raws_through_a_raw_level_curve_round_to_the_nearest_level():
     lin = _lineariser(curve, "linear", 12, [True] * 3)
     np.testing.assert_allclose(lin(np.array([[52.7, 52.2]]), np.array([[40.0, 40.0]]), 0),
                                [[13.0, 12.0]], rtol=1e-12)
+
+
+def test_per_band_curves_convert_each_bands_darks_for_the_noise_model():
+    """With per-band curves the noise model's dark current came from band 0's curve for
+    every band: swapping two bands' curves (identical darks in both) moved it 5 → 20 DN/ms.
+    Each band's darks now go through its own curve, so the swap changes nothing."""
+    import warnings
+
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import estimate_noise
+
+    wl = SPECIM_IQ_WAVELENGTHS[[60, 61]]
+    sc = make_scene("colorchecker", lines=48, samples=48, wavelengths=wl, source_ratio=0, seed=1)
+    sen = SensorModel(response="gamma", seed=2, radiance_to_e_per_ms=1600.0,
+                      dark_current_e_per_ms=20.0)
+    sim = simulate_bracket(sc, sen, [4.0, 16.0, 64.0], seed=3)
+    dk = [np.repeat(d[:, :1], 2, axis=1) for d in sim.darks]
+    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], dk, [None] * 3, sim.times_ms, wl,
+                 bit_depth=12)
+    g = sen.true_log_inverse_response(np.arange(4096))
+    sat = np.full(2, 0.98 * 4095, np.float32)
+    dcs = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for G in (np.stack([g, g + np.log(4)]), np.stack([g + np.log(4), g])):
+            c = ResponseCurve(G, 12, method="debevec1997", parameters={"levels": "raw"})
+            dcs.append(estimate_noise(br, c, sat)[0].dark_current)
+    assert dcs[0] == pytest.approx(dcs[1], rel=1e-6)
