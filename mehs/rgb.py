@@ -77,9 +77,8 @@ def cmfs_matrix(wavelengths: np.ndarray) -> np.ndarray:
     wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
     cmf = _cmfs_at(tuple(wl.tolist()))
     dw = band_widths(wl)
-    if dw is None:
-        return cmf / cmf[:, 1].sum()
-    cmf = cmf * dw[:, None]
+    if dw is not None:
+        cmf = cmf * dw[:, None]
     return cmf / cmf[:, 1].sum()
 
 

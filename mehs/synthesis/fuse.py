@@ -97,12 +97,8 @@ def estimate_noise(bracket: Bracket, curve: ResponseCurve, saturation: np.ndarra
         darks = bracket.darks
         if not curve.is_linear and all(d is not None for d in darks):
             # the dark's growth in linearised DN (through the curve, as the merge does)
-            # (each band through its own curve when the curves are per band)
             e = np.exp(curve.table())
-            lv = np.arange(e.shape[-1])
-            darks = [np.interp(d, lv, e[0]) if e.shape[0] == 1 else
-                     np.stack([np.interp(np.asarray(d)[..., b], lv, e[b])
-                               for b in range(np.asarray(d).shape[-1])], axis=-1)
+            darks = [_exp_curve_at(e, curve.shared, np.asarray(d, dtype=np.float64))
                      for d in darks]
         dc = dark_current_from_darks(darks, bracket.times_ms)
         model, diag = estimate_noise_PTC(probe, lin, dark_current=dc, linear=curve.is_linear,
@@ -334,32 +330,39 @@ def _lineariser(curve: ResponseCurve, dark_mode: str, bit_depth: int,
     """The merge's own raw → dark-subtracted linear DN mapping, for numpy arrays (n, bands).
 
     ``has_dark[j]`` False: exposure ``j`` has no dark reference, so nothing is
-    subtracted after linearisation (as :func:`merge_bracket` does).
+    subtracted after linearisation (as :func:`merge_bracket` does). Levels are clamped
+    to the curve's table, whose size is ``2**bit_depth`` (the callers' brackets are
+    checked against their curve).
     """
-    L = 1 << bit_depth
     if curve.is_linear:
         return lambda raw, dark, j: raw - dark
     e = np.exp(curve.table())
 
     def lut(z):
-        # rounded to the nearest level, as the merge kernel does (not truncated)
-        zi = np.rint(np.clip(z, 0, L - 1)).astype(np.intp)
-        return e[0][zi] if curve.shared else e[np.arange(zi.shape[-1]), zi]
-
-    def interp(zf):
-        zf = np.clip(zf, 0, L - 1)
-        z0 = np.floor(zf).astype(np.intp)
-        z1 = np.minimum(z0 + 1, L - 1)
-        fr = zf - z0
-        return (1 - fr) * lut(z0) + fr * lut(z1)
+        return _exp_curve_at(e, curve.shared, np.rint(z))
 
     if dark_mode == "linear":
         def lin(raw, dark, j):
             if has_dark is not None and not has_dark[j]:
                 return lut(raw)
-            return lut(raw) - interp(np.broadcast_to(dark, raw.shape))
+            return lut(raw) - _exp_curve_at(e, curve.shared, np.broadcast_to(dark, raw.shape))
         return lin
-    return lambda raw, dark, j: lut(np.rint(raw - dark))
+    return lambda raw, dark, j: lut(raw - dark)
+
+
+def _exp_curve_at(e: np.ndarray, shared: bool, zf: np.ndarray) -> np.ndarray:
+    """``exp g`` (the table ``e``, ``(1 or bands, levels)``) at levels ``zf`` ``(..., bands)``,
+    interpolated between integer levels and clamped to the table: each band through its
+    own curve unless ``shared``."""
+    L = e.shape[-1]
+    zf = np.clip(zf, 0, L - 1)
+    z0 = np.floor(zf).astype(np.intp)
+    z1 = np.minimum(z0 + 1, L - 1)
+    fr = zf - z0
+    if shared:
+        return (1 - fr) * e[0][z0] + fr * e[0][z1]
+    b = np.arange(zf.shape[-1])
+    return (1 - fr) * e[b, z0] + fr * e[b, z1]
 
 
 def dynamic_range_stops(mean_radiance: np.ndarray, mask: np.ndarray, *,

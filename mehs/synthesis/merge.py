@@ -260,7 +260,6 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         # curve took 0.98·65535 as saturation, and clipped samples as valid)
         raise InputError(f"the response curve is for {response.bit_depth}-bit data but "
                          f"bit_depth={bit_depth} was given", source)
-    L = 1 << int(bit_depth)
     if response is None:
         response = ResponseCurve.linear(bit_depth)
     L = response.levels
