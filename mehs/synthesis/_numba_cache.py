@@ -77,16 +77,17 @@ def drop_stale_kernel_caches() -> None:
     def _probe():
         pass
 
-    dirs = set()
-    for m in KERNEL_MODULES:
-        for cls in CacheImpl._locator_classes:      # numba's own order: the first one it uses
-            try:
-                loc = cls.from_function(_probe, str(here / f"{m}.py"))
-            except Exception:                       # noqa: BLE001 - a locator numba would skip
-                loc = None
-            if loc is not None:
-                dirs.add(Path(loc.get_cache_path()))
-                break
+    # the modules share one folder, so numba's first usable locator (its own order) gives
+    # one cache folder for all of them
+    dirs = []
+    for cls in CacheImpl._locator_classes:
+        try:
+            loc = cls.from_function(_probe, str(here / f"{KERNEL_MODULES[0]}.py"))
+        except Exception:                           # noqa: BLE001 - a locator numba would skip
+            loc = None
+        if loc is not None:
+            dirs.append(Path(loc.get_cache_path()))
+            break
     for d in dirs:
         stamp = d / _STAMP
         try:
