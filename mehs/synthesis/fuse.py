@@ -179,8 +179,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         raise InputError(f"ghosts must be 'detect', 'deghost' or 'off', got {ghosts!r}")
     # these are used only on some paths (response recovery, ghosts found); checked
     # here so a bad value is an error on every run, not a silently ignored option
-    if not (np.isfinite(smoothness) and smoothness >= 0):
-        raise InputError(f"smoothness (lambda) must be finite and >= 0, got {smoothness}")
+    if not (np.isfinite(smoothness) and smoothness > 0):
+        # levels no sample weights are tied to the curve by the smoothness term alone
+        raise InputError(f"smoothness (lambda) must be finite and > 0, got {smoothness}")
     if samples is not None and int(samples) < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
     n_exp = len(bracket.times_ms)

@@ -138,19 +138,24 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
         n_per = n
     cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw",
                                     pool=pool)
-    if shared:
-        Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
-    else:
-        if npix < n:
-            raise InputError(f"{npix} pixels are too few for a per-band {bracket.bit_depth}-bit "
-                             f"curve from {P} exposures ({n} needed); use a shared curve",
-                             bracket.source)
-        Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth, return_index=True)
     lt = np.log(bracket.times_ms)
     params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
-    curve = plain = recover_response_Debevec1997(
-        Z, lt, bit_depth=bracket.bit_depth, smoothness=smoothness,
-        weighting=weighting, shared=shared, wavelengths=bracket.wavelengths, parameters=params)
+    try:
+        if shared:
+            Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
+        else:
+            if npix < n:
+                raise InputError(f"{npix} pixels are too few for a per-band "
+                                 f"{bracket.bit_depth}-bit curve from {P} exposures ({n} "
+                                 "needed); use a shared curve", bracket.source)
+            Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth,
+                                   return_index=True)
+        curve = plain = recover_response_Debevec1997(
+            Z, lt, bit_depth=bracket.bit_depth, smoothness=smoothness,
+            weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
+            parameters=params)
+    except InputError as exc:   # array-level checks know no file: name the bracket
+        raise exc.with_path(bracket.source) from None
     has_dark = levels == "raw" and all(d is not None for d in bracket.darks)
     if has_dark and offset_iterations > 0:
         from mehs.synthesis.response import weighting_table
@@ -299,7 +304,11 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
                          "linearity_resolution": lin["resolution"],
                          "linearity_probe_pixels": lin["probe_pixels"],
                          "linearity_test": "exposure ratio per signal level (p75)"}
-            inconclusive = lin["resolution"] > LINEARITY_TOLERANCE
+            # a coarse test still settles a deviation beyond the tolerance by more than its
+            # resolution (the deviation has its noise removed already): that sensor is not
+            # linear, and the linear curve must not be the fallback for it
+            inconclusive = (lin["resolution"] > LINEARITY_TOLERANCE
+                            and dev <= LINEARITY_TOLERANCE + lin["resolution"])
             auto_info["linearity_conclusive"] = not inconclusive
             if dev < LINEARITY_TOLERANCE and not inconclusive:
                 curve = ResponseCurve.linear(bracket.bit_depth)

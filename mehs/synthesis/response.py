@@ -407,8 +407,10 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
     if Z.min() < 0 or Z.max() > L - 1:
         raise InputError(f"levels must lie in 0..{L - 1} for {bit_depth} bits "
                          f"(got {Z.min()}..{Z.max()})")
-    if not (np.isfinite(smoothness) and smoothness >= 0):
-        raise InputError(f"smoothness must be finite and ≥ 0, got {smoothness}")
+    if not (np.isfinite(smoothness) and smoothness > 0):
+        # the end levels (weight 0) and any level no sample hits are tied to the
+        # curve only by the smoothness term: at λ = 0 they are left at the gauge value
+        raise InputError(f"smoothness (lambda) must be finite and > 0, got {smoothness}")
     w = weighting_table(weighting, L)
     if shared and C > 1:
         Zc = Z.transpose(1, 0, 2).reshape(P, N * C).T[None]      # (1, N·C, P)
@@ -419,12 +421,17 @@ def recover_response_Debevec1997(samples: np.ndarray, log_times: np.ndarray, *,
     Zc = np.ascontiguousarray(Zc, dtype=np.int32)
     LTc = (np.ascontiguousarray(LTc, dtype=np.float64) if per_sample
            else np.ascontiguousarray(lt.reshape(1, 1, P)))
-    n_eff = Zc.shape[1]
-    if n_eff * (P - 1) <= L:
-        raise InputError(f"{n_eff} pixels × ({P}−1) exposures do not exceed the {L} levels")
     wz = w[Zc]
+    # only pixels with two weighted exposures tie levels together; the others
+    # (saturated or black in all but one exposure, unfilled sample slots) add no
+    # equation, and with none at all the solve returns a flat curve
+    n_eff = int(((wz > 0).sum(axis=2) >= 2).sum(axis=1).min())
+    if n_eff * (P - 1) <= L:
+        raise InputError(f"{n_eff} pixels with two or more usable (unsaturated, above-black) "
+                         f"exposures × ({P}−1) do not exceed the {L} levels of a "
+                         f"{bit_depth}-bit curve; the bracket cannot determine the response")
     mid = L // 2
-    rho = n_eff * P / L
+    rho = Zc.shape[1] * P / L
     lam_eff = smoothness * rho * ((L - 1) / 255.0) ** 4
     lam = np.full(Zc.shape[0], lam_eff)
     # A floor on the smoothness weights keeps the end levels tied to the curve.
