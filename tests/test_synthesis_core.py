@@ -227,6 +227,13 @@ def test_static_scene_has_few_ghosts():
     assert res.summary["ghost_fraction"] < 0.01
 
 
+def test_ghost_fraction_is_unknown_when_not_tested():
+    # 0.0 would read as "tested, none moved" and pass a dataset's ghost rule
+    sim, br, sen = _simulated("linear", lines=16, samples=16, bands=4, motion=True)
+    res = fuse_bracket(br, response="linear", ghosts="off")
+    assert res.summary["ghost_fraction"] is None
+
+
 # --------------------------------------------------------- bracket / fuse I/O
 def test_scene_folder_roundtrip_fuse_and_write(tmp_path):
     from mehs.capture.simulate import write_simulated_scene

@@ -95,10 +95,11 @@ def run(args) -> int:
         print(f"mehs: warning: {w}", file=sys.stderr)
     s = res.summary
     dr = s["dynamic_range_stops"]
+    gf = s["ghost_fraction"]
     print(f"{files['radiance']}: {' × '.join(map(str, s['shape']))} float32, "
           f"{s['method']} merge, response {s['response']['method']}, "
           f"DR {'n/a' if dr is None else f'{dr:.1f}'} stops, "
           f"saturated {100 * s['saturated_fraction']:.2f} %, ghosts "
-          f"{100 * s['ghost_fraction']:.2f} %, unit {s['units']}")
+          f"{'not tested' if gf is None else f'{100 * gf:.2f} %'}, unit {s['units']}")
     print(json.dumps({k: str(v) for k, v in files.items()}))
     return 0

@@ -117,13 +117,14 @@ def input_files(source: SceneSource) -> dict[str, Path]:
                 if f.is_file():
                     out[f"{k}/{f.relative_to(folder).as_posix()}"] = f
     else:
+        from mehs.io.envi import data_file_candidates
+
         hdr = Path(source.paths[0])
         out[hdr.name] = hdr
-        for ext in (".dat", ".raw", ".img", ".bil", ".bsq", ".bip", ""):
-            data = hdr.with_suffix(ext)
-            if data != hdr and data.is_file():
-                out[data.name] = data
-                break
+        # every file the reader could take as the data (x.bin, x.RAW, ...): one it reads
+        # but the key leaves out would let a changed cube reuse its stale outputs
+        for data in data_file_candidates(hdr):
+            out[data.name] = data
     return out
 
 
@@ -288,6 +289,9 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
             run["stage_seconds"][f"fuse.{name.removesuffix('_s')}"] = round(float(sec), 4)
     mask = np.asarray(result.mask, dtype=np.uint8)
     quality = _quality(summary, mask)
+    if p.ghosts == "off":
+        # nothing was tested: a moving scene's ghosts are unknown, not zero (0.0 passed the rule)
+        quality["ghost_fraction"] = None
     quality["n_exposures"] = len(summary["exposure_ratios"])
     chk = (summary.get("response") or {}).get("check") or {}
     quality["response_undetermined"] = bool(summary.get("response_undetermined", False))

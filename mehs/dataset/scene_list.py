@@ -102,13 +102,14 @@ def collect_hs_cubes(inputs: list[str | Path]) -> list[SceneSource]:
     for item in inputs:
         p = Path(item)
         if p.is_dir():
-            hdrs = sorted(p.glob("*.hdr"))
+            # any case, as the ENVI reader takes them: glob("*.hdr") left x.HDR cubes out
+            hdrs = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() == ".hdr")
             if not hdrs:
                 raise InputError("folder holds no ENVI .hdr files", p)
         elif p.is_file():
-            hdrs = [p if p.suffix.lower() == ".hdr" else p.with_suffix(".hdr")]
-            if not hdrs[0].is_file():
-                raise InputError("ENVI header (.hdr) not found for this file", p)
+            from mehs.io.envi import find_header_file
+
+            hdrs = [find_header_file(p)]  # x.hdr, x.HDR or <data name>.hdr
         else:
             raise InputError("no such file or folder", p)
         out.extend(SceneSource(check_scene_id(h.stem, h), "hs", (str(h.resolve()),))

@@ -248,7 +248,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     mask = mr.mask
     radiance = mr.radiance
     ghost_score = None
-    ghost_fraction = 0.0
+    ghost_fraction = None      # not tested (ghosts="off"): unknown, not zero
     ref_used = None
     gres = None
     if ghost_statistic:
@@ -408,7 +408,7 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
                                     "non-ghost pixels with signal; saturated pixels count "
                                     "with their lower bound",
         "saturated_fraction": float(np.mean(mask & 1 > 0)),
-        "ghost_fraction": float(ghost_fraction),
+        "ghost_fraction": None if ghost_fraction is None else float(ghost_fraction),
         "invalid_fraction": float(np.mean(mask & 4 > 0)),
         "valid_fraction": float(np.mean(mask == 0)),
         "ghosts": ghosts,
