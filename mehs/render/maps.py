@@ -128,6 +128,25 @@ def load_envmap(path: str | Path) -> EnvMap:
                   {"units": str(cube.units)})
 
 
+#: the CIE 1931 tables' range (nm): bands beyond it have no colour
+CMF_RANGE_NM = (360.0, 830.0)
+
+
+def _colorimetric_bands(envmap: EnvMap) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance ``(H, W, B')`` and wavelengths ``(B',)`` of the map's bands inside the CIE
+    tables: a camera's NIR bands (a Specim IQ cube runs to 1004 nm) have no colour, and
+    the colour tables refuse them."""
+    wl = envmap.wavelengths
+    sel = np.flatnonzero((wl >= CMF_RANGE_NM[0]) & (wl <= CMF_RANGE_NM[1]))
+    if sel.size < 2:
+        raise InputError(f"the map's bands ({wl[0]:g}–{wl[-1]:g} nm) leave fewer than 2 inside "
+                         f"the visible {CMF_RANGE_NM[0]:g}–{CMF_RANGE_NM[1]:g} nm",
+                         envmap.source or None)
+    if sel.size == wl.size:
+        return envmap.radiance, wl
+    return envmap.radiance[..., sel[0]:sel[-1] + 1], wl[sel[0]:sel[-1] + 1]
+
+
 def map_weights(envmap: EnvMap) -> np.ndarray:
     """Importance-sampling weights ``(H, W)`` of the sampling cells (luminance × sin θ).
 
@@ -140,7 +159,7 @@ def map_weights(envmap: EnvMap) -> np.ndarray:
     from scipy.ndimage import maximum_filter
 
     h, w = envmap.shape
-    y = spectra_to_XYZ(envmap.radiance, envmap.wavelengths)[..., 1].astype(np.float64)
+    y = spectra_to_XYZ(*_colorimetric_bands(envmap))[..., 1].astype(np.float64)
     y = np.clip(y, 0.0, None)
     emits = envmap.radiance.max(axis=-1) > 0
     mean = float(y.mean()) if y.size else 0.0
@@ -156,7 +175,7 @@ def map_weights(envmap: EnvMap) -> np.ndarray:
 
 def rgb_map(envmap: EnvMap) -> np.ndarray:
     """The pseudo-HDR linear-sRGB image ``(H, W, 3)`` float32 of an HS map (paper §3.1)."""
-    return hdr_rgb(envmap.radiance, envmap.wavelengths).astype(np.float32)
+    return hdr_rgb(*_colorimetric_bands(envmap)).astype(np.float32)
 
 
 def ssr_map(rgb: np.ndarray, model, name: str | None = None) -> EnvMap:

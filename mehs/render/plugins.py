@@ -120,6 +120,8 @@ def plugin_classes(variant: str):
 
         # -- scene ---------------------------------------------------------
         def set_scene(self, scene):
+            # Mitsuba does not call this on Python emitters: whoever loads the scene must
+            # (mehs.render.scene does), or shadow rays end 2 units out
             bbox = scene.bbox()
             if bbox.valid():
                 sph = bbox.bounding_sphere()

@@ -197,6 +197,12 @@ def _render(mi, scene_dict: dict, s: RenderSettings, progress=None) -> np.ndarra
 
     mi.set_log_level(mi.LogLevel.Error)
     scene = mi.load_dict(scene_dict)
+    # Mitsuba does not call set_scene on Python emitters: HSEnvmap would keep its unit
+    # bounding sphere and end shadow rays 2 units out, so occluders farther away (a mesh
+    # larger than that) would let the map's light leak through
+    for emitter in scene.emitters():
+        if type(emitter).__module__ == "mehs.render.plugins":
+            emitter.set_scene(scene)
     # Python plugins run under the GIL: render threads would only queue for it (one
     # thread is ~1.7x faster than two on the HS path), so use one when the scene has any
     python_plugins = any(type(v).__module__ == "mehs.render.plugins" for v in _objects(scene_dict))
