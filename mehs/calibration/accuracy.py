@@ -3,9 +3,10 @@
 Independent truth: ``truth/radiance.hdr`` written by the simulator beside each
 capture (the radiance the simulated camera looked at, W·sr⁻¹·m⁻²·nm⁻¹). The
 truth is resampled to the dataset's 31 bands by the same band operation as the
-data (Gaussian 10 nm), the dataset's half-float power-of-two scale is undone,
-and pixels masked by the builder (saturated in every exposure, ghosts, no
-signal) are left out — they hold bounds, not estimates.
+data (the build's ``resample`` / ``fwhm``, default Gaussian 10 nm), the
+dataset's half-float power-of-two scale is undone, and pixels masked by the
+builder (saturated in every exposure, ghosts, no signal) are left out — they
+hold bounds, not estimates.
 """
 
 from __future__ import annotations
@@ -77,7 +78,11 @@ def dataset_truth_accuracy(dataset: str | Path, captures: dict[str, str | Path])
         doc = json.loads((Path(cap) / "scene.json").read_text(encoding="utf-8"))
         if not doc.get("truth"):
             continue
-        truth = to_31_bands(read_envi(Path(cap) / doc["truth"]))
+        # the truth goes through the band operation the scene was built with
+        params = (s.get("provenance") or {}).get("params") or {}
+        truth = to_31_bands(read_envi(Path(cap) / doc["truth"]),
+                            method=params.get("resample") or "gaussian",
+                            fwhm=float(params.get("fwhm") or 10.0))
         hs = np.asarray(read_envi(dataset / files["hs"]).data, dtype=np.float64)
         hs /= float((s.get("quality") or {}).get("radiance_scale") or 1.0)
         mask = cv2.imread(str(dataset / files["mask"]), cv2.IMREAD_UNCHANGED) if files.get("mask") else None

@@ -58,8 +58,9 @@ def make_target_scene(kind: str, lines: int, samples: int, wavelengths=None, *,
                 "unit": "W sr-1 m-2 nm-1", "certificate": "truth/source_radiance.csv"}
     elif kind == "panel":
         name = illuminant or "D65"
-        # ρ·E/π, the simulator's illuminants being normalised so that E/π = S
-        spec = 0.99 * illuminant_spectrum(name, wl)
+        # ρ·E/π, the simulator's illuminants being normalised so that E/π = S; averaged
+        # over each band's response as the scenes' lights are (a lamp's lines!)
+        spec = 0.99 * illuminant_spectrum(name, wl, fw)
         info = {"kind": "panel", "illuminant": name, "reflectance": 0.99,
                 "unit": "W sr-1 m-2 nm-1"}
     else:

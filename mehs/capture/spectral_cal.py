@@ -30,6 +30,10 @@ def read_calibration(path: str | Path) -> np.ndarray:
     if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
         raise InputError(f"wavelength calibration must be ≥ 2 increasing finite numbers (nm), "
                          f"got {wl.size} values", p)
+    if wl[0] < 100 or wl[-1] > 20000:
+        # µm (0.4-1.0) would pass the checks above and be written into every capture header
+        raise InputError(f"wavelength calibration {wl[0]:g}..{wl[-1]:g} does not look like nm "
+                         "(micrometres? multiply by 1000)", p)
     return wl
 
 
