@@ -118,8 +118,18 @@ class SensorModel:
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"sensor {name} must be >= 0, got {v}")
+        if float(self.bit_depth) != int(self.bit_depth):
+            raise InputError(f"bit_depth must be a whole number of bits, got {self.bit_depth}")
         if isinstance(self.response, str) and self.response not in RESPONSES:
             raise InputError(f"unknown response {self.response!r}; use one of {RESPONSES} or a callable")
+        # a response must rise monotonically: gamma <= 0 (or NaN) turns every pixel to 4095
+        # (or 0), an S-curve amplitude >= 1 folds back; both pass through expose() unnoticed
+        g = float(self.gamma)
+        if self.response == "gamma" and not (np.isfinite(g) and g > 0):
+            raise InputError(f"sensor gamma must be finite and > 0, got {g}")
+        a = float(self.s_amplitude)
+        if self.response == "s-curve" and not (np.isfinite(a) and 0 <= a < 1):
+            raise InputError(f"sensor s_amplitude must be in [0, 1) for a monotonic S-curve, got {a}")
         if self.qe is not None:
             self.qe = np.asarray(self.qe, dtype=np.float64).reshape(-1)
             if not np.all(np.isfinite(self.qe) & (self.qe >= 0)):
@@ -142,7 +152,10 @@ class SensorModel:
         if wavelengths is None:
             from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS
             wavelengths = SPECIM_IQ_WAVELENGTHS
-        wavelengths = np.asarray(wavelengths)
+        from mehs.capture.scene import check_wavelengths
+
+        # the silicon QE is a function of λ in nm: band centres in µm would give QE ≈ 0
+        wavelengths = check_wavelengths(np.asarray(wavelengths).reshape(-1), "sensor")
         if wavelengths.size != bands:
             raise InputError(f"sensor has {wavelengths.size} wavelengths for {bands} bands; "
                              "pass qe= or wavelengths= to the SensorModel")

@@ -24,7 +24,9 @@ Spectra outside the tables
 --------------------------
 As :mod:`mehs.capture.scene`: reflectances hold their last tabulated value beyond the table,
 measured lights the mean of their last 20 nm; D series and Planck are evaluated (D series
-beyond 830 nm: the tail mean). Everything is clipped at 0 (reflectance also at 1).
+beyond 830 nm: the tail mean). Everything is clipped at 0 (reflectance also at 1). Lights are
+averaged over each band's Gaussian response when a ``fwhm`` is given (see
+:mod:`mehs.capture.scene`, "Band values").
 
 References
 ----------
@@ -221,24 +223,31 @@ def draw_light(family: str, pool: str, rng: np.random.Generator) -> Light:
 
 
 @lru_cache(maxsize=64)
-def _light_spd(light: Light, wl_key: tuple[float, ...]) -> np.ndarray:
+def _light_spd(light: Light, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None = None) -> np.ndarray:
     import colour
+
+    from mehs.capture.scene import srf_average
 
     wl = np.asarray(wl_key)
     if light.kelvin is not None and light.family == "tungsten":
-        lam = wl * 1e-9
-        spd = lam ** -5 / np.expm1(1.4388e-2 / (lam * light.kelvin))
-    elif light.kelvin is not None:
-        xy = colour.temperature.CCT_to_xy_CIE_D(light.kelvin * 1.4388 / 1.4380)
-        sd = colour.sd_CIE_illuminant_D_series(xy)
-        spd = _table(np.asarray(sd.wavelengths), np.asarray(sd.values, np.float64), wl, 20.0)
+        def fn(x):
+            lam = x * 1e-9
+            return lam ** -5 / np.expm1(1.4388e-2 / (lam * light.kelvin))
     else:
-        src = colour.SDS_ILLUMINANTS if light.name in colour.SDS_ILLUMINANTS else colour.SDS_LIGHT_SOURCES
-        if light.name not in src:
-            raise InputError(f"colour-science has no light {light.name!r}")
-        sd = src[light.name]
-        spd = _table(np.asarray(sd.wavelengths), np.asarray(sd.values, np.float64), wl, 20.0)
-    spd = np.clip(spd, 0.0, None)
+        if light.kelvin is not None:
+            xy = colour.temperature.CCT_to_xy_CIE_D(light.kelvin * 1.4388 / 1.4380)
+            sd = colour.sd_CIE_illuminant_D_series(xy)
+        else:
+            src = colour.SDS_ILLUMINANTS if light.name in colour.SDS_ILLUMINANTS else colour.SDS_LIGHT_SOURCES
+            if light.name not in src:
+                raise InputError(f"colour-science has no light {light.name!r}")
+            sd = src[light.name]
+        w_src, v_src = np.asarray(sd.wavelengths), np.asarray(sd.values, np.float64)
+
+        def fn(x):
+            return _table(w_src, v_src, x, 20.0)
+    # the camera sees each band's Gaussian response, not the SPD at its centre (lines!)
+    spd = np.clip(srf_average(fn, wl, None if fw_key is None else np.asarray(fw_key)), 0.0, None)
     vis = (wl >= 400) & (wl <= 700)
     norm = spd[vis].mean() if vis.any() else spd.mean()
     if not norm > 0:
@@ -248,6 +257,13 @@ def _light_spd(light: Light, wl_key: tuple[float, ...]) -> np.ndarray:
     return out
 
 
-def light_spectrum(light: Light, wavelengths: np.ndarray) -> np.ndarray:
-    """Relative SPD of ``light`` at ``wavelengths``, mean 1 over 400–700 nm; float64 ``(bands,)``."""
-    return _light_spd(light, tuple(np.asarray(wavelengths, np.float64).tolist()))
+def light_spectrum(light: Light, wavelengths: np.ndarray, fwhm: np.ndarray | float | None = None) -> np.ndarray:
+    """Relative SPD of ``light`` at ``wavelengths``, mean 1 over 400–700 nm; float64 ``(bands,)``.
+
+    With ``fwhm`` (nm) each value is the mean over that band's Gaussian response.
+    """
+    from mehs.capture.scene import band_fwhm
+
+    wl = np.asarray(wavelengths, np.float64).reshape(-1)
+    fw = None if fwhm is None else tuple(band_fwhm(fwhm, wl).tolist())
+    return _light_spd(light, tuple(wl.tolist()), fw)

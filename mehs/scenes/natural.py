@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from mehs.capture.scene import SPECIM_IQ_FWHM, SPECIM_IQ_WAVELENGTHS, Scene
+from mehs.capture.scene import SPECIM_IQ_FWHM, SPECIM_IQ_WAVELENGTHS, Scene, band_fwhm, check_wavelengths
 from mehs.errors import InputError
 from mehs.scenes.layout import make_layout, noise_field
 from mehs.scenes.library import (Light, check_pool, draw_light, light_spectrum, material_library,
@@ -134,13 +134,14 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
         raise InputError(f"source_ratio must be finite, got {source_ratio}")
     if not density > 0:
         raise InputError(f"density must be > 0, got {density}")
-    wl = SPECIM_IQ_WAVELENGTHS.copy() if wavelengths is None else np.asarray(wavelengths, np.float64)
+    wl = SPECIM_IQ_WAVELENGTHS.copy() if wavelengths is None else check_wavelengths(wavelengths)
     if fwhm is None:
         fwhm = SPECIM_IQ_FWHM.copy() if wavelengths is None else np.full(wl.size, 7.0)
+    fwhm = band_fwhm(fwhm, wl)
     rng = np.random.default_rng(seed)
     setting = lighting or LIGHTINGS[int(rng.integers(len(LIGHTINGS)))]
     direct, fill, fill_level = _lights(setting, pool, rng)
-    e_dir, e_fill = light_spectrum(direct, wl), light_spectrum(fill, wl)
+    e_dir, e_fill = light_spectrum(direct, wl, fwhm), light_spectrum(fill, wl, fwhm)
 
     # the direct light comes from above, to one side; low sun = long shadows
     elev = rng.uniform(0.3, 1.1)
@@ -187,7 +188,7 @@ def make_natural_scene(lines: int = 256, samples: int | None = None,
         level = float(rng.uniform(0.05, 0.2) if setting == "daylight" else rng.uniform(0.4, 1.2))
         extra_w.append((level * (0.3 + 0.7 * lay.lambert) /
                          (1 + ((yy - py) ** 2 + (xx - px) ** 2) / d0 ** 2) ** 1.5).astype(np.float32))
-        extra_spd.append(light_spectrum(lamp, wl).astype(np.float32))
+        extra_spd.append(light_spectrum(lamp, wl, fwhm).astype(np.float32))
         locals_.append({"role": "local", "family": lamp.family, "name": lamp.name,
                         "kelvin": lamp.kelvin, "level": level})
     del yy, xx
