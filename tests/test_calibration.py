@@ -176,3 +176,33 @@ def test_panel_under_a_colour_science_illuminant_calibrates_the_covered_bands(ca
     acc = radiance_accuracy(r[..., vis], t[..., vis], mask, absolute=False)
     print(f"relative calibration from the white tile: {acc}")
     assert acc["rel_error_median"] < 0.05
+
+
+def test_calibration_refuses_data_linearised_by_another_curve_or_bit_depth(captures, tmp_path,
+                                                                           capsys):
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.response import ResponseCurve
+
+    sph = captures["sphere"]
+    cal = calibrate_source_absolute(load_bracket(sph), load_spectrum(sph / "truth/source_radiance.csv"))
+    assert cal.response["method"] == "linear" and cal.response["g_sha256"]
+    p = cal.save(tmp_path / "cal.json")
+    # made under the linear curve: the responsivity is wrong for data linearised by a
+    # recovered curve (26-38 % on a gamma sensor), so fuse refuses before writing
+    assert main(["fuse", str(captures["window"]), "--out", str(tmp_path / "f"),
+                 "--response", "debevec", "--calibration", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "linear response" in err and "--response linear" in err
+    assert not (tmp_path / "f" / "radiance.hdr").exists()
+    lin = ResponseCurve.linear(12)
+    cal.check_compatible(cal.wavelengths, SIZE, bit_depth=12, response=lin)   # the same: fine
+    with pytest.raises(MehsError, match="12-bit data, the data are 16-bit"):
+        cal.check_compatible(cal.wavelengths, SIZE, bit_depth=16, response=ResponseCurve.linear(16))
+    # two different recovered curves: a warning naming the calibration's curve
+    bent = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5) ** 1.1), 12, method="debevec1997")
+    other = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5) ** 1.2), 12, method="debevec1997")
+    cal.response = {"method": "debevec1997", "path": "ladder/response.json",
+                    "g_sha256": bent.fingerprint()}
+    cal.check_compatible(cal.wavelengths, SIZE, response=ResponseCurve.load(bent.save(tmp_path / "r.json")))
+    with pytest.warns(UserWarning, match="ladder/response.json"):
+        cal.check_compatible(cal.wavelengths, SIZE, response=other)

@@ -131,8 +131,18 @@ class Calibration:
 
     # ------------------------------------------------------------------ use
     def check_compatible(self, wavelengths: np.ndarray, samples: int, *, camera_id: str | None = None,
-                         binning: Any = None, source: Any = None) -> None:
-        """Refuse data of another camera, band set, width or binning (an :class:`InputError` naming both)."""
+                         binning: Any = None, source: Any = None, bit_depth: int | None = None,
+                         response: Any = None) -> None:
+        """Refuse data of another camera, band set, width, binning or bit depth, or linearised
+        by another kind of response curve (an :class:`InputError` naming both).
+
+        The responsivity is DN/ms *as linearised by the calibration's curve*: under another
+        curve the radiance errs by the two curves' ratio (a gamma sensor calibrated linear
+        and fused with its recovered curve: 26–38 %). A linear against a non-linear curve
+        is refused; two different non-linear curves (``response``, a
+        :class:`~mehs.synthesis.response.ResponseCurve`) give a warning, as two recoveries
+        of one sensor's curve differ a little.
+        """
         wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
         me = f"calibration {self.path}" if self.path else "the calibration"
         if wl.size != self.wavelengths.size:
@@ -151,6 +161,33 @@ class Calibration:
         mb = self.camera.get("binning")
         if mb is not None and binning is not None and list(np.atleast_1d(mb)) != list(np.atleast_1d(binning)):
             raise InputError(f"{me} was made at binning {mb}, the data at {binning}", source)
+        bd = self.camera.get("bit_depth")
+        if bd is not None and bit_depth is not None and int(bd) != int(bit_depth):
+            # Mono12 against an MSB-aligned Mono16 is a factor 16 in every DN
+            raise InputError(f"{me} was made from {bd}-bit data, the data are {bit_depth}-bit",
+                             source)
+        if response is not None and self.response.get("method"):
+            self._check_response(response, me, source)
+
+    def _check_response(self, curve: Any, me: str, source: Any) -> None:
+        import warnings
+
+        rec = self.response
+        was_linear = rec["method"] == "linear"
+        if was_linear != bool(curve.is_linear):
+            made = "a linear response" if was_linear else f"a {rec['method']} response curve"
+            now = "a linear response" if curve.is_linear else f"a {curve.method} response curve"
+            hint = ("--response linear" if was_linear else
+                    f"--response {rec['path']}" if rec.get("path") else "the curve it was made with")
+            raise InputError(f"{me} was made with {made}, the data are linearised with {now}: "
+                             f"the radiance would err by the curves' ratio; fuse with {hint}, "
+                             "or calibrate again with this curve", source)
+        fp = rec.get("g_sha256")
+        if not was_linear and fp and fp != curve.fingerprint():
+            where = f" ({rec['path']})" if rec.get("path") else ""
+            warnings.warn(f"{me} was made with another response curve{where} than the data are "
+                          "linearised with: the radiance errs by the two curves' ratio; reuse "
+                          "the calibration's curve (--response)", stacklevel=4)
 
     @property
     def complete(self) -> bool:
@@ -330,6 +367,7 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
 
         curve = ResponseCurve.load(response)
         resp_info = {"method": curve.method, "path": str(response), "sha256": sha256_file(response)}
+    resp_info["g_sha256"] = curve.fingerprint()
     if region == "white":
         dn, rel = _white_dn_per_ms(bracket, curve, sat)
     else:

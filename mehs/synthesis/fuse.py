@@ -236,7 +236,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
 
         radiometric = calibration
         radiometric.check_compatible(bracket.wavelengths, bracket.shape[1], camera_id=bracket_camera_id(bracket),
-                                     binning=bracket.exposures[0].binning, source=bracket.source)
+                                     binning=bracket.exposures[0].binning, source=bracket.source,
+                                     bit_depth=bracket.bit_depth, response=curve)
         calibration = None
     cal = 1.0 if calibration is None else calibration
     t1 = time.perf_counter()

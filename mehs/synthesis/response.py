@@ -158,6 +158,17 @@ class ResponseCurve:
     def bands(self) -> int | None:
         return None if self.shared else self.g.shape[0]
 
+    def fingerprint(self) -> str:
+        """sha256 of the curve's levels (``g`` to 1e-9, its shape and bit depth): the same
+        curve saved and loaded, or recovered again from the same data, gives the same
+        value. A calibration records it, since radiance is only right under the curve the
+        calibration was made with."""
+        import hashlib
+
+        h = hashlib.sha256(f"{self.bit_depth}:{self.g.shape}:".encode())
+        h.update(np.ascontiguousarray(np.round(self.g, 9), dtype="<f8").tobytes())
+        return h.hexdigest()
+
     def table(self, bands: int | None = None) -> np.ndarray:
         """g as float64 (C, L): C = 1 for a shared curve, else one row per band.
 
