@@ -18,7 +18,10 @@ Smoothness
 ----------
 ``smoothness`` (λ) is made independent of the bit depth and the sample count:
 the penalty is ``λ·ρ·((L−1)/255)⁴·Σ_z [w(z) g''(z)]²`` with ``ρ = N·P/L``
-samples per level, so λ = 10 at 8 bits with ρ ≈ 1 is Debevec's λ = 10. The default λ = 100
+samples per level, so λ = 10 at 8 bits with ρ ≈ 1 is the λ of Debevec & Malik's objective
+(their eq. 3). Their ``gsolve`` code and OpenCV's ``CalibrateDebevec`` multiply the smoothness
+*rows* by λ, so theirs enters squared: OpenCV's ``lambda`` = √λ (λ = 10 here is OpenCV's
+3.16, OpenCV's default 10 is λ = 100 here). The default λ = 100
 was chosen on simulated 12-bit brackets (about half the curve error of λ = 10
 at 4096 samples per band).
 
