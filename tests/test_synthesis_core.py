@@ -353,3 +353,18 @@ def test_auto_response_picks_linear_for_linear_sensor_and_specim_folder_list(tmp
     diff = np.abs(r2.radiance.data - r1.radiance.data)
     assert np.mean(diff <= 0.5 / 8 + 1e-4) > 0.999
     assert np.all(diff <= 0.02 * np.abs(r1.radiance.data) + 0.5 / 8 + 1e-4)
+
+
+def test_per_band_curve_of_other_wavelengths_is_refused(tmp_path):
+    from mehs.errors import InputError
+    from mehs.synthesis.response import ResponseCurve
+
+    sim, br, sen = _simulated("linear", lines=12, samples=12, bands=17)
+    nb = br.wavelengths.size
+    ok = ResponseCurve.linear(12, bands=nb, wavelengths=br.wavelengths)
+    fuse_bracket(br, response=ResponseCurve.load(ok.save(tmp_path / "ok.json")), ghosts="off")
+    # the same band count, centres 3 nm off (another binning offset): each band would be
+    # linearised with a neighbour's curve
+    other = ResponseCurve.linear(12, bands=nb, wavelengths=br.wavelengths + 3.0)
+    with pytest.raises(InputError, match="other wavelengths"):
+        fuse_bracket(br, response=ResponseCurve.load(other.save(tmp_path / "o.json")), ghosts="off")
