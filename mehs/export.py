@@ -110,7 +110,7 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         plane = np.asarray(cube.data[:, :, i], dtype=np.float32)
         paths.append(write_exr_gray(out / name, plane, half=half, header={
             "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
-            "mehsUnits": str(cube.units)}))
+            "mehsUnits": str(cube.units), **_scale_header(cube)}))
     lines = ["# index wavelength_nm file"] + [f"{i} {repr(float(w))} {n}"
                                               for i, (w, n) in enumerate(zip(wl, names))]
     write_text_atomic(out / f"{prefix}_wavelengths.txt", "\n".join(lines) + "\n")
@@ -118,6 +118,7 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         "format": "mehs-per-wavelength-exr/1",
         "pattern": f"{prefix}_%0{width}d.exr",
         "units": str(cube.units),
+        "radiance_scale": radiance_scale(cube),
         "wavelengths_nm": all_wl,
         "fwhm_nm": None if cube.fwhm is None else [float(f) for f in cube.fwhm],
         "files": names,
@@ -127,4 +128,26 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
 
 def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:
     """Write the cube as one multi-channel spectral EXR (Fichet 2021 layout)."""
-    return write_exr_spectral(path, _check_cube(cube, half=half), half=half)
+    return write_exr_spectral(path, _check_cube(cube, half=half), half=half,
+                              header=_scale_header(cube))
+
+
+def radiance_scale(cube: SpectralCube) -> float | None:
+    """The power-of-two factor a dataset cube's values carry (``mehs radiance scale`` in its
+    header: stored = radiance × scale, to fit half floats), or None."""
+    v = (cube.metadata or {}).get("mehs radiance scale")
+    if v in (None, ""):
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise InputError(f"'mehs radiance scale' must be a number, got {v!r}", cube.source) from None
+    if not (np.isfinite(f) and f > 0):
+        raise InputError(f"'mehs radiance scale' must be finite and > 0, got {v!r}", cube.source)
+    return f
+
+
+def _scale_header(cube: SpectralCube) -> dict[str, float]:
+    # without it the exported values are off by the dataset's 2^-k with nothing to say so
+    f = radiance_scale(cube)
+    return {} if f is None else {"mehsRadianceScale": f}

@@ -69,3 +69,20 @@ def test_spectral_exr_reads_back_with_same_wavelengths_and_data(tmp_path, hs_cub
     hdr = read_exr(p).header
     assert hdr["wavelengths"] == WAVELENGTHS_31.tolist()
     assert read_exr(p).channels[:2] == ["S0.400nm", "S0.410nm"]
+
+
+def test_a_dataset_cubes_radiance_scale_travels_with_the_export(tmp_path, hs_cube):
+    from mehs.io.envi import read_envi, write_envi
+
+    scaled = hs_cube.with_data(hs_cube.data * np.float32(0.25),
+                               metadata={"mehs radiance scale": repr(0.25)})
+    write_envi(tmp_path / "hs.hdr", scaled)
+    cube = read_envi(tmp_path / "hs.hdr")           # as `mehs export DATASET/.../hs.hdr` reads it
+    paths = export_per_wavelength(cube, tmp_path / "env")
+    assert read_exr(paths[3]).header["mehsRadianceScale"] == 0.25
+    assert json.loads((tmp_path / "env" / "band_wavelengths.json").read_text())["radiance_scale"] == 0.25
+    p = export_spectral_exr(cube, tmp_path / "s.exr")
+    assert read_exr(p).header["mehsRadianceScale"] == 0.25
+    # a cube without one says so (null), not 1
+    export_per_wavelength(hs_cube, tmp_path / "plain")
+    assert json.loads((tmp_path / "plain" / "band_wavelengths.json").read_text())["radiance_scale"] is None
