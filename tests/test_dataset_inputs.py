@@ -1,4 +1,4 @@
-"""Audit of the dataset builder's outputs against independent references."""
+"""The dataset builder: scene keys, unknown quality figures and the inputs it accepts."""
 
 import numpy as np
 
@@ -64,3 +64,21 @@ def test_from_hs_folder_takes_upper_case_headers(tmp_path):
     # a data file given directly finds its upper-case header too
     data = next(f for f in tmp_path.iterdir() if f.name.startswith("B.") and f.suffix != ".HDR")
     assert [s.scene_id for s in collect_hs_cubes([data])] == ["B"]
+
+
+def test_data_ignore_value_samples_are_masked_not_used_as_radiance(tmp_path):
+    from mehs.preview import read_png
+
+    data = np.full((4, 5, 31), 0.5, np.float32)
+    data[1, 2, 7] = -9999.0          # one dead sample
+    data[3, 4, :] = -9999.0          # a pixel outside the mosaic
+    write_envi(tmp_path / "in" / "c.hdr",
+               SpectralCube(data, WL31, metadata={"data ignore value": "-9999"}), dtype=np.float32)
+    m = build_from_hs([tmp_path / "in" / "c.hdr"], tmp_path / "ds", workers=1, progress=False)
+    sc = m["scenes"][0]
+    mask = read_png(tmp_path / "ds" / sc["files"]["mask"])
+    assert mask[1, 2] & 4 and mask[3, 4] & 4 and not (mask[0, 0] & 4)
+    assert sc["quality"]["invalid_fraction"] == 2 / 20
+    from mehs.io.envi import read_envi
+    hs = np.asarray(read_envi(tmp_path / "ds" / sc["files"]["hs"]).data)
+    assert hs.min() >= 0          # -9999 never reached the resampled cube

@@ -349,6 +349,11 @@ def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]
         cube = read_envi(task.source.paths[0], memmap=True)
         data = np.asarray(cube.data, dtype=np.float32)
         bad = ~np.isfinite(data)
+        ignore = _ignore_value(cube)
+        if ignore is not None:
+            # the ENVI marker of a missing sample (a dead pixel, the border of a
+            # mosaic) is no radiance: counted as data it entered the RGB and the HS
+            bad |= data == np.float32(ignore)
         nonfinite = bad.any(axis=2)
         if bad.any():
             data = np.where(bad, np.float32(0), data)
@@ -359,6 +364,21 @@ def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]
                "ghost_fraction": None}
     _finish_scene(task, cube, mask, tmp, run, quality)
     return quality, {"source_bands": int(cube.bands)}
+
+
+def _ignore_value(cube) -> float | None:
+    """The header's ``data ignore value`` as a number, or None (a NaN marker is caught as
+    non-finite anyway)."""
+    from mehs.errors import FormatError
+
+    v = (cube.metadata or {}).get("data ignore value")
+    if v in (None, ""):
+        return None
+    try:
+        f = float(str(v).strip())
+    except ValueError:
+        raise FormatError(f"'data ignore value' {v!r} is not a number", cube.source) from None
+    return f if f == f else None
 
 
 def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: dict) -> None:
