@@ -90,3 +90,23 @@ def test_report_renders_in_headless_chromium(dataset):
         assert chk.check_report(out)["broken"] == ["report_files/overview.png"]
     finally:
         victim.write_bytes(saved)
+
+
+def test_response_figure_reads_per_band_curves_by_their_level_count(tmp_path):
+    import json
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from mehs.dataset.report import _plot_response
+
+    # an 8-bit camera with 300 bands: more curves than levels
+    g = np.log(np.maximum(np.arange(256.0), 0.5))[None].repeat(300, axis=0)
+    p = tmp_path / "response.json"
+    p.write_text(json.dumps({"levels": 256, "g": g.tolist()}))
+    fig, ax = plt.subplots()
+    _plot_response(ax, p)
+    assert ax.lines and all(len(line.get_xdata()) == 256 for line in ax.lines)
+    plt.close(fig)

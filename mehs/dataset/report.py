@@ -217,10 +217,12 @@ def _plot_response(ax, path: Path | None) -> None:
 
     ax.set_title("response curve g(Z) = ln(E·Δt)")
     g = None
+    levels = None
     if path is not None and path.is_file():
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
             g = _find_curve(data)
+            levels = data.get("levels") if isinstance(data, dict) else None
         except (OSError, ValueError):
             g = None
     if g is None:
@@ -228,8 +230,11 @@ def _plot_response(ax, path: Path | None) -> None:
                 va="center", transform=ax.transAxes)
         return
     g = np.atleast_2d(np.asarray(g, dtype=np.float64))
-    if g.shape[0] > g.shape[1]:
-        g = g.T  # (curves, levels)
+    # (curves, levels); a per-band curve records its level count (more bands than
+    # levels, an 8-bit camera's 300 bands, would fool the shape guess)
+    if (g.shape[0] == levels and g.shape[1] != levels) or (levels is None
+                                                           and g.shape[0] > g.shape[1]):
+        g = g.T
     z = np.arange(g.shape[1])
     idx = np.unique(np.linspace(0, g.shape[0] - 1, min(6, g.shape[0])).round().astype(int))
     for i in idx:
