@@ -121,3 +121,24 @@ def test_wavelength_calibration_in_micrometres_is_refused(tmp_path):
     with pytest.raises(MehsError, match="does not look like nm") as e:
         read_calibration(p)
     assert "wl.txt" in str(e.value)
+
+
+def test_coarse_lamp_certificate_is_interpolated_as_a_smooth_source():
+    """A NIST FEL-style certificate (10-300 nm steps) of a 2856 K lamp: straight lines
+    between its points were 4-5 % under the curve in the NIR bands."""
+    from mehs.calibration.spectra import Spectrum, band_average
+
+    def planck(nm, t=2856.0):
+        lam = nm * 1e-9
+        return lam ** -5 / np.expm1(1.4388e-2 / (lam * t))
+
+    wl = np.array([250, 260, 270, 280, 290, 300, 310, 320, 330, 340, 350, 400, 450, 500, 555,
+                   600, 654.6, 700, 800, 900, 1050, 1150, 1200, 1300, 1540, 1600, 1700, 2000,
+                   2100, 2300, 2400, 2500.0])
+    centres = np.linspace(400.0, 1000.0, 61)
+    got = band_average(Spectrum(wl, planck(wl), "FEL"), centres, 7.0)
+    sig = 7.0 / (2 * np.sqrt(2 * np.log(2)))
+    o = np.linspace(-3, 3, 2001)
+    w = np.exp(-0.5 * o * o)
+    ref = np.array([(planck(c + sig * o) * w).sum() / w.sum() for c in centres])
+    assert np.abs(got / ref - 1).max() < 0.002

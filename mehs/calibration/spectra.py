@@ -165,6 +165,31 @@ def load_spectrum(spec: str | Path, *, what: str = "spectrum") -> Spectrum:
     return Spectrum(wl, vals, str(p), unc)
 
 
+#: a table with steps wider than this (nm) is a smooth source's certificate, not a lamp's lines
+COARSE_STEP_NM = 10.0
+
+
+def _interpolant(wl: np.ndarray, v: np.ndarray):
+    """The spectrum between its tabulated points.
+
+    Finely tabulated spectra (steps ≤ 10 nm: lamps with lines, measured panels) are
+    interpolated linearly, which keeps a line's peak where it is. Calibration
+    certificates of smooth sources are often coarse (NIST FEL lamps: 50–150 nm steps in
+    the NIR), where a straight line under a Planck-like curve is 4–5 % low; those are
+    interpolated as a cubic spline of ``ln L`` (L > 0; the values themselves otherwise),
+    0.04 % from Planck on the same points.
+    """
+    if wl.size < 4 or float(np.max(np.diff(wl))) <= COARSE_STEP_NM:
+        return lambda x: np.interp(x, wl, v)
+    from scipy.interpolate import CubicSpline
+
+    if np.all(v > 0):
+        cs = CubicSpline(wl, np.log(v))
+        return lambda x: np.exp(cs(x))
+    cs = CubicSpline(wl, v)
+    return lambda x: np.maximum(cs(x), 0.0)
+
+
 def band_average(spectrum: Spectrum, centres: np.ndarray, fwhm: np.ndarray | float | None, *,
                  what: str = "spectrum", partial: bool = False) -> np.ndarray:
     """float64 ``(bands,)``: the spectrum seen by Gaussian bands of ``centres`` and ``fwhm`` (nm).
@@ -173,6 +198,8 @@ def band_average(spectrum: Spectrum, centres: np.ndarray, fwhm: np.ndarray | flo
     panel file ending at 780 nm cannot calibrate a 1000 nm band); otherwise an
     :class:`InputError` names the first uncovered band — or, with ``partial``,
     uncovered bands are NaN. Without ``fwhm`` the table is interpolated at the centres.
+    Between its points the table is linear, or a spline of ``ln L`` when coarse
+    (:func:`_interpolant`).
     """
     c = np.asarray(centres, dtype=np.float64).reshape(-1)
     wl, v = spectrum.wavelengths, spectrum.values
@@ -185,8 +212,9 @@ def band_average(spectrum: Spectrum, centres: np.ndarray, fwhm: np.ndarray | flo
                          f"{k + 1} at {c[k]:.2f} nm (±{half[k]:g} nm) — {int(bad.sum())} of "
                          f"{c.size} bands uncovered; give a spectrum over the camera's range, or "
                          "calibrate the covered bands only (mehs calibrate --partial)")
+    interp = _interpolant(wl, v)
     if fw is None:
-        return np.where(bad, np.nan, np.interp(c, wl, v))
+        return np.where(bad, np.nan, interp(c))
     step = min(0.5, float(np.min(np.diff(wl))) / 2)
     out = np.full_like(c, np.nan)
     for i, (ci, fi) in enumerate(zip(c, fw)):
@@ -201,6 +229,6 @@ def band_average(spectrum: Spectrum, centres: np.ndarray, fwhm: np.ndarray | flo
         x = np.union1d(np.linspace(lo, hi, n + 1), wl[(wl > lo) & (wl < hi)])
         w = np.exp(-0.5 * ((x - ci) / sig) ** 2)
         dx = np.diff(x)
-        f = w * np.interp(x, wl, v)
+        f = w * interp(x)
         out[i] = float(np.sum(dx * (f[1:] + f[:-1])) / np.sum(dx * (w[1:] + w[:-1])))
     return out
