@@ -26,7 +26,9 @@ class Bracket:
         Raw DN cubes ``(lines, samples, bands)`` (usually uint16 memmaps).
     darks, white
         Per exposure float32 ``(samples, bands)`` dark / white reference (mean of
-        the reference lines), or None.
+        the reference lines), or None. A white recorded at another integration
+        time or over its own dark (Specim ``WHITEDARKREF``) is given as this
+        exposure would have recorded it over ``darks``.
     times_ms
         float64 ``(P,)`` integration times, ascending.
     wavelengths
@@ -128,6 +130,52 @@ def _ref_mean(ref: SpectralCube | None) -> np.ndarray | None:
     return np.asarray(ref.data, dtype=np.float64).mean(axis=0).astype(np.float32)
 
 
+def _dark_line(cap, folder: Path) -> np.ndarray | None:
+    """``cap``'s dark reference line, refused when recorded at another integration time."""
+    d, t = cap.darkref, cap.raw.integration_time_ms
+    if d is not None and d.integration_time_ms is not None and t is not None \
+            and not np.isclose(d.integration_time_ms, t, rtol=1e-3, atol=0):
+        # dark current grows with time: another time's dark shifts every subtracted DN
+        raise FormatError(f"dark reference recorded at {d.integration_time_ms:g} ms, the capture "
+                          f"at {t:g} ms; a dark must be taken at its exposure's integration "
+                          "time", d.source or folder)
+    return _ref_mean(d)
+
+
+def _white_line(cap, t_ms: float, dark: np.ndarray | None, full_dn: int,
+                folder: Path) -> np.ndarray | None:
+    """``cap``'s white reference line as exposure ``t_ms`` with ``dark`` would have recorded it.
+
+    Users of :attr:`Bracket.white` take ``(white - dark) / t`` per exposure. A
+    pre-set Specim IQ white is recorded before the capture, possibly at another
+    integration time, with its own dark (``WHITEDARKREF``), so its
+    dark-subtracted signal is scaled by ``t_ms / t_white`` onto the capture's
+    dark (a linear sensor, as the IQ's own reflectance ``(S-D)/(W-WD)·t_W/t_S``
+    assumes). Columns saturated in the white stay at ``full_dn`` (saturated).
+    """
+    w = _ref_mean(cap.whiteref)
+    if w is None:
+        return None
+    wd = cap.whitedarkref
+    tw = cap.whiteref.integration_time_ms
+    if wd is not None and wd.integration_time_ms is not None:
+        if tw is None:
+            tw = wd.integration_time_ms
+        elif not np.isclose(wd.integration_time_ms, tw, rtol=1e-3, atol=0):
+            raise FormatError(f"white dark reference recorded at {wd.integration_time_ms:g} ms, "
+                              f"the white reference at {tw:g} ms; it must be the white's own "
+                              "dark", wd.source or folder)
+    if tw is None:
+        tw = t_ms
+    if wd is None and np.isclose(tw, t_ms, rtol=1e-3, atol=0):
+        return w
+    d = np.zeros_like(w) if dark is None else dark.astype(np.float64)
+    w_dark = d if wd is None else _ref_mean(wd).astype(np.float64)
+    out = d + (w.astype(np.float64) - w_dark) * (float(t_ms) / float(tw))
+    out = np.where(w >= 0.98 * full_dn, float(full_dn), out)
+    return out.astype(np.float32)
+
+
 def _guess_bit_depth(cube: SpectralCube, meta: dict) -> int:
     for key in ("bit_depth", "bit depth", "data_bits"):
         v = meta.get(key) or cube.metadata.get(key)
@@ -219,8 +267,10 @@ def _load_bracket(path_or_paths, *, verify: str, bit_depth: int | None,
     meta = {"captures": [str(p) for p in paths],
             "metadata": [c.metadata for c in caps]}
     bd = bit_depth or _guess_bit_depth(caps[0].raw, caps[0].metadata)
-    return Bracket([c.raw for c in caps], [_ref_mean(c.darkref) for c in caps],
-                   [_ref_mean(c.whiteref) for c in caps], np.asarray(times), caps[0].raw.wavelengths,
+    darks = [_dark_line(c, p) for p, c in zip(paths, caps)]
+    whites = [_white_line(c, t, d, (1 << int(bd)) - 1, p)
+              for p, c, t, d in zip(paths, caps, times, darks)]
+    return Bracket([c.raw for c in caps], darks, whites, np.asarray(times), caps[0].raw.wavelengths,
                    bit_depth=bd, source=paths[0], metadata=meta)
 
 
@@ -305,7 +355,7 @@ def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
     from mehs.io.envi import read_envi
     from mehs.io.specim import read_specim_folder
 
-    exps, darks, whites, times = [], [], [], []
+    exps, darks, times, caps = [], [], [], []
     for e in recs:
         folder = root / str(e.get("folder", ""))
         cap = read_specim_folder(folder, preview=False)
@@ -315,15 +365,22 @@ def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
         except (TypeError, ValueError):
             raise FormatError(f"exposure has no usable integration time ({t!r})", folder) from None
         exps.append(cap.raw)
-        darks.append(_ref_mean(cap.darkref))
-        whites.append(_ref_mean(cap.whiteref))
+        darks.append(_dark_line(cap, folder))
+        caps.append((cap, folder))
         times.append(t)
     truth = None
     if doc.get("truth"):
         tp = root / doc["truth"]
         if tp.is_file():
             truth = read_envi(tp)
-    sensor = (doc.get("device") or {}).get("sensor") or {}
-    bd = bit_depth or sensor.get("bit_depth") or _guess_bit_depth(exps[0], {})
+    device = doc.get("device") or {}
+    sensor = device.get("sensor") or {}
+    # a real camera's depth is recorded under device.camera (mehs capture); the guess
+    # from the data says 12 for a 16-bit camera whose first exposure stays below 4096
+    camera = device.get("camera") if isinstance(device.get("camera"), dict) else {}
+    bd = bit_depth or sensor.get("bit_depth") or camera.get("bit_depth") \
+        or _guess_bit_depth(exps[0], {})
+    whites = [_white_line(c, t, d, (1 << int(bd)) - 1, f)
+              for (c, f), t, d in zip(caps, times, darks)]
     return Bracket(exps, darks, whites, np.asarray(times), exps[0].wavelengths,
                    bit_depth=int(bd), source=root, truth=truth, metadata=doc)
