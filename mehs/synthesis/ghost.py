@@ -215,7 +215,8 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
 
     One exposure for the whole region keeps the moving object in one place (no
     double edges). Samples saturated in the reference fall back to the longest
-    shorter exposure that is not saturated; samples below the noise floor keep
+    shorter exposure that is not saturated (saturated in all: the shortest one's
+    lower bound ``y₀/t₀``, as in the merge); samples below the noise floor keep
     the reference value (an unbiased, noisy estimate).
 
     Parameters
@@ -274,5 +275,10 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
                 done |= ok
             if done.all():
                 break
+        if not done.all():
+            # saturated down to the shortest exposure (the loop ended on j = 0): its
+            # lower bound y₀/t₀, as the merge gives — the reference's own saturated
+            # value over its longer time read a lamp band t_ref/t₀ times too dark
+            est[~done] = x[~done]
         radiance[r, c] = (np.maximum(est, 0.0) * calibration).astype(np.float32)
     return ref

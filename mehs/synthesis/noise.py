@@ -98,7 +98,9 @@ def probe_bracket(bracket, saturation: np.ndarray,
     """Read evenly spaced whole lines (contiguous reads of a memmap) of every exposure."""
     nl, ns, nb = bracket.shape
     step = max(1, int(np.ceil(nl * ns / max_pixels)))
-    lines = np.arange(step // 2, nl, step)
+    # at least one line: a scan shorter than half a step (a few lines of a very wide
+    # sensor) started past its end, probed nothing and fell back to the default noise
+    lines = np.arange(min(step // 2, nl - 1), nl, step)
     P = len(bracket.exposures)
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
     dark = np.zeros((P, ns, nb), dtype=np.float32)       # per column: a line's darks

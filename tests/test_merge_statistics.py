@@ -1,0 +1,63 @@
+"""The merge's statistics against independent truth: textbook estimators, the
+simulated sensor's parameters, and the conventions the merge itself documents."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mehs.synthesis.ghost import deghost_from_reference
+from mehs.synthesis.merge import MASK_SATURATED, merge_bracket
+
+
+def test_deghost_keeps_the_shortest_lower_bound_of_a_band_saturated_everywhere():
+    """A lamp band saturated in every exposure is y₀/t₀ in the merge (mask bit 1). The
+    de-ghosting's fall-back ended on the reference's own saturated value over its longer
+    time: with the 8 ms exposure as reference, 508 DN/ms instead of 4063 (t_ref/t₀ = 8×)."""
+    t = np.array([1.0, 8.0, 64.0])
+    stack = []
+    for tj in t:
+        a = np.empty((4, 4, 2), np.uint16)
+        a[..., 0] = 4095                          # the lamp: clipped in every exposure
+        a[..., 1] = np.uint16(32 + 1.0 * tj)      # dark: below the floor at 1 ms
+        stack.append(a)
+    darks = [np.full((4, 2), 32.0, np.float32)] * 3
+    sat = np.full(2, 0.98 * 4095)
+    m = merge_bracket(stack, t, darks=darks, saturation=sat)
+    assert m.mask[0, 0] & MASK_SATURATED
+    assert m.radiance[0, 0, 0] == pytest.approx(4063.0)
+    rad = np.array(m.radiance)
+    ghost = np.zeros((4, 4), bool)
+    ghost[1:3, 1:3] = True
+    ref = deghost_from_reference(rad, ghost, stack, darks, t,
+                                 linearise=lambda raw, dk, j: raw - dk, saturation=sat,
+                                 floor=2.0, calibration=np.ones(2))
+    assert ref == 1                               # most samples above the floor
+    np.testing.assert_allclose(rad[1:3, 1:3, 0], 4063.0)
+    np.testing.assert_allclose(rad[1:3, 1:3, 1], 1.0)
+
+
+def test_a_short_scan_of_a_wide_sensor_still_measures_its_noise():
+    """4 lines × 9000 pixels: the probe's step through the pixels is 9 lines, and its first
+    line (step // 2 = 4) lay past the scan's end — nothing probed, and the noise model fell
+    back to the recorded sensor or the default (gain 1 DN/e⁻ instead of 0.25)."""
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import estimate_noise
+    from mehs.synthesis.noise import probe_bracket
+    from mehs.synthesis.response import ResponseCurve
+
+    wl = SPECIM_IQ_WAVELENGTHS[100:104]
+    sc = make_scene("ramp", lines=4, samples=9000, seed=1, wavelengths=wl)
+    sen = SensorModel(seed=1)
+    sim = simulate_bracket(sc, sen, (1.0, 4.0, 16.0), seed=1, white=False)
+    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], sim.darks, [None] * 3,
+                 sim.times_ms, wl, bit_depth=12)
+    sat = np.full(wl.size, 0.98 * 4095, np.float32)
+    assert probe_bracket(br, sat).raw.shape[1] == 9000
+    model, diag = estimate_noise(br, ResponseCurve.linear(12), sat)
+    assert "fallback" not in diag, diag
+    assert model.gain == pytest.approx(sen.gain_dn_per_e, rel=0.05)
