@@ -61,8 +61,12 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
     if not overwrite and path.exists():
         raise InputError("refusing to overwrite an existing file", path)
     _mkdir(path.parent, path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
-                               dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix,
+                                   dir=path.parent)
+    except OSError as exc:
+        _name_target(exc, path)
+        raise
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -72,10 +76,25 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
         if tmp_path.is_file():
             os.chmod(tmp_path, _FILE_MODE)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(exc, OSError):
+            _name_target(exc, path)
         raise
+
+
+def _name_target(exc: OSError, path: Path) -> None:
+    """Make ``exc`` name ``path`` when it names no file, or only the temporary one.
+
+    A failed write (ENOSPC, EIO) carries no file name, and a failed mkstemp or
+    rename names the hidden ``.<name>.*.part*`` file, which the user never asked
+    for and which is gone when the message is read.
+    """
+    name = (Path(os.fsdecode(exc.filename)).name
+            if isinstance(exc.filename, (str, bytes, os.PathLike)) else None)
+    if name is None or (name.startswith(f".{path.name}.") and ".part" in name):
+        exc.filename, exc.filename2 = str(path), None
 
 
 def write_bytes_atomic(path: str | Path, data: bytes, *, overwrite: bool = True) -> Path:

@@ -67,10 +67,13 @@ def verify_files(root: str | Path, files: Mapping[str, str], sha256: Mapping[str
         with another SHA-256.
     """
     root = Path(root)
-    stats = stats or {}
+    stats = stats if isinstance(stats, Mapping) else {}
     prefix = f"{what}: " if what else ""
     fresh: dict[str, list[int]] = {}
     for name, rel in sorted(files.items()):
+        if not isinstance(rel, str) or not rel:
+            raise FormatError(f"{prefix}'{name}' has no file path in {manifest} (damaged "
+                              "entry); rebuild the scene", root / manifest)
         path = root / rel
         digest = sha256.get(name)
         if not isinstance(digest, str):
@@ -81,6 +84,9 @@ def verify_files(root: str | Path, files: Mapping[str, str], sha256: Mapping[str
         except FileNotFoundError:
             raise FormatError(f"{prefix}{rel} listed in {manifest} is missing", path) from None
         old = stats.get(rel)
+        if not (isinstance(old, (list, tuple)) and len(old) == 2
+                and all(isinstance(v, int) for v in old)):
+            old = None  # a damaged record is no cache: hash the file
         if old is not None and list(old)[0] != now[0]:
             raise FormatError(f"{prefix}{rel} has {now[0]} bytes, {old[0]} when it was "
                               f"written (truncated or altered)", path)
