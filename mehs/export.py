@@ -84,7 +84,9 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     cube
         ``(lines, samples, bands)`` cube; lines become image rows.
     out_dir
-        Folder to write into (created if needed).
+        Folder to write into (created if needed). ``<prefix>_<digits>.exr`` files of
+        an earlier export there that this one does not write are removed once it is
+        written.
     prefix
         File-name prefix (letters, digits, ``_.-``).
     half
@@ -111,6 +113,7 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         paths.append(write_exr_gray(out / name, plane, half=half, header={
             "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
             "mehsUnits": str(cube.units), **_scale_header(cube)}))
+    _remove_stale_bands(out, prefix, names)
     lines = ["# index wavelength_nm file"] + [f"{i} {repr(float(w))} {n}"
                                               for i, (w, n) in enumerate(zip(wl, names))]
     write_text_atomic(out / f"{prefix}_wavelengths.txt", "\n".join(lines) + "\n")
@@ -124,6 +127,16 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         "files": names,
     })
     return paths
+
+
+def _remove_stale_bands(out: Path, prefix: str, names: list[str]) -> None:
+    # an earlier export of more bands (or another padding) into this folder would leave
+    # files a glob or %03d loader takes for this export's, at other wavelengths
+    keep = set(names)
+    pat = re.compile(rf"{re.escape(prefix)}_\d+\.exr")
+    for f in out.iterdir():
+        if f.name not in keep and pat.fullmatch(f.name) and f.is_file():
+            f.unlink()
 
 
 def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:

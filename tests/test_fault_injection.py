@@ -137,8 +137,8 @@ def test_damaged_file_path_is_named_and_the_scene_rebuilt(cube_hdr, dataset, cap
 
 
 # ---------------------------------------------------------------------------------------
-# Problems in files this audit does not own: strict xfail, so the suite stays green and the
-# test turns into a failure (XPASS) the moment the bug is fixed; then drop the marker.
+# Outputs that would replace or mix into inputs: raw captures, a command's own input given
+# as its data file, a dataset, an earlier export's extra files.
 
 SIM = ["--simulate", "--size", "8", "--no-progress"]
 
@@ -150,8 +150,6 @@ def capture(tmp_path):
     return out
 
 
-@pytest.mark.xfail(strict=True, reason="mehs/cli/resample.py check_output compares OUT with "
-                   "IN only when IN is an .hdr; write_envi then deletes the old .raw")
 def test_resample_never_replaces_a_raw_capture(capture, capsys):
     exp = sorted((capture / "exposures").iterdir())[0]
     raw_hdr = exp / "capture" / f"{exp.name}.hdr"
@@ -161,8 +159,6 @@ def test_resample_never_replaces_a_raw_capture(capture, capsys):
     assert rc == 2 and raw.is_file() and raw.read_bytes() == before
 
 
-@pytest.mark.xfail(strict=True, reason="mehs/cli/resample.py: IN given as the data file "
-                   "is not recognised as the pair OUT.hdr names")
 def test_resample_refuses_its_input_given_as_the_data_file(cube_hdr, capsys):
     data = cube_hdr.with_suffix(".dat")
     before = data.read_bytes()
@@ -171,8 +167,6 @@ def test_resample_refuses_its_input_given_as_the_data_file(cube_hdr, capsys):
     assert data.read_bytes() == before
 
 
-@pytest.mark.xfail(strict=True, reason="mehs/cli/export.py --force keeps band files of the "
-                   "earlier export beyond the new band count")
 def test_forced_export_leaves_no_stale_band_files(cube_hdr, tmp_path):
     out = tmp_path / "exp"
     assert main(["export", str(cube_hdr), "--out", str(out), "--format", "per-wavelength"]) == 0
@@ -182,8 +176,6 @@ def test_forced_export_leaves_no_stale_band_files(cube_hdr, tmp_path):
                                                                for i in range(3)]
 
 
-@pytest.mark.xfail(strict=True, reason="mehs/ssr/scoring.py calls check_output_dir(out) "
-                   "without the dataset as an input; a rebuild then deletes the results")
 def test_evaluate_refuses_an_out_inside_the_dataset(cube_hdr, tmp_path, capsys):
     ds = tmp_path / "ds"
     assert main(["build", "--from-hs", str(cube_hdr), "--out", str(ds), "-q", "-j", "1"]) == 0
@@ -192,3 +184,50 @@ def test_evaluate_refuses_an_out_inside_the_dataset(cube_hdr, tmp_path, capsys):
     rc = main(["evaluate", str(ds), "--models", "smits", "--out", str(out), "--split", "all",
                "--preprocess", "off"])
     assert rc == 2 and not (out / "evaluation.json").exists()
+
+
+def test_no_command_writes_into_a_raw_capture_it_did_not_read(capture, cube_hdr, tmp_path,
+                                                               capsys):
+    exp = sorted((capture / "exposures").iterdir())[0]
+    raw_hdr = exp / "capture" / f"{exp.name}.hdr"
+    before = {p: p.read_bytes() for p in capture.rglob("*") if p.is_file()}
+    # another cube resampled onto the raw header's name: the rewrite would drop its .raw
+    assert main(["resample", str(cube_hdr), str(raw_hdr), "--force"]) == 2
+    assert "raw capture" in capsys.readouterr().err
+    assert main(["rgb", str(cube_hdr), "--out", str(exp / "rgb")]) == 2
+    assert main(["export", str(cube_hdr), "--out", str(capture / "exp")]) == 2
+    scene2 = tmp_path / "scene2"
+    assert main(["capture", *SIM, "--times", "0.5,4", "--out", str(scene2)]) == 0
+    assert main(["fuse", str(scene2), "--out", str(capture / "fused")]) == 2
+    after = {p: p.read_bytes() for p in capture.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_a_second_writer_into_one_output_folder_is_refused(cube_hdr, tmp_path, capsys):
+    import subprocess
+    import sys
+
+    from mehs.io.lock import LOCK_NAME, OutputLock
+
+    out = tmp_path / "rgb"
+    # a live writer (another process) holds the folder: the second run is refused, and
+    # leaves the folder as the first one will
+    code = ("import sys, time; from mehs.io.lock import OutputLock\n"
+            f"with OutputLock({str(out)!r}, what='mehs rgb'):\n"
+            "    print('held', flush=True); sys.stdin.readline()\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["rgb", str(cube_hdr), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "another 'mehs rgb'" in err and f"pid {holder.pid}" in err, err
+        assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+    finally:
+        holder.communicate("\n", timeout=30)
+    assert main(["rgb", str(cube_hdr), "--out", str(out)]) == 0
+    assert not (out / LOCK_NAME).exists()
+    # a lock left by a dead process is taken over
+    (out / LOCK_NAME).write_text("999999999 " + os.uname().nodename + " mehs rgb\n")
+    with OutputLock(out):
+        pass

@@ -40,6 +40,9 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError("--out exists and is not a folder", out)
     from mehs.cli._overwrite import refuse_existing
+    from mehs.io.atomic import refuse_inside_raw_capture
+
+    refuse_inside_raw_capture(out)
 
     if out.is_dir():
         refuse_existing(sorted(out.glob(f"{args.prefix}_*.exr")) + [out / f"{args.prefix}.exr"],
@@ -48,11 +51,15 @@ def run(args) -> int:
     if args.bands:
         from mehs.synthesis.resample import parse_bands, resample_cube
         cube = resample_cube(cube, parse_bands(args.bands))
+    from mehs.io.lock import OutputLock
+
     written = []
-    if args.format in ("per-wavelength", "both"):
-        written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
-    if args.format in ("spectral", "both"):
-        written.append(export_spectral_exr(cube, out / f"{args.prefix}.exr", half=args.half))
+    with OutputLock(out, what="mehs export"):   # creates --out; a second run is refused
+        if args.format in ("per-wavelength", "both"):
+            written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
+        if args.format in ("spectral", "both"):
+            written.append(export_spectral_exr(cube, out / f"{args.prefix}.exr",
+                                               half=args.half))
     wl = cube.wavelengths
     print(f"{out}: {len(written)} EXR file(s), {cube.bands} bands {wl[0]:g}..{wl[-1]:g} nm")
     return 0

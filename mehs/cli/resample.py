@@ -27,20 +27,42 @@ def configure(parser) -> None:
 
 
 def check_output(out: Path, inputs: list[Path], suffixes: tuple[str, ...], force: bool) -> None:
-    """Refuse an output that is an input, has an unknown suffix, or exists without ``force``."""
+    """Refuse an output that would replace an input's files, lies in a raw capture, has an
+    unknown suffix, or exists without ``force``."""
     from mehs.errors import InputError
+    from mehs.io.atomic import refuse_inside_raw_capture
 
     if out.suffix.lower() not in suffixes:
         raise InputError(f"output must end in {' or '.join(suffixes)}", out)
+    written = {f.resolve() for f in _files_of(out, output=True)}
     for p in inputs:
-        if p.exists() and out.resolve() == p.resolve():
+        if p.is_dir():
+            src = p.resolve()
+            if any(src == f or src in f.parents for f in written):
+                raise InputError(f"output would be written inside the input folder {p}", out)
+        elif written & {f.resolve() for f in _files_of(p, output=False)}:
             raise InputError("output would overwrite the input", out)
-        if p.suffix.lower() == ".hdr" and out.resolve() in (p.with_suffix(".hdr").resolve(),
-                                                             p.with_suffix(".raw").resolve(),
-                                                             p.with_suffix(".dat").resolve()):
-            raise InputError("output would overwrite the input", out)
+    refuse_inside_raw_capture(out)
     if out.exists() and not force:
         raise InputError("output exists (use --force to replace it)", out)
+
+
+def _files_of(path: Path, *, output: bool) -> list[Path]:
+    """The files an ENVI pair at ``path`` (its header or its data file) is made of; for an
+    output also the data file it writes and any old data file its rewrite removes."""
+    from mehs.errors import MehsError
+    from mehs.io.envi import data_file_candidates, find_header_file
+
+    files = [path]
+    if output:
+        if path.suffix.lower() == ".hdr":
+            files += [path.with_suffix(".dat"), *data_file_candidates(path)]
+        return files
+    try:
+        hdr = path if path.suffix.lower() == ".hdr" else find_header_file(path)
+    except (MehsError, OSError):
+        return files          # not an ENVI pair (an EXR, or no header): the file alone
+    return files + [hdr, *data_file_candidates(hdr)]
 
 
 def run(args) -> int:

@@ -44,7 +44,9 @@ def run(args) -> int:
         from mehs.errors import InputError
         raise InputError("--out exists and is not a folder", out)
     from mehs.cli._overwrite import refuse_existing
+    from mehs.io.atomic import refuse_inside_raw_capture
 
+    refuse_inside_raw_capture(out)
     refuse_existing([out / n for n in ("hdr_rgb.exr", "ldr_rgb.png", "preview.png", "rgb.json")],
                     args.force)
     cube = load_cube(args.hs)
@@ -59,23 +61,25 @@ def run(args) -> int:
     # every image is computed before the first is written, so a bad option
     # (e.g. --key 0) cannot leave a half-written output folder
     preview = tonemap(hdr, "reinhard", key=args.key)
-    out.mkdir(parents=True, exist_ok=True)
-    write_exr_rgb(out / "hdr_rgb.exr", hdr, half=args.half)
-    write_png(out / "ldr_rgb.png", ldr)
-    write_png(out / "preview.png", preview)
-    write_json_atomic(out / "rgb.json", {
-        "source": str(args.hs),
-        "resampled_to_31_bands": resampled,
-        "wavelengths": cube.wavelengths.tolist(),
-        "xyz_scale": "1/sum(ybar)",
-        "hdr_rgb": {"file": "hdr_rgb.exr", "encoding": "linear sRGB (IEC 61966-2-1), "
-                    "negatives clipped, unnormalised", "half": bool(args.half)},
-        "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure,
-                    "rule": "given by --ldr-exposure" if args.ldr_exposure is not None else
-                    LDR_EXPOSURE_RULE,
-                    "encoding": "clip [0,1], sRGB OETF, rint(255 v)"},
-        "preview": {"file": "preview.png", "tonemap": "Reinhard2002 global", "key": args.key},
-    })
+    from mehs.io.lock import OutputLock
+
+    with OutputLock(out, what="mehs rgb"):   # creates --out; a second run is refused
+        write_exr_rgb(out / "hdr_rgb.exr", hdr, half=args.half)
+        write_png(out / "ldr_rgb.png", ldr)
+        write_png(out / "preview.png", preview)
+        write_json_atomic(out / "rgb.json", {
+            "source": str(args.hs),
+            "resampled_to_31_bands": resampled,
+            "wavelengths": cube.wavelengths.tolist(),
+            "xyz_scale": "1/sum(ybar)",
+            "hdr_rgb": {"file": "hdr_rgb.exr", "encoding": "linear sRGB (IEC 61966-2-1), "
+                        "negatives clipped, unnormalised", "half": bool(args.half)},
+            "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure,
+                        "rule": "given by --ldr-exposure" if args.ldr_exposure is not None else
+                        LDR_EXPOSURE_RULE,
+                        "encoding": "clip [0,1], sRGB OETF, rint(255 v)"},
+            "preview": {"file": "preview.png", "tonemap": "Reinhard2002 global", "key": args.key},
+        })
     print(f"{out}: hdr_rgb.exr, ldr_rgb.png (exposure {exposure:.6g}), preview.png"
           f"{' (resampled to 31 bands)' if resampled else ''}")
     return 0

@@ -63,44 +63,11 @@ __all__ = ["BuildParams", "SceneTask", "build_dataset", "build_from_hs", "build_
 
 # ---------------------------------------------------------------- main side
 
-class _Lock:
-    """An exclusive lock file so that two builds never write one dataset."""
+def _Lock(dataset: Path):
+    """The dataset's build lock: two builds never write one dataset."""
+    from mehs.io.lock import OutputLock
 
-    def __init__(self, dataset: Path):
-        self.path = dataset / LOCK_NAME
-
-    def __enter__(self):
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                if self._stale():
-                    with contextlib.suppress(FileNotFoundError):
-                        self.path.unlink()
-                    continue
-                raise InputError("another 'mehs build' is writing this dataset "
-                                 f"(lock {self.path.name}); wait for it or remove the "
-                                 "lock if it is dead", self.path.parent) from None
-            with os.fdopen(fd, "w") as fh:
-                fh.write(f"{os.getpid()} {os.uname().nodename}\n")
-            return self
-        raise InputError("could not take the build lock", self.path)
-
-    def _stale(self) -> bool:
-        try:
-            pid, host = self.path.read_text().split()[:2]
-            if host != os.uname().nodename:
-                return False
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            return True
-        except (ValueError, OSError):
-            return True
-        return False
-
-    def __exit__(self, *exc):
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+    return OutputLock(dataset, name=LOCK_NAME, what="mehs build")
 
 
 def _rgb_block() -> dict[str, str]:

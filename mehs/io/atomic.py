@@ -168,7 +168,33 @@ def check_output_dir(path: str | Path, *, inputs=()) -> Path:
         if src.is_dir() and (target == src or src in target.parents):
             raise InputError(f"output folder is inside the input {inp}; "
                              "give an --out outside the inputs", path)
+    refuse_inside_raw_capture(path)
     return path
+
+
+def raw_capture_containing(path: str | Path) -> Path | None:
+    """The raw capture folder (Specim IQ layout, or a mehs scene with ``scene.json``) that
+    ``path`` is, or lies inside, or None."""
+    from mehs.io.specim import is_specim_folder
+
+    target = Path(path).resolve()
+    for anc in [target, *target.parents][:6]:
+        if anc.is_dir() and ((anc / "scene.json").is_file() or is_specim_folder(anc)):
+            return anc
+    return None
+
+
+def refuse_inside_raw_capture(path: str | Path) -> None:
+    """Raise :class:`InputError` when ``path`` would be written into a raw capture folder.
+
+    Raw captures are never written into: an ENVI output there may replace a raw
+    cube's header and remove its data file (a rewrite drops the old pair's data
+    of another extension), and even a new file changes the capture's contents.
+    """
+    cap = raw_capture_containing(path)
+    if cap is not None:
+        raise InputError(f"output lies inside the raw capture {cap}; raw captures are never "
+                         "written into — choose an output outside it", path)
 
 
 def make_output_dir(path: str | Path, *, inputs=()) -> Path:

@@ -206,11 +206,20 @@ def format_tables(summary: list[dict[str, Any]], config: dict[str, Any] | None =
 
 def write_results(res, out: str | Path, *, dataset: str | None = None) -> Path:
     """Write the results folder described in the module notes; returns it."""
-    from mehs import __version__
-    from mehs.io.atomic import make_output_dir, write_json_atomic, write_text_atomic
-    from mehs.ssr.data import write_index_csv
+    from mehs.io.atomic import make_output_dir
+    from mehs.io.lock import OutputLock
 
     out = make_output_dir(out)
+    with OutputLock(out, what="mehs evaluate"):   # two runs never mix their tables
+        _write_result_files(res, out, dataset)
+    return out
+
+
+def _write_result_files(res, out: Path, dataset: str | None) -> None:
+    from mehs import __version__
+    from mehs.io.atomic import write_json_atomic, write_text_atomic
+    from mehs.ssr.data import write_index_csv
+
     doc = {"format": EVALUATION_FORMAT, "software_version": __version__, "dataset": dataset,
            "split": res.config.get("split"), "config": res.config, "models": res.models,
            "rows": res.rows, "summary": res.summary, "timing": res.timing,
@@ -227,7 +236,6 @@ def write_results(res, out: str | Path, *, dataset: str | None = None) -> Path:
     write_text_atomic(out / "tables.md", md)
     write_text_atomic(out / "tables.txt", res.tables("text", metrics=METRIC_NAMES) + "\n" +
                       "\n".join(render_block(*b, "text") for b in extra))
-    return out
 
 
 def load_results(results_dir: str | Path) -> dict[str, Any]:

@@ -285,7 +285,9 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     if out is not None:
         from mehs.io.atomic import check_output_dir
 
-        check_output_dir(out)  # before the scoring, not after
+        # before the scoring, not after; never inside the dataset (a rebuild of a scene
+        # folder deletes what it does not know, results included)
+        check_output_dir(out, inputs=[] if isinstance(dataset, PairSet) else [dataset])
     default_pp = preprocessing or Preprocessing()
     pp = _as_tuple(preprocess, PREPROCESS_CHOICES, "preprocess")
     ins = _as_tuple(inputs, RGB_INPUTS, "input")

@@ -449,11 +449,19 @@ def write_fusion(result: FusionResult, out_dir: str | Path) -> dict[str, Path]:
     (float32 single channel ``Y``), ``response.json`` (the curve, reloadable
     with ``--response``), ``summary.json``. Every file is written atomically.
     """
-    from mehs.io.atomic import atomic_path, make_output_dir, write_json_atomic
+    from mehs.io.atomic import make_output_dir
+    from mehs.io.lock import OutputLock
+
+    out = make_output_dir(out_dir)
+    with OutputLock(out, what="mehs fuse"):   # a second run into this --out is refused
+        return _write_fusion_files(result, out)
+
+
+def _write_fusion_files(result: FusionResult, out: Path) -> dict[str, Path]:
+    from mehs.io.atomic import atomic_path, write_json_atomic
     from mehs.io.envi import write_envi
     from mehs.io.exr import write_exr_gray
 
-    out = make_output_dir(out_dir)
     paths: dict[str, Path] = {}
     paths["radiance"] = write_envi(out / "radiance.hdr", result.radiance, dtype=np.float32,
                                    interleave="bil", data_ext=".dat", overwrite=True)
