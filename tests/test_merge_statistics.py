@@ -61,3 +61,17 @@ def test_a_short_scan_of_a_wide_sensor_still_measures_its_noise():
     model, diag = estimate_noise(br, ResponseCurve.linear(12), sat)
     assert "fallback" not in diag, diag
     assert model.gain == pytest.approx(sen.gain_dn_per_e, rel=0.05)
+
+
+def test_a_saturation_level_beyond_the_largest_code_is_refused():
+    import pytest
+
+    from mehs.errors import InputError
+    from mehs.synthesis.merge import merge_bracket
+
+    z = [np.full((2, 3, 4), 100, np.uint16), np.full((2, 3, 4), 4095, np.uint16)]
+    # above 4095 a clipped sample would count as a measurement
+    with pytest.raises(InputError, match=r"saturation must be in \(0, 4095\]"):
+        merge_bracket(z, [1.0, 4.0], bit_depth=12, saturation=5000)
+    with pytest.raises(InputError, match="saturation"):
+        merge_bracket(z, [1.0, 4.0], bit_depth=12, saturation=np.array([4000, 4000, np.nan, 4000]))

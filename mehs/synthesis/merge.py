@@ -292,6 +292,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     if sat.shape != (nb,):
         raise InputError(f"saturation must be a scalar or one value per band ({nb}), "
                          f"got shape {sat.shape}", source)
+    if not np.all(np.isfinite(sat) & (sat > 0) & (sat <= L - 1)):
+        # above the largest code nothing is ever "saturated": clipped samples would
+        # count as measurements
+        raise InputError(f"saturation must be in (0, {L - 1}] DN for {bit_depth}-bit data, got "
+                         f"{float(sat.min()):g}..{float(sat.max()):g}", source)
     cal = np.asarray(calibration, dtype=np.float32)
     if cal.ndim == 0:
         cal = np.full(nb, cal, dtype=np.float32)
