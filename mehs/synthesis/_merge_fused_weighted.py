@@ -9,8 +9,9 @@ exposures are the unrolled inner loop of each sample and the running sums stay i
 registers; ``ln`` and ``exp`` are the scalar Cephes forms of
 :mod:`mehs.synthesis._cephes`, so the sample loop still vectorises.
 
-It covers the common case: a linear response (``g(z) = ln max(z, ½)``) and Debevec's
-hat weighting, computed rather than looked up (a look-up per sample is a gather).
+It covers the common case: a linear response (``g(y) = ln y`` of the fractional
+``y = raw − dark``) and Debevec's hat weighting, computed rather than looked up (a
+look-up per sample is a gather).
 Any other curve or weighting keeps the stage kernel.
 
 The arithmetic is the stage kernel's expression for expression, in the same order,
@@ -40,12 +41,13 @@ def _level(v, top):
 def _method_weight(method, okj, yj, xp, tj, aj, g32, top, hmid, fl):
     """The stage kernel's weight of sample ``j`` (usable: ``okj`` = 1) for ``method``.
 
-    Debevec: the hat of the sample's level, zero at or below the floor (``ln y`` needs
-    ``y > 0``); Robertson: the hat of the *expected* level ``X·t`` (the sample's own
-    would favour upward noise) times ``t²``; inverse variance: ``t² / var(X·t)``.
+    Debevec: the hat of the sample's fractional level ``y`` (the ``z`` of ``g(z) = ln z``),
+    zero at or below the floor (``ln y`` needs ``y > 0``); Robertson: the hat of the
+    *expected* level ``X·t`` (the sample's own would favour upward noise) times ``t²``;
+    inverse variance: ``t² / var(X·t)``.
     """
     if method == DEBEVEC:
-        lvi = _level(yj, top)
+        lvi = min(max(yj, np.float32(0.0)), top)
         w = okj * (min(lvi, top - lvi) / hmid)
         return w if yj > fl else np.float32(0.0)
     if method == ROBERTSON:
@@ -144,10 +146,13 @@ def _merge_weighted(zs, darks, sat, times, L, floor, gain, avar, rel_var, cal, m
                     yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
                     w = _method_weight(method, okj, yj, xp, tj, avar[j], g32, top, hmid, fl)
                     if deb:
-                        # g of the integer level z = ln max(z, ½). (ln t_j as the stage kernel
-                        # takes it; LLVM hoists it. No scratch array: the kernel allocates
-                        # nothing, see mehs.synthesis._native)
-                        num += w * (logf(max(_level(yj, top), half)) - np.float32(np.log(tj)))
+                        # g(y) = ln y of the fractional y = raw − dark: the rounded level
+                        # was off by up to ½ DN per (column, band) dark, a bias of up to
+                        # ½/y (1.7 % at 30 DN, 0.3 % at 160). (max: y > floor ≥ ½ wherever
+                        # w > 0, it only keeps ln finite where w = 0. ln t_j as the stage
+                        # kernel takes it; LLVM hoists it. No scratch array: the kernel
+                        # allocates nothing, see mehs.synthesis._native)
+                        num += w * (logf(max(yj, half)) - np.float32(np.log(tj)))
                     else:
                         num += w * yj / tj
                     den += w

@@ -109,7 +109,8 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
         ``wlut`` is Debevec's hat ``min(z, L−1−z)/((L−1)/2)``: computed, not looked up
         (a table gather per sample does not vectorise: LLVM cannot rule out aliasing).
     lin_g : bool
-        ``glut`` is the linear curve ``ln max(z, ½)``: computed with :func:`_log_accumulate_row`.
+        ``glut`` is the linear curve ``ln max(z, ½)``: computed with :func:`_log_accumulate_row`,
+        for a linear sensor at the fractional ``y = raw − dark`` (not the rounded level).
     floor : float32
         Debevec only: samples with y ≤ floor get zero weight (``ln y`` needs y > 0).
     gain : float
@@ -222,14 +223,17 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                             den[i] += w
                 else:
                     if linear and hat and lin_g and not dark_after:
-                        # Debevec's own form, g of the integer level z = ln max(z, ½),
-                        # hat weight of z: computed in one pass, then ln in _log_accumulate_row
+                        # Debevec's own form at the fractional z = y = raw − dark (the
+                        # dark is a float per column and band; the rounded level was off
+                        # by up to ½ DN): g(z) = ln z and the hat weight of z, computed in
+                        # one pass, then ln in _log_accumulate_row (max: y > floor ≥ ½
+                        # wherever w > 0, it only keeps ln finite where w = 0)
                         for i in range(ns):
                             yv = yj[i]
-                            lvi = np.float32(np.int32(min(max(yv + half, f0), top)))
+                            lvi = min(max(yv, f0), top)
                             w = okj[i] * (min(lvi, top - lvi) / hmid)
                             omj[i] = w if yv > fl else f0
-                            gz[i] = max(lvi, half)
+                            gz[i] = max(yv, half)
                         _log_accumulate_row(gz, omj, lt, num, den)
                         continue
                     if linear:
@@ -251,6 +255,11 @@ def merge_chunk(zs, darks, sat, times, linear, dark_after, glut, elut, wlut, hat
                         # ln y of the linearised sample (positive wherever w > 0)
                         for i in range(ns):
                             gz[i] = yj[i] if omj[i] > f0 else f1
+                        _log_accumulate_row(gz, omj, lt, num, den)
+                    elif lin_g and linear:
+                        # ln y of the fractional y (a table weight is of the rounded level)
+                        for i in range(ns):
+                            gz[i] = max(yj[i], half)
                         _log_accumulate_row(gz, omj, lt, num, den)
                     elif lin_g:
                         for i in range(ns):

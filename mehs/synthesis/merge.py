@@ -270,7 +270,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     elut = np.exp(glut.astype(np.float64)).astype(np.float32)
     wlut = weighting_table(weighting, L).astype(np.float32)
     # tables the kernel can compute instead of looking up (a gather per sample
-    # does not vectorise): Debevec's hat and the linear curve's ln max(z, ½)
+    # does not vectorise): Debevec's hat and the linear curve's ln max(y, ½), both at the
+    # fractional y = raw − dark (a rounded level put up to ±½ DN of the dark in every value)
     hat = bool(np.array_equal(wlut, weighting_table("hat", L).astype(np.float32)))
     lin_g = bool(np.all(glut == ResponseCurve.linear(int(bit_depth)).table()
                         .astype(np.float32)))
