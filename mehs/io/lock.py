@@ -35,8 +35,11 @@ class OutputLock:
         self.path = self.folder / name
         self.what = what
         self._mine = False
+        self._created: list[Path] = []
 
     def __enter__(self) -> "OutputLock":
+        # the folders this creates (--out and missing parents), innermost first
+        self._created = [d for d in (self.folder, *self.folder.parents) if not d.exists()]
         self.folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f"{self.path.name}.", suffix=".part", dir=self.folder)
         try:
@@ -87,8 +90,15 @@ class OutputLock:
             return False         # exists, owned by another user
         return False
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
         if self._mine:
             with contextlib.suppress(FileNotFoundError):
                 self.path.unlink()
             self._mine = False
+            if exc_type is not None:
+                # a write refused before its first file leaves no empty --out behind
+                for d in self._created:
+                    try:
+                        d.rmdir()
+                    except OSError:
+                        break
