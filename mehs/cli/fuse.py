@@ -29,6 +29,11 @@ def configure(parser):
     parser.add_argument("--calibration", default=None, metavar="CAL",
                         help="calibration file from `mehs calibrate` (radiance output), or a "
                              "number: a plain factor from DN/ms to radiance")
+    parser.add_argument("--saturation", default="auto", metavar="DN",
+                        help="raw DN at or above which a sample counts as saturated; auto "
+                             "(default): 0.98·(2^bits − 1), lower where the longest exposure "
+                             "shows the sensor clipping below it (see summary.json "
+                             "saturation_detected)")
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
@@ -78,6 +83,12 @@ def run(args) -> int:
         bracket.check_files()     # a damaged scene is said first, as before
         raise InputError(f"--reference must be 'auto' or an exposure index, "
                          f"got {args.reference!r}") from None
+    try:
+        sat = None if args.saturation == "auto" else float(args.saturation)
+    except ValueError:
+        bracket.check_files()
+        raise InputError(f"--saturation must be 'auto' or a raw level in DN, "
+                         f"got {args.saturation!r}") from None
     import sys
     import warnings
 
@@ -89,7 +100,8 @@ def run(args) -> int:
         res = fuse_bracket(bracket, method=args.method, response=args.response,
                            ghosts=args.ghosts, smoothness=args.smoothness, samples=args.samples,
                            seed=args.seed, shared_response=not args.per_band,
-                           calibration=cal, reference=ref, noise=args.noise)
+                           calibration=cal, reference=ref, noise=args.noise,
+                           saturation=sat)
     files = write_fusion(res, args.out)
     for w in res.summary.get("warnings", []):
         print(f"mehs: warning: {w}", file=sys.stderr)

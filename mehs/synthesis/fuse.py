@@ -157,6 +157,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         transfer across exposures (:func:`estimate_noise`; falls back to the
         recorded sensor); ``"recorded"``: ``scene.json``'s sensor; or a
         :class:`NoiseModel` / ``(gain, read_noise)``.
+    saturation
+        Raw DN at or above which a sample is saturated (scalar or per band). None: 0.98·(L−1),
+        lower in the bands where the longest exposure shows the sensor clipping below it
+        (:func:`mehs.synthesis.saturation.detect_saturation`; ``summary["saturation_detected"]``).
     calibration
         A :class:`mehs.calibration.Calibration` (or the path of its file): the
         merged DN/ms are divided by its per-column, per-band responsivity and
@@ -193,8 +197,21 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     t0 = time.perf_counter()
     nl, ns, nb = bracket.shape
     L = 1 << bracket.bit_depth
-    sat = np.asarray(0.98 * (L - 1) if saturation is None else saturation, dtype=np.float64)
-    sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
+    sat_found = None
+    if saturation is None:
+        # a sensor that clips below 0.98·(L − 1) (its full well, an ADC saturating low)
+        # would have its plateau merged as measurements: found from the longest exposure
+        from mehs.synthesis.saturation import detect_saturation, notice
+
+        sat, sat_found = detect_saturation(bracket, 0.98 * (L - 1))
+        notice(sat_found, bracket.source)
+    else:
+        sat = np.asarray(saturation, dtype=np.float64)
+    try:
+        sat = np.broadcast_to(sat, (nb,)).astype(np.float32)
+    except ValueError:
+        raise InputError(f"saturation must be one level or one per band ({nb}), got shape "
+                         f"{np.shape(sat)}", bracket.source) from None
     if str(response) == "auto" or noise is None or (isinstance(noise, str) and noise == "auto"):
         from mehs.synthesis._ptc_groups import build_kernels_in_background
 
@@ -299,6 +316,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
                        calibration, ref_used, auto_info)
     summary["units"] = units
+    summary["saturation_detected"] = sat_found
     if radiometric is not None:
         summary["calibration"] = radiometric.summary()
         summary["shape"] = list(radiance.shape)
