@@ -9,6 +9,8 @@ computes them for one pair of exposures of the probed samples:
   from an even subset of the samples;
 - a robust centre and spread per group (median and MAD of that subset, by one selection:
   no Python loop holding the GIL), which set a 5σ clip;
+- the pixels a moving object changed between the two exposures, found by their bands'
+  joint departure from those medians (:func:`_moving_pixels`), left out whole;
 - one pass over every sample (:func:`mehs.synthesis._ptc_kernels.ptc_pass`, stored machine
   code; numpy's :mod:`mehs.synthesis._ptc_numpy` while it compiles): each group's counts
   of all and of saturated samples and the clipped sums.
@@ -118,6 +120,113 @@ def _group_median_mad(v: np.ndarray, g: np.ndarray, groups: int) -> tuple[np.nda
     return med, 1.4826 * _group_medians(np.abs(v - np.take(med, g)), g, groups)
 
 
+#: A pixel whose z-scores (each sample's ``d`` about its group's median in MAD σ, clipped
+#: at the 5σ clip) sum, over √(their number), to more than this many robust σ of that
+#: score over the pixels (σ at least 1, the score's for independent noise) is dropped
+#: from the statistics (:func:`_moving_pixels`): noise is independent across a pixel's
+#: bands, a moving object shifts ``d`` of all its bands at once. The 5σ clip alone kept
+#: its samples within 5σ: the simulator's moving patch doubled the measured gain. (At 4σ
+#: its gain came out closer still, but pixels of static scenes went too: those whose
+#: bands near saturation kept their lower noise only, a recovered curve's errors.)
+MOVING_Z = 5.0
+
+
+def _pixel_scores(z: np.ndarray, pix: np.ndarray, n: int) -> np.ndarray:
+    """float64 (n,): ``Σz/√m`` of each pixel's ``m`` samples ``z`` (``pix``: their pixels),
+    NaN for a pixel without one."""
+    m = np.bincount(pix, minlength=n)
+    s = np.bincount(pix, weights=z, minlength=n)
+    return np.where(m > 0, s / np.sqrt(np.maximum(m, 1)), np.nan)
+
+
+def _outlying(score: np.ndarray) -> np.ndarray:
+    """bool: the pixels whose score lies more than :data:`MOVING_Z` robust σ (median,
+    scaled MAD, at least 1) from the median score."""
+    out = np.zeros(score.shape, bool)
+    ok = np.isfinite(score)
+    if ok.sum() < 2:
+        return out
+    s = score[ok]
+    centre = np.median(s)
+    # at least the independent-noise score's σ: a MAD of 0 (a flat, dark scene whose
+    # samples sit on their medians) would otherwise drop every pixel off the median
+    scale = max(1.4826 * float(np.median(np.abs(s - centre))), 1.0)
+    out[ok] = np.abs(s - centre) > MOVING_Z * scale
+    return out
+
+
+#: Bands (evenly spread) of every pixel that score it when the even subset flags one.
+SCORE_BANDS = 64
+
+
+def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig, usable,
+                   index, bad_s, ds, g_s) -> np.ndarray | None:
+    """bool (n,): the pixels whose exposures disagree across their bands as no noise
+    does (a moving object), or None when none does.
+
+    A pixel's score is :func:`_pixel_scores` of its samples' z-scores about their groups'
+    medians (``usable``: groups with a σ). Noise leaves it about N(0, 1), each sample's
+    own noise weighing 1/√m in it, so dropping a pixel at :data:`MOVING_Z` σ selects no
+    sample by its noise; a moving object shifts ``y_k − r·y_j`` of every band, and
+    scores far out even where each sample stays inside the clip. The even subset scores
+    each pixel first (free: its z-scores are at hand); only when that flags one are the
+    pixels scored again on up to :data:`SCORE_BANDS` bands each (the subset holds three
+    samples a pixel of a 16384-pixel probe, too few to see a patch moving a few σ; every
+    band of every pixel would double the statistics' time).
+    """
+    n, nb = y_j.shape
+    inv = np.where(usable, 1.0 / np.where(usable, sig, 1.0), 0.0)     # 0: no z-score
+
+    def zscores(d, g):
+        g = g.astype(np.intp)
+        return np.clip((d - np.take(med, g)) * np.take(inv, g), -5.0, 5.0)
+
+    moving = _outlying(_pixel_scores(zscores(ds, g_s), index[~bad_s] // nb, n))
+    if not moving.any():
+        return None
+    if index.size < n * nb:                 # a subset: score the pixels on more bands
+        from mehs.synthesis._ptc_numpy import cell_keys
+
+        # even bands b = 0, s, 2s, … (s even), whose instruments are the bands b + 1:
+        # strided views, no gathers
+        s = 2 * max(1, -(-nb // (2 * SCORE_BANDS)))
+        at, nx = np.s_[:, 0:nb - 1:s], np.s_[:, 1:nb:s]
+        cells = cell_keys(np.asarray(y_j[nx] + y_k[nx], dtype=np.float32), CELL_BITS)
+        sat_k = rk[nx] >= sat[nx[1]]
+        bad = (rk[at] >= sat[at[1]]) | sat_k | (rj[at] >= sat[at[1]])
+        z = zscores(y_k[at] - r * y_j[at], np.take(table, np.clip(cells - lo, 0, table.size - 1)))
+        z[bad] = 0.0
+        m = bad.shape[1] - np.count_nonzero(bad, axis=1)
+        moving = _outlying(np.where(m > 0, z.sum(axis=1) / np.sqrt(np.maximum(m, 1)), np.nan))
+    return moving if moving.any() else None
+
+
+#: Runs of pixels passed one by one to the compiled pass; more are copied together.
+MAX_RUNS = 64
+
+
+def _pass_split(kernel: Callable, arrays: tuple, keep: np.ndarray, rest: tuple,
+                counted: tuple) -> None:
+    """``kernel(*arrays, *rest)`` over the pixels (rows) ``keep``, and ``kernel(*arrays,
+    *counted)`` (a clip that passes nothing: only the counts) over the others.
+
+    The compiled pass adds to its sums in sample order, so passing it the runs of pixels
+    one after another gives the bits of one pass over the kept ones, without copying
+    megabytes of samples (whose fresh pages cost more than the pass); numpy's pass adds
+    each call's sums at once, so it (and a scatter of many runs) gets them copied."""
+    from mehs.synthesis import _ptc_numpy
+
+    edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
+    if kernel is _ptc_numpy.ptc_pass or edges.size > 2 * MAX_RUNS:
+        kernel(*(np.ascontiguousarray(a[keep]) for a in arrays), *rest)
+        kernel(*(np.ascontiguousarray(a[~keep]) for a in arrays), *counted)
+        return
+    bounds = np.concatenate(([0], edges, [keep.size]))
+    for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        if b > a:                   # runs alternate: dropped, kept, dropped, …
+            kernel(*(x[a:b] for x in arrays), *(rest if i % 2 else counted))
+
+
 def build_kernels_in_background() -> bool:
     """Where the photon-transfer passes' machine code is not stored yet (a first-ever
     run), start compiling it in a child process (:func:`mehs.synthesis._native.
@@ -199,14 +308,26 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
         sel = ~bad.ravel() & np.take(small, gid)
         med_s, sig_s = _group_median_mad((y_k - r * y_j).ravel()[sel], gid[sel], groups)
         med, sig = np.where(small, med_s, med), np.where(small, sig_s, sig)
+    # pixels that a moving object changed between the exposures leave the statistics
+    # whole: the 5σ clip kept those of its samples within 5σ, whose spread added to
+    # the noise's at the levels it crossed (the gain came out ×1.4–2.3)
+    moving = _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig,
+                            (picked > 0) & (sig > 0), index, bad_s, ds, g_s)
     # every sample: the sums about each group's median (one pass, no cancellation) and
     # each group's counts of all and of saturated samples
     nall, nbad, nt, se, se2, syj = (np.zeros(groups) for _ in range(6))
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
             np.empty(nb, np.uint8))                  # the kernel's scratch
     lim = np.where(picked > 0, 5.0 * np.maximum(sig, 1e-9), -1.0)
-    _kernel(y_j.dtype)(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, *rows, r, lo, table, med, lim,
-                       nall, nbad, nt, se, se2, syj)
+    kernel = _kernel(y_j.dtype)
+    head, sums = (sat, nbr, CELL_BITS, *rows, r, lo, table, med), (nall, nbad, nt, se, se2, syj)
+    if moving is None:
+        kernel(y_j, y_k, rj, rk, *head, lim, *sums)
+    else:
+        # the moving pixels' samples still count towards their groups' saturated
+        # fraction: the groups dropped for saturation stay those of every sample
+        _pass_split(kernel, (y_j, y_k, rj, rk), ~moving, (*head, lim, *sums),
+                    (*head, np.full(groups, -1.0), *sums))
     # a group with more than 0.1 % saturated samples is dropped whole (dropping
     # only the saturated samples would select on their own noise)
     drop = nbad > 1e-3 * np.maximum(nall, 1)
