@@ -231,3 +231,16 @@ def test_a_second_writer_into_one_output_folder_is_refused(cube_hdr, tmp_path, c
     (out / LOCK_NAME).write_text("999999999 " + os.uname().nodename + " mehs rgb\n")
     with OutputLock(out):
         pass
+
+
+def test_a_killed_writers_temporary_files_go_with_the_next_run(cube_hdr, tmp_path):
+    out = tmp_path / "rgb"
+    out.mkdir()
+    # what a SIGKILL between atomic_path's write and its rename leaves (the size of the data)
+    left = [out / ".hdr_rgb.exr.k3j_x9.part.exr", out / ".mehs-write.lock.ab12.part"]
+    for f in left:
+        f.write_bytes(b"\0" * 1024)
+    keep = out / "notes.txt"
+    keep.write_text("mine")
+    assert main(["rgb", str(cube_hdr), "--out", str(out)]) == 0
+    assert not any(f.exists() for f in left) and keep.read_text() == "mine"

@@ -10,18 +10,23 @@ gone) is taken over.
 The lock file is made complete before it appears (written under a temporary
 name, then hard-linked to the lock name, which fails if the lock exists), so a
 reader never sees an empty lock and never takes a live writer's lock for stale.
+Taking the lock removes the temporary files a killed writer left in the folder.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from pathlib import Path
 
 from mehs.errors import InputError
 
 __all__ = ["OutputLock", "LOCK_NAME"]
+
+#: what :func:`mehs.io.atomic.atomic_path` names its temporary files (``.<name>.<random>.part<ext>``)
+_PART = re.compile(r"\..+\.part(\.[^./]*)?")
 
 #: the lock of an output folder (a dataset's is its build lock)
 LOCK_NAME = ".mehs-write.lock"
@@ -58,11 +63,20 @@ class OutputLock:
                                      f"{self.path.name}); wait for it, or remove the lock if "
                                      "that process is dead", self.folder) from None
                 self._mine = True
+                self._remove_leftovers()
                 return self
             raise InputError("could not take the output folder's lock", self.path)
         finally:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
+
+    def _remove_leftovers(self) -> None:
+        # temporary files of a writer killed here before its rename (hidden, ".part"): only
+        # the lock holder writes this folder, so none of them belongs to a live write
+        for f in self.folder.iterdir():
+            if _PART.fullmatch(f.name) and f.is_file():
+                with contextlib.suppress(OSError):
+                    f.unlink()
 
     def _fields(self) -> list[str]:
         try:
