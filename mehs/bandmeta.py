@@ -111,3 +111,28 @@ def resampled_band_metadata(meta: Mapping[str, Any], matrix: np.ndarray) -> dict
         share = matrix[:, bad].sum(axis=1) / np.where(total > 0, total, 1.0)
         out["bbl"] = [0 if s > BAD_WEIGHT_SHARE else 1 for s in share]
     return out
+
+
+#: Band centres that differ by more than this (nm) are another band set.
+SAME_BAND_TOLERANCE_NM = 0.05
+
+
+def check_same_bands(mine, theirs, me: str, them: str, source: Any = None) -> None:
+    """Raise :class:`~mehs.errors.InputError` unless ``theirs`` are ``mine``'s band centres.
+
+    For what was made for one band set (a calibration, a per-band response curve) and
+    is applied to data of another with the same count (another binning offset or
+    spectral calibration): each band would take another band's values. ``me`` and
+    ``them`` name the two sides in the message.
+    """
+    from mehs.errors import InputError
+
+    a = np.asarray(mine, dtype=np.float64).reshape(-1)
+    b = np.asarray(theirs, dtype=np.float64).reshape(-1)
+    if a.size != b.size:
+        raise InputError(f"{me} has {a.size} bands, {them} {b.size}", source)
+    d = np.abs(a - b)
+    if d.size and d.max() > SAME_BAND_TOLERANCE_NM:
+        k = int(np.argmax(d))
+        raise InputError(f"{me} is for other wavelengths: band {k + 1} is {a[k]:.2f} nm there, "
+                         f"{b[k]:.2f} nm in {them}", source)

@@ -143,15 +143,10 @@ class Calibration:
         :class:`~mehs.synthesis.response.ResponseCurve`) give a warning, as two recoveries
         of one sensor's curve differ a little.
         """
-        wl = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
+        from mehs.bandmeta import check_same_bands
+
         me = f"calibration {self.path}" if self.path else "the calibration"
-        if wl.size != self.wavelengths.size:
-            raise InputError(f"{me} has {self.wavelengths.size} bands, the data {wl.size}", source)
-        d = np.abs(wl - self.wavelengths)
-        if d.max() > 0.05:
-            k = int(np.argmax(d))
-            raise InputError(f"{me} is for other wavelengths: band {k + 1} is "
-                             f"{self.wavelengths[k]:.2f} nm there, {wl[k]:.2f} nm in the data", source)
+        check_same_bands(self.wavelengths, wavelengths, me, "the data", source)
         if self.responsivity.shape[0] not in (1, int(samples)):
             raise InputError(f"{me} has {self.responsivity.shape[0]} spatial columns, the data "
                              f"{samples} (another binning or sensor width?)", source)

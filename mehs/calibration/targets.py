@@ -31,11 +31,9 @@ SPHERE_CERT_UNCERTAINTY = 0.01
 
 def planck_relative(wavelengths_nm: np.ndarray, cct: float = SPHERE_CCT) -> np.ndarray:
     """Planck's law at ``cct`` K, scaled to a mean of 1 over 400–700 nm. Shape of the input."""
-    lam = np.asarray(wavelengths_nm, dtype=np.float64) * 1e-9
-    spd = lam ** -5 / np.expm1(1.4388e-2 / (lam * cct))
-    grid = np.arange(400.0, 701.0, 1.0) * 1e-9
-    norm = np.mean(grid ** -5 / np.expm1(1.4388e-2 / (grid * cct)))
-    return spd / norm
+    from mehs.capture.scene import planck
+
+    return planck(wavelengths_nm, cct) / np.mean(planck(np.arange(400.0, 701.0, 1.0), cct))
 
 
 def sphere_radiance(wavelengths_nm: np.ndarray, level: float = SPHERE_LEVEL) -> np.ndarray:

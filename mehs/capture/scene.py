@@ -99,6 +99,29 @@ def srf_average(fn, wavelengths: np.ndarray, fwhm: np.ndarray | float | None) ->
     return (np.asarray(fn(x), dtype=np.float64) * w).sum(axis=1) / w.sum()
 
 
+def planck(wavelengths_nm, kelvin: float) -> np.ndarray:
+    """Planck's law at ``kelvin`` K up to a constant (``λ⁻⁵/(exp(c₂/λT) − 1)``, λ in m), shaped
+    like the input. c₂ = 1.4388e-2 m·K, the value the CIE's illuminant A is defined with."""
+    lam = np.asarray(wavelengths_nm, dtype=np.float64) * 1e-9
+    return lam ** -5 / np.expm1(1.4388e-2 / (lam * kelvin))
+
+
+def relative_band_spd(fn, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None,
+                      what: str) -> np.ndarray:
+    """A light's SPD ``fn(λ)`` as the bands see it (:func:`srf_average`), clipped at 0 and scaled
+    to a mean of 1 over 400–700 nm; read-only float64 ``(bands,)``. ``what`` names the light
+    in the error for one with no power at these wavelengths."""
+    wl = np.asarray(wl_key)
+    spd = np.clip(srf_average(fn, wl, None if fw_key is None else np.asarray(fw_key)), 0.0, None)
+    vis = (wl >= 400) & (wl <= 700)
+    norm = spd[vis].mean() if vis.any() else spd.mean()
+    if not norm > 0:
+        raise InputError(f"{what} has no power at the scene wavelengths")
+    out = spd / norm
+    out.setflags(write=False)
+    return out
+
+
 def band_fwhm(fwhm, wavelengths: np.ndarray) -> np.ndarray:
     """float64 ``(bands,)`` band widths (nm) from a scalar or one value per band, checked."""
     wl = np.asarray(wavelengths).reshape(-1)
@@ -138,14 +161,10 @@ def _extend(wl_src: np.ndarray, values: np.ndarray, wl: np.ndarray, *, tail_nm: 
 def _illuminant(name: str, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None = None) -> np.ndarray:
     import colour
 
-    wl = np.asarray(wl_key)
     if name == "A":
         # CIE A is defined as Planck's law at 2856 K, so evaluate it everywhere.
-        c2 = 1.4388e-2
-
         def fn(x):
-            lam = x * 1e-9
-            return lam ** -5 / np.expm1(c2 / (lam * 2856.0))
+            return planck(x, 2856.0)
     else:
         if name not in colour.SDS_ILLUMINANTS:
             raise InputError(f"unknown illuminant {name!r}; use one of colour.SDS_ILLUMINANTS "
@@ -155,14 +174,7 @@ def _illuminant(name: str, wl_key: tuple[float, ...], fw_key: tuple[float, ...] 
 
         def fn(x):
             return _extend(w_src, v_src, x, tail_nm=20.0)
-    spd = np.clip(srf_average(fn, wl, None if fw_key is None else np.asarray(fw_key)), 0.0, None)
-    vis = (wl >= 400) & (wl <= 700)
-    norm = spd[vis].mean() if vis.any() else spd.mean()
-    if not norm > 0:
-        raise InputError(f"illuminant {name!r} has no power at the scene wavelengths")
-    out = (spd / norm).astype(np.float64)
-    out.setflags(write=False)
-    return out
+    return relative_band_spd(fn, wl_key, fw_key, f"illuminant {name!r}")
 
 
 def illuminant_spectrum(name: str, wavelengths: np.ndarray, fwhm: np.ndarray | float | None = None) -> np.ndarray:

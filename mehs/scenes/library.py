@@ -226,13 +226,11 @@ def draw_light(family: str, pool: str, rng: np.random.Generator) -> Light:
 def _light_spd(light: Light, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None = None) -> np.ndarray:
     import colour
 
-    from mehs.capture.scene import srf_average
+    from mehs.capture.scene import planck, relative_band_spd
 
-    wl = np.asarray(wl_key)
     if light.kelvin is not None and light.family == "tungsten":
         def fn(x):
-            lam = x * 1e-9
-            return lam ** -5 / np.expm1(1.4388e-2 / (lam * light.kelvin))
+            return planck(x, light.kelvin)
     else:
         if light.kelvin is not None:
             xy = colour.temperature.CCT_to_xy_CIE_D(light.kelvin * 1.4388 / 1.4380)
@@ -247,14 +245,7 @@ def _light_spd(light: Light, wl_key: tuple[float, ...], fw_key: tuple[float, ...
         def fn(x):
             return _table(w_src, v_src, x, 20.0)
     # the camera sees each band's Gaussian response, not the SPD at its centre (lines!)
-    spd = np.clip(srf_average(fn, wl, None if fw_key is None else np.asarray(fw_key)), 0.0, None)
-    vis = (wl >= 400) & (wl <= 700)
-    norm = spd[vis].mean() if vis.any() else spd.mean()
-    if not norm > 0:
-        raise InputError(f"light {light.label!r} has no power at the scene wavelengths")
-    out = spd / norm
-    out.setflags(write=False)
-    return out
+    return relative_band_spd(fn, wl_key, fw_key, f"light {light.label!r}")
 
 
 def light_spectrum(light: Light, wavelengths: np.ndarray, fwhm: np.ndarray | float | None = None) -> np.ndarray:

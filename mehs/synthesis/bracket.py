@@ -130,11 +130,16 @@ def _ref_mean(ref: SpectralCube | None) -> np.ndarray | None:
     return np.asarray(ref.data, dtype=np.float64).mean(axis=0).astype(np.float32)
 
 
+def _same_time(a: float, b: float) -> bool:
+    """Two integration times (ms) the same within a header's printed precision (0.1 %)."""
+    return bool(np.isclose(a, b, rtol=1e-3, atol=0))
+
+
 def _dark_line(cap, folder: Path) -> np.ndarray | None:
     """``cap``'s dark reference line, refused when recorded at another integration time."""
     d, t = cap.darkref, cap.raw.integration_time_ms
     if d is not None and d.integration_time_ms is not None and t is not None \
-            and not np.isclose(d.integration_time_ms, t, rtol=1e-3, atol=0):
+            and not _same_time(d.integration_time_ms, t):
         # dark current grows with time: another time's dark shifts every subtracted DN
         raise FormatError(f"dark reference recorded at {d.integration_time_ms:g} ms, the capture "
                           f"at {t:g} ms; a dark must be taken at its exposure's integration "
@@ -161,13 +166,13 @@ def _white_line(cap, t_ms: float, dark: np.ndarray | None, full_dn: int,
     if wd is not None and wd.integration_time_ms is not None:
         if tw is None:
             tw = wd.integration_time_ms
-        elif not np.isclose(wd.integration_time_ms, tw, rtol=1e-3, atol=0):
+        elif not _same_time(wd.integration_time_ms, tw):
             raise FormatError(f"white dark reference recorded at {wd.integration_time_ms:g} ms, "
                               f"the white reference at {tw:g} ms; it must be the white's own "
                               "dark", wd.source or folder)
     if tw is None:
         tw = t_ms
-    if wd is None and np.isclose(tw, t_ms, rtol=1e-3, atol=0):
+    if wd is None and _same_time(tw, t_ms):
         return w
     d = np.zeros_like(w) if dark is None else dark.astype(np.float64)
     w_dark = d if wd is None else _ref_mean(wd).astype(np.float64)

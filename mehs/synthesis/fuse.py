@@ -410,18 +410,12 @@ def dynamic_range_stops(mean_radiance: np.ndarray, mask: np.ndarray, *,
 def _check_curve_bands(curve, bracket) -> None:
     """A per-band curve of another band set (same count, other centres: another binning or
     spectral calibration) would linearise each band with another band's curve."""
+    from mehs.bandmeta import check_same_bands
+
     if curve.shared or curve.wavelengths is None or bracket.wavelengths is None:
         return
-    cw = np.asarray(curve.wavelengths, dtype=np.float64).reshape(-1)
-    bw = np.asarray(bracket.wavelengths, dtype=np.float64).reshape(-1)
-    if cw.size != bw.size:
-        raise InputError(f"response curve has {cw.size} bands, the bracket {bw.size}",
-                         bracket.source)
-    d = np.abs(cw - bw)
-    if d.max() > 0.05:
-        k = int(np.argmax(d))
-        raise InputError(f"the per-band response curve is for other wavelengths: band {k + 1} is "
-                         f"{cw[k]:.2f} nm there, {bw[k]:.2f} nm in the bracket", bracket.source)
+    check_same_bands(curve.wavelengths, bracket.wavelengths, "the per-band response curve",
+                     "the bracket", bracket.source)
 
 
 def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
