@@ -3,7 +3,8 @@
 A handler maps one received line (terminator included) to ``(reply, fault)``;
 the servers apply the fault to the reply as a broken link would (``timeout``: no
 reply, ``garble``: corrupted bytes, ``partial``: half a reply without its
-terminator, ``disconnect``: the connection drops). The simulated Zaber stage and
+terminator, ``disconnect``: the connection drops, ``late``: the reply is held back
+past the host's timeout and sent just before the next one). The simulated Zaber stage and
 line camera (:mod:`mehs.capture.simdevice`) and the GigE Vision simulator's stage
 (:mod:`mehs.capture.genicam_sim`) are served this way, so the production drivers
 open them through pyserial exactly as hardware.
@@ -93,12 +94,16 @@ class DeviceServer:
 
     def _session(self, conn: socket.socket) -> None:
         f = conn.makefile("rb")
+        held = b""
         while not self._closed.is_set():
             line = f.readline()
             if not line:
                 return
             reply, fault = self.handler(line)
             if reply is None or fault == "timeout":
+                continue
+            if fault == "late":
+                held += reply
                 continue
             if fault == "disconnect":
                 conn.shutdown(socket.SHUT_RDWR)
@@ -109,7 +114,8 @@ class DeviceServer:
                 reply = reply[: max(1, len(reply) // 2)]
                 if reply.endswith(b"\n"):
                     reply = reply[:-1]
-            conn.sendall(reply)
+            conn.sendall(held + reply)
+            held = b""
 
 
 class PtyServer:
@@ -139,6 +145,7 @@ class PtyServer:
 
     def _serve(self) -> None:
         buf = b""
+        held = b""
         while not self._closed.is_set():
             try:
                 chunk = os.read(self.master, 4096)
@@ -152,11 +159,15 @@ class PtyServer:
                 reply, fault = self.handler(line + b"\n")
                 if reply is None or fault in ("timeout", "disconnect"):
                     continue
+                if fault == "late":
+                    held += reply
+                    continue
                 if fault == "garble":
                     reply = _corrupt(reply)
                 elif fault == "partial":
                     reply = reply[: max(1, len(reply) // 2)].rstrip(b"\n")
-                view = memoryview(reply)
+                view = memoryview(held + reply)
+                held = b""
                 while view:
                     n = os.write(self.master, view)
                     view = view[n:]

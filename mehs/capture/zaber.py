@@ -165,6 +165,13 @@ class ZaberStage(SerialDriver):
         Device address (1 = first in the chain) and axis number (1-based).
     checksum
         Append ``:CC`` to commands and require it to be valid on replies.
+    message_ids
+        Number each command (ids 0–99, the ASCII protocol's message id) and take
+        only the reply that echoes it. A reply that comes after its timeout (a slow
+        link, a busy device) is then dropped as stale instead of being read as the
+        answer to the next command — without ids every later reply is one behind,
+        and ``get pos`` may read a poll's ``0``. ``False`` for a device that does
+        not echo ids.
     opener
         Callable re-opening the port after a disconnect.
     retries
@@ -177,12 +184,15 @@ class ZaberStage(SerialDriver):
     """
 
     def __init__(self, port: Any, *, device: int = 1, axis: int = 1, checksum: bool = False,
-                 opener: Callable[[], Any] | None = None, name: str | None = None,
+                 message_ids: bool = True, opener: Callable[[], Any] | None = None,
+                 name: str | None = None,
                  retries: int = 3, reconnects: int = 3, again_retries: int = 10,
                  poll_interval_s: float = 0.002, move_timeout_s: float = 120.0,
                  retry_delay_s: float = 0.02):
         self.channel = Channel(port, opener=opener, name=name)
         self.device, self.axis, self.checksum = int(device), int(axis), bool(checksum)
+        self.message_ids = bool(message_ids)
+        self._next_id = 0
         self.retries, self.reconnects, self.again_retries = int(retries), int(reconnects), int(again_retries)
         self.poll_interval_s, self.move_timeout_s = float(poll_interval_s), float(move_timeout_s)
         self.retry_delay_s = float(retry_delay_s)
@@ -192,8 +202,10 @@ class ZaberStage(SerialDriver):
         self.events: list[str] = []   # recoveries, for the capture log
 
     # ------------------------------------------------------------ low level
-    def _read_reply(self) -> ZaberReply:
-        for _ in range(64):  # info/alert lines may precede the reply
+    def _read_reply(self, expect_id: int | None = None) -> ZaberReply:
+        """The reply to the command just sent: with ``expect_id``, replies carrying
+        another id (late answers to earlier commands) are dropped and logged."""
+        for _ in range(64):  # info/alert lines and stale replies may precede the reply
             raw = self.channel.read_line(b"\n", what="stage reply")
             text = raw.decode("ascii", "replace").rstrip("\r\n")
             if text.startswith("#"):
@@ -212,14 +224,35 @@ class ZaberStage(SerialDriver):
                 raise ZaberProtocolError(
                     f"reply from device {reply.device} axis {reply.axis}, expected "
                     f"{self.device} {self.axis}: {text!r}", self.name)
+            if expect_id is not None:
+                if reply.msg_id is None:
+                    raise ZaberProtocolError(
+                        f"reply without the message id {expect_id:02d} the command carried: "
+                        f"{text!r} (a device that does not echo ids: message_ids=False, "
+                        "or mehs capture --no-message-ids)", self.name)
+                if reply.msg_id != expect_id:
+                    self.events.append(f"stage: dropped a late reply {text!r} "
+                                       f"(id {reply.msg_id:02d}, waiting for {expect_id:02d})")
+                    continue
             return reply
-        raise ZaberProtocolError("too many info/alert lines without a reply", self.name)
+        raise ZaberProtocolError("too many info/alert lines or stale replies without the reply",
+                                 self.name)
+
+    def _take_id(self) -> int | None:
+        if not self.message_ids:
+            return None
+        i = self._next_id
+        self._next_id = (i + 1) % 100
+        return i
 
     def _send_once(self, command: str) -> ZaberReply:
         """One command, one reply; RJ AGAIN is re-sent (the device did not act on it)."""
         for attempt in range(self.again_retries + 1):
-            self.channel.write(format_command(self.device, self.axis, command, checksum=self.checksum))
-            reply = self._read_reply()
+            # a new id per attempt: a late answer to an earlier attempt is not this one's
+            mid = self._take_id()
+            self.channel.write(format_command(self.device, self.axis, command,
+                                              checksum=self.checksum, msg_id=mid))
+            reply = self._read_reply(mid)
             self.last_reply = reply
             if reply.ok:
                 return reply

@@ -45,6 +45,9 @@ def configure(parser):
     parser.add_argument("--white-line", type=int, default=None,
                         help="scan line where the white tile starts (default lines+4)")
     parser.add_argument("--checksum", action="store_true", help="use Zaber message checksums")
+    parser.add_argument("--no-message-ids", action="store_true",
+                        help="send Zaber commands without message ids (a device that does not "
+                             "echo them); with ids a late reply is recognised and dropped")
     parser.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--simulate", action="store_true",
@@ -96,7 +99,8 @@ def run(args):
         lines = args.lines or 512
     stage = camera = None
     try:
-        stage = ZaberStage.open(stage_url, timeout=args.timeout, checksum=args.checksum)
+        stage = ZaberStage.open(stage_url, timeout=args.timeout, checksum=args.checksum,
+                                message_ids=not args.no_message_ids)
         camera = open_camera(camera_url, args)
         info = {"simulated": bool(args.simulate)}
         if args.simulate:
@@ -221,4 +225,7 @@ def _resume_hint(args) -> str:
                 parts += [flag] if v is True else [flag, str(v)]
     else:
         parts += ["--stage", str(args.stage), "--camera", str(args.camera)]
+    # the link's options too: a stage that needs them refuses a resume without them
+    parts += (["--checksum"] if getattr(args, "checksum", False) else []) + (
+        ["--no-message-ids"] if getattr(args, "no_message_ids", False) else [])
     return " ".join(shlex.quote(p) for p in parts)
