@@ -228,22 +228,27 @@ def test_camera_block_layout_and_read_line():
     port.assert_done()
 
 
+IDN = (b"*IDN?\n", b"MEHS,SIMLINE-3,SIM0001,1.0\n")   # re-synchronisation before a retry
+
+
 def test_camera_crc_failure_refetches_without_new_exposure():
     line = np.full((4, 3), 1000, dtype=np.uint16)
     good = encode_line(line)
     bad = bytearray(good)
     bad[10] ^= 0xFF
-    cam, port = cam_for([(b"FORM:SHAP?\n", b"4,3\n"), (b"READ?\n", bytes(bad)), (b"FETC?\n", good)])
+    cam, port = cam_for([(b"FORM:SHAP?\n", b"4,3\n"), (b"READ?\n", bytes(bad)), IDN, (b"FETC?\n", good)])
     np.testing.assert_array_equal(cam.read_line(), line)
     port.assert_done()
 
 
 def test_camera_timeout_reexposes_and_persistent_fails():
     line = np.full((2, 2), 7, dtype=np.uint16)
-    cam, port = cam_for([(b"FORM:SHAP?\n", b"2,2\n"), (b"READ?\n", None), (b"READ?\n", encode_line(line))])
+    cam, port = cam_for([(b"FORM:SHAP?\n", b"2,2\n"), (b"READ?\n", None), IDN,
+                         (b"READ?\n", encode_line(line))])
     np.testing.assert_array_equal(cam.read_line(), line)
     port.assert_done()
-    cam, port = cam_for([(b"FORM:SHAP?\n", b"2,2\n")] + [(b"READ?\n", None)] * 3, retries=2)
+    cam, port = cam_for([(b"FORM:SHAP?\n", b"2,2\n")] + [(b"READ?\n", None), IDN] * 2
+                        + [(b"READ?\n", None)], retries=2)
     with pytest.raises(DeviceTimeout, match="after 3 attempts"):
         cam.read_line()
     port.assert_done()
@@ -264,7 +269,7 @@ def test_camera_reconnect_reapplies_settings():
 
 
 def test_camera_garbled_text_and_wrong_block_size():
-    cam, port = cam_for([(b"TEMP?\n", b"2\xff.0\n"), (b"TEMP?\n", b"25.0\n")])
+    cam, port = cam_for([(b"TEMP?\n", b"2\xff.0\n"), IDN, (b"TEMP?\n", b"25.0\n")])
     assert cam.temperature() == 25.0
     port.assert_done()
     cam, port = cam_for([(b"FORM:SHAP?\n", b"4,3\n")] + [(b"READ?\n", encode_line(np.zeros((2, 2), np.uint16)))],

@@ -15,6 +15,10 @@ Reliability: settings and queries are idempotent and retried after a
 timeout, partial or garbled reply; a line whose CRC fails is transferred
 again with ``FETC?`` (no new exposure); a lost ``READ?`` reply is retried
 with a new ``READ?`` (the line is exposed again at the same stage position).
+Before any retry the link is re-synchronised: the camera answers in order, so
+after ``*IDN?`` everything it still owed (a line that came after the timeout)
+arrives before the identification and is dropped — otherwise that late line
+was read as the next line's and every later line was one behind, silently.
 After a disconnect the driver reconnects and re-applies integration time
 and shutter before anything else.
 """
@@ -32,6 +36,10 @@ from mehs.capture.transport import Channel, SerialDriver
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 _ERR_RE = re.compile(r'^ERR (?P<code>-?\d+),"(?P<msg>[^"]*)"$')
+#: IEEE 488.2 ``*IDN?`` reply: manufacturer, model, serial, firmware
+_IDN_RE = re.compile(r"^[^,]+,[^,]+,[^,]+,[^,]+$")
+#: bytes a re-synchronisation may drop before it gives up (a few lines' worth)
+_RESYNC_BYTES = 1 << 22
 
 
 class CameraError(DeviceError):
@@ -90,6 +98,7 @@ class LineCamera(SerialDriver):
         self._shape: tuple[int, int] | None = None
         self._t_ms: float | None = None
         self._shutter_open: bool | None = None
+        self._idn: str | None = None
         self.events: list[str] = []
 
     # ------------------------------------------------------------ low level
@@ -145,7 +154,57 @@ class LineCamera(SerialDriver):
 
     # ------------------------------------------------------------ settings
     def identify(self) -> str:
-        return self.query("*IDN?")
+        self._idn = self.query("*IDN?")
+        return self._idn
+
+    # ------------------------------------------------------------ recovery
+    def _recover(self, exc: DeviceError) -> None:
+        """After a disconnect reconnect; otherwise drop stale bytes and re-synchronise
+        (:meth:`_resync`), so that the retry reads its own reply."""
+        super()._recover(exc)
+        if isinstance(exc, DeviceDisconnected):
+            return
+        try:
+            self._resync()
+        except DeviceError as e:    # the retry will meet the fault again and recover again
+            self.events.append(f"camera: re-synchronisation failed: {e.problem}")
+
+    def _resync(self) -> None:
+        """Send ``*IDN?`` and read up to its reply, dropping what comes before it.
+
+        The camera answers commands in order, so replies it still owed when the host
+        gave up — a late line block, an ``OK`` — come first; the rest of a reply cut
+        by the discarded input comes as undecodable text. Both are dropped (and
+        logged); then the link is in step again.
+        """
+        ch = self.channel
+        ch.write(b"*IDN?\n")
+        dropped = 0
+        while dropped <= _RESYNC_BYTES:
+            first = ch.read_exact(1, what="reply to *IDN? (re-synchronisation)")
+            if first == b"#":
+                try:
+                    nd = int(ch.read_exact(1, what="block header"))
+                    n = int(ch.read_exact(nd, what="block length")) if nd > 0 else -1
+                except ValueError:
+                    n = -1
+                if 0 <= n <= _RESYNC_BYTES - dropped:
+                    ch.read_exact(n + 10, what="late line data")
+                    dropped += n + 12
+                    self.events.append(f"camera: dropped a late line ({n} bytes) while "
+                                       "re-synchronising")
+                    continue
+                raw = first + ch.read_line(b"\n", what="reply")
+            else:
+                raw = first + ch.read_line(b"\n", what="reply to *IDN? (re-synchronisation)")
+            text = raw.decode("ascii", "replace").rstrip("\r\n")
+            if (text == self._idn) if self._idn else (_is_text(text) and bool(_IDN_RE.match(text))):
+                return
+            dropped += len(raw)
+            self.events.append(f"camera: dropped a late or broken reply {raw[:40]!r} while "
+                               "re-synchronising")
+        raise CameraProtocolError(f"no reply to *IDN? within {_RESYNC_BYTES} bytes while "
+                                  "re-synchronising", self.name)
 
     def shape(self) -> tuple[int, int]:
         """``(samples, bands)`` of one line."""

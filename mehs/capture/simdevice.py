@@ -17,8 +17,8 @@ command of the stage (``home``/``move``). Kinds: ``timeout`` (no reply),
 ``garble`` (corrupted bytes), ``partial`` (half a reply, no terminator),
 ``disconnect`` (the connection drops before the reply), ``again`` (stage:
 ``RJ AGAIN``), ``fault`` (stage: stalls half-way and raises ``FS``, which
-persists until ``warnings clear``), ``late`` (stage: the reply comes after the
-host's timeout, just before the next reply — a slow link).
+persists until ``warnings clear``), ``late`` (the reply comes after the host's
+timeout, just before the next reply — a slow link).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def parse_faults(spec: str | None) -> list[Fault]:
         if not m or m[2] not in FAULT_KINDS:
             raise InputError(f"bad fault {item!r}: use DEVICE:KIND@N[xCOUNT] with DEVICE stage|camera "
                              f"and KIND one of {', '.join(FAULT_KINDS)}")
-        if m[2] in ("again", "fault", "late") and m[1] != "stage":
+        if m[2] in ("again", "fault") and m[1] != "stage":
             raise InputError(f"fault {m[2]!r} applies to the stage only")
         count = int(m[4] or 1)
         if int(m[3]) < 1 or count < 1:

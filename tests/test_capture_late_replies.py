@@ -1,10 +1,13 @@
-"""Zaber message ids: each command numbered, only the reply echoing it taken (a late reply to
-an earlier command is dropped instead of shifting every later reply by one)."""
+"""Replies that come after the host's timeout (a slow link, a busy controller).
+
+Zaber: each command carries a message id and only the reply echoing it is taken. Line
+camera: before a retry the link is re-synchronised with ``*IDN?`` (the camera answers in
+order). Either way a late reply is dropped instead of shifting every later reply by one."""
 
 import numpy as np
 import pytest
 
-from mehs.capture.camera import LineCamera
+from mehs.capture.camera import LineCamera, encode_line
 from mehs.capture.fakeport import ExpectedPort
 from mehs.capture.scene import make_scene
 from mehs.capture.sensor import SensorModel
@@ -79,7 +82,7 @@ def scene():
     return make_scene(lines=LINES, samples=6, seed=2)
 
 
-def _capture(scene, out, faults, message_ids):
+def _capture(scene, out, faults, message_ids=True):
     with SimDevices(scene, SensorModel(seed=5), faults=faults) as dev:
         st = ZaberStage.open(dev.stage_url, timeout=0.2, retry_delay_s=0.0, poll_interval_s=0.0,
                              message_ids=message_ids)
@@ -120,3 +123,57 @@ def test_resume_hint_keeps_the_links_options():
                                        "--checksum --no-message-ids")
     args.checksum = args.no_message_ids = False
     assert _resume_hint(args).endswith("--camera socket://cam:5")
+
+
+# ---------------------------------------------------------------- line camera
+IDN = b"MEHS,SIMLINE-2,SIM0001,1.0\n"
+
+
+def test_camera_late_line_is_dropped_by_the_resync():
+    late, line = np.full((2, 2), 5, np.uint16), np.full((2, 2), 9, np.uint16)
+    port = ExpectedPort([(b"FORM:SHAP?\n", b"2,2\n"), (b"READ?\n", None),
+                         (b"*IDN?\n", encode_line(late) + IDN), (b"READ?\n", encode_line(line))])
+    cam = LineCamera(port, retry_delay_s=0)
+    np.testing.assert_array_equal(cam.read_line(), line)
+    port.assert_done()
+    assert any("dropped a late line" in e for e in cam.events)
+
+
+def test_camera_resync_skips_the_tail_of_a_cut_reply_and_other_owed_replies():
+    line = np.full((2, 2), 9, np.uint16)
+    tail = encode_line(np.full((2, 2), 0x0A0A, np.uint16))[5:]      # a block cut by the discard
+    port = ExpectedPort([(b"FORM:SHAP?\n", b"2,2\n"), (b"READ?\n", None),
+                         (b"*IDN?\n", tail + b"OK\n" + IDN), (b"READ?\n", encode_line(line))])
+    cam = LineCamera(port, retry_delay_s=0)
+    np.testing.assert_array_equal(cam.read_line(), line)
+    port.assert_done()
+
+
+def test_camera_resync_uses_the_known_identification():
+    line = np.full((2, 2), 9, np.uint16)
+    other = b"ACME,OTHER,1,2\n"     # looks like an IDN but is not this camera's
+    port = ExpectedPort([(b"*IDN?\n", IDN), (b"FORM:SHAP?\n", b"2,2\n"), (b"READ?\n", None),
+                         (b"*IDN?\n", other + IDN), (b"READ?\n", encode_line(line))])
+    cam = LineCamera(port, retry_delay_s=0)
+    assert cam.identify() == IDN.decode().strip()
+    np.testing.assert_array_equal(cam.read_line(), line)
+    port.assert_done()
+
+
+@pytest.mark.parametrize("faults", ["camera:late@12", "camera:late@30", "camera:late@30,stage:late@31"])
+def test_late_camera_lines_recover_with_identical_data(scene, tmp_path, faults):
+    ref = simulate_bracket(scene, SensorModel(seed=5), TIMES, dark_lines=4)
+    doc, fired = _capture(scene, tmp_path / "s", faults)
+    assert fired
+    for e, want in zip(doc["exposures"], ref.exposures):
+        np.testing.assert_array_equal(np.asarray(read_specim_folder(tmp_path / "s" / e["folder"]).raw.data),
+                                      want)
+
+
+def test_without_the_resync_a_late_line_shifts_the_scan(scene, tmp_path, monkeypatch):
+    """What the resync prevents: each later line of the exposure read one behind, silently."""
+    monkeypatch.setattr(LineCamera, "_resync", lambda self: None)
+    ref = simulate_bracket(scene, SensorModel(seed=5), TIMES, dark_lines=4)
+    doc, _ = _capture(scene, tmp_path / "s", "camera:late@30")
+    got = [np.asarray(read_specim_folder(tmp_path / "s" / e["folder"]).raw.data) for e in doc["exposures"]]
+    assert not all(np.array_equal(g, w) for g, w in zip(got, ref.exposures))
