@@ -28,9 +28,9 @@ import numpy as np
 PER_BAND_KEYS = frozenset({"bbl", "band names", "data gain values", "data offset values",
                            "data reflectance gain values", "data reflectance offset values"})
 
-#: A resampled band is flagged bad when more than this share of its weight comes from
-#: source bands flagged bad.
-BAD_WEIGHT_SHARE = 0.01
+#: A resampled band is flagged bad when more than this share of its window's weight
+#: lies on source bands flagged bad (its value then rests on a minority of the window).
+BAD_WEIGHT_SHARE = 0.5
 
 
 class BandMetadataWarning(UserWarning):
@@ -91,25 +91,33 @@ def bad_bands(meta: Mapping[str, Any], n_bands: int) -> np.ndarray | None:
         return None
 
 
-def resampled_band_metadata(meta: Mapping[str, Any], matrix: np.ndarray) -> dict[str, Any]:
-    """Per-band metadata for bands made as ``dst = matrix @ src``.
+def resampled_band_metadata(meta: Mapping[str, Any], matrix: np.ndarray,
+                            used: np.ndarray | None = None) -> dict[str, Any]:
+    """Per-band metadata for bands made as ``dst = used @ src``.
 
     Names, gains and offsets describe the source bands and are dropped; a ``bbl``
-    is recomputed: a target band is bad (0) when more than :data:`BAD_WEIGHT_SHARE`
-    of its absolute weight comes from source bands flagged bad.
+    is recomputed. The bad bands are left out of ``used`` wherever good bands reach
+    a target (ENVI: bad bands take no part in processing), so a target is bad (0)
+    only when ``used`` still draws on a bad band (no good band reaches it) or when
+    more than :data:`BAD_WEIGHT_SHARE` of its weight in ``matrix`` (all bands) lies
+    on bad bands.
 
     Parameters
     ----------
     matrix
-        ``(n_dst, n_src)`` resampling matrix.
+        ``(n_dst, n_src)`` resampling matrix over all source bands.
+    used
+        ``(n_dst, n_src)`` matrix actually applied (default ``matrix``).
     """
     matrix = np.abs(np.asarray(matrix, dtype=np.float64))
+    used = matrix if used is None else np.abs(np.asarray(used, dtype=np.float64))
     bad = bad_bands(meta, matrix.shape[1])
     out = {k: v for k, v in meta.items() if k not in PER_BAND_KEYS}
     if bad is not None:
         total = matrix.sum(axis=1)
         share = matrix[:, bad].sum(axis=1) / np.where(total > 0, total, 1.0)
-        out["bbl"] = [0 if s > BAD_WEIGHT_SHARE else 1 for s in share]
+        from_bad = (used[:, bad] > 0).any(axis=1)
+        out["bbl"] = [0 if (s > BAD_WEIGHT_SHARE or b) else 1 for s, b in zip(share, from_bad)]
     return out
 
 

@@ -81,6 +81,8 @@ def run(args) -> int:
     else:
         write_envi(out, res, dtype="float32", interleave="bil", data_ext=".dat")
     wl = res.wavelengths
+    # linear interpolation has no band width: printing --fwhm's default would claim one
+    how = args.method if args.method == "linear" else f"{args.method}, fwhm {args.fwhm:g} nm"
     print(f"{out}: {res.lines}×{res.samples}×{res.bands} float32, {wl[0]:g}..{wl[-1]:g} nm "
-          f"({args.method}, fwhm {args.fwhm:g} nm) from {cube.bands} bands")
+          f"({how}) from {cube.bands} bands")
     return 0
