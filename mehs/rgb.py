@@ -248,13 +248,22 @@ def ldr_exposure(hdr: np.ndarray, key: float = LDR_KEY) -> float:
     picture black; the log-average barely moves when a small lamp is added,
     so the diffuse scene is exposed normally and the lamp clips, as in an
     ordinary photograph. An image with no positive luminance gets exposure 1.0.
+    NaN/Inf pixels or a non-positive ``key`` raise :class:`InputError`.
 
     References
     ----------
     Reinhard, E., Stark, M., Shirley, P., Ferwerda, J. (2002). Photographic
     tone reproduction for digital images. ACM TOG 21(3), eq. 1.
     """
-    y = luminance(np.asarray(hdr, dtype=np.float32)).ravel()
+    key = float(key)
+    if not (np.isfinite(key) and key > 0):
+        raise InputError(f"the LDR key (grey level of the log-average) must be a positive "
+                         f"number, got {key}")
+    hdr = np.asarray(hdr, dtype=np.float32)
+    if not np.isfinite(hdr).all():
+        # NaN pixels dropped out of "Y > 0" silently and one Inf gave exposure 0 (black)
+        raise InputError("the HDR image holds NaN/Inf values; no exposure can be metered")
+    y = luminance(hdr).ravel()
     y = y[y > 0]
     if y.size == 0:
         return 1.0

@@ -18,7 +18,10 @@ uncalibrated                ``radiometric_unit`` is DN/ms                 allowe
 ==========================  ============================================  =========
 
 Figures that are unknown (``None``, e.g. ghosts for ``--from-hs`` cubes) are
-not judged. Failed scenes stay in the manifest with their reasons; only
+not judged; a NaN/Inf figure fails the scene (a broken figure is no pass).
+``min_dynamic_range_stops=None`` turns the dynamic-range rule off. A failing
+value is reported with the digits needed to tell it from the threshold.
+Failed scenes stay in the manifest with their reasons; only
 passing scenes enter the splits.
 """
 
@@ -54,8 +57,12 @@ class QualityRules:
         v = self.max_response_uncertainty
         if v is not None and not (math.isfinite(v) and v >= 0):
             raise InputError(f"max_response_uncertainty must be >= 0, got {v}")
-        if int(self.min_exposures) < 1:
-            raise InputError(f"min_exposures must be at least 1, got {self.min_exposures}")
+        n = self.min_exposures
+        # a float NaN or a string ("2" from a config file) would crash or mis-compare in judge
+        if isinstance(n, bool) or not isinstance(n, (int, float)) or not (
+                math.isfinite(n) and n == int(n) and n >= 1):
+            raise InputError(f"min_exposures must be a whole number of at least 1, got {n!r}")
+        object.__setattr__(self, "min_exposures", int(n))
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -78,10 +85,21 @@ def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
         reasons.append(f"synthesis failed: {error}")
     q = quality or {}
 
-    def over(key: str, limit: float, text: str) -> None:
+    def figure(key: str, text: str) -> float | None:
+        """The figure, or None when unknown; a NaN/Inf figure is a failure, not a pass
+        (every comparison with NaN is False, so it slipped through every rule)."""
         v = q.get(key)
-        if v is not None and v > limit:
-            reasons.append(f"{text} {v:.4g} > {limit:g}")
+        if v is None:
+            return None
+        if not math.isfinite(v):
+            reasons.append(f"{text} is not a finite number ({v})")
+            return None
+        return v
+
+    def over(key: str, limit: float | None, text: str, advice: str = "") -> None:
+        v = figure(key, text)
+        if v is not None and limit is not None and v > limit:
+            reasons.append(f"{text} {_beside(v, limit)} > {limit:g}{advice}")
 
     n = q.get("n_exposures")
     if n is not None and n < rules.min_exposures:
@@ -89,17 +107,29 @@ def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
     over("ghost_fraction", rules.max_ghost_fraction, "ghost fraction")
     over("saturated_fraction", rules.max_saturated_fraction, "saturated-in-all fraction")
     over("invalid_fraction", rules.max_invalid_fraction, "invalid fraction")
-    dr = q.get("dynamic_range_stops")
-    if dr is not None and dr < rules.min_dynamic_range_stops:
-        reasons.append(f"dynamic range {dr:.3g} stops < {rules.min_dynamic_range_stops:g}")
+    dr = figure("dynamic_range_stops", "dynamic range")
+    lim = rules.min_dynamic_range_stops
+    if dr is not None and lim is not None and dr < lim:  # None: the rule is off
+        reasons.append(f"dynamic range {_beside(dr, lim)} stops < {lim:g}")
     ru = q.get("response_uncertainty")
     if q.get("response_undetermined") and (ru is None or rules.max_response_uncertainty is None):
         reasons.append("response curve undetermined by the bracket (capture a response ladder "
                        "and build with --response)")
     elif ru is not None and rules.max_response_uncertainty is not None:
         over("response_uncertainty", rules.max_response_uncertainty,
-             "response curve undetermined: uncertainty (use a ladder curve, --response)")
+             "response curve undetermined: uncertainty",
+             " (use a ladder curve, --response)")
     unit = q.get("radiometric_unit")
     if rules.require_calibration and unit is not None and unit.startswith("DN"):
         reasons.append(f"not radiometrically calibrated ({unit})")
     return ("fail" if reasons else "pass"), reasons
+
+
+def _beside(value: float, limit: float) -> str:
+    """``value`` with enough significant digits to differ from ``limit`` when it does
+    (4 stops < 4 or 0.01 > 0.01 read as a rule firing on an equal value)."""
+    for digits in range(3, 16):
+        text = f"{value:.{digits}g}"
+        if float(text) != limit or value == limit:
+            return text
+    return repr(value)

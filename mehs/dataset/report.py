@@ -68,7 +68,7 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
         if files.get("hs"):
             fig = f"{sid}_figure.png"
             try:
-                _scene_figure(dataset, s, tmp_dir / fig)
+                _scene_figure(dataset, s, tmp_dir / fig, manifest.get("radiance_unit"))
             except (MehsError, OSError, ValueError) as exc:
                 fig = None
                 s = {**s, "reasons": s.get("reasons", []) + [f"report: {exc}"]}
@@ -155,7 +155,8 @@ def _thumbnail(src: Path, dst: Path) -> None:
     write_png(dst, img)
 
 
-def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
+def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path,
+                  unit: str | None = None) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
@@ -181,19 +182,27 @@ def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
     _plot_response(ax, dataset / files["response"] if files.get("response") else None)
 
     ax = axes[0, 2]
+    q = scene.get("quality") or {}
     valid = (Y > 0) & (mask == 0)
-    if valid.any():
-        ax.hist(np.log2(Y[valid]), bins=60, color="0.3")
-    dr = (scene.get("quality") or {}).get("dynamic_range_stops")
+    # the pixels the dynamic range counts (docs/science.md): ghosts (2) and no-signal
+    # pixels (4) out, a lamp saturated in every exposure (1) in with its lower bound;
+    # without it a 14-stop lamp scene showed a 9-stop histogram under "DR 14 stops"
+    counted = (Y > 0) & ((mask & 6) == 0)
+    if counted.any():
+        ax.hist(np.log2(Y[counted]), bins=60, color="0.3")
+    dr = q.get("dynamic_range_stops")
     ax.set_title("log2 luminance" + (f" — DR {dr:.1f} stops" if dr is not None else ""))
     ax.set_xlabel("log2 Y (relative)")
     ax.set_ylabel("pixels")
 
-    for ax, bit, name, cmap in ((axes[1, 0], 1, "saturated in every exposure", "Reds"),
-                                (axes[1, 1], 2, "ghost (moved between exposures)", "Blues")):
+    for ax, bit, key, name, cmap in (
+            (axes[1, 0], 1, "saturated_fraction", "saturated in every exposure", "Reds"),
+            (axes[1, 1], 2, "ghost_fraction", "ghost (moved between exposures)", "Blues")):
         m = (mask & bit) > 0
         ax.imshow(m, cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
-        ax.set_title(f"{name}: {m.mean() * 100:.2f} %")
+        # the manifest's figure, as the table shows it; unknown (an HS cube has no
+        # bracket, ghosts not tested) is not 0 % (the empty mask bit said so)
+        ax.set_title(f"{name}: {_fmt(q.get(key), True) if q.get(key) is not None else 'not measured'}")
         ax.axis("off")
 
     ax = axes[1, 2]
@@ -204,11 +213,17 @@ def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path) -> None:
         w = cube.samples
         for p in picks:
             r, c = divmod(int(p), w)
-            ax.semilogy(cube.wavelengths, np.maximum(np.asarray(cube.data[r, c, :]), 1e-12),
-                        label=f"({r},{c})")
+            spec = np.asarray(cube.data[r, c, :], dtype=np.float64)
+            # zero / negative samples cannot sit on a log axis: leave a gap (clamping them
+            # to 1e-12 stretched the axis over 14 decades and hid the spectra's shapes)
+            ax.semilogy(cube.wavelengths, np.where(spec > 0, spec, np.nan),
+                        label=f"(line {r}, sample {c})")
         ax.legend(fontsize=7)
     ax.set_title("example spectra (luminance 0–100 %)")
     ax.set_xlabel("wavelength (nm)")
+    scale = q.get("radiance_scale")
+    ax.set_ylabel(f"radiance [{unit or 'unit not recorded'}]"
+                  + (f" × {scale:g}" if _number(scale) and scale != 1 else ""))
     _save(fig, out)
 
 
@@ -267,20 +282,36 @@ def _overview_figure(scenes: list[dict], out: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 3.6), layout="constrained")
     q = [(s["id"], s["status"], s.get("quality") or {}) for s in scenes]
     ids = [i for i, _, _ in q]
-    drs = [x.get("dynamic_range_stops") or 0 for _, _, x in q]
     colors = ["tab:green" if st == "pass" else "tab:red" for _, st, _ in q]
-    a.bar(range(len(ids)), drs, color=colors)
+    # an unknown figure (None: an HS cube has no bracket, a scene that failed to build)
+    # is drawn as missing, never as a 0-stop bar or a point at (0, 0) beside real zeros
+    have = [i for i, (_, _, x) in enumerate(q) if _number(x.get("dynamic_range_stops"))]
+    a.bar(have, [q[i][2]["dynamic_range_stops"] for i in have],
+          color=[colors[i] for i in have])
+    for i in sorted(set(range(len(ids))) - set(have)):
+        a.text(i, 0, "n/a", ha="center", va="bottom", fontsize=7, rotation=90, color="0.4")
     a.set_xticks(range(len(ids)), ids, rotation=60, fontsize=7)
+    a.set_ylim(bottom=0)  # stops are >= 0; "n/a" labels sit on the axis
     a.set_ylabel("dynamic range (stops)")
     a.set_title("dynamic range per scene (green pass, red fail)")
-    b.scatter([x.get("saturated_fraction") or 0 for _, _, x in q],
-              [x.get("ghost_fraction") or 0 for _, _, x in q], c=colors)
+    both = [i for i, (_, _, x) in enumerate(q)
+            if _number(x.get("saturated_fraction")) and _number(x.get("ghost_fraction"))]
+    b.scatter([q[i][2]["saturated_fraction"] for i in both],
+              [q[i][2]["ghost_fraction"] for i in both], c=[colors[i] for i in both])
     b.set_xlabel("saturated-in-all fraction")
     b.set_ylabel("ghost fraction")
-    b.set_title("saturation vs ghosts")
+    missing = len(q) - len(both)
+    b.set_title("saturation vs ghosts" + (f" ({missing} not measured)" if missing else ""))
     b.set_xlim(left=0)  # fractions: autoscale's margin around all-zero data went negative
     b.set_ylim(bottom=0)
     _save(fig, out)
+
+
+def _number(v: Any) -> bool:
+    """A finite number (not None, NaN, a bool or text) that can be drawn."""
+    import math
+
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _save(fig, out: Path) -> None:
@@ -301,6 +332,8 @@ def _fmt(v: Any, pct: bool = False) -> str:
         return "–"
     if isinstance(v, list):
         return " ".join(_fmt(x) for x in v)
+    if pct and isinstance(v, int) and not isinstance(v, bool):
+        v = float(v)  # an int 0 from a hand-edited or older manifest is still a fraction
     if isinstance(v, float):
         return f"{v * 100:.2f} %" if pct else f"{v:.3g}"
     return html.escape(str(v))
@@ -358,9 +391,12 @@ def _radiometry(manifest: dict) -> str:
         return (f'<p class="uncal" style="color:#c00;font-weight:bold">Uncalibrated: the cubes are '
                 f'{html.escape(unit)} (camera quantum efficiency included), not spectral radiance. '
                 f'Calibrate with <code>mehs calibrate</code> and build with --calibration.</p>')
+    u = cal.get("median_uncertainty")
+    # an unrecorded uncertainty is unknown, not a perfect 0.00 %
+    u = f"{float(u):.2%}" if _number(u) else "not recorded"
     return (f'<p class="cal">Radiance unit: <b>{html.escape(unit)}</b> (calibration '
             f'{html.escape(str(cal.get("method", "")))}, {html.escape(str(cal.get("path", "")))}, '
-            f'median responsivity uncertainty {float(cal.get("median_uncertainty") or 0):.2%}).</p>')
+            f'median responsivity uncertainty {u}).</p>')
 
 
 _PAGE = """<!DOCTYPE html>
