@@ -8,9 +8,12 @@ computes them for one pair of exposures of the probed samples:
   noise is independent of the sample's) cut at the edges of cells of its float32 value,
   from an even subset of the samples;
 - a robust centre and spread per group (median and MAD of that subset, by one selection:
-  no Python loop holding the GIL), which set a 5σ clip;
+  no Python loop holding the GIL) and the noise at each sample's own level (the subset's
+  photon-transfer line, :func:`_noise_curve`), which set a 5σ clip that holds for a
+  group mixing levels (:func:`_group_clip`, :func:`_clip_sigma`);
 - the pixels a moving object changed between the two exposures, found by their bands'
-  joint departure from those medians (:func:`_moving_pixels`), left out whole;
+  joint departure from those medians (:func:`_moving_pixels`) or by a subset sample
+  beyond 5σ of its own level, left out whole;
 - one pass over every sample (:func:`mehs.synthesis._ptc_kernels.ptc_pass`, stored machine
   code; numpy's :mod:`mehs.synthesis._ptc_numpy` while it compiles): each group's counts
   of all and of saturated samples and the clipped sums.
@@ -120,6 +123,91 @@ def _group_median_mad(v: np.ndarray, g: np.ndarray, groups: int) -> tuple[np.nda
     return med, 1.4826 * _group_medians(np.abs(v - np.take(med, g)), g, groups)
 
 
+def _own_level(y_j: np.ndarray, y_k: np.ndarray, r: float) -> np.ndarray:
+    """float64: a sample's own estimate of ``μ_k + r²·μ_j`` (what ``E[d²]`` rises with),
+    ``r·(y_k + y_j)``: of the unbiased ones, that whose noise is uncorrelated with
+    ``d = y_k − r·y_j`` under shot noise (var y_k = r·var y_j), where the level sets the
+    noise; ``y_k + r²·y_j`` carries ``r²``× ``y_j``'s noise, against ``d``'s ``−r``×, and
+    made the z-scores of its bright samples skew."""
+    return r * (np.asarray(y_k, np.float64) + y_j)
+
+
+#: Samples of the even subset (at most, evenly spread) that :func:`_noise_curve` fits.
+CURVE_SAMPLES = 12288
+
+
+def _noise_curve(e: np.ndarray, q: np.ndarray, g: np.ndarray, groups: int,
+                 sig: np.ndarray, bands: int) -> tuple[float, float]:
+    """``(a, c)`` of ``σ²(q) ≈ a·max(q, 0) + c``: the noise of ``d`` at a sample's own level
+    ``q`` (:func:`_own_level`), from the even subset (``e``: each sample's ``d`` about its
+    group's median, ``g`` its group, ``sig`` the groups' MAD σ).
+
+    The photon-transfer line itself, fitted to the subset's groups (mean ``e²`` against
+    mean ``q``; weights: relative errors alike) twice: first clipped at 5 MAD σ of each
+    group — too tight for a group that mixes levels, the line comes out up to 30 % flat
+    — then at 5σ of that line at each sample's own level. Grouping stays by the
+    instrument: binned by their own ``q`` the samples' spreads are those of the selection
+    (even of :func:`_own_level`, whose noise is independent of ``d``'s only where shot
+    noise dominates; ``y_k + r²·y_j`` held 20× the noise in its outer bins). It only
+    scales the clip and the z-scores. A flat line (``a = 0``) where the fit finds no rise.
+    """
+    # two numbers: :data:`CURVE_SAMPLES` of the subset are plenty (a step coprime with
+    # the bands, as the subset's own, so that every band is among them)
+    step = _stride(e.size, CURVE_SAMPLES, bands)
+    e, q, g = e[::step], q[::step], g[::step]
+    keep = np.abs(e) <= 5.0 * np.take(sig, g)
+    a, c = 0.0, 1.0
+    for _ in range(2):
+        n = np.bincount(g[keep], minlength=groups)
+        ok = n >= 16
+        if not ok.any():
+            break
+        s2 = np.bincount(g[keep], weights=e[keep] ** 2, minlength=groups)[ok] / n[ok]
+        qm = np.bincount(g[keep], weights=q[keep], minlength=groups)[ok] / n[ok]
+        if not np.any(s2 > 0):
+            break
+        s2f = np.maximum(s2, s2[s2 > 0].min())
+        flat = float(np.average(s2f, weights=1.0 / s2f ** 2))
+        a, c = 0.0, flat
+        if ok.sum() >= 2 and np.ptp(qm) > 0:
+            A = np.stack([np.maximum(qm, 0.0), np.ones(qm.size)], axis=1) / s2f[:, None]
+            (fa, fc), *_ = np.linalg.lstsq(A, np.ones(qm.size), rcond=None)
+            if np.isfinite(fa) and np.isfinite(fc) and fa > 0:
+                # a negative intercept (read noise below the fit's resolution): the least
+                a, c = float(fa), float(fc) if fc > 0 else float(s2f.min())
+        keep = e * e <= 25.0 * (a * np.maximum(q, 0.0) + c)
+    return a, c
+
+
+def _group_clip(e: np.ndarray, q: np.ndarray, g: np.ndarray, groups: int, a: float,
+                c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per group of ``g``: ``madz``, the scaled MAD of ``z = e/σ(q)`` (``σ² = a·max(q, 0)
+    + c``, :func:`_noise_curve`; ≈ 1 where the line holds), and the largest own level
+    ``q`` among its samples within 5 of those σ (−inf for none); per sample whether it
+    lies beyond them (``far``).
+
+    A MAD, not an r.m.s. within the clip: a moving patch's samples inside it spread that
+    by 8 % (51 bands, the simulator's window). The level is an inlier's: a moving
+    object's samples, far beyond the noise at their own bright level, set the clip ×10
+    too loose for a group of three bands."""
+    z = e / np.sqrt(a * np.maximum(q, 0.0) + c)
+    madz = 1.4826 * _group_medians(np.abs(z), g, groups)
+    mg = np.take(madz, g)
+    far = (np.abs(z) > 5.0 * mg) & (mg > 0)         # a group without a spread: none
+    qmax = np.full(groups, -np.inf)
+    np.maximum.at(qmax, g[~far], q[~far])
+    return madz, qmax, far
+
+
+def _clip_sigma(sig: np.ndarray, madz: np.ndarray, qmax: np.ndarray, a: float,
+                c: float) -> np.ndarray:
+    """float64 (groups,): the σ whose 5-fold is each group's clip — the noise σ at its
+    brightest sample's own level (:func:`_group_clip`), never below the group's MAD σ
+    ``sig``."""
+    top = np.sqrt(a * np.maximum(np.where(np.isfinite(qmax), qmax, 0.0), 0.0) + c)
+    return np.maximum(sig, madz * top)
+
+
 #: A pixel whose z-scores (each sample's ``d`` about its group's median in MAD σ, clipped
 #: at the 5σ clip) sum, over √(their number), to more than this many robust σ of that
 #: score over the pixels (σ at least 1, the score's for independent noise) is dropped
@@ -159,13 +247,17 @@ def _outlying(score: np.ndarray) -> np.ndarray:
 SCORE_BANDS = 64
 
 
-def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig, usable,
-                   index, bad_s, ds, g_s) -> np.ndarray | None:
+def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, scale, usable,
+                   index, bad_s, ds, g_s, q_s) -> np.ndarray | None:
     """bool (n,): the pixels whose exposures disagree across their bands as no noise
     does (a moving object), or None when none does.
 
     A pixel's score is :func:`_pixel_scores` of its samples' z-scores about their groups'
-    medians (``usable``: groups with a σ). Noise leaves it about N(0, 1), each sample's
+    medians, in units of the noise σ at the sample's own level ``q`` (``scale`` =
+    ``(madz, a, c)``: σ = ``madz[g]·√(a·max(q, 0) + c)``, see :func:`_group_clip`; a
+    group mixing levels, whose one MAD σ would overstate the z-scores of its bright
+    samples, then scores static pixels as noise does; ``usable``: groups with a σ).
+    Noise leaves it about N(0, 1), each sample's
     own noise weighing 1/√m in it, so dropping a pixel at :data:`MOVING_Z` σ selects no
     sample by its noise; a moving object shifts ``y_k − r·y_j`` of every band, and
     scores far out even where each sample stays inside the clip. The even subset scores
@@ -175,13 +267,15 @@ def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig, usable,
     band of every pixel would double the statistics' time).
     """
     n, nb = y_j.shape
-    inv = np.where(usable, 1.0 / np.where(usable, sig, 1.0), 0.0)     # 0: no z-score
+    madz, a, c = scale
+    inv = np.where(usable, 1.0 / np.where(usable, madz, 1.0), 0.0)    # 0: no z-score
 
-    def zscores(d, g):
+    def zscores(d, g, q):
         g = g.astype(np.intp)
-        return np.clip((d - np.take(med, g)) * np.take(inv, g), -5.0, 5.0)
+        z = (d - np.take(med, g)) * np.take(inv, g) / np.sqrt(a * np.maximum(q, 0.0) + c)
+        return np.clip(z, -5.0, 5.0)
 
-    moving = _outlying(_pixel_scores(zscores(ds, g_s), index[~bad_s] // nb, n))
+    moving = _outlying(_pixel_scores(zscores(ds, g_s, q_s), index[~bad_s] // nb, n))
     if not moving.any():
         return None
     if index.size < n * nb:                 # a subset: score the pixels on more bands
@@ -194,7 +288,9 @@ def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig, usable,
         cells = cell_keys(np.asarray(y_j[nx] + y_k[nx], dtype=np.float32), CELL_BITS)
         sat_k = rk[nx] >= sat[nx[1]]
         bad = (rk[at] >= sat[at[1]]) | sat_k | (rj[at] >= sat[at[1]])
-        z = zscores(y_k[at] - r * y_j[at], np.take(table, np.clip(cells - lo, 0, table.size - 1)))
+        ya, yb = y_j[at].astype(np.float64), y_k[at].astype(np.float64)
+        z = zscores(yb - r * ya, np.take(table, np.clip(cells - lo, 0, table.size - 1)),
+                    _own_level(ya, yb, r))
         z[bad] = 0.0
         m = bad.shape[1] - np.count_nonzero(bad, axis=1)
         moving = _outlying(np.where(m > 0, z.sum(axis=1) / np.sqrt(np.maximum(m, 1)), np.nan))
@@ -295,8 +391,20 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
     g_s = np.take(table, good - lo)
-    ds = (y_k.ravel()[index] - r * y_j.ravel()[index])[~bad_s]
+    yj_s, yk_s = y_j.ravel()[index][~bad_s], y_k.ravel()[index][~bad_s]
+    ds, q_s = yk_s - r * yj_s, _own_level(yj_s, yk_s, r)
     med, sig = _group_median_mad(ds, g_s, groups)
+    # The clip's σ. A group (one range of the instrument) can hold samples of very
+    # different own levels — few, widely spaced bands, whose neighbour follows another
+    # part of the spectrum (a sodium line beside its dark surround) — and so noise of
+    # very different σ: its MAD is the dim majority's, and 5 of it cut into the bright
+    # samples' noise (the gain came out 13–31 % low with 3–17 bands). So each sample's
+    # deviation is measured in units of the noise at its own level (the photon-transfer
+    # line of the subset, :func:`_noise_curve`) and the clip is 5 of those at the group's
+    # brightest sample: for noise that is flat, or the same across a group, as before.
+    a, c = _noise_curve(ds - np.take(med, g_s), q_s, g_s, groups, sig, nb)
+    madz, qmax, far = _group_clip(ds - np.take(med, g_s), q_s, g_s, groups, a, c)
+    far_pix = index[~bad_s][far] // nb       # pixels with a sample beyond it (below)
     # A group without a sample in the subset is left out: it spans no cell or only
     # cells between tied values (integer levels of a dark scene), where the whole probe
     # holds about `step` times fewer samples than a statistic needs (min_group)
@@ -306,19 +414,35 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
         cells, bad = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS)
         gid = np.take(table, np.clip(cells.ravel() - lo, 0, table.size - 1))
         sel = ~bad.ravel() & np.take(small, gid)
-        med_s, sig_s = _group_median_mad((y_k - r * y_j).ravel()[sel], gid[sel], groups)
+        ya, yb = y_j.ravel()[sel], y_k.ravel()[sel]
+        dv, qv = yb - r * ya, _own_level(ya, yb, r)
+        med_s, sig_s = _group_median_mad(dv, gid[sel], groups)
+        madz_s, qmax_s, far_s = _group_clip(dv - np.take(med_s, gid[sel]), qv, gid[sel],
+                                            groups, a, c)
         med, sig = np.where(small, med_s, med), np.where(small, sig_s, sig)
+        madz, qmax = np.where(small, madz_s, madz), np.where(small, qmax_s, qmax)
+        far_pix = np.concatenate((far_pix[~np.take(small, g_s[far])],
+                                  np.flatnonzero(sel)[far_s] // nb))
     # pixels that a moving object changed between the exposures leave the statistics
     # whole: the 5σ clip kept those of its samples within 5σ, whose spread added to
     # the noise's at the levels it crossed (the gain came out ×1.4–2.3)
-    moving = _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, sig,
-                            (picked > 0) & (sig > 0), index, bad_s, ds, g_s)
+    moving = _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, (madz, a, c),
+                            (picked > 0) & (madz > 0), index, bad_s, ds, g_s, q_s)
+    # and those with a sample beyond 5σ of the noise at its own level: the clip of the
+    # pass is one per group, set by its brightest inlier, and let a dim sample's outlier
+    # (a moving object's, across few bands the score above cannot see) through. Where
+    # the subset is every sample (few bands) this is the clip per sample; static noise
+    # leaves ~6e-7 of samples out there, with their pixels
+    if far_pix.size:
+        moving = np.zeros(n, bool) if moving is None else moving.copy()
+        moving[far_pix] = True
     # every sample: the sums about each group's median (one pass, no cancellation) and
     # each group's counts of all and of saturated samples
     nall, nbad, nt, se, se2, syj = (np.zeros(groups) for _ in range(6))
     rows = (np.empty(nb, np.int32), np.empty(nb, np.int32), np.empty(nb, np.uint8),
             np.empty(nb, np.uint8))                  # the kernel's scratch
-    lim = np.where(picked > 0, 5.0 * np.maximum(sig, 1e-9), -1.0)
+    lim = np.where(picked > 0, 5.0 * np.maximum(_clip_sigma(sig, madz, qmax, a, c), 1e-9),
+                   -1.0)
     kernel = _kernel(y_j.dtype)
     head, sums = (sat, nbr, CELL_BITS, *rows, r, lo, table, med), (nall, nbad, nt, se, se2, syj)
     if moving is None:

@@ -74,6 +74,9 @@ class ProbeSamples:
         float64 ``(P,)`` ascending.
     saturation
         float32 ``(bands,)`` raw DN saturation levels.
+    integer
+        Whether the raw samples are whole ADC codes (an integer cube), not floats of
+        any scale (an already-linear float cube): the noise model's quantisation floor.
     """
 
     raw: np.ndarray
@@ -81,6 +84,7 @@ class ProbeSamples:
     times_ms: np.ndarray
     saturation: np.ndarray
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    integer: bool = True
     cache: dict = field(default_factory=dict, repr=False)
 
     def linearised(self, linearise: Callable, j: int) -> np.ndarray:
@@ -119,8 +123,10 @@ def probe_bracket(bracket, saturation: np.ndarray,
 
     # the exposures on threads: numpy's gather and converting copy release the GIL
     run_ranges(P, read, max_step=1, name="mehs-probe")
+    integer = all(np.issubdtype(np.asarray(e.data).dtype, np.integer) for e in bracket.exposures)
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
-                        np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines)
+                        np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines,
+                        integer=integer)
 
 
 def _trim_mean(a: np.ndarray, cut: float) -> float:
@@ -248,28 +254,48 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
     InputError
         When too few groups are usable or the fit is not physical.
     """
-    P = probe.raw.shape[0]
+    P, _, nb = probe.raw.shape
     t = probe.times_ms
+    if nb < 2:
+        # the groups are levels of the neighbouring band (see the module docstring): a
+        # single band has none, and grouping by a sample's own level would bias the
+        # variance; said as such, not as "0 usable groups"
+        raise InputError("a single band cannot measure the noise: photon transfer groups "
+                         "each band's samples by the signal of a neighbouring band")
     _consecutive_pairs(probe, linearise, groups, key)
     rows, rhs, cnt, rel = [], [], [], []
+    why = {"exposure pair(s) without an unsaturated sample": 0, "groups saturated or empty": 0,
+           f"groups of fewer than {min_group} samples": 0}
     for j in range(P - 1):
         k = j + 1
         st = _pair_groups(probe, linearise, j, k, groups, key)
         if st is None:
+            why["exposure pair(s) without an unsaturated sample"] += 1
             continue
         r = st["r"]
         ok = st["nt"] >= min_group
+        why["groups saturated or empty"] += int(np.count_nonzero(st["nt"] == 0))
+        why[f"groups of fewer than {min_group} samples"] += int(np.count_nonzero(
+            (st["nt"] > 0) & ~ok))
         Dj, Dk = dark_current * t[j], dark_current * t[k]
+        # each group's variance about its own mean, made unbiased (n − 1): the n-divided
+        # one is (n − 1)/n of it, 1.5 % low for the smallest groups of few bands
+        var = st["var"] * st["nt"] / np.maximum(st["nt"] - 1.0, 1.0)
         for gi in np.flatnonzero(ok):
             # E[d²] = gain·(q + D_k + r²D_j) + σ²·(1 + r²)
             rows.append([st["q"][gi] + Dk + r * r * Dj, 1.0 + r * r])
-            rhs.append(st["var"][gi])
+            rhs.append(var[gi])
             cnt.append(st["nt"][gi])
             if st["yk"][gi] > 0:
                 rel.append((st["mean_d"][gi] / st["yk"][gi], st["n"][gi], st["var"][gi],
                             st["yk"][gi]))
     if len(rows) < 4:
-        raise InputError(f"only {len(rows)} usable signal groups to measure the noise")
+        # which of the reasons left the groups out: every level saturated in the
+        # longer exposure, or too few samples (a tiny or dark bracket)
+        detail = ", ".join(f"{v} {k}" for k, v in why.items() if v)
+        raise InputError(f"only {len(rows)} usable signal groups to measure the noise: "
+                         f"{detail or 'no group'} (of {P - 1} exposure pair(s), {groups} "
+                         "groups each)")
     A = np.asarray(rows)
     b = np.asarray(rhs)
     n = np.asarray(cnt)
@@ -282,7 +308,11 @@ def estimate_noise_PTC(probe: ProbeSamples, linearise: Callable, *, dark_current
     gain, s2 = float(sol[0]), float(sol[1])
     if not (np.isfinite(gain) and gain > 0):
         raise InputError(f"photon-transfer fit gave a non-positive gain ({gain:.3g})")
-    s2 = max(s2, 1.0 / 12.0)                  # at least the quantisation noise
+    # at least the quantisation noise: of whole ADC codes (1/12 DN²); a float cube's
+    # scale is its own (radiance-like units: σ² far below 1/12, and that floor made its
+    # read noise ×14 and flagged 30 % of a static scene as ghosts), so there at least
+    # the rounding of whole electrons (gain²/12)
+    s2 = max(s2, 1.0 / 12.0 if probe.integer else gain * gain / 12.0)
     relative = 0.0
     if not linear and rel:
         rr = np.array(rel)
@@ -307,7 +337,9 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
     """How far ``Σ y_k / (r·Σ y_j)`` strays from 1 over the signal levels (a linear sensor: ≈ 0).
 
     Groups (instrument quantiles, see the module docstring) whose mean longer-exposure
-    level lies in ``[min_level, max_level]·(2**bit_depth − 1)`` count.
+    level lies in ``[min_level, max_level]·(2**bit_depth − 1)`` count; for a float cube
+    (``probe.integer`` False), whose scale the bit depth does not give, of its largest
+    saturation level where that is lower.
 
     Returns
     -------
@@ -318,6 +350,10 @@ def linearity_PTC(probe: ProbeSamples, linearise: Callable, *, groups: int = PTC
         ``resolution`` (median over the groups of 3 standard errors of the ratio).
     """
     L = (1 << bit_depth) - 1
+    if not probe.integer:
+        # a float cube in radiance-like units (a few units at most) has no level within
+        # 2–85 % of 4095: "linearity unknown" for every such bracket
+        L = min(L, float(np.max(probe.saturation)))
     P = probe.raw.shape[0]
     dev, ratios, res3 = [], [], []
     _consecutive_pairs(probe, linearise, groups, key)
