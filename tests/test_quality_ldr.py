@@ -109,3 +109,25 @@ def test_dataset_ldr_png_decodes_back_to_the_exr_within_quantisation(tmp_path):
     # clipped codes are lower bounds, zero codes upper bounds
     assert np.all(hdr[png == 255] * e >= 1 - 2e-3 - 1 / 255)
     assert np.all(hdr[png == 0] * e <= colour.cctf_decoding(0.5 / 255, function="sRGB") + 1e-6)
+
+
+def test_dataset_ldr_png_is_the_ldr_of_the_stored_exr_exactly(tmp_path):
+    """The LDR image and its exposure follow from the dataset's own half-float EXR."""
+    from mehs.cube import SpectralCube
+    from mehs.dataset.build import build_from_hs
+    from mehs.dataset.manifest import read_manifest
+    from mehs.io.envi import write_envi
+    from mehs.io.exr import read_exr
+    from mehs.preview import read_png
+    from mehs.rgb import ldr_rgb
+
+    rng = np.random.default_rng(3)
+    cube = (_colorchecker_cube() * rng.uniform(0.3, 3.0, (1, 1, 1)).astype(np.float32)
+            * np.float32(1.37))
+    write_envi(tmp_path / "in" / "cc.hdr", SpectralCube(cube, WAVELENGTHS_31))
+    build_from_hs([tmp_path / "in"], tmp_path / "ds", workers=1, progress=False)
+    s = read_manifest(tmp_path / "ds")["scenes"][0]
+    hdr = read_exr(tmp_path / "ds" / s["files"]["hdr_rgb"]).data[:, :, :3].astype(np.float32)
+    ldr, exposure = ldr_rgb(hdr)
+    assert exposure == s["quality"]["ldr_exposure"]
+    np.testing.assert_array_equal(ldr, read_png(tmp_path / "ds" / s["files"]["ldr_rgb"]))

@@ -404,7 +404,9 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
             # a power of two commutes exactly with float rounding: HS and RGB stay paired
             data = data * np.float32(scale)
             hdr = hdr * np.float32(scale)
-        ldr, exposure = ldr_rgb(hdr)
+        # from the half floats the EXR stores, so that the LDR image and its exposure
+        # follow from the dataset's own HDR file (from float32 1 code in ~0.5 % differed)
+        ldr, exposure = ldr_rgb(hdr.astype(np.float16).astype(np.float32))
         preview = tonemap(hdr)
     if quality.get("dynamic_range_stops") is None:
         quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
