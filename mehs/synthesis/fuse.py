@@ -444,6 +444,10 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
         "valid_fraction": float(np.mean(mask == 0)),
         "ghosts": ghosts,
         "ghost_chi2_scale": None if gres is None else gres.scale,
+        # the χ² over its expectation under the noise model (below 1: the model overstates
+        # the noise; kept for the record, never divided out — see mehs.synthesis.ghost)
+        "ghost_chi2_fit": (None if gres is None or not np.isfinite(gres.fit)
+                           else float(gres.fit)),
         "ghost_reference_exposure": ref_used,
         "noise": noise.as_dict(),
         "calibration": None if calibration is None else np.asarray(calibration).tolist(),

@@ -9,12 +9,19 @@ bright and dark pixels on the same footing.
 
 The noise model is measured from the bracket itself
 (:mod:`mehs.synthesis.noise`), so for a static scene ``χ²/dof ≈ 1`` at every
-signal level. A residual mismatch common to the whole frame is still divided
-out — the median of ``χ²`` over the median of ``χ²_dof``, valid when most
-pixels are static — before the comparison with the χ² distribution's upper
-``α`` quantile at each pixel's ``dof``. Isolated detections are dropped (fewer than ``min_pixels`` connected
-pixels) and the mask is grown by ``grow`` pixels to cover the soft edges of a
-moving object.
+signal level. A residual mismatch is still divided out — the median of ``χ²``
+over the median of ``χ²_dof``, valid when most pixels are static — before the
+comparison with the χ² distribution's upper ``α`` quantile at each pixel's
+``dof``; but only where it loosens the test (scale ≥ 1). A scale below 1 says
+the model overstates the noise, and dividing it out is right only if it does so
+by the same factor at every pixel. A read noise set too high does not: it
+shrinks the χ² of dark samples and leaves shot-noise-limited ones as they are,
+so the median (dark) pixel's scale flagged bright static pixels — a read noise
+14× too high flagged 25–30 % of a static frame (2× too high: 3–7 %) at
+``α = 1e-4``. An overstated model keeps its own, conservative, test; the fitted
+ratio is reported (:attr:`GhostResult.fit`). Isolated detections are dropped
+(fewer than ``min_pixels`` connected pixels) and the mask is grown by ``grow``
+pixels to cover the soft edges of a moving object.
 
 References
 ----------
@@ -46,7 +53,12 @@ class GhostResult:
     fraction
         Fraction of pixels flagged.
     scale
-        The noise-model correction (≈ 1 when the noise model fits).
+        The noise-model correction applied (≈ 1 when the noise model fits; ≥ 1 unless
+        given): the median over pixels of the per-level scale with ``scale="level"``.
+    fit
+        Median over pixels of ``χ²`` over its median under the model (NaN where no
+        pixel has ``dof > 0``): below 1 the noise model overstates the noise, which
+        is reported here but not divided out.
     """
 
     mask: np.ndarray
@@ -54,6 +66,12 @@ class GhostResult:
     fraction: float
     scale: float
     alpha: float
+    fit: float = float("nan")
+
+
+#: The smallest χ² scale taken from the data (``scale="auto"`` / ``"level"``): it may
+#: loosen the noise model's test, never tighten it (see the module docstring).
+MIN_SCALE = 1.0
 
 
 def _level_scale(ratio: np.ndarray, level: np.ndarray, bins: int = 16,
@@ -63,7 +81,8 @@ def _level_scale(ratio: np.ndarray, level: np.ndarray, bins: int = 16,
     Median of ``ratio`` (χ² over its median under the model) in ``bins``
     quantile bins of ``level``, smoothed by a running median over ``window``
     bins — so a moving object that fills one or two bins cannot raise its own
-    scale — and interpolated in log level. Never below the global median.
+    scale — and interpolated in log level. Never below the global median (nor,
+    in :func:`detect_ghosts`, below :data:`MIN_SCALE`).
     """
     lv = np.log(np.maximum(level, 1e-30))
     edges = np.quantile(lv, np.linspace(0, 1, bins + 1))
@@ -105,10 +124,13 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
     scale
         ``"auto"`` (median of χ² / median of χ²_dof over the frame), ``"level"``
         (that ratio as a smooth function of ``level``, for recovered response
-        curves whose error depends on the signal level), or a fixed number (1
-        trusts the noise model).
+        curves whose error depends on the signal level; ``"auto"`` when fewer than
+        64 pixels have ``dof > 0``), or a fixed number (1 trusts the noise model).
+        The data-derived scales are never below :data:`MIN_SCALE` (1): an
+        overstated noise model is not tightened.
     level
-        ``(lines, samples)`` signal level (e.g. the mean radiance) for ``scale="level"``.
+        ``(lines, samples)`` finite signal level (e.g. the mean radiance) for
+        ``scale="level"``.
     min_pixels
         Connected groups smaller than this are dropped.
     grow
@@ -120,45 +142,57 @@ def detect_ghosts(chi2: np.ndarray, dof: np.ndarray, *, alpha: float = 1e-4,
         raise InputError(f"chi2 and dof must be matching 2-D arrays, got {chi2.shape}, {dof.shape}")
     if not 0 < alpha < 1:
         raise InputError(f"alpha must be in (0, 1), got {alpha}")
+    if np.isnan(chi2).any():
+        # one NaN made the frame's median NaN, and the scale fell back to 1 unnoticed
+        raise InputError(f"chi2 has {int(np.isnan(chi2).sum())} NaN pixels (a broken "
+                         "consistency statistic)")
+    if isinstance(scale, str) and scale not in ("auto", "level"):
+        raise InputError(f"scale must be 'auto', 'level' or a positive number, got {scale!r}")
     has = dof > 0
+    ud = inv = None
+    fit = float("nan")
+    ratio = None
+    if has.any():
+        ud, inv = _unique_inverse(dof[has])
+        # the median of χ²_ν/ν is below 1 for small ν (0.45 at ν = 1): compare
+        # with each pixel's own χ² median, or few-band cubes get a wrong scale
+        ratio = chi2[has] / chdtri(ud, 0.5)[inv]
+        fit = float(np.median(ratio))
     if scale == "level":
         if level is None or np.shape(level) != chi2.shape:
             raise InputError("scale='level' needs a level array shaped like chi2")
+        lev = np.asarray(level, dtype=np.float64)
+        if not np.all(np.isfinite(lev[has])):
+            raise InputError("scale='level' needs a finite level at every pixel with dof > 0")
         if has.sum() >= 64:
-            ud, inv = _unique_inverse(dof[has])
-            ratio = chi2[has] / chdtri(ud, 0.5)[inv]
             sl = np.ones(chi2.shape)
-            sl[has] = _level_scale(ratio, np.asarray(level, dtype=np.float64)[has])
+            sl[has] = np.maximum(_level_scale(ratio, lev[has]), MIN_SCALE)
             s = float(np.median(sl[has]))
             score = np.zeros(chi2.shape, dtype=np.float32)
             score[has] = chi2[has] / (sl[has] * dof[has])
             mask = np.zeros(chi2.shape, dtype=bool)
             thr = chdtri(ud, alpha)[inv]
             mask[has] = chi2[has] / sl[has] > thr
-            return _finish(mask, score, s, alpha, min_pixels, grow)
+            return _finish(mask, score, s, alpha, min_pixels, grow, fit)
         scale = "auto"
-    ud = inv = None
-    if has.any():
-        ud, inv = _unique_inverse(dof[has])
     if scale == "auto":
-        # the median of χ²_ν/ν is below 1 for small ν (0.45 at ν = 1): compare
-        # with each pixel's own χ² median, or few-band cubes get a wrong scale
-        if has.any():
-            s = float(np.median(chi2[has] / chdtri(ud, 0.5)[inv]))
-        else:
-            s = 1.0
-        s = s if np.isfinite(s) and s > 0 else 1.0
+        s = fit if np.isfinite(fit) and fit > 0 else 1.0
+        # an overstated model is not tightened: see the module docstring
+        s = max(s, MIN_SCALE)
     else:
-        s = float(scale)
+        try:
+            s = float(scale)
+        except (TypeError, ValueError):
+            s = float("nan")
         if not (np.isfinite(s) and s > 0):
-            raise InputError(f"scale must be 'auto' or positive, got {scale!r}")
+            raise InputError(f"scale must be 'auto', 'level' or a positive number, got {scale!r}")
     score = np.zeros(chi2.shape, dtype=np.float32)
     score[has] = chi2[has] / (s * dof[has])
     mask = np.zeros(chi2.shape, dtype=bool)
     if has.any():
         thr = chdtri(ud, alpha)[inv]
         mask[has] = chi2[has] / s > thr
-    return _finish(mask, score, s, alpha, min_pixels, grow)
+    return _finish(mask, score, s, alpha, min_pixels, grow, fit)
 
 
 #: Above this many degrees of freedom the closed-form quantile costs more than scipy's import.
@@ -183,7 +217,7 @@ def chdtri(dof: np.ndarray, p: float) -> np.ndarray:
     return scipy_chdtri(dof, p)
 
 
-def _finish(mask, score, s, alpha, min_pixels, grow) -> GhostResult:
+def _finish(mask, score, s, alpha, min_pixels, grow, fit=float("nan")) -> GhostResult:
     # OpenCV, not scipy.ndimage: the fusion writes its mask with OpenCV anyway, and
     # importing ndimage cost 0.05–0.2 s of every `mehs fuse` (issue 16). Same
     # definitions: 8-connected groups; a 3×3 dilation with nothing beyond the border.
@@ -199,7 +233,7 @@ def _finish(mask, score, s, alpha, min_pixels, grow) -> GhostResult:
         mask = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8),
                           iterations=int(grow), borderType=cv2.BORDER_CONSTANT,
                           borderValue=0).astype(bool)
-    return GhostResult(mask, score, float(mask.mean()), s, float(alpha))
+    return GhostResult(mask, score, float(mask.mean()), s, float(alpha), float(fit))
 
 
 def choose_reference(valid_counts: np.ndarray) -> int:
@@ -242,6 +276,15 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
     """
     rows, cols = np.nonzero(ghost_mask)
     P = len(stack)
+    if not (isinstance(reference, str) and reference == "auto"):
+        # checked before the early return: a frame without ghosts recorded any number
+        try:
+            ok = float(reference) == int(reference)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok or not 0 <= int(reference) < P:
+            raise InputError(f"reference exposure must be 'auto' or an index 0..{P - 1}, "
+                             f"got {reference!r}")
     if rows.size == 0:
         return int(P // 2) if reference == "auto" else int(reference)
     if reference == "auto":
@@ -255,8 +298,6 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
         ref = choose_reference(counts)
     else:
         ref = int(reference)
-        if not 0 <= ref < P:
-            raise InputError(f"reference exposure {ref} outside 0..{P - 1}")
     for k0 in range(0, rows.size, chunk_pixels):
         r, c = rows[k0:k0 + chunk_pixels], cols[k0:k0 + chunk_pixels]
         est = None
