@@ -212,7 +212,46 @@ def _paper_block(summary: list, input: str, title: str, rows: Sequence[str]) -> 
     if not sub:
         return None
     blk = table_blocks(sub)[0]
-    return (title,) + tuple(blk[1:])
+    # the number of scored images, as the evaluation's own table says it
+    return (f"{title} ({max(s['n_images'] for s in sub)} images)",) + tuple(blk[1:])
+
+
+def _baseline_specs(baselines: Sequence[str]) -> list[tuple[str, str, str]]:
+    """``(row, spec for evaluate, spec)`` of each ``--baselines`` entry.
+
+    The row is the name :func:`mehs.ssr.scoring.evaluate` gives the model: the
+    ``NAME=`` label, else the loaded model's own name (a fitted ``reg.npz`` is
+    the row ``regression``, not ``reg.npz``: the tables pick rows by that name),
+    and the spec handed to evaluate carries it as a label so both agree. Loading
+    here also makes a misspelt baseline fail before hours of training, not after.
+    A bare ``regression`` is fitted by the evaluation (once per setting).
+    """
+    from mehs.ssr.models import load_model, split_named_spec
+
+    out = []
+    for b in baselines:
+        label, spec = split_named_spec(str(b).strip())
+        if spec.strip().lower() != "regression":
+            model = load_model(spec)
+            label = label or str(getattr(model, "name", "") or spec)
+        label = label or "regression"
+        plain = all(c.isalnum() or c in "_-.+" for c in label)
+        out.append((label, f"{label}={spec}" if plain else spec, spec))
+    return out
+
+
+def _timing_baseline(spec: str, dataset, seed: int):
+    """The model timed for a baseline spec; a bare ``regression`` is fitted on the train
+    split here (timing does not depend on the fit, but the model must exist)."""
+    from mehs.ssr.models import load_model
+
+    if spec.strip().lower() != "regression":
+        return load_model(spec)
+    from mehs.ssr.baselines import fit_regression_baseline
+    from mehs.ssr.data import load_pairs
+
+    return fit_regression_baseline(load_pairs(dataset, split="train"), seed=seed,
+                                   n_samples=20_000)
 
 
 def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None = None,
@@ -229,7 +268,12 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
     dataset
         Training/evaluation dataset (train/val/test splits; scored on test).
     real
-        Optional second dataset for Table 3 and Figure 10 (the paper's ME HS set).
+        Optional second dataset for Table 3 and Figure 10 (the paper's ME HS set):
+        scored only, so every passing scene counts, not just a test split (its
+        test split when it is ``dataset`` itself).
+    baselines
+        Fixed or fitted baselines beside the networks (model specs, ``NAME=SPEC``
+        names the row; a bare ``regression`` is fitted on the train split).
     quick
         Tiny presets and few epochs/patches (≤ 10 min on a 2-core CPU for a small set).
     preset, epochs
@@ -264,6 +308,7 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
     if unknown:
         raise InputError(f"--checkpoint names unknown run(s) {unknown}; runs: "
                          f"{[r.name for r in runs]}")
+    base_specs = _baseline_specs(baselines)
     make_output_dir(out)
     state = _state(out)
     state.update({"dataset": str(Path(dataset).resolve()),
@@ -306,28 +351,36 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
                                    "seconds": round(time.perf_counter() - t0, 1)}
         _save_state(out, state)
 
-    model_specs = [f"{r.row}={ckpts[r.name]}" for r in runs] + list(baselines)
-    main_rows = [r.row for r in runs if r.row == r.arch] + [b.split("=")[0] for b in baselines]
+    model_specs = [f"{r.row}={ckpts[r.name]}" for r in runs] + [e for _, e, _ in base_specs]
+    main_rows = [r.row for r in runs if r.row == r.arch] + [row for row, _, _ in base_specs]
 
-    def evaluation(key: str, ds, inputs, folder: Path) -> list:
+    def evaluation(key: str, ds, inputs, folder: Path, split: str | None) -> list:
         nonlocal step
         step += 1
         rec = state["evaluations"].get(key)
-        if rec and rec.get("models") == model_specs and (folder / "evaluation.json").is_file():
+        if (rec and rec.get("models") == model_specs and rec.get("split", "auto") == split
+                and (folder / "evaluation.json").is_file()):
             say(f"evaluation {key}: done already")
         else:
             say(f"evaluating {len(model_specs)} models on {ds} ({'/'.join(inputs)} input)")
+            # a bare 'regression' is fitted with the networks' operator, so the
+            # "with pre-processing" column means one operator (paper: "trained in the same way")
             evaluate(ds, model_specs, preprocess="both", inputs=inputs, restore=True,
-                     split="auto", out=folder, figures=1 if quick else 2, seed=seed,
-                     progress=progress)
-            state["evaluations"][key] = {"models": model_specs, "finished": True}
+                     split=split, out=folder, figures=1 if quick else 2, seed=seed,
+                     progress=progress, preprocessing=preprocessing)
+            state["evaluations"][key] = {"models": model_specs, "split": split, "finished": True}
             _save_state(out, state)
         from mehs.ssr.results_io import load_results
 
         return load_results(folder)["summary"]
 
-    main_sum = evaluation("main", dataset, ("hdr", "ldr"), out / "eval_main")
-    real_sum = evaluation("real", real, ("hdr",), out / "eval_real") if real else None
+    main_sum = evaluation("main", dataset, ("hdr", "ldr"), out / "eval_main", "auto")
+    # The real set (the paper's ME HS) is only scored, never trained on: every passing scene
+    # counts ("We used 82 HDR-HS images to evaluate"), not its test split — unless it is the
+    # training dataset itself.
+    same = Path(real).resolve() == Path(dataset).resolve() if real else False
+    real_sum = (evaluation("real", real, ("hdr",), out / "eval_real", "auto" if same else None)
+                if real else None)
 
     step += 1
     say(f"timing every method on a {timing_shape[1]}×{timing_shape[0]} image from the dataset")
@@ -338,7 +391,7 @@ def run_paper(dataset: str | Path, out: str | Path, *, real: str | Path | None =
         if r.preprocess and r.row == r.arch:
             m = load_model(ckpts[r.name])
             timed.append((m, r.row))
-    timed += [(load_model(b), b.split("=")[0]) for b in baselines]
+    timed += [(_timing_baseline(spec, dataset, seed), row) for row, _, spec in base_specs]
     timing = time_models(timed, rgb=_timing_image(dataset, timing_shape), seed=seed,
                          devices=("cpu", "cuda"))
     state["timing"] = timing

@@ -24,7 +24,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.contract import trained_for
+from mehs.ssr.contract import applies_preprocessing, trained_for
 from mehs.ssr.data import RGB_INPUTS, PairSet, load_pairs
 from mehs.ssr.metrics import METRIC_NAMES, image_metrics, sam_map
 from mehs.ssr.pipeline import predict
@@ -207,6 +207,26 @@ class EvaluationResult:
                              timing=self.timing)
 
 
+def _predict_setting(model, tf, rgb: np.ndarray, preprocess: str, restore: bool,
+                     default_pp: Preprocessing, wl: np.ndarray):
+    """:func:`mehs.ssr.pipeline.predict` in one setting, ``(cube, stats)``.
+
+    Restoration off with pre-processing on: ``predict`` maps the output back with
+    the inverse Reinhard, which is right for a *fixed* method run on tone-mapped
+    RGB (Smits then returns a tone-mapped spectrum) but not for a model *fitted*
+    on pre-processed input: it was fitted to the ground-truth spectra, so its
+    output already is one (the inverse sent a Reinhard-fitted regression's MRAE
+    from 0.7 to 4·10⁶: spectra above 1 clip at the operator's pole). Such a model
+    gets the pre-processed RGB and its output is taken as is.
+    """
+    spec = preprocessing_for(tf, preprocess, default_pp)
+    if (spec is not None and not restore and tf.declared and not tf.fixed
+            and not applies_preprocessing(model)):
+        return predict(model, spec(rgb), restore=False, wavelengths=wl, return_stats=True)
+    return predict(model, rgb, restore=restore, wavelengths=wl, return_stats=True,
+                   preprocessing=spec)
+
+
 def _scored_count(flags: np.ndarray | None, valid: np.ndarray | None, crop: int) -> int | None:
     """How many of the flagged pixels ``(H, W)`` lie in the region the metrics score (the
     border crop and the valid mask of :func:`mehs.ssr.metrics.image_metrics`), so that a
@@ -324,6 +344,9 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
         it = tqdm(pairs, desc="evaluate", unit="scene")
     for i_scene, pair in enumerate(it):
         gt, wl = pair.hs_array()
+        if crop and min(gt.shape[:2]) <= 2 * int(crop):  # before any model runs, naming the scene
+            raise InputError(f"--crop {crop} leaves nothing of scene {pair.id!r} "
+                             f"({gt.shape[0]}×{gt.shape[1]} pixels)", pair.hs_path)
         valid = pair.valid(gt.shape[:2])
         bmask = mrae_band_mask(wl, mrae_bands)
         want_fig = fig_dir is not None and (figures < 0 or len(fig_ids) < figures
@@ -355,8 +378,7 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
                     if s_inp != inp:
                         continue
                     t0 = time.perf_counter()
-                    pred, st = predict(model, rgb, restore=r, wavelengths=wl, return_stats=True,
-                                       preprocessing=preprocessing_for(tf, p, default_pp))
+                    pred, st = _predict_setting(model, tf, rgb, p, r, default_pp, wl)
                     dt = time.perf_counter() - t0
                     m = image_metrics(pred, gt, valid=valid, crop=crop,
                                       mrae_threshold=mrae_threshold, mrae_relative=mrae_relative,
