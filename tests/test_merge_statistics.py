@@ -57,7 +57,9 @@ def test_a_short_scan_of_a_wide_sensor_still_measures_its_noise():
     br = Bracket([SpectralCube(e, wl) for e in sim.exposures], sim.darks, [None] * 3,
                  sim.times_ms, wl, bit_depth=12)
     sat = np.full(wl.size, 0.98 * 4095, np.float32)
-    assert probe_bracket(br, sat).raw.shape[1] == 9000
+    # every line: 4 bands read 12× the pixels of 48 or more (noise.probe_pixels), and
+    # the scan holds fewer (a probe of one line of many bands: test_noise_probe_size.py)
+    assert probe_bracket(br, sat).raw.shape[1] == 4 * 9000
     model, diag = estimate_noise(br, ResponseCurve.linear(12), sat)
     assert "fallback" not in diag, diag
     assert model.gain == pytest.approx(sen.gain_dn_per_e, rel=0.05)

@@ -12,7 +12,8 @@ computes them for one pair of exposures of the probed samples:
   photon-transfer line, :func:`_noise_curve`), which set a 5σ clip that holds for a
   group mixing levels (:func:`_group_clip`, :func:`_clip_sigma`);
 - the pixels a moving object changed between the two exposures, found by their bands'
-  joint departure from those medians (:func:`_moving_pixels`) or by a subset sample
+  joint departure from those medians, alone and in runs of neighbours
+  (:func:`mehs.synthesis._ptc_moving._moving_pixels`) or by a subset sample
   beyond 5σ of its own level, left out whole;
 - one pass over every sample (:func:`mehs.synthesis._ptc_kernels.ptc_pass`, stored machine
   code; numpy's :mod:`mehs.synthesis._ptc_numpy` while it compiles): each group's counts
@@ -25,6 +26,10 @@ import math
 from typing import Callable
 
 import numpy as np
+
+# the moving-pixel detector (its own module for length); group_statistics calls it by
+# this module's name
+from mehs.synthesis._ptc_moving import MOVING_Z, SCORE_BANDS, _moving_pixels  # noqa: F401
 
 
 def _instrument(y: np.ndarray) -> np.ndarray:
@@ -206,95 +211,6 @@ def _clip_sigma(sig: np.ndarray, madz: np.ndarray, qmax: np.ndarray, a: float,
     ``sig``."""
     top = np.sqrt(a * np.maximum(np.where(np.isfinite(qmax), qmax, 0.0), 0.0) + c)
     return np.maximum(sig, madz * top)
-
-
-#: A pixel whose z-scores (each sample's ``d`` about its group's median in MAD σ, clipped
-#: at the 5σ clip) sum, over √(their number), to more than this many robust σ of that
-#: score over the pixels (σ at least 1, the score's for independent noise) is dropped
-#: from the statistics (:func:`_moving_pixels`): noise is independent across a pixel's
-#: bands, a moving object shifts ``d`` of all its bands at once. The 5σ clip alone kept
-#: its samples within 5σ: the simulator's moving patch doubled the measured gain. (At 4σ
-#: its gain came out closer still, but pixels of static scenes went too: those whose
-#: bands near saturation kept their lower noise only, a recovered curve's errors.)
-MOVING_Z = 5.0
-
-
-def _pixel_scores(z: np.ndarray, pix: np.ndarray, n: int) -> np.ndarray:
-    """float64 (n,): ``Σz/√m`` of each pixel's ``m`` samples ``z`` (``pix``: their pixels),
-    NaN for a pixel without one."""
-    m = np.bincount(pix, minlength=n)
-    s = np.bincount(pix, weights=z, minlength=n)
-    return np.where(m > 0, s / np.sqrt(np.maximum(m, 1)), np.nan)
-
-
-def _outlying(score: np.ndarray) -> np.ndarray:
-    """bool: the pixels whose score lies more than :data:`MOVING_Z` robust σ (median,
-    scaled MAD, at least 1) from the median score."""
-    out = np.zeros(score.shape, bool)
-    ok = np.isfinite(score)
-    if ok.sum() < 2:
-        return out
-    s = score[ok]
-    centre = np.median(s)
-    # at least the independent-noise score's σ: a MAD of 0 (a flat, dark scene whose
-    # samples sit on their medians) would otherwise drop every pixel off the median
-    scale = max(1.4826 * float(np.median(np.abs(s - centre))), 1.0)
-    out[ok] = np.abs(s - centre) > MOVING_Z * scale
-    return out
-
-
-#: Bands (evenly spread) of every pixel that score it when the even subset flags one.
-SCORE_BANDS = 64
-
-
-def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, scale, usable,
-                   index, bad_s, ds, g_s, q_s) -> np.ndarray | None:
-    """bool (n,): the pixels whose exposures disagree across their bands as no noise
-    does (a moving object), or None when none does.
-
-    A pixel's score is :func:`_pixel_scores` of its samples' z-scores about their groups'
-    medians, in units of the noise σ at the sample's own level ``q`` (``scale`` =
-    ``(madz, a, c)``: σ = ``madz[g]·√(a·max(q, 0) + c)``, see :func:`_group_clip`; a
-    group mixing levels, whose one MAD σ would overstate the z-scores of its bright
-    samples, then scores static pixels as noise does; ``usable``: groups with a σ).
-    Noise leaves it about N(0, 1), each sample's
-    own noise weighing 1/√m in it, so dropping a pixel at :data:`MOVING_Z` σ selects no
-    sample by its noise; a moving object shifts ``y_k − r·y_j`` of every band, and
-    scores far out even where each sample stays inside the clip. The even subset scores
-    each pixel first (free: its z-scores are at hand); only when that flags one are the
-    pixels scored again on up to :data:`SCORE_BANDS` bands each (the subset holds three
-    samples a pixel of a 16384-pixel probe, too few to see a patch moving a few σ; every
-    band of every pixel would double the statistics' time).
-    """
-    n, nb = y_j.shape
-    madz, a, c = scale
-    inv = np.where(usable, 1.0 / np.where(usable, madz, 1.0), 0.0)    # 0: no z-score
-
-    def zscores(d, g, q):
-        g = g.astype(np.intp)
-        z = (d - np.take(med, g)) * np.take(inv, g) / np.sqrt(a * np.maximum(q, 0.0) + c)
-        return np.clip(z, -5.0, 5.0)
-
-    moving = _outlying(_pixel_scores(zscores(ds, g_s, q_s), index[~bad_s] // nb, n))
-    if not moving.any():
-        return None
-    if index.size < n * nb:                 # a subset: score the pixels on more bands
-        from mehs.synthesis._ptc_numpy import cell_keys
-
-        # even bands b = 0, s, 2s, … (s even), whose instruments are the bands b + 1:
-        # strided views, no gathers
-        s = 2 * max(1, -(-nb // (2 * SCORE_BANDS)))
-        at, nx = np.s_[:, 0:nb - 1:s], np.s_[:, 1:nb:s]
-        cells = cell_keys(np.asarray(y_j[nx] + y_k[nx], dtype=np.float32), CELL_BITS)
-        sat_k = rk[nx] >= sat[nx[1]]
-        bad = (rk[at] >= sat[at[1]]) | sat_k | (rj[at] >= sat[at[1]])
-        ya, yb = y_j[at].astype(np.float64), y_k[at].astype(np.float64)
-        z = zscores(yb - r * ya, np.take(table, np.clip(cells - lo, 0, table.size - 1)),
-                    _own_level(ya, yb, r))
-        z[bad] = 0.0
-        m = bad.shape[1] - np.count_nonzero(bad, axis=1)
-        moving = _outlying(np.where(m > 0, z.sum(axis=1) / np.sqrt(np.maximum(m, 1)), np.nan))
-    return moving if moving.any() else None
 
 
 #: Runs of pixels passed one by one to the compiled pass; more are copied together.
