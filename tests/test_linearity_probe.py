@@ -105,3 +105,29 @@ def test_fuse_probes_once_and_reports_the_probe(monkeypatch):
     # the noise model reuses the linearity test's probe and statistics
     assert calls == [N.PROBE_PIXELS]
     assert res.summary["noise"]["source"] == "photon transfer (bracket)"
+
+
+def test_a_first_probe_of_every_pixel_is_not_read_again(monkeypatch):
+    """Few bands: the first probe already reads every pixel (noise.probe_pixels), so a
+    result that is not clear-cut has nothing more to gain from a second one."""
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+
+    wl = SPECIM_IQ_WAVELENGTHS[[40, 100, 160]]
+    sc = make_scene("window", lines=96, samples=96, wavelengths=wl, seed=1)
+    sim = simulate_bracket(sc, SensorModel(response="gamma", seed=2), [0.05, 0.4, 3.2], seed=3)
+    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks), [None] * 3,
+                 sim.times_ms, wl, bit_depth=12)
+    assert 96 * 96 > N.PROBE_PIXELS and N.probe_pixels(N.PROBE_PIXELS, 3) >= 96 * 96
+    calls = []
+    real = N.probe_bracket
+
+    def counting(*a, **k):
+        calls.append(k.get("max_pixels"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(N, "probe_bracket", counting)
+    probe, lin = linearity_auto(br, _sat(br))
+    assert calls == [N.PROBE_PIXELS] and "probe_refined" not in lin
+    assert lin["probe_pixels"] == 96 * 96 == probe.raw.shape[1]

@@ -254,23 +254,26 @@ def linearity_auto(bracket: Bracket, saturation: np.ndarray):
     is headed for the curve recovery, which costs far more, in any case.
     """
     from mehs.synthesis.noise import (PROBE_PIXELS, PROBE_PIXELS_FINE, linearity_PTC,
-                                      probe_bracket)
+                                      probe_bracket, probe_pixels)
 
     def test(pixels: int):
         probe = probe_bracket(bracket, saturation, max_pixels=pixels)
         return probe, linearity_PTC(probe, lambda raw, dark, j: raw - dark,
                                     bit_depth=bracket.bit_depth, key="linear")
 
-    nl, ns, _ = bracket.shape
+    nl, ns, nb = bracket.shape
+    # a first probe that read every pixel (a small scene, or few bands, whose probe reads
+    # more pixels: noise.probe_pixels) has nothing more to read on a second one
+    whole = nl * ns <= probe_pixels(PROBE_PIXELS, nb)
     try:
         probe, lin = test(PROBE_PIXELS)
     except InputError:
-        if nl * ns <= PROBE_PIXELS:
+        if whole:
             raise
         probe, lin = None, None
     clear = (lin is not None and lin["deviation"] < LINEARITY_TOLERANCE / 2
              and lin["resolution"] < LINEARITY_TOLERANCE / 2)
-    if not clear and nl * ns > PROBE_PIXELS:
+    if not clear and not whole:
         probe, lin = test(PROBE_PIXELS_FINE)
         lin["probe_refined"] = True
     lin["probe_pixels"] = int(probe.raw.shape[1])
