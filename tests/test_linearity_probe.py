@@ -34,6 +34,19 @@ def _sat(br: Bracket) -> np.ndarray:
     return np.full(br.shape[2], 0.98 * 4095, np.float32)
 
 
+def _count_probes(monkeypatch) -> list:
+    """The ``max_pixels`` of every ``noise.probe_bracket`` call from now on."""
+    calls = []
+    real = N.probe_bracket
+
+    def counting(*a, **k):
+        calls.append(k.get("max_pixels"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(N, "probe_bracket", counting)
+    return calls
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_group_medians_equal_numpys(seed):
     rng = np.random.default_rng(seed)
@@ -90,14 +103,7 @@ def test_a_non_linear_sensor_is_decided_on_the_finer_probe():
 def test_fuse_probes_once_and_reports_the_probe(monkeypatch):
     from mehs.synthesis.fuse import fuse_bracket
 
-    calls = []
-    real = N.probe_bracket
-
-    def counting(*a, **k):
-        calls.append(k.get("max_pixels"))
-        return real(*a, **k)
-
-    monkeypatch.setattr(N, "probe_bracket", counting)
+    calls = _count_probes(monkeypatch)
     res = fuse_bracket(_bracket("linear"), ghosts="off")
     resp = res.summary["response"]
     assert res.response.is_linear and resp["linearity_conclusive"] is True
@@ -120,14 +126,7 @@ def test_a_first_probe_of_every_pixel_is_not_read_again(monkeypatch):
     br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks), [None] * 3,
                  sim.times_ms, wl, bit_depth=12)
     assert 96 * 96 > N.PROBE_PIXELS and N.probe_pixels(N.PROBE_PIXELS, 3) >= 96 * 96
-    calls = []
-    real = N.probe_bracket
-
-    def counting(*a, **k):
-        calls.append(k.get("max_pixels"))
-        return real(*a, **k)
-
-    monkeypatch.setattr(N, "probe_bracket", counting)
+    calls = _count_probes(monkeypatch)
     probe, lin = linearity_auto(br, _sat(br))
     assert calls == [N.PROBE_PIXELS] and "probe_refined" not in lin
     assert lin["probe_pixels"] == 96 * 96 == probe.raw.shape[1]
