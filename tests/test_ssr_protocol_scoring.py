@@ -61,3 +61,14 @@ def test_crop_larger_than_a_scene_names_the_scene_file(ds):
     with pytest.raises(Exception) as exc:
         evaluate(ds, ["smits"], preprocess="off", split="test", crop=6)
     assert pair.id in str(exc.value) and str(pair.hs_path) in str(exc.value)
+
+
+def test_a_broken_preprocessing_record_is_a_value_error_naming_the_field():
+    from mehs.ssr.preprocess import Preprocessing
+
+    with pytest.raises(ValueError, match="scale must be a number"):
+        Preprocessing.from_dict({"method": "reinhard", "key": None, "scale": None})
+    with pytest.raises(ValueError, match="key must be a number"):
+        Preprocessing.from_dict({"key": [0.18]})
+    # a key decides the factor: a null scale beside it is unused
+    assert Preprocessing.from_dict({"key": 0.18, "scale": None}).key == 0.18

@@ -142,9 +142,19 @@ class Preprocessing:
             return cls(key=None, scale=1.0)
         if not isinstance(d, dict):
             raise ValueError(f"not a pre-processing record: {d!r}")
-        key = d.get("key", DEFAULT_KEY)
+        key, scale = d.get("key", DEFAULT_KEY), d.get("scale", 1.0)
+
+        def number(name: str, v: Any) -> float:
+            # float(None) or float([..]) is a TypeError: a broken record must read as one
+            try:
+                return float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"pre-processing record: {name} must be a number, "
+                                 f"got {v!r}") from None
+
         return cls(method=str(d.get("method", "reinhard")),
-                   key=None if key is None else float(key), scale=float(d.get("scale", 1.0)))
+                   key=None if key is None else number("key", key),
+                   scale=1.0 if scale is None and key is not None else number("scale", scale))
 
 
 #: The paper's own operator: ``x/(1+x)`` on the data as given.
