@@ -75,13 +75,40 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
             raise InputError("refusing to overwrite an existing file", path)
         if tmp_path.is_file():
             os.chmod(tmp_path, _FILE_MODE)
+            # the data must be on disk before the name: ext4/xfs may commit a rename
+            # before the delayed data blocks, and after a power loss a new name then
+            # holds a zero-length or truncated file that looks complete
+            _fsync_file(tmp_path)
         os.replace(tmp_path, path)
+        _fsync_dir(path.parent)
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         if isinstance(exc, OSError):
             _name_target(exc, path)
         raise
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable; best effort (some file systems refuse it)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _name_target(exc: OSError, path: Path) -> None:
@@ -102,8 +129,6 @@ def write_bytes_atomic(path: str | Path, data: bytes, *, overwrite: bool = True)
     with atomic_path(path, overwrite=overwrite) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
     return Path(path)
 
 
