@@ -11,6 +11,12 @@ Sources (:func:`load_envmap`)
     - a per-wavelength EXR folder as :func:`mehs.export.export_per_wavelength`
       writes it (``<prefix>_wavelengths.json`` + one grayscale EXR per band).
 
+    A dataset cube stores ``radiance × 2^-k`` (``mehs radiance scale`` in the ENVI
+    header, ``mehsRadianceScale`` in an exported EXR's header, ``radiance_scale`` in the
+    per-wavelength listing) so that its RGB pair fits half floats; the map is divided by
+    that factor, so the emitter emits the cube's radiance, not 2^-k of it, and the factor
+    is kept in ``metadata["radiance_scale"]``.
+
 Derived maps (the paper's comparison, §4.4)
     :func:`rgb_map` — the pseudo-HDR-RGB of the HS map (:func:`mehs.rgb.hdr_rgb`,
     CIE 1931 2°, linear sRGB, negatives clipped); :func:`ssr_map` — that RGB map
@@ -89,6 +95,8 @@ def _read_per_wavelength_folder(folder: Path) -> EnvMap:
         raise FormatError(f"not a mehs per-wavelength listing ({exc})", listing[0]) from None
     if len(files) != len(wl) or not files:
         raise FormatError(f"{len(files)} files for {len(wl)} wavelengths", listing[0])
+    _check_units(doc.get("units"), listing[0])
+    scale = _scale_value(doc.get("radiance_scale"), listing[0])
     planes = []
     for name in files:
         p = folder / name
@@ -101,12 +109,57 @@ def _read_per_wavelength_folder(folder: Path) -> EnvMap:
             raise FormatError(f"band size {img.data.shape[:2]} differs from the first band's "
                               f"{planes[0].shape}", p)
         planes.append(img.data[:, :, 0])
-    return EnvMap(np.stack(planes, axis=-1), np.asarray(wl), str(folder),
-                  {"units": doc.get("units")})
+    return EnvMap(_unscaled(np.stack(planes, axis=-1), scale), np.asarray(wl), str(folder),
+                  {"units": doc.get("units"), "radiance_scale": scale})
+
+
+def _check_units(units, where) -> None:
+    """Refuse cubes that hold no light: raw counts, or reflectance (a Specim IQ
+    ``REFLECTANCE_*`` result, ``T.<λ>nm`` EXR channels), which is a ratio to a white
+    reference and would light the scene with the camera's white instead of the sky."""
+    u = str(units or "").strip().lower()
+    if u == "dn":
+        raise InputError("this cube holds raw counts (DN); fuse and resample it first "
+                         "(mehs fuse, mehs resample) to get radiance", where)
+    if "reflect" in u or "transmit" in u:
+        raise InputError(f"this cube holds {u} (a ratio, not light); an environment map "
+                         "must hold radiance (a fused HDR cube)", where)
+
+
+def _scale_value(value, where) -> float | None:
+    """A stored radiance scale (number or text), validated: finite and > 0; None if absent."""
+    if value is None or value == "":
+        return None
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise FormatError(f"the radiance scale must be a number, got {value!r}", where) from None
+    if not (np.isfinite(f) and f > 0):
+        raise FormatError(f"the radiance scale must be finite and > 0, got {value!r}", where)
+    return f
+
+
+def _unscaled(radiance: np.ndarray, scale: float | None) -> np.ndarray:
+    # stored = radiance × scale (a power of two: dividing is exact)
+    r = np.asarray(radiance, dtype=np.float32)
+    return r if scale is None or scale == 1.0 else r / np.float32(scale)
+
+
+def _exr_scale(path: Path) -> float | None:
+    import OpenEXR
+
+    try:
+        header = OpenEXR.File(str(path), header_only=True).header()
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise FormatError(f"cannot read the OpenEXR header ({exc})", path) from None
+    return _scale_value(header.get("mehsRadianceScale"), path)
 
 
 def load_envmap(path: str | Path) -> EnvMap:
     """Read an HS environment map (ENVI cube, spectral EXR or per-wavelength EXR folder).
+
+    A dataset cube's stored radiance scale (2^-k) is divided out; the factor is kept in
+    ``metadata["radiance_scale"]`` (None when the file has none).
 
     Raises
     ------
@@ -121,11 +174,12 @@ def load_envmap(path: str | Path) -> EnvMap:
     from mehs.io import load_cube
 
     cube = load_cube(p)
-    if str(cube.units).upper() == "DN":
-        raise InputError("this cube holds raw counts (DN); fuse and resample it first "
-                         "(mehs fuse, mehs resample) to get radiance", p)
-    return EnvMap(np.asarray(cube.data, dtype=np.float32), cube.wavelengths, str(p),
-                  {"units": str(cube.units)})
+    _check_units(cube.units, p)
+    # the EXR reader keeps no header in the cube's metadata: read the factor from the file
+    scale = (_exr_scale(p) if p.suffix.lower() == ".exr"
+             else _scale_value((cube.metadata or {}).get("mehs radiance scale"), p))
+    return EnvMap(_unscaled(cube.data, scale), cube.wavelengths, str(p),
+                  {"units": str(cube.units), "radiance_scale": scale})
 
 
 #: the CIE 1931 tables' range (nm): bands beyond it have no colour

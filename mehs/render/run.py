@@ -195,7 +195,10 @@ def _write_outputs(out: Path, env: EnvMap, rgb_env: np.ndarray, settings: Render
     doc = {
         "format": RENDER_FORMAT, "software_version": __version__,
         "map": {"source": env.source, "shape": list(env.shape),
-                "wavelengths_nm": [float(w) for w in env.wavelengths]},
+                "wavelengths_nm": [float(w) for w in env.wavelengths],
+                # the renders are in these units; a dataset cube's 2^-k was divided out
+                "units": env.metadata.get("units"),
+                "stored_radiance_scale": env.metadata.get("radiance_scale")},
         "settings": {"width": settings.width, "height": settings.height, "spp": settings.spp,
                      "seed": settings.seed, "object": settings.object,
                      "material": settings.material, "bands_nm": [float(b) for b in wl]},
