@@ -34,6 +34,10 @@ def configure(parser):
                              "(default): 0.98·(2^bits − 1), lower where the longest exposure "
                              "shows the sensor clipping below it (see summary.json "
                              "saturation_detected)")
+    parser.add_argument("--clip-negative", action="store_true",
+                        help="clip negative radiance (noise around zero) to 0; by default "
+                             "the unbiased signed estimate is kept (clipping biases dark "
+                             "pixels upward)")
     parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
@@ -101,7 +105,7 @@ def run(args) -> int:
                            ghosts=args.ghosts, smoothness=args.smoothness, samples=args.samples,
                            seed=args.seed, shared_response=not args.per_band,
                            calibration=cal, reference=ref, noise=args.noise,
-                           saturation=sat)
+                           saturation=sat, clip_negative=args.clip_negative)
     files = write_fusion(res, args.out)
     for w in res.summary.get("warnings", []):
         print(f"mehs: warning: {w}", file=sys.stderr)

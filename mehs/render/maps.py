@@ -109,8 +109,9 @@ def _read_per_wavelength_folder(folder: Path) -> EnvMap:
             raise FormatError(f"band size {img.data.shape[:2]} differs from the first band's "
                               f"{planes[0].shape}", p)
         planes.append(img.data[:, :, 0])
-    return EnvMap(_unscaled(np.stack(planes, axis=-1), scale), np.asarray(wl), str(folder),
-                  {"units": doc.get("units"), "radiance_scale": scale})
+    light, neg = _as_light(_unscaled(np.stack(planes, axis=-1), scale))
+    return EnvMap(light, np.asarray(wl), str(folder),
+                  {"units": doc.get("units"), "radiance_scale": scale, "negative_fraction": neg})
 
 
 def _check_units(units, where) -> None:
@@ -143,6 +144,19 @@ def _unscaled(radiance: np.ndarray, scale: float | None) -> np.ndarray:
     # stored = radiance × scale (a power of two: dividing is exact)
     r = np.asarray(radiance, dtype=np.float32)
     return r if scale is None or scale == 1.0 else r / np.float32(scale)
+
+
+def _as_light(radiance: np.ndarray) -> tuple[np.ndarray, float]:
+    """Measured radiance as an emitter's light: negatives (the fused cube's unbiased noise
+    around zero radiance) clipped to 0 here, where light must be non-negative, as the RGB
+    step clips; returns the map and the fraction of samples clipped. NaN/Inf stay, for
+    :class:`EnvMap` to refuse with the file named."""
+    r = np.asarray(radiance, dtype=np.float32)
+    neg = r < 0
+    n = int(np.count_nonzero(neg))
+    if n:
+        r = np.where(neg, np.float32(0.0), r)
+    return r, n / max(1, r.size)
 
 
 def _exr_scale(path: Path) -> float | None:
@@ -178,8 +192,9 @@ def load_envmap(path: str | Path) -> EnvMap:
     # the EXR reader keeps no header in the cube's metadata: read the factor from the file
     scale = (_exr_scale(p) if p.suffix.lower() == ".exr"
              else _scale_value((cube.metadata or {}).get("mehs radiance scale"), p))
-    return EnvMap(_unscaled(cube.data, scale), cube.wavelengths, str(p),
-                  {"units": str(cube.units), "radiance_scale": scale})
+    light, neg = _as_light(_unscaled(cube.data, scale))
+    return EnvMap(light, cube.wavelengths, str(p),
+                  {"units": str(cube.units), "radiance_scale": scale, "negative_fraction": neg})
 
 
 #: the CIE 1931 tables' range (nm): bands beyond it have no colour

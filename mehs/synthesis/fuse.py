@@ -135,7 +135,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                  saturation: float | np.ndarray | None = None,
                  calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
                  reference: int | str = "auto", chunk_lines: int = 128,
-                 check_response: bool = True) -> FusionResult:
+                 check_response: bool = True, clip_negative: bool = False) -> FusionResult:
     """Fuse a bracket into an HDR radiance cube.
 
     Parameters
@@ -167,6 +167,12 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         the cube's unit becomes the calibration's (W sr-1 m-2 nm-1 or relative
         radiance); a calibration of another camera, band set or binning is refused.
         A number or per-band array is a plain factor from DN/ms to radiance.
+    clip_negative
+        Clip negative estimates (noise around zero radiance) to 0. Off by default: the
+        signed estimate is unbiased, while clipping raised the darkest pixels' mean
+        (×1.43 at 2–4 DN of signal; +2 % in a scene's darkest decile, more after band
+        averaging). The RGB step clips, as the paper does, and HS environment maps clip
+        on loading; summary ``negative_fraction`` counts the negative samples.
     check_response
         After recovering a curve, run the self-consistency check of
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
@@ -262,7 +268,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
-                       consistency=ghost_statistic, source=bracket.source)
+                       consistency=ghost_statistic, clip_negative=clip_negative,
+                       source=bracket.source)
     timings["merge_s"] = time.perf_counter() - t1
     mask = mr.mask
     radiance = mr.radiance
@@ -290,7 +297,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                 radiance, gres.mask, [e.data for e in bracket.exposures], bracket.darks,
                 bracket.times_ms, linearise=lin, saturation=sat, floor=mr.info["noise"]["floor"],
                 calibration=np.broadcast_to(np.asarray(cal, dtype=np.float64), (nb,)),
-                reference=reference)
+                reference=reference, clip_negative=clip_negative)
         timings["ghosts_s"] = time.perf_counter() - t2
 
     e0 = bracket.exposures[0]
@@ -317,6 +324,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                        calibration, ref_used, auto_info)
     summary["units"] = units
     summary["saturation_detected"] = sat_found
+    summary["negative_fraction"] = _negative_fraction(radiance)
     if radiometric is not None:
         summary["calibration"] = radiometric.summary()
         summary["shape"] = list(radiance.shape)
@@ -416,6 +424,12 @@ def _check_curve_bands(curve, bracket) -> None:
         return
     check_same_bands(curve.wavelengths, bracket.wavelengths, "the per-band response curve",
                      "the bracket", bracket.source)
+
+
+def _negative_fraction(radiance: np.ndarray) -> float:
+    # by line: the cube may be as large as the bracket
+    n = sum(int(np.count_nonzero(radiance[i] < 0)) for i in range(radiance.shape[0]))
+    return n / max(1, radiance.size)
 
 
 def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,

@@ -244,7 +244,8 @@ def choose_reference(valid_counts: np.ndarray) -> int:
 def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, darks,
                            times_ms: np.ndarray, *, linearise, saturation: np.ndarray,
                            floor: float, calibration: np.ndarray,
-                           reference: int | str = "auto", chunk_pixels: int = 4096) -> int:
+                           reference: int | str = "auto", chunk_pixels: int = 4096,
+                           clip_negative: bool = True) -> int:
     """Replace ghost pixels by the estimate of one reference exposure (in place).
 
     One exposure for the whole region keeps the moving object in one place (no
@@ -268,6 +269,8 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
         ``(bands,)`` raw DN saturation levels.
     reference
         Exposure index, or ``"auto"`` (the one with most usable samples in the region).
+    clip_negative
+        Clip negative estimates to 0, as the merge was asked to.
 
     Returns
     -------
@@ -321,5 +324,7 @@ def deghost_from_reference(radiance: np.ndarray, ghost_mask: np.ndarray, stack, 
             # lower bound y₀/t₀, as the merge gives — the reference's own saturated
             # value over its longer time read a lamp band t_ref/t₀ times too dark
             est[~done] = x[~done]
-        radiance[r, c] = (np.maximum(est, 0.0) * calibration).astype(np.float32)
+        if clip_negative:
+            est = np.maximum(est, 0.0)
+        radiance[r, c] = (est * calibration).astype(np.float32)
     return ref
