@@ -471,40 +471,5 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
     }
 
 
-def write_fusion(result: FusionResult, out_dir: str | Path) -> dict[str, Path]:
-    """Write a fusion result into ``out_dir``.
-
-    Files: ``radiance.hdr`` + ``radiance.dat`` (ENVI float32, BIL, with
-    wavelengths), ``mask.png`` (uint8, dataset mask bits), ``confidence.exr``
-    (float32 single channel ``Y``), ``response.json`` (the curve, reloadable
-    with ``--response``), ``summary.json``. Every file is written atomically.
-    """
-    from mehs.io.atomic import make_output_dir
-    from mehs.io.lock import OutputLock
-
-    out = make_output_dir(out_dir)
-    with OutputLock(out, what="mehs fuse"):   # a second run into this --out is refused
-        return _write_fusion_files(result, out)
-
-
-def _write_fusion_files(result: FusionResult, out: Path) -> dict[str, Path]:
-    from mehs.io.atomic import atomic_path, write_json_atomic
-    from mehs.io.envi import write_envi
-    from mehs.io.exr import write_exr_gray
-
-    paths: dict[str, Path] = {}
-    paths["radiance"] = write_envi(out / "radiance.hdr", result.radiance, dtype=np.float32,
-                                   interleave="bil", data_ext=".dat", overwrite=True)
-    import cv2
-
-    with atomic_path(out / "mask.png") as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(result.mask)):
-            raise InputError("could not write PNG", out / "mask.png")
-    paths["mask"] = out / "mask.png"
-    paths["confidence"] = write_exr_gray(out / "confidence.exr",
-                                         np.ascontiguousarray(result.confidence), half=False)
-    paths["response"] = result.response.save(out / "response.json")
-    summary = dict(result.summary)
-    summary["files"] = {k: p.name for k, p in paths.items()}
-    paths["summary"] = write_json_atomic(out / "summary.json", summary)
-    return paths
+# written by its own module (re-exported: the library API has it here)
+from mehs.synthesis.fuse_write import write_fusion  # noqa: E402,F401
