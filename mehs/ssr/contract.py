@@ -208,6 +208,12 @@ def check_output(out: np.ndarray, in_shape: tuple, wavelengths: np.ndarray,
     return out
 
 
+#: Attributes of a wrapped callable that say what it was trained for and how it must be
+#: called (see the module notes); :class:`FunctionModel` carries them over.
+_DECLARATIONS = ("trained_for", "applies_preprocessing", "preprocessing", "restores_luminance",
+                 "standard_spectrum")
+
+
 class FunctionModel(SSRModel):
     """Wrap a plain function ``rgb (H, W, 3) → spectra (H, W, B)`` as a model."""
 
@@ -218,6 +224,12 @@ class FunctionModel(SSRModel):
         wl = getattr(fn, "wavelengths", None) if wavelengths is None else wavelengths
         self.wavelengths = np.asarray(WAVELENGTHS_31 if wl is None else wl, dtype=np.float64)
         self.description = description or (inspect.getdoc(fn) or "").split("\n")[0]
+        # What the wrapped object declares about itself must survive the wrapping: a user
+        # function carrying ``trained_for`` (HDR, no pre-processing, end to end) was
+        # otherwise scored as undeclared, under every setting, restored and tone-mapped.
+        for attr in _DECLARATIONS:
+            if hasattr(fn, attr):
+                setattr(self, attr, getattr(fn, attr))
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         return self.fn(rgb)

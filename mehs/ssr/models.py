@@ -20,12 +20,17 @@ Ways to name a model (``load_model(spec, **kwargs)``)
   keyword), default 400:700:10 (:data:`mehs.rgb.WAVELENGTHS_31`);
 - a ``.onnx`` file, run with onnxruntime (optional extra ``mehs[onnx]``). The
   layout is read from the model's input shape: ``(N, 3, H, W)`` is NCHW,
-  ``(N, H, W, 3)`` NHWC; the output must be ``(N, B, H, W)`` or ``(N, H, W, B)``.
-  Bands: the ``wavelengths=`` keyword, else a metadata property
-  ``wavelengths`` (comma-separated nm), else 400:700:10 when B = 31;
+  ``(N, H, W, 3)`` NHWC; the (first) output must be ``(N, B, H, W)`` or
+  ``(N, H, W, B)``, its band axis read from the declared output shape (an ambiguous
+  one is refused). Fixed spatial axes: that size only, run whole. Bands: the
+  ``wavelengths=`` keyword, else a metadata property ``wavelengths``
+  (comma-separated nm), else the sidecar, else 400:700:10 when B = 31;
+- sidecar ``<file>.json`` next to a ``.onnx`` or TorchScript file (:func:`read_sidecar`):
+  its ``trained_for`` and ``wavelengths``, what a foreign graph cannot say itself;
 - a fitted regression baseline file (``.npz``, from ``mehs train-baseline``);
 - a torch checkpoint (``.pt``/``.pth``) via :func:`mehs.ssr.net.export.load_torch_model`
-  (torch extra), which dispatches on the checkpoint's ``arch`` through the registry;
+  (torch extra), which dispatches on the checkpoint's ``arch`` through the registry, or
+  a TorchScript archive (:class:`mehs.ssr.net.export.TorchScriptModel`);
 - ``name=SPEC`` (any of the above): the same model, shown as ``name`` in tables.
 """
 
@@ -152,13 +157,21 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
         return model
     low = text.lower()
     if low.endswith(".onnx"):
-        return OnnxModel(text, **kwargs)
+        side = read_sidecar(text)
+        if "wavelengths" in side and kwargs.get("wavelengths") is None:
+            kwargs["wavelengths"] = side["wavelengths"]
+        return _declare(OnnxModel(text, **kwargs), side)
     if low.endswith(".pt") or low.endswith(".pth"):
         try:
-            from mehs.ssr.net.export import load_torch_model
+            from mehs.ssr.net.export import is_torchscript, load_torch_model
         except ImportError as exc:
             raise InputError(f"a torch checkpoint needs the torch extra: pip install "
                              f"'mehs[torch]' ({exc})", text) from None
+        if Path(text).is_file() and is_torchscript(text):
+            side = read_sidecar(text)
+            if "wavelengths" in side and kwargs.get("wavelengths") is None:
+                kwargs["wavelengths"] = side["wavelengths"]
+            return _declare(load_torch_model(text, **kwargs), side)
         return load_torch_model(text, **kwargs)
     if low.endswith(".npz") or low.endswith(".json"):
         from mehs.ssr.baselines import RegressionModel
@@ -184,6 +197,91 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
         raise InputError(f"unknown model {text!r}; known: {', '.join(sorted(MODELS))} "
                          "(or give package.module:function, a .onnx or a .npz file)")
     return _as_model(entry.factory(**kwargs), entry.name)
+
+
+#: onnxruntime input types an SSR graph may take → the numpy type fed to it.
+_FLOAT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
+                "tensor(double)": np.float64}
+_FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
+def _first_line(text: str) -> str:
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    return lines[0] if lines else "no message"
+
+
+def _output_layout(shape, fixed_size: tuple) -> str | None:
+    """``"NCHW"``/``"NHWC"`` when a graph's declared output ``shape`` tells it, else ``None``.
+
+    A band axis of fixed size next to two dynamic spatial axes tells it (``[N, 31, H, W]``);
+    with every axis fixed, the one matching the input's fixed size does.
+    """
+    if not isinstance(shape, (list, tuple)) or len(shape) != 4:
+        return None
+    fixed = [isinstance(d, int) and d > 0 for d in shape]
+    nchw = fixed[1] and not (fixed[2] or fixed[3])
+    nhwc = fixed[3] and not (fixed[1] or fixed[2])
+    if nchw != nhwc:
+        return "NCHW" if nchw else "NHWC"
+    if all(fixed) and None not in fixed_size:
+        hw = tuple(fixed_size)
+        fits = [lay for lay, s in (("NCHW", tuple(shape[2:])), ("NHWC", tuple(shape[1:3])))
+                if s == hw]
+        return fits[0] if len(fits) == 1 else None
+    return None
+
+
+SIDECAR_SUFFIX = ".json"
+_SIDECAR_KEYS = {"trained_for", "wavelengths"}
+
+
+def read_sidecar(model_path: str | Path) -> dict[str, Any]:
+    """The declaration next to a foreign model file: ``<file>.json`` (e.g. ``mst.onnx.json``).
+
+    ``{"trained_for": {...TrainedFor.to_dict()...}, "wavelengths": [400, 410, ...]}``, both
+    optional: what a graph from elsewhere cannot say itself. ``{}`` when there is none.
+    """
+    path = Path(str(model_path) + SIDECAR_SUFFIX)
+    if not path.is_file():
+        return {}
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise FormatError(f"model declaration is not readable JSON ({exc})", path) from None
+    if not isinstance(d, dict) or set(d) - _SIDECAR_KEYS:
+        keys = sorted(set(d) - _SIDECAR_KEYS) if isinstance(d, dict) else type(d).__name__
+        raise FormatError(f"model declaration: expected an object with keys "
+                          f"{sorted(_SIDECAR_KEYS)}, got {keys}", path)
+    out: dict[str, Any] = {"path": path}
+    if d.get("trained_for") is not None:
+        from mehs.ssr.contract import TrainedFor
+
+        try:
+            out["trained_for"] = TrainedFor.from_dict(d["trained_for"])
+        except InputError as exc:
+            raise FormatError(f"model declaration: 'trained_for' {exc.problem}", path) from None
+    if d.get("wavelengths") is not None:
+        try:
+            wl = np.asarray(d["wavelengths"], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            wl = np.array([np.nan])
+        if not wl.size or not np.all(np.isfinite(wl)):
+            raise FormatError("model declaration: 'wavelengths' is not a list of numbers (nm)",
+                              path)
+        out["wavelengths"] = wl
+    return out
+
+
+def _declare(model: Any, side: dict[str, Any]) -> Any:
+    """``model`` with the sidecar's ``trained_for``; refused where the graph declares its own."""
+    tf = side.get("trained_for")
+    if tf is None:
+        return model
+    if getattr(model, "trained_for", None) is not None or hasattr(model, "preprocessing"):
+        raise FormatError("model declaration: the model declares what it was trained for "
+                          "itself (mehs metadata); remove 'trained_for' here", side["path"])
+    model.trained_for = tf
+    return model
 
 
 def onnx_session_options():
@@ -247,6 +345,25 @@ class OnnxModel(SSRModel):
         else:
             raise FormatError(f"cannot tell NCHW from NHWC in input shape {shape}", path)
         self.input_type = inputs[0].type
+        if self.input_type not in _FLOAT_TYPES:
+            raise FormatError(f"input type {self.input_type} is not a float tensor; SSR models "
+                              "take linear float RGB (float, float16 or double)", path)
+        if isinstance(shape[0], int) and shape[0] != 1:
+            raise FormatError(f"the graph's batch axis is fixed to {shape[0]} (input shape "
+                              f"{shape}); images are run one at a time: export it with batch 1 "
+                              "or a dynamic batch axis", path)
+        self.input_shape = shape
+        # Spatial axes the graph fixes (ints in its input shape, e.g. exported at 482×512
+        # without dynamic axes): onnxruntime refuses any other size, tiles included.
+        hw = shape[2:] if self.layout == "NCHW" else shape[1:3]
+        self.fixed_size = tuple(d if isinstance(d, int) and d > 0 else None for d in hw)
+        outputs = self.session.get_outputs()
+        self.output_layout = _output_layout(outputs[0].shape, self.fixed_size)
+        # the spectra are the first output (torch.onnx.export writes a returned tuple in
+        # order, the main output first); errors name the others
+        self._which = ("" if len(outputs) == 1 else
+                       f" (the first of its {len(outputs)} outputs "
+                       f"{', '.join(o.name for o in outputs)}, is taken for the spectra)")
         meta = self.session.get_modelmeta().custom_metadata_map or {}
         # A self-contained graph (e.g. exported by `mehs train-ssr`) says whether it
         # applies Reinhard and restores luminance itself, so the pipeline does
@@ -277,11 +394,37 @@ class OnnxModel(SSRModel):
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         from mehs.ssr.tiling import tiled_onnx_call
 
+        if any(d is not None for d in self.fixed_size):
+            # a graph of fixed size runs whole: tiles (and the tiler's 256×256 memory
+            # probe) have other sizes, which it refuses
+            self._check_size(rgb.shape[:2])
+            return self._predict_whole(rgb)
         return tiled_onnx_call(self, self._predict_whole, rgb)  # tiles when memory is short
 
+    def _check_size(self, hw: tuple[int, int]) -> None:
+        """Refuse, naming both sizes, an image the graph's fixed spatial axes do not take."""
+        if all(f is None or f == n for f, n in zip(self.fixed_size, hw)):
+            return
+        want = "×".join("any" if f is None else str(f) for f in self.fixed_size)
+        raise InputError(f"{self.name}: the graph takes {want} images only (its input shape is "
+                         f"{self.input_shape}), this one is {hw[0]}×{hw[1]}: export it with "
+                         "dynamic height and width axes, or crop the images to that size "
+                         "(public datasets: --hs-crop HxW)", self.path)
+
     def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
-        y = self.session.run(self._run_outputs, {self.input_name: self._graph_input(rgb),
-                                                 **self._run_feeds})[0]
+        self._check_size(rgb.shape[:2])
+        try:
+            y = self.session.run(self._run_outputs, {self.input_name: self._graph_input(rgb),
+                                                     **self._run_feeds})[0]
+        except Exception as exc:  # onnxruntime's own types, none of them a builtin error
+            msg = str(exc)
+            if isinstance(exc, InputError) or "alloc" in msg.lower() or "memory" in msg.lower():
+                raise  # ours, or out of memory: the tiler and the timing read those
+            h, w = rgb.shape[:2]
+            raise InputError(f"{self.name}: onnxruntime cannot run the graph on a {h}×{w} "
+                             f"image ({_first_line(msg)}); a graph that needs sizes divisible "
+                             "by 8, 16 or 32 must pad inside itself (as MST++'s does)",
+                             self.path) from None
         return self._spectra(y, rgb.shape[:2])
 
     def release_memory(self) -> None:
@@ -311,7 +454,16 @@ class OnnxModel(SSRModel):
         x = rgb[None]
         if self.layout == "NCHW":
             x = x.transpose(0, 3, 1, 2)
-        dtype = np.float16 if "float16" in self.input_type else np.float32
+        dtype = _FLOAT_TYPES[self.input_type]
+        if dtype == np.float16 and x.size:
+            # HDR radiance overflows float16 (max 65504) to inf: say so, rather than
+            # report the inf the graph then returns as the model's fault
+            peak = float(np.abs(x).max())
+            if not peak <= _FLOAT16_MAX:
+                raise InputError(f"{self.name}: the graph takes float16 input, whose range "
+                                 f"ends at {_FLOAT16_MAX:g}; this image reaches {peak:.4g} "
+                                 "(scale the data, e.g. --hs-scale, or export in float32)",
+                                 self.path)
         return np.ascontiguousarray(x, dtype=dtype)
 
     def _spectra(self, y, shape: tuple[int, int]) -> np.ndarray:
@@ -319,14 +471,29 @@ class OnnxModel(SSRModel):
         y = np.asarray(y)
         h, w = shape
         if y.ndim != 4 or y.shape[0] != 1:
-            raise InputError(f"{self.name}: output shape {y.shape} is not (1, B, H, W) or (1, H, W, B)")
-        if y.shape[2:] == (h, w) and (y.shape[1:3] != (h, w) or self.layout == "NCHW"):
-            y = y[0].transpose(1, 2, 0)
-        elif y.shape[1:3] == (h, w):
-            y = y[0]
-        else:
-            raise InputError(f"{self.name}: output shape {y.shape} does not match input {h}×{w}")
+            raise InputError(f"{self.name}: output shape {y.shape} is not (1, B, H, W) or "
+                             f"(1, H, W, B){self._which}", self.path)
+        fits = [lay for lay, hw in (("NCHW", y.shape[2:]), ("NHWC", y.shape[1:3])) if hw == (h, w)]
+        if self.output_layout is not None:
+            # the graph's declared output shape says where the bands are
+            fits = [lay for lay in fits if lay == self.output_layout]
+        if not fits:
+            raise InputError(f"{self.name}: output shape {y.shape} does not match the {h}×{w} "
+                             "input (a graph that crops or pads its output must undo it "
+                             f"itself){self._which}", self.path)
+        if len(fits) == 2:
+            # (1, 31, 31, 31) on a 31×31 image: either reading fits, and the input's
+            # layout says nothing about the output's
+            raise InputError(f"{self.name}: output shape {y.shape} on a {h}×{w} image is "
+                             "ambiguous and the graph's output shape does not tell where the "
+                             "bands are (give its band axis a fixed size)", self.path)
+        y = y[0].transpose(1, 2, 0) if fits[0] == "NCHW" else y[0]
+        if self._declared is not None and y.shape[-1] != self._declared.size:
+            raise InputError(f"{self.name}: the model gives {y.shape[-1]} bands{self._which}, "
+                             f"but {self._declared.size} wavelengths are declared for it",
+                             self.path)
         if self._declared is None and y.shape[-1] != 31:
-            raise InputError(f"{self.name}: the model gives {y.shape[-1]} bands; declare them "
-                             "with wavelengths= or a 'wavelengths' metadata property", self.path)
+            raise InputError(f"{self.name}: the model gives {y.shape[-1]} bands{self._which}; "
+                             "declare them with wavelengths=, a 'wavelengths' metadata property "
+                             f"or {self.path.name}{SIDECAR_SUFFIX}", self.path)
         return y.astype(np.float32, copy=False)

@@ -29,6 +29,7 @@ from torch import nn
 from mehs import __version__
 from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path
+from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.contract import SSRModel, TrainedFor
 from mehs.ssr.preprocess import PAPER_PREPROCESSING, Preprocessing
 from mehs.ssr.registry import get_architecture
@@ -163,15 +164,109 @@ class TorchSSRModel(SSRModel):
         return y.astype(np.float32, copy=False)
 
 
+def is_torchscript(path: str | Path) -> bool:
+    """True if ``path`` is a TorchScript archive (``torch.jit.save``): a zip with ``code/``."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return any("/code/" in n or n.startswith("code/") for n in zf.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+class TorchScriptModel(SSRModel):
+    """A TorchScript SSR network (``torch.jit.save``) from anywhere, in the model contract.
+
+    The PyTorch convention of the public SSR code (MST++, AWAN, HSCNN+): input
+    ``(1, 3, H, W)`` linear RGB, output ``(1, B, H, W)``. The module runs in eval mode
+    (dropout and batch-norm statistics off: a module saved while training would
+    otherwise answer differently on every call), without autograd, on ``device``, in
+    the dtype of its parameters. Bands: ``wavelengths=``, else the module's
+    ``wavelengths`` attribute, else 400:700:10 when B = 31. It declares nothing: give it
+    ``trained_for`` to be scored only where it was trained.
+    """
+
+    def __init__(self, path: str | Path, *, name: str | None = None, device: str = "cpu",
+                 wavelengths=None):
+        path = Path(path)
+        self.device = resolve_device(device)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)  # torch ≥ 2.9 on jit
+                self.module = torch.jit.load(str(path), map_location=self.device)
+        except Exception as exc:  # torch raises several unrelated types for damaged files
+            raise FormatError(f"not a loadable TorchScript archive ({type(exc).__name__}: "
+                              f"{_first_line(exc)})", path) from None
+        self.module.eval()
+        self.path = path
+        self.name = name or path.stem
+        params = list(self.module.parameters())
+        self.dtype = params[0].dtype if params and params[0].is_floating_point() else torch.float32
+        wl = wavelengths if wavelengths is not None else getattr(self.module, "wavelengths", None)
+        self._declared = None if wl is None else np.asarray(
+            wl.cpu().numpy() if isinstance(wl, torch.Tensor) else wl, dtype=np.float64).reshape(-1)
+        self.wavelengths = WAVELENGTHS_31 if self._declared is None else self._declared
+        self.description = f"TorchScript model {path.name} (NCHW)"
+
+    def on_device(self, device: str) -> "TorchScriptModel":
+        """The same module as a model on ``device`` (for timing on CUDA)."""
+        return TorchScriptModel(self.path, name=self.name, device=device,
+                                wavelengths=self._declared)
+
+    @torch.no_grad()
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        h, w = rgb.shape[:2]
+        x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None])
+        try:
+            y = self.module(x.to(self.device, self.dtype))
+        except RuntimeError as exc:
+            if "memory" in str(exc).lower():
+                raise  # the timing reads allocation failures
+            raise InputError(f"{self.name}: the TorchScript module fails on a {h}×{w} image "
+                             f"({_first_line(exc)})", self.path) from None
+        if isinstance(y, (tuple, list)):
+            y = y[0]  # the main output first, as MST++/AWAN return it
+        if not isinstance(y, torch.Tensor) or y.ndim != 4 or y.shape[0] != 1 \
+                or tuple(y.shape[2:]) != (h, w):
+            got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+            raise InputError(f"{self.name}: output {got} is not (1, B, {h}, {w}) for the "
+                             f"{h}×{w} input (a module that pads must crop its output "
+                             "itself)", self.path)
+        if self._declared is not None and y.shape[1] != self._declared.size:
+            raise InputError(f"{self.name}: the module gives {y.shape[1]} bands, but "
+                             f"{self._declared.size} wavelengths are declared for it", self.path)
+        if self._declared is None and y.shape[1] != 31:
+            raise InputError(f"{self.name}: the module gives {y.shape[1]} bands; declare them "
+                             "with wavelengths= or a 'wavelengths' attribute", self.path)
+        return y[0].permute(1, 2, 0).float().cpu().numpy()
+
+
+def _first_line(exc) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
 def load_torch_model(checkpoint: str | Path, *, name: str | None = None,
-                     device: str = "cpu", wavelengths=None) -> TorchSSRModel:
+                     device: str = "cpu", wavelengths=None):
     """A :class:`TorchSSRModel` from a training checkpoint (``last.pt`` / ``best.pt``).
 
     The network is rebuilt by the architecture the checkpoint names
     (:func:`mehs.ssr.registry.get_architecture`). ``wavelengths``, if given,
     must be the network's own bands; ``load_model("x.pt", ...)`` lands here.
+    A TorchScript archive gives a :class:`TorchScriptModel`.
     """
-    net, state = load_checkpoint_network(checkpoint, map_location="cpu")
+    if Path(checkpoint).is_file() and is_torchscript(checkpoint):
+        return TorchScriptModel(checkpoint, name=name, device=device, wavelengths=wavelengths)
+    try:
+        net, state = load_checkpoint_network(checkpoint, map_location="cpu")
+    except FormatError as exc:
+        if _bare_weights(checkpoint):
+            raise FormatError(f"{exc.problem}: it holds bare weights (a state_dict) without "
+                              "the network that uses them; save the model with "
+                              "torch.jit.save(torch.jit.script(model)) or export it to ONNX, "
+                              "and name that file", checkpoint) from None
+        raise
     net_wl = np.asarray(net.wavelengths, dtype=np.float64)
     if wavelengths is not None:
         want = np.asarray(wavelengths, dtype=np.float64).reshape(-1)
@@ -182,6 +277,18 @@ def load_torch_model(checkpoint: str | Path, *, name: str | None = None,
     return TorchSSRModel(net, name=name, device=device, source=str(checkpoint),
                          trained_for=checkpoint_trained_for(state, net),
                          arch=checkpoint_arch(state))
+
+
+def _bare_weights(path: str | Path) -> bool:
+    """True if ``path`` holds a plain state_dict (or ``{"state_dict": ...}``), not a checkpoint."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 - unreadable: the first error says so
+        return False
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    return (isinstance(state, dict) and bool(state) and "format" not in state
+            and all(isinstance(v, torch.Tensor) for v in state.values()))
 
 
 class _ContractGraph(nn.Module):
