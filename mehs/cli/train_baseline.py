@@ -46,9 +46,18 @@ def run(args):
     root = Path(args.dataset)
     apply_source_arguments(args, root)
     split = None if args.split == "all" else args.split
-    if split is not None and not (root / "manifest.json").is_file() and \
-            split not in load_pairs(root).splits:
-        split = None  # a plain folder of pairs (or a public set without that split): all scenes
+    if split is not None and not (root / "manifest.json").is_file():
+        have = {k for k, v in (load_pairs(root).splits or {}).items() if v}
+        if not have:
+            split = None  # a plain folder of pairs, or a public set without splits: all scenes
+        elif split not in have:
+            # falling back to every scene would fit on the scenes the evaluation scores
+            # (e.g. a download of ARAD's validation folder alone)
+            from mehs.errors import InputError
+
+            raise InputError(f"no {split!r} split in this dataset (has {', '.join(sorted(have))}); "
+                             "choose one with --split, or --split all to fit on every scene",
+                             root)
     pairs = load_pairs(root, split=split)
     from mehs.cli.evaluate import preprocessing_from_args
 

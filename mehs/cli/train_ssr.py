@@ -8,10 +8,14 @@ architecture, preset, learning mode and trained input (HDR/LDR, Reinhard on/off 
 its scale).
 
 Needs the torch extra (``pip install "mehs[torch]"``). Reads a dataset folder
-(format 3) or a plain folder of pairs; trains on the ``train`` split (all
-scenes when there is no split), validates on ``val`` when it has scenes, writes
-checkpoints to ``--out`` and, unless ``--no-onnx``, ``OUT/model.onnx`` exported
-from the best checkpoint.
+(format 3), a plain folder of pairs or a public SSR dataset; trains on the ``train``
+split (all scenes when the dataset defines no split; an error when it defines splits
+but no training scenes), validates on ``val`` when the dataset also has a test split,
+and otherwise — ARAD-1K, whose official validation list is what gets scored, the
+paper's test set — on ``--val-count`` scenes (10, as the paper) held out of the train
+split by ``--seed``. The scene ids trained and validated on are recorded in the
+checkpoints (``extra``). Writes checkpoints to ``--out`` and, unless ``--no-onnx``,
+``OUT/model.onnx`` exported from the best checkpoint.
 """
 
 from __future__ import annotations
@@ -48,6 +52,11 @@ def configure(parser):
                         help="random patches drawn per training image per epoch (default 16)")
     parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:1, mps")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--val-count", type=int, default=10,
+                        help="when the dataset has no test split (ARAD-1K: its validation list "
+                             "is what gets scored, as the paper's test set), validate on this "
+                             "many scenes held out of the train split instead, as the paper "
+                             "did (default 10; 0: no validation)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last.pt")
     parser.add_argument("--no-reinhard", dest="reinhard", action="store_false",
@@ -126,11 +135,35 @@ def load_training_pairs(dataset, *, split: str | None, kind: str = "hdr"):
 
 
 def _splits(dataset):
+    """``(train split or None, val split or None)`` of ``dataset``; ``None`` for training
+    means every scene, allowed only when the dataset defines no split at all."""
     from mehs.ssr.data import load_pairs
 
     ps = load_pairs(dataset)
     sp = {k: v for k, v in (ps.splits or {}).items() if v}
+    if sp and "train" not in sp:
+        # training on "all scenes" here would train on the very scenes the evaluation
+        # scores (an evaluation-only set such as ME HS, or a download of ARAD's
+        # validation folder alone) and validate on scenes it trained on
+        raise InputError(f"the dataset defines splits ({', '.join(sorted(sp))}) but no "
+                         "training scenes; train on a dataset with a train split", dataset)
     return ("train" if "train" in sp else None), ("val" if "val" in sp else None)
+
+
+def _has_test_split(dataset) -> bool:
+    from mehs.ssr.data import load_pairs
+
+    return bool((load_pairs(dataset).splits or {}).get("test"))
+
+
+def hold_out_validation(pairs, count: int, seed: int):
+    """Split training pairs into ``(train, validation)``: ``min(count, len − 1)`` scenes
+    drawn reproducibly from ``seed`` (:func:`mehs.dataset.splits.pick_holdout`)."""
+    from mehs.dataset.splits import pick_holdout
+
+    n = max(0, min(int(count), len(pairs) - 1))
+    held = set(pick_holdout([p.id for p in pairs], n, seed))
+    return [p for p in pairs if p.id not in held], [p for p in pairs if p.id in held]
 
 
 def run(args):
@@ -161,9 +194,22 @@ def run(args):
     from mehs.cli._sources import apply_source_arguments
 
     apply_source_arguments(args, args.dataset)
+    if args.val_count < 0:
+        raise InputError("--val-count must be 0 or more")
     train_split, val_split = _splits(args.dataset)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
-    val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0] if val_split else []
+    val_source = val_split
+    if val_split and not _has_test_split(args.dataset):
+        # No test split: the val split is the one scored (ARAD-1K's official validation
+        # list, which the paper used as its test set, §3.6.1). Choosing best.pt on it would
+        # select the model on its own test scenes, so validate as the paper did: on scenes
+        # drawn from the training data, which are then not trained on.
+        pairs, val = hold_out_validation(pairs, args.val_count, args.seed)
+        val_source = f"{len(val)} held out of {train_split or 'all scenes'} (seed {args.seed})"
+    elif val_split:
+        val = load_training_pairs(args.dataset, split=val_split, kind=args.input)[0]
+    else:
+        val = []
     net_config = NetConfig(arch=args.arch, preset=args.preset, mode=args.mode,
                            wavelengths=wl.tolist(), reinhard=args.reinhard,
                            reinhard_scale=args.reinhard_scale, input=args.input, params=params)
@@ -180,7 +226,9 @@ def run(args):
                         resume=args.resume, progress=not args.quiet,
                         extra={"dataset": str(Path(args.dataset).resolve()),
                                "input": args.input, "train_split": train_split,
-                               "val_split": val_split})
+                               "val_split": val_source,
+                               "train_ids": [p.id for p in pairs],
+                               "val_ids": [p.id for p in val]})
     print(history_summary(res.history))
     best = res.best_checkpoint or res.last_checkpoint
     print(f"checkpoints: {res.last_checkpoint} (last), {best} (best)")

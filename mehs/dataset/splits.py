@@ -40,6 +40,16 @@ def make_splits(scene_ids: list[str], fractions=(0.7, 0.15, 0.15),
     return {name: sorted(p) for name, p in zip(SPLIT_NAMES, parts)}
 
 
+def pick_holdout(scene_ids: list[str], n: int, seed: int = 0) -> list[str]:
+    """``n`` of ``scene_ids`` chosen by the same seeded ranking as :func:`make_splits`
+    (sorted by id): the paper's "randomly selected 10 data from the training data as
+    validation data" (§3.6.1), reproducible and independent of the listing order."""
+    if int(n) < 0:
+        raise InputError(f"cannot hold out {n} scenes")
+    ranked = sorted(scene_ids, key=lambda s: (hashlib.sha256(f"{seed}:{s}".encode()).digest(), s))
+    return sorted(ranked[:int(n)])
+
+
 def write_split_files(dataset: str | Path, splits: dict[str, list[str]]) -> list[Path]:
     """Write ``splits/<name>.txt`` (one id a line) atomically."""
     return [write_text_atomic(Path(dataset) / "splits" / f"{name}.txt",

@@ -60,7 +60,12 @@ _KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
 _KAUST_KEYS = ("img", "cube", "rad", "data", "hsi", "reflectance")
 _RGB_EXT = (".jpg", ".jpeg", ".png", ".bmp")
 RGB_ENCODINGS = ("auto", "linear", "srgb")
-_SPLIT_WORDS = {"train": "train", "valid": "val", "val": "val", "test": "test"}
+#: Words of list-file stems and folder names that name a split. Folder names are the
+#: challenges' own: ``Train_Spec``/``Valid_Spec`` (NTIRE 2022), ``NTIRE2020_Train_Spectral``/
+#: ``NTIRE2020_Validation_Spectral`` (NTIRE 2020, the paper's ARAD HS),
+#: ``NTIRE2018_Train1_Spectral``/``NTIRE2018_Validate_Spectral`` (NTIRE 2018).
+_SPLIT_WORDS = {"train": "train", "training": "train", "valid": "val", "val": "val",
+                "validation": "val", "validate": "val", "test": "test", "testing": "test"}
 
 
 @dataclass(frozen=True)

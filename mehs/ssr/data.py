@@ -222,10 +222,17 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
         raise FormatError("'scenes' must be a list of scene objects with an 'id'", mpath)
     if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
         raise FormatError("'splits' must map split names to lists of scene ids", mpath)
-    split_of = {sid: name for name, ids in splits.items() for sid in ids}
+    split_of: dict[str, str] = {}
+    for name, ids in splits.items():
+        for sid in map(str, ids):
+            # a scene in two splits (a hand-merged manifest) would be trained on and then
+            # scored as unseen; the splits are by scene, so this is a broken manifest
+            if split_of.setdefault(sid, name) != name:
+                raise FormatError(f"scene {sid!r} is in two splits ({split_of[sid]!r} and "
+                                  f"{name!r}); each scene belongs to one split", mpath)
     if split is not None and split not in splits:
         raise InputError(f"no split {split!r} in the manifest (has {sorted(splits)})", mpath)
-    wanted = None if split is None else set(splits[split])
+    wanted = None if split is None else set(map(str, splits[split]))
     pairs = []
     for sc in scenes:
         sid = str(sc.get("id"))

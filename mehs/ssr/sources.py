@@ -13,13 +13,14 @@ for that folder for the rest of the process, because the evaluator re-lists a fo
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mehs.errors import InputError
+from mehs.errors import FormatError, InputError
 from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
                                   read_source_cube)
 from mehs.ssr.data import Pair, PairSet, srgb_decode_8bit
@@ -119,14 +120,34 @@ def _splits(root: Path, entries: list[tuple[str, Path]]) -> dict[str, list[str]]
                   if s.strip()]
         splits.setdefault(name, []).extend(s for s in listed if s in ids)
     if splits:
-        return {k: sorted(set(v)) for k, v in splits.items()}
+        out = {k: sorted(set(v)) for k, v in splits.items()}
+        seen: dict[str, str] = {}
+        for name, sids in out.items():
+            for sid in sids:
+                # (a hand-made list naming a scene for training and for validation)
+                if seen.setdefault(sid, name) != name:
+                    raise FormatError(f"scene {sid!r} is listed in two splits ({seen[sid]!r} "
+                                      f"and {name!r}) by the *_list.txt files", root)
+        return out
     for sid, p in entries:
-        for part in p.relative_to(root).parts[:-1]:
-            word = part.lower().split("_")[0]
-            if word in _SPLIT_WORDS:
-                splits.setdefault(_SPLIT_WORDS[word], []).append(sid)
-                break
+        name = next((n for part in p.relative_to(root).parts[:-1]
+                     for n in [_folder_split(part)] if n), None)
+        if name:
+            splits.setdefault(name, []).append(sid)
     return {k: sorted(v) for k, v in splits.items()}
+
+
+def _folder_split(part: str) -> str | None:
+    """The split a folder name names, by any of its ``_``/``-``-separated words with
+    trailing digits dropped: ``Train_Spec`` and ``NTIRE2020_Train_Spectral`` → train,
+    ``NTIRE2020_Validation_Spectral`` and ``NTIRE2018_Validate_Spectral`` → val,
+    ``NTIRE2018_Train2_Spectral`` → train (only the first word was looked at, so the NTIRE
+    2018/2020 folders had no split at all and their validation scenes were trained on)."""
+    for word in re.split(r"[_\-\s.]+", part.lower()):
+        name = _SPLIT_WORDS.get(word.rstrip("0123456789"))
+        if name:
+            return name
+    return None
 
 
 @dataclass

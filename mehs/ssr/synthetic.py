@@ -174,9 +174,16 @@ def make_paired_set(out_dir: str | Path, n_scenes: int = 10, size: int | tuple[i
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     n = int(n_scenes)
     ids = [f"syn{seed:03d}_{i:03d}" for i in range(n)]
-    frac = np.asarray(splits, dtype=float) / np.sum(splits)
-    n_test = max(1, int(round(frac[2] * n))) if n > 1 else 0
-    n_val = int(round(frac[1] * n)) if n > 2 else 0
+    frac = np.asarray(splits, dtype=float)
+    if frac.shape != (3,) or not np.all(np.isfinite(frac)) or np.any(frac < 0) \
+            or frac.sum() <= 0:
+        raise ValueError(f"splits must be three non-negative train/val/test ratios, not all "
+                         f"zero, got {tuple(splits)}")
+    frac = frac / frac.sum()
+    n_test = min(n, max(1, int(round(frac[2] * n)))) if n > 1 else 0
+    # rounded val and test may together exceed n (e.g. 0, 0.5, 0.5 of 3 scenes): the val
+    # count gives way, so n_train is never negative and no scene lands in two splits
+    n_val = min(int(round(frac[1] * n)), n - n_test) if n > 2 else 0
     n_train = n - n_test - n_val
     split_ids = {"train": ids[:n_train], "val": ids[n_train:n_train + n_val],
                  "test": ids[n_train + n_val:]}

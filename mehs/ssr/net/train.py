@@ -4,8 +4,9 @@ Recipe (the reference method's): Adam, learning rate by cosine annealing with
 warm restarts (η_max = 0.002, η_min = 0.0001, T0 = 20 epochs, T_mult = 1,
 stepped every batch with the fractional epoch), random square patches with
 random horizontal/vertical flips and 0°/90°/270° rotations, deterministic under
-``seed`` (the patch draw of epoch ``e`` comes from ``default_rng([seed, e])``,
-so a resumed run draws the same patches as an uninterrupted one).
+``seed`` (the patch draw of epoch ``e`` comes from ``default_rng([seed, e])`` and
+torch's dropout draws from a seed made of ``(seed, e)``, so a resumed run trains
+exactly as an uninterrupted one).
 
 An *epoch* is ``ceil(n_images · patches_per_image / batch)`` batches.
 
@@ -164,6 +165,11 @@ def augment_patch(rgb: np.ndarray, hs: np.ndarray, valid: np.ndarray,
     return out
 
 
+def epoch_torch_seed(seed: int, epoch: int) -> int:
+    """The torch seed of epoch ``epoch`` (dropout draws), a function of ``(seed, epoch)`` only."""
+    return int(np.random.SeedSequence([int(seed), int(epoch), 1]).generate_state(1)[0])
+
+
 def sample_batch(pairs: Sequence[TrainingPair], batch: int, patch: int,
                  rng: np.random.Generator, augment: bool = True):
     """Draw ``batch`` random ``patch``×``patch`` crops → tensors ``(N,3,p,p)``, ``(N,B,p,p)``,
@@ -198,9 +204,11 @@ def _image_tensors(pr: TrainingPair, device):
 @torch.no_grad()
 def evaluate_pairs(network, pairs: Sequence[TrainingPair], device="cpu",
                    loss: str = "mse") -> dict[str, float]:
-    """Mean loss and mean SAM (degrees, of the luminance-restored spectra) over whole images."""
+    """Mean loss, SAM (degrees) and MRAE over whole images: the paper's two metrics
+    (§3.6.3), of the luminance-restored spectra, per image as :mod:`mehs.ssr.metrics`
+    defines them (SAM: zero-norm pixels excluded; MRAE: elements with ``y ≤ 0`` excluded)."""
     network.eval()
-    losses, sams = [], []
+    losses, sams, mraes = [], [], []
     for pr in pairs:
         rgb, hs, valid = _image_tensors(pr, device)
         pred = network(rgb)
@@ -212,8 +220,12 @@ def evaluate_pairs(network, pairs: Sequence[TrainingPair], device="cpu",
         cos = torch.clamp(num[ok] / den[ok], -1.0, 1.0)
         if cos.numel():
             sams.append(float(torch.rad2deg(torch.arccos(cos)).mean()))
+        pos = (hs > 0) & valid
+        if bool(pos.any()):
+            mraes.append(float(((spec - hs).abs()[pos] / hs[pos]).mean()))
     return {"loss": float(np.mean(losses)) if losses else math.nan,
-            "sam_deg": float(np.mean(sams)) if sams else math.nan}
+            "sam_deg": float(np.mean(sams)) if sams else math.nan,
+            "mrae": float(np.mean(mraes)) if mraes else math.nan}
 
 
 def save_checkpoint(path: str | Path, network, optimizer, scheduler, *, epoch: int,
@@ -355,6 +367,9 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
     for epoch in bar:
         network.train()
         rng = np.random.default_rng([tc.seed, epoch])
+        # torch's own draws (dropout) also restart per epoch from (seed, epoch): a resumed run
+        # then trains exactly as an uninterrupted one (the generator state is not in last.pt)
+        torch.manual_seed(epoch_torch_seed(tc.seed, epoch))
         t0 = time.perf_counter()
         total = 0.0
         for i in range(n_batches):
@@ -375,16 +390,21 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
         if val_pairs:
             v = evaluate_pairs(network, val_pairs, device, tc.loss)
             entry["val_loss"], entry["val_sam_deg"] = v["loss"], v["sam_deg"]
+            entry["val_mrae"] = v["mrae"]
         history.append(entry)
         bar.set_postfix({k: f"{entry[k]:.4g}" for k in ("train_loss", "val_loss") if k in entry})
-        result.last_checkpoint = save_checkpoint(
-            last, network, optimizer, scheduler, epoch=epoch, train_config=tc,
-            history=history, extra=extra)
+        # best.pt before last.pt: a run killed between the two writes resumes from the
+        # previous last.pt and redoes this epoch. The other order left a last.pt whose
+        # history names this epoch the best while best.pt still held an older one, and
+        # the resumed run never replaced it (its `best` already counted this epoch).
         if entry[best_key] < best:
             best = entry[best_key]
             result.best_checkpoint = save_checkpoint(
                 out_dir / "best.pt", network, None, None, epoch=epoch, train_config=tc,
                 history=history, extra=extra)
+        result.last_checkpoint = save_checkpoint(
+            last, network, optimizer, scheduler, epoch=epoch, train_config=tc,
+            history=history, extra=extra)
         write_json_atomic(out_dir / "history.json", history)
     network.eval()
     if result.last_checkpoint is None and last.exists():
@@ -402,6 +422,8 @@ def history_summary(history: list[dict[str, float]]) -> str:
     s = f"epochs {a['epoch']}..{b['epoch']}: train loss {a['train_loss']:.4g} → {b['train_loss']:.4g}"
     if "val_loss" in b:
         s += f"; val loss {b['val_loss']:.4g}, val SAM {b['val_sam_deg']:.3f}°"
+        if "val_mrae" in b:
+            s += f", val MRAE {b['val_mrae']:.4f}"
     return s
 
 
