@@ -314,3 +314,17 @@ def test_ntire_rgb_images_are_read_as_linear_and_others_as_srgb(tmp_path):
     # CAVE's RGB renderings stay sRGB unless told otherwise
     assert SourceOptions().rgb_encoding_for("cave") == "srgb"
     assert SourceOptions(rgb_encoding="linear").rgb_encoding_for("cave") == "linear"
+
+
+def test_auto_split_scores_the_validation_list_when_there_is_no_test_split(arad1k, tmp_path):
+    """No test split (ARAD-1K: the official validation list is the paper's test set,
+    §3.6.1): ``--split auto`` scores the val scenes, not every scene (training included)."""
+    import json
+
+    from mehs.cli import main
+
+    root, _ = arad1k
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(root), "--models", "smits", "--input", "hdr",
+                 "--preprocess", "off", "--hs-crop", "8x8", "--out", str(out)]) == 0
+    assert json.loads((out / "evaluation.json").read_text())["config"]["n_scenes"] == 1

@@ -42,7 +42,9 @@ def configure(parser):
                         help="border pixels removed on every side before scoring")
     parser.add_argument("--split", default="auto",
                         help="manifest split to score (train/val/test), 'all', or 'auto' = "
-                             "test if the manifest has one (default: %(default)s)")
+                             "test if the dataset has one, else val (ARAD-1K's official "
+                             "validation list, the paper's test set), else all "
+                             "(default: %(default)s)")
     parser.add_argument("--out", "-o", default="evaluation", metavar="DIR",
                         help="results folder (evaluation.json, results.csv, tables.md, "
                              "figures/) (default: %(default)s)")

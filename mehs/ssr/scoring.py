@@ -277,7 +277,7 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
         Border (pixels) removed on every side before scoring.
     split
         Manifest split to score, ``None`` for every scene, or ``"auto"`` (the
-        test split if there is a non-empty one, else every scene).
+        test split if there is a non-empty one, else the val split, else every scene).
     out
         Results folder to write (see :mod:`mehs.ssr.results_io`); ``None`` writes nothing.
     figures
@@ -315,7 +315,9 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     want_pix = parse_pixels(pixels)
     all_pairs = dataset if isinstance(dataset, PairSet) else load_pairs(dataset)
     if split == "auto":
-        split = "test" if (all_pairs.splits or {}).get("test") else None
+        # no test split: the val split is the held-out one (ARAD-1K / NTIRE: the official
+        # validation list, the paper's test set, §3.6.1); "all" would score training scenes
+        split = next((k for k in ("test", "val") if (all_pairs.splits or {}).get(k)), None)
     pairs = all_pairs if split is None else load_pairs(all_pairs.root, split=split)
     unknown = sorted(set(want_pix) - {p.id for p in pairs})
     if unknown:
