@@ -156,3 +156,19 @@ def test_mrae_loss_is_ntires_and_selectable():
     net = build_network(NetConfig.from_dict(dict(variant="hdrssr", **TINY)))
     with pytest.raises(InputError, match="unknown loss"):
         net.loss(torch.zeros(1, 31, 4, 4), torch.ones(1, 31, 4, 4), kind="huber")
+
+
+def test_resume_on_other_scenes_is_refused(tmp_path):
+    """A resumed run continues the schedule and history of its checkpoint's training set:
+    other scenes (another split, dataset or hold-out seed) are refused, not mixed in."""
+    cfg = NetConfig.from_dict(dict(variant="hdrssr", **TINY))
+    tc = TrainConfig(epochs=1, batch=2, patch=16, patches_per_image=2, seed=0)
+    pairs = [_checker_pair(16, 16, 1), _checker_pair(16, 16, 2)]
+    train_network(pairs, tmp_path, net_config=cfg, train_config=tc, progress=False)
+    tc2 = TrainConfig(epochs=2, batch=2, patch=16, patches_per_image=2, seed=0)
+    with pytest.raises(InputError, match="other scenes"):
+        train_network([pairs[0], _checker_pair(16, 16, 3)], tmp_path, net_config=cfg,
+                      train_config=tc2, resume=True, progress=False)
+    res = train_network(pairs, tmp_path, net_config=cfg, train_config=tc2, resume=True,
+                        progress=False)
+    assert len(res.history) == 2

@@ -290,6 +290,21 @@ def load_network(path: str | Path, map_location="cpu"):
     return net, state
 
 
+def _check_same_scenes(state: dict, pairs: Sequence[TrainingPair], last: Path) -> None:
+    """A resumed run must train on the scenes its checkpoint recorded (``extra.train_ids``):
+    other data (another dataset, split or hold-out seed) would continue a schedule and a
+    history that belong to a different training set, silently."""
+    was = (state.get("extra") or {}).get("train_ids")
+    if was is None:
+        return       # a checkpoint from before the ids were recorded
+    was, now = set(map(str, was)), {str(p.id) for p in pairs}
+    if was != now:
+        raise InputError(f"the checkpoint was trained on other scenes ({len(now - was)} new, "
+                         f"{len(was - now)} missing, e.g. {sorted(now ^ was)[:3]}); resume with "
+                         "the same dataset, split and --seed, or train into another folder",
+                         last)
+
+
 def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
                   net_config: NetConfig | None = None,
                   train_config: TrainConfig | None = None,
@@ -322,6 +337,7 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
                              "(--resume) to continue it or choose another output folder",
                              out_dir)
         state = read_checkpoint(last)
+        _check_same_scenes(state, pairs, last)
         net_config = NetConfig.from_dict(state["net_config"])
         tc = TrainConfig.from_dict({**state["train_config"], "epochs": tc.epochs,
                                     "device": tc.device})
@@ -350,6 +366,10 @@ def train_network(pairs: Sequence[TrainingPair], out_dir: str | Path, *,
         history = list(state["history"])
         start_epoch = int(state["epoch"]) + 1
 
+    ids = [str(getattr(p, "id", "") or "") for p in pairs]
+    extra = dict(extra or {})
+    if all(ids) and len(set(ids)) == len(ids):
+        extra.setdefault("train_ids", ids)     # what a resumed run is checked against
     make_output_dir(out_dir)
     write_json_atomic(out_dir / "config.json", {
         "format": CHECKPOINT_FORMAT, "software_version": __version__,
