@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 #: every output of :func:`mehs.synthesis.merge.merge_bracket` that is an array
@@ -48,3 +50,22 @@ def contrast_rgb(h: int, w: int, seed: int = 3) -> np.ndarray:
     x[:, : w // 3] *= 4.0
     x[: h // 2, :, 1] *= 0.2
     return x
+
+
+def write_mat73(path: Path, variables: dict) -> Path:
+    """A MATLAB v7.3 MAT-file: HDF5 behind a 512-byte userblock with MATLAB's 128-byte header;
+    arrays stored column-major (axes reversed), each with its MATLAB_class attribute."""
+    import h5py
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for k, v in variables.items():
+            v = np.asarray(v)
+            d = f.create_dataset(k, data=v.T)
+            d.attrs["MATLAB_class"] = np.bytes_("single" if v.dtype == np.float32 else "double")
+    text = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Tue Dec  1 12:00:00 2026 HDF5 schema 1.00 ."
+    header = text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
+    with open(path, "r+b") as fh:
+        fh.write(header)
+    return path

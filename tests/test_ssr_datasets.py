@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import scipy.io
 
+from _checks import write_mat73
 from mehs.errors import FormatError, InputError
 from mehs.io.ssr_datasets import SourceOptions, read_source_cube
 from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB
@@ -30,22 +31,6 @@ def _cube(n_bands=31, wl=WAVELENGTHS_31, seed=0, h=H, w=W):
     lab = rng.integers(0, 24, (h, w))
     cube = refl[lab] * spd / spd.max()
     return cube.astype(np.float32)
-
-
-def write_mat73(path: Path, variables: dict) -> Path:
-    """A MATLAB v7.3 MAT-file: HDF5 behind a 512-byte userblock with MATLAB's 128-byte header;
-    arrays stored column-major (axes reversed), each with its MATLAB_class attribute."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with h5py.File(path, "w", userblock_size=512) as f:
-        for k, v in variables.items():
-            v = np.asarray(v)
-            d = f.create_dataset(k, data=v.T)
-            d.attrs["MATLAB_class"] = np.bytes_("single" if v.dtype == np.float32 else "double")
-    text = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Tue Dec  1 12:00:00 2026 HDF5 schema 1.00 ."
-    header = text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
-    with open(path, "r+b") as fh:
-        fh.write(header)
-    return path
 
 
 def _ntire_rgb8(cube: np.ndarray) -> np.ndarray:

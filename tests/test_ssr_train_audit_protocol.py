@@ -12,6 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)  # tiny nets on a shared 2-core machine
 
+from _checks import write_mat73  # noqa: E402
 from mehs.errors import FormatError, InputError  # noqa: E402
 from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB  # noqa: E402
 from mehs.ssr.net.base import NetConfig  # noqa: E402
@@ -151,19 +152,6 @@ def test_manifest_with_a_scene_in_two_splits_is_a_format_error(tmp_path):
     assert "manifest.json" in str(e.value)
 
 
-def _write_mat73(path: Path, variables: dict) -> None:
-    """MATLAB v7.3: HDF5 behind a 512-byte userblock, arrays stored column-major."""
-    import h5py
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with h5py.File(path, "w", userblock_size=512) as f:
-        for k, v in variables.items():
-            f.create_dataset(k, data=np.asarray(v).T).attrs["MATLAB_class"] = np.bytes_("single")
-    with open(path, "r+b") as fh:
-        fh.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116, b" ")
-                 + b"\x00" * 8 + b"\x00\x02IM")
-
-
 def test_train_ssr_on_arad1k_validates_on_held_out_training_scenes(tmp_path, capsys):
     """Paper §3.6.1: "we used the official validation data as test data and randomly
     selected 10 data from the training data as validation data". ARAD-1K's valid_list is
@@ -174,7 +162,7 @@ def test_train_ssr_on_arad1k_validates_on_held_out_training_scenes(tmp_path, cap
     for i in range(1, 6):
         folder = "Valid" if i == 5 else "Train"
         cube = _pair(16, 16, 10 + i).hs / 40
-        _write_mat73(root / f"{folder}_Spec" / f"ARAD_1K_{i:04d}.mat",
+        write_mat73(root / f"{folder}_Spec" / f"ARAD_1K_{i:04d}.mat",
                      {"cube": cube, "bands": WAVELENGTHS_31[None, :]})
     (root / "split_txt").mkdir()
     (root / "split_txt" / "train_list.txt").write_text(

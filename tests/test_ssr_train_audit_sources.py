@@ -2,25 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 
+from _checks import write_mat73
 from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.sources import detect_format, load_source
-
-
-def _write_mat73(path: Path, variables: dict) -> None:
-    """MATLAB v7.3: HDF5 behind a 512-byte userblock, arrays stored column-major."""
-    import h5py
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with h5py.File(path, "w", userblock_size=512) as f:
-        for k, v in variables.items():
-            f.create_dataset(k, data=np.asarray(v).T).attrs["MATLAB_class"] = np.bytes_("single")
-    with open(path, "r+b") as fh:
-        fh.write(b"MATLAB 7.3 MAT-file, HDF5 schema 1.00 .".ljust(116, b" ")
-                 + b"\x00" * 8 + b"\x00\x02IM")
 
 
 def _cube(seed: int, h: int = 6, w: int = 5) -> np.ndarray:
@@ -38,7 +25,7 @@ def test_ntire2020_and_2018_folders_give_their_splits(tmp_path):
     train-ssr trained on the validation scenes the paper tests on."""
     root = tmp_path / "NTIRE2020"
     for i, folder in ((1, "Train"), (2, "Train"), (451, "Validation")):
-        _write_mat73(root / f"NTIRE2020_{folder}_Spectral" / f"ARAD_HS_{i:04d}.mat",
+        write_mat73(root / f"NTIRE2020_{folder}_Spectral" / f"ARAD_HS_{i:04d}.mat",
                      {"cube": _cube(i), "bands": WAVELENGTHS_31[None, :]})
     assert detect_format(root) == "arad1k"  # the same `cube`/`bands` variables
     ps = load_source(root)
@@ -47,7 +34,7 @@ def test_ntire2020_and_2018_folders_give_their_splits(tmp_path):
     # NTIRE 2018 (BGU-HS): two training folders and a "Validate" one, `rad`
     root = tmp_path / "NTIRE2018"
     for i, folder in ((1, "Train1"), (2, "Train2"), (3, "Validate")):
-        _write_mat73(root / f"NTIRE2018_{folder}_Spectral" / f"BGU_HS_{i:05d}.mat",
+        write_mat73(root / f"NTIRE2018_{folder}_Spectral" / f"BGU_HS_{i:05d}.mat",
                      {"rad": _cube(i) * 4095, "bands": WAVELENGTHS_31[None, :]})
     ps = load_source(root)
     assert detect_format(root) == "arad"
@@ -62,7 +49,7 @@ def test_train_baseline_does_not_fit_on_the_scored_split_of_a_validation_only_do
 
     root = tmp_path / "ARAD_1K"
     for i in (901, 902):
-        _write_mat73(root / "Valid_Spec" / f"ARAD_1K_{i:04d}.mat",
+        write_mat73(root / "Valid_Spec" / f"ARAD_1K_{i:04d}.mat",
                      {"cube": _cube(i, 10, 10), "bands": WAVELENGTHS_31[None, :]})
     assert load_source(root).splits == {"val": ["ARAD_1K_0901", "ARAD_1K_0902"]}
     out = tmp_path / "reg.npz"
