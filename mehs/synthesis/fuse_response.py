@@ -102,10 +102,21 @@ def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation
     return out, darks
 
 
+#: Rounds of the black-level offset iterations of :func:`recover_response`. The fixed point
+#: is right but reached sublinearly: on a gamma-0.8 sensor (5 exposures ×4) the radiance
+#: error across brightness deciles spanned 13 % after 12 plain rounds, 3.6 % after 60
+#: over-relaxed ones (1.7 % after 300 plain). A shared curve's round costs ~7 ms; a
+#: per-band curve's ~200× that, so it keeps the old count (documented bias near black).
+OFFSET_ITERATIONS_SHARED = 60
+OFFSET_ITERATIONS_PER_BAND = 12
+#: over-relaxation of those rounds: ×1.5 halves the rounds needed and stays stable (×3 diverged)
+OFFSET_RELAXATION = 1.5
+
+
 def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
                      seed: int = 0, shared: bool = False, levels: str = "raw",
                      saturation: np.ndarray | None = None,
-                     weighting: str = "hat", offset_iterations: int = 12,
+                     weighting: str = "hat", offset_iterations: int | None = None,
                      pool: np.ndarray | None = None) -> ResponseCurve:
     """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
 
@@ -117,7 +128,8 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     misses the offset ``B_j`` (black level plus dark current, which grows with
     ``Δt``) that is added before the non-linearity: the curve bends near black
     (by a factor 2 for a gamma-0.8 sensor), and dark pixels of different
-    exposures disagree. ``offset_iterations`` rounds re-solve with per-sample
+    exposures disagree. ``offset_iterations`` rounds (None: :data:`OFFSET_ITERATIONS_SHARED`
+    for a shared curve, :data:`OFFSET_ITERATIONS_PER_BAND` per band) re-solve with per-sample
     effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))`` the
     linearised dark of that sample's column, ``E_i`` the pixel's current
     estimate — which makes the model exact: ``exp(g(Z_ij)) = E_i·Δt_j + B_ij``.
@@ -157,6 +169,8 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     except InputError as exc:   # array-level checks know no file: name the bracket
         raise exc.with_path(bracket.source) from None
     has_dark = levels == "raw" and all(d is not None for d in bracket.darks)
+    if offset_iterations is None:
+        offset_iterations = OFFSET_ITERATIONS_SHARED if shared else OFFSET_ITERATIONS_PER_BAND
     if has_dark and offset_iterations > 0:
         from mehs.synthesis.response import weighting_table
 
@@ -178,7 +192,8 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
                 gz = G[np.arange(nb)[None, None, :], Z]
             W = w.sum(axis=1)
             lnE = np.where(W > 0, (w * (gz - lt_cur)).sum(axis=1) / np.where(W > 0, W, 1), 0.0)
-            lt_cur = np.log(t + B / np.exp(lnE)[:, None, :])
+            # over-relaxed (OFFSET_RELAXATION): the plain step converges sublinearly
+            lt_cur = lt_cur + OFFSET_RELAXATION * (np.log(t + B / np.exp(lnE)[:, None, :]) - lt_cur)
             curve = recover_response_Debevec1997(
                 Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
                 weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
