@@ -39,3 +39,20 @@ def test_gamma_sensor_radiance_has_no_brightness_dependent_bias(tmp_path):
     ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
     bias = _decile_bias(rad, truth, ok)
     assert np.ptp(bias) < 0.06 and np.abs(bias).max() < 0.04, np.round(bias, 3)
+
+
+def test_check_flags_a_curve_whose_exposures_disagree(tmp_path):
+    # 3 exposures ×8 of a gamma sensor: split halves and λ vs 10λ agree (1.9 %, both share
+    # the curve's bias) while the radiance runs −8…+1 % of the truth; linearised by the
+    # curve, consecutive exposures disagree by 4 %, which the check now reports
+    scene = make_scene("colorchecker", 32, 32, seed=1)
+    sim = simulate_bracket(scene, SensorModel(seed=3, response="gamma"), (0.1, 0.8, 6.4))
+    folder = write_simulated_scene(sim, tmp_path / "s", overwrite=True)
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        res = fuse_bracket(load_bracket(folder), response="debevec")
+    chk = res.summary["response"]["check"]
+    assert chk["median"] < chk["threshold"]            # the old criterion alone passed it
+    assert chk["exposure_consistency"] > 0.03 and not chk["determined"], chk
+    assert res.summary["response_undetermined"]
+    assert any("consecutive exposures" in str(w.message) for w in got)

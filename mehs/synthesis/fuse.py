@@ -334,9 +334,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     chk = auto_info.get("check")
     summary["response_undetermined"] = bool(chk is not None and not chk.get("determined", True))
     if summary["response_undetermined"]:
-        why = (f"median uncertainty {chk['median']:.1%} of the linearised signal "
+        why = (chk["reason"] if chk.get("reason") else
+               f"median uncertainty {chk['median']:.1%} of the linearised signal "
                f"(> {chk['threshold']:.0%})" if chk.get("median") is not None
-               else chk.get("reason", "not checkable"))
+               else "not checkable")
         from mehs.synthesis.response_check import ADVICE
 
         if auto_info.get("assumed_linear"):
