@@ -58,3 +58,11 @@ def test_thresholds_are_strict_and_unknown_figures_are_not_judged():
           "dynamic_range_stops": r.min_dynamic_range_stops, "n_exposures": r.min_exposures}
     assert judge(at, r) == ("pass", [])
     assert judge({k: None for k in at}, r) == ("pass", [])
+
+
+def test_a_curve_undetermined_by_exposure_consistency_fails_despite_a_small_uncertainty():
+    # the check's split-half / prior figure is small, but its exposure-consistency test
+    # marked the curve undetermined (a biased curve): the scene must not pass
+    status, reasons = judge({"response_uncertainty": 0.018, "response_undetermined": True})
+    assert status == "fail" and any("undetermined" in r for r in reasons), reasons
+    assert judge({"response_uncertainty": 0.018, "response_undetermined": False}) == ("pass", [])

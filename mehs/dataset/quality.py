@@ -112,7 +112,10 @@ def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
     if dr is not None and lim is not None and dr < lim:  # None: the rule is off
         reasons.append(f"dynamic range {_beside(dr, lim)} stops < {lim:g}")
     ru = q.get("response_uncertainty")
-    if q.get("response_undetermined") and (ru is None or rules.max_response_uncertainty is None):
+    # undetermined with a small uncertainty: the check's exposure-consistency test failed
+    # (a biased curve, which split halves and λ vs 10λ cannot see)
+    if q.get("response_undetermined") and (ru is None or rules.max_response_uncertainty is None
+                                           or ru <= rules.max_response_uncertainty):
         reasons.append("response curve undetermined by the bracket (capture a response ladder "
                        "and build with --response)")
     elif ru is not None and rules.max_response_uncertainty is not None:

@@ -211,13 +211,25 @@ def _scene_figure(dataset: Path, scene: dict[str, Any], out: Path,
         order = ok[np.argsort(Y.ravel()[ok], kind="stable")]
         picks = order[np.linspace(0, order.size - 1, 5).round().astype(int)]
         w = cube.samples
+        specs = []
         for p in picks:
             r, c = divmod(int(p), w)
-            spec = np.asarray(cube.data[r, c, :], dtype=np.float64)
-            # zero / negative samples cannot sit on a log axis: leave a gap (clamping them
-            # to 1e-12 stretched the axis over 14 decades and hid the spectra's shapes)
-            ax.semilogy(cube.wavelengths, np.where(spec > 0, spec, np.nan),
-                        label=f"(line {r}, sample {c})")
+            specs.append((r, c, np.asarray(cube.data[r, c, :], dtype=np.float64)))
+        neg = [-s[s < 0].min() for _, _, s in specs if (s < 0).any()]
+        if neg:
+            # a fused cube keeps its signed estimate: a dark pixel's spectrum is noise
+            # around 0. On a log axis its negative samples were gaps and its small positive
+            # ones dips over decades; a symmetric log axis, linear within the noise (the
+            # largest negative magnitude shown), draws the noise as noise
+            ax.set_yscale("symlog", linthresh=float(max(neg)))
+            ax.axhline(0.0, color="0.6", lw=0.6)
+        else:
+            ax.set_yscale("log")
+        for r, c, spec in specs:
+            # zero samples cannot sit on a log axis: leave a gap (clamping them to 1e-12
+            # stretched the axis over 14 decades and hid the spectra's shapes)
+            ax.plot(cube.wavelengths, spec if neg else np.where(spec > 0, spec, np.nan),
+                    label=f"(line {r}, sample {c})")
         ax.legend(fontsize=7)
     ax.set_title("example spectra (luminance 0–100 %)")
     ax.set_xlabel("wavelength (nm)")

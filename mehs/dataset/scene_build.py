@@ -388,7 +388,7 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     from mehs.io.envi import write_envi
     from mehs.io.exr import write_exr_rgb
     from mehs.preview import tonemap, write_png
-    from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb
+    from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb, spectra_to_XYZ
 
     sid = task.source.scene_id
     p = task.params
@@ -409,7 +409,11 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
         ldr, exposure = ldr_rgb(hdr.astype(np.float16).astype(np.float32))
         preview = tonemap(hdr)
     if quality.get("dynamic_range_stops") is None:
-        quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask)
+        # the signed luminance of the cube (before the RGB step's clipping) tells the
+        # noise floor of a fused cube that keeps its negative estimates
+        y = spectra_to_XYZ(data, WAVELENGTHS_31)[..., 1]
+        quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask, signed_luminance=y)
+        del y
     quality["ldr_exposure"] = float(exposure)
     quality["peak_hdr_rgb"] = float(hdr.max()) if hdr.size else 0.0
     quality["radiance_scale"] = scale
@@ -455,21 +459,39 @@ def to_31_bands(cube, *, method: str = "gaussian", fwhm: float = 10.0):
     return resample_cube(cube, WAVELENGTHS_31, method=method, fwhm=fwhm)
 
 
-def dynamic_range_stops(rgb, mask=None) -> float | None:
+def dynamic_range_stops(rgb, mask=None, *, signed_luminance=None) -> float | None:
     """log2 of the ratio between the 99.9th and 0.1th percentile of positive luminance.
 
     Percentiles instead of max/min keep single hot or dead pixels from deciding it.
+
+    ``signed_luminance`` ``(H, W)``: Y of the cube before the RGB step clips negatives
+    (a fused cube keeps its signed estimates, noise around zero radiance). Its
+    negative tail mirrors the noise: the low end is then at least ``−P0.1`` of it,
+    the level noise alone reaches as often as the low percentile itself. Without
+    that floor the 0.1th percentile of positive Y fell among noise samples arbitrarily
+    close to 0: a colorchecker at 10⁻⁴ of normal light, 14.8 stops in the simulator's
+    radiance, read 18.4 stops (10⁻⁵, almost all noise: 15.2 stops, passing the rule);
+    with the floor 8.7 and 5.3, as the cube clipped in the merge reads (9.4, 6.2).
+    A cube with no negative luminance gives the same figure as without it.
     """
     import numpy as np
 
     from mehs.rgb import luminance
 
     Y = luminance(rgb)
-    ok = Y > 0
-    if mask is not None:
-        ok &= np.asarray(mask) == 0
+    counted = np.ones(Y.shape, bool) if mask is None else np.asarray(mask) == 0
+    ok = counted & (Y > 0)
     vals = Y[ok]
     if vals.size < 2:
         return None
     lo, hi = np.percentile(vals, [0.1, 99.9])
-    return float(np.log2(hi / lo)) if lo > 0 else None
+    if signed_luminance is not None:
+        ys = np.asarray(signed_luminance, dtype=np.float64)
+        if ys.shape != Y.shape:
+            raise ValueError(f"signed luminance of shape {ys.shape} for an image of "
+                             f"{Y.shape}")
+        ys = ys[counted & np.isfinite(ys)]
+        if ys.size:
+            lo = max(float(lo), -float(np.percentile(ys, 0.1)))
+    # an image all noise: its top percentile may sit below the floor, no range at all
+    return max(0.0, float(np.log2(hi / lo))) if lo > 0 else None
