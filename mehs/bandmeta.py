@@ -13,7 +13,8 @@ or numbers, kept as they are.
 References
 ----------
 ENVI header format, "bbl", "band names", "data gain values", "data offset values",
-"data reflectance gain values", "data reflectance offset values" — NV5 Geospatial,
+"data reflectance gain values", "data reflectance offset values", "solar irradiance" —
+NV5 Geospatial,
 *ENVI Header Files* (docs.nv5geospatialsoftware.com).
 """
 
@@ -24,9 +25,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
-#: Header keys holding exactly one value per band (other than wavelength and fwhm).
+#: Header keys holding exactly one value per band (other than wavelength and fwhm);
+#: ``solar irradiance`` (W m⁻² µm⁻¹ per band) is what ENVI's radiometric calibration writes.
 PER_BAND_KEYS = frozenset({"bbl", "band names", "data gain values", "data offset values",
-                           "data reflectance gain values", "data reflectance offset values"})
+                           "data reflectance gain values", "data reflectance offset values",
+                           "solar irradiance"})
 
 #: A resampled band is flagged bad when more than this share of its window's weight
 #: lies on source bands flagged bad (its value then rests on a minority of the window).

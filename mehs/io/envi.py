@@ -25,7 +25,8 @@ Header keys understood on reading (keys are case-insensitive)
     ``interleave`` (mandatory unless ``bands = 1``); ``byte order`` (default
     0 = little-endian, with a warning for multi-byte types); ``header offset``
     (default 0, as ENVI); ``wavelength`` / ``fwhm`` with ``wavelength units``
-    (nanometres; micrometres are converted); ``reflectance scale factor``
+    (nanometres; micrometres are converted, and so are centres all below 100
+    when the units are missing or ``Unknown``); ``reflectance scale factor``
     (data are divided by it → float32); Specim keys ``tint`` (integration time,
     ms), ``acquisition date`` (``DD-MM-YYYY``, ``YYYY-MM-DD``,
     ``DATE(dd-mm-yyyy): …``, ``DATE(yyyy-mm-dd): …``, ISO; with an optional
@@ -53,8 +54,8 @@ import numpy as np
 
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
-from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, envi_dtypes,
-                               format_acquisition_date, parse_acquisition_date)
+from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, MAX_MICROMETRES, UNIT_SCALE,
+                               envi_dtypes, format_acquisition_date, parse_acquisition_date)
 from mehs.io.envi_text import read_header_pairs
 from mehs.io.envi_write import write_envi  # the writer, part of this module's interface
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
@@ -64,7 +65,9 @@ __all__ = ["EnviHeader", "read_envi_header", "read_envi", "write_envi",
            "format_acquisition_date", "DATA_EXTENSIONS"]
 
 #: Data-file extensions tried after the header's stem (then upper-case), in order.
-DATA_EXTENSIONS = ("", ".raw", ".dat", ".img", ".bil", ".bsq", ".bip", ".bin")
+#: ``.hyspex``: HySpex cameras write ``x.hyspex`` (its own binary header skipped by
+#: the ENVI ``header offset``) beside ``x.hdr``.
+DATA_EXTENSIONS = ("", ".raw", ".dat", ".img", ".bil", ".bsq", ".bip", ".bin", ".hyspex")
 
 #: axes permutation from a file's (interleave) order to (lines, samples, bands)
 _TO_BIP = {"bil": (0, 2, 1), "bsq": (1, 2, 0), "bip": (0, 1, 2)}
@@ -219,6 +222,13 @@ def read_envi_header(path: str | Path) -> EnviHeader:
     """
     hp = find_header_file(path)
     h = read_header_pairs(hp)
+    if "spectral library" in str(h.get("file type", "")).lower():
+        # spectra as lines, wavelengths along samples, one band: no cube, and its data
+        # file (.sli) is no cube data file — say so instead of a missing-file error
+        raise FormatError(f"an ENVI spectral library ({h.get('lines', '?')} spectra of "
+                          f"{h.get('samples', '?')} wavelengths), not an image cube; "
+                          "use it as a reference spectrum (mehs.calibration.spectra."
+                          "load_spectrum)", hp)
     samples = _int_field(h, "samples", hp)
     lines = _int_field(h, "lines", hp)
     bands = _int_field(h, "bands", hp)
@@ -295,13 +305,6 @@ def _float_list(val: Any, key: str, n: int, hp: Path) -> np.ndarray:
     return out
 
 
-_UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nm": 1.0, "micrometers": 1e3,
-               "micrometer": 1e3, "microns": 1e3, "micron": 1e3, "um": 1e3, "µm": 1e3,
-               "millimeters": 1e6, "millimeter": 1e6, "mm": 1e6, "centimeters": 1e7,
-               "centimeter": 1e7, "cm": 1e7, "meters": 1e9, "meter": 1e9, "m": 1e9,
-               "angstroms": 0.1, "angstrom": 0.1, "å": 0.1}
-
-
 _START_TIME_RE = re.compile(r"^(?:(UTC)\s*TIME\s*:)?\s*(\d{1,2}:\d{2}(?::\d{2}(?:\.\d+)?)?)$",
                             re.IGNORECASE)
 
@@ -328,13 +331,24 @@ def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
     if "wavelength" not in h:
         raise FormatError("header has no 'wavelength' list; mehs needs band centres", hp)
     wl = _float_list(h["wavelength"], "wavelength", nb, hp)
-    unit = str(h.get("wavelength units", "nanometers")).strip().lower()
-    scale = _UNIT_SCALE.get(unit)
+    unit = str(h.get("wavelength units", "")).strip().lower()
+    scale = UNIT_SCALE.get(unit)
     if scale is None:
         if unit in ("unknown", "index", ""):
-            scale = 1.0
-            warnings.warn(f"{hp}: wavelength units {h['wavelength units']!r}; "
-                          "assuming nanometres", stacklevel=3)
+            said = repr(h["wavelength units"]) if "wavelength units" in h else "not given"
+            if (unit != "index" and np.all(np.abs(wl) < MAX_MICROMETRES)
+                    and not np.all(wl == np.round(wl))):
+                # ENVI Classic files (AVIRIS, spectral libraries) list band centres in µm;
+                # without units they are not nm: 0.4–2.5 nm would be X-rays. (Whole
+                # numbers are band indices, not µm: those keep the old reading.)
+                scale = 1e3
+                warnings.warn(f"{hp}: wavelength units {said}; band centres "
+                              f"{wl.min():g}..{wl.max():g} read as micrometres", stacklevel=3)
+            else:
+                scale = 1.0
+                if "wavelength units" in h:
+                    warnings.warn(f"{hp}: wavelength units {said}; assuming nanometres",
+                                  stacklevel=3)
         else:
             raise FormatError(f"wavelength units {h['wavelength units']!r} are not a "
                               "length mehs converts (Nanometers, Micrometers, Millimeters, "

@@ -24,6 +24,20 @@ STRUCTURAL_KEYS = frozenset({"samples", "lines", "bands", "header offset",
                               "data type", "interleave", "byte order", "file type"})
 
 
+#: ``wavelength units`` (lower case) → factor to nanometres.
+UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nanometres": 1.0, "nanometre": 1.0,
+               "nm": 1.0, "micrometers": 1e3, "micrometer": 1e3, "micrometres": 1e3,
+               "micrometre": 1e3, "microns": 1e3, "micron": 1e3, "um": 1e3, "µm": 1e3,
+               "millimeters": 1e6, "millimeter": 1e6, "mm": 1e6, "centimeters": 1e7,
+               "centimeter": 1e7, "cm": 1e7, "meters": 1e9, "meter": 1e9, "m": 1e9,
+               "angstroms": 0.1, "angstrom": 0.1, "å": 0.1}
+
+
+#: Without a (known) ``wavelength units``, band centres all below this are micrometres:
+#: imaging spectrometers reach 14 µm (thermal infrared) and none records below 100 nm.
+MAX_MICROMETRES = 100.0
+
+
 def envi_dtypes() -> dict[str, np.dtype]:
     """ENVI ``data type`` codes → numpy dtypes (SPy's table)."""
     from spectral.io.envi import envi_to_dtype

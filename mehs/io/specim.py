@@ -139,6 +139,26 @@ def _read_metadata_xml(path: Path) -> dict[str, str]:
             for el in tree.getroot().iter("key") if el.get("field")}
 
 
+def _headers(folder: Path) -> list[Path]:
+    """The ``*.hdr`` files of ``folder``, whatever the extension's case.
+
+    Captures copied through FAT/exFAT media or Windows tools can arrive as
+    ``444.HDR``/``444.RAW``; a case-sensitive glob would find no capture at all.
+    """
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".hdr" and p.is_file())
+
+
+def _existing(path: Path) -> Path:
+    """``path``, or the one file in its folder whose name differs only in case (else ``path``)."""
+    if path.is_file() or not path.parent.is_dir():
+        return path
+    want = path.name.lower()
+    hits = [p for p in path.parent.iterdir() if p.name.lower() == want and p.is_file()]
+    return hits[0] if len(hits) == 1 else path
+
+
 def _capture_id(root: Path, manifest: list[tuple[str, str, str]]) -> str:
     for typ, ext, rel in manifest:
         if typ == "raw" and rel.lower().endswith(".hdr"):
@@ -146,9 +166,8 @@ def _capture_id(root: Path, manifest: list[tuple[str, str, str]]) -> str:
     for typ, ext, rel in manifest:
         if typ == "raw":
             return Path(rel).stem
-    cap = root / "capture"
-    stems = sorted({p.stem for p in cap.glob("*.hdr") if not _REF_PREFIX_RE.match(p.name)}) \
-        if cap.is_dir() else []
+    stems = sorted({p.stem for p in _headers(root / "capture")
+                    if not _REF_PREFIX_RE.match(p.name)})
     if len(stems) == 1:
         return stems[0]
     if root.name in stems:
@@ -172,7 +191,7 @@ def _locate(root: Path, manifest, kind: str, default: str) -> Path:
             p = _inside(root, rel)
             if p.is_file():
                 return p
-    return root / default
+    return _existing(root / default)
 
 
 def _inside(root: Path, rel: str) -> Path:
@@ -191,8 +210,7 @@ def is_specim_folder(path: str | Path) -> bool:
         return False
     if (p / "manifest.xml").is_file():
         return True
-    cap = p / "capture"
-    return cap.is_dir() and any(not _REF_PREFIX_RE.match(h.name) for h in cap.glob("*.hdr"))
+    return any(not _REF_PREFIX_RE.match(h.name) for h in _headers(p / "capture"))
 
 
 def read_specim_folder(path: str | Path, *, require_dark: bool = True,
@@ -239,7 +257,7 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
         if typ == "metadata" and rel.lower().endswith(".xml"):  # not the .xsl
             meta_path = _inside(root, rel)
     if meta_path is None or not meta_path.is_file():
-        meta_path = root / "metadata" / f"{cid}.xml"
+        meta_path = _existing(root / "metadata" / f"{cid}.xml")
     metadata = _read_metadata_xml(meta_path) if meta_path.is_file() else {}
     if raw.integration_time_ms is None:
         # key spellings: "integration time" (Specim, HyperFusion gras_ia10.xml)
@@ -278,7 +296,7 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
         if typ == "preview":
             prev_path = _inside(root, rel)
     if prev_path is None or not prev_path.is_file():
-        prev_path = root / f"{cid}.png"
+        prev_path = _existing(root / f"{cid}.png")
     if preview and prev_path.is_file():
         image = _read_png(prev_path)
     return SpecimCapture(cid, root, raw, refs["darkref"], refs["whiteref"],
