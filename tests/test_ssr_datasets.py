@@ -313,3 +313,20 @@ def test_auto_split_scores_the_validation_list_when_there_is_no_test_split(arad1
     assert main(["evaluate", str(root), "--models", "smits", "--input", "hdr",
                  "--preprocess", "off", "--hs-crop", "8x8", "--out", str(out)]) == 0
     assert json.loads((out / "evaluation.json").read_text())["config"]["n_scenes"] == 1
+
+
+def test_kaust_cube_with_a_side_as_long_as_its_band_list_is_not_guessed(tmp_path):
+    """(34 bands, 34 lines, 20 samples): the last axis was taken for the bands, reading the
+    cube sideways; a band axis at one end only is still found."""
+    wl34 = np.arange(400.0, 731.0, 10.0)
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        f["img"] = np.zeros((34, 20, 34), np.float32)      # B, H, W with W = B
+        f["bands"] = wl34
+    with pytest.raises(FormatError, match="more than one axis"):
+        read_source_cube("kaust", tmp_path / "a.h5", SourceOptions(bands="all"))
+    cube = np.random.default_rng(0).random((34, 34, 20)).astype(np.float32)   # B, H, W
+    with h5py.File(tmp_path / "b.h5", "w") as f:
+        f["img"] = cube
+        f["bands"] = wl34
+    data, _, _ = read_source_cube("kaust", tmp_path / "b.h5", SourceOptions(bands="all"))
+    np.testing.assert_array_equal(data, np.moveaxis(cube, 0, -1))

@@ -278,6 +278,15 @@ def read_kaust(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
         raise FormatError(f"dataset {name!r} has shape {data.shape}: no axis of {n_b} bands"
                           + ("" if bands is not None else " (no 'bands' stored; KAUST-HS has 34, "
                              "400–730 nm)"), path)
+    if len(axes) > 1:
+        # bands are stored first or last (B, H, W / H, W, B); a side of the image as long
+        # as the band list leaves the choice to a guess, which read the cube sideways
+        ends = [a for a in axes if a in (0, data.ndim - 1)]
+        if len(ends) != 1:
+            raise FormatError(f"dataset {name!r} has shape {data.shape}: more than one axis "
+                              f"could hold the {n_b} bands; crop or store it as (H, W, B)",
+                              path)
+        axes = ends
     data = np.moveaxis(data, axes[-1], -1)
     info = {"dataset": name, "matlab_order": bool(matlab),
             "bands_from": bkey or ("attribute" if bands is not None else "KAUST default 400:730:10")}
