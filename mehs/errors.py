@@ -56,3 +56,12 @@ class DeviceTimeout(DeviceError):
 
 class DeviceDisconnected(DeviceError):
     """The connection to a device was lost."""
+
+
+def first_line(message) -> str:
+    """The first non-blank line of an exception's (or a text's) message, for a one-line
+    error; an exception with no message gives its type's name."""
+    lines = [ln.strip() for ln in str(message).splitlines() if ln.strip()]
+    if lines:
+        return lines[0]
+    return type(message).__name__ if isinstance(message, BaseException) else "no message"

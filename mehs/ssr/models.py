@@ -45,7 +45,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mehs.errors import FormatError, InputError
+from mehs.errors import FormatError, InputError, first_line
 from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.contract import (FunctionModel, SSRModel, SSRModelProtocol, all_finite,  # noqa: F401
                                check_output, check_rgb)
@@ -157,10 +157,7 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
         return model
     low = text.lower()
     if low.endswith(".onnx"):
-        side = read_sidecar(text)
-        if "wavelengths" in side and kwargs.get("wavelengths") is None:
-            kwargs["wavelengths"] = side["wavelengths"]
-        return _declare(OnnxModel(text, **kwargs), side)
+        return _with_sidecar(text, OnnxModel, kwargs)
     if low.endswith(".pt") or low.endswith(".pth"):
         try:
             from mehs.ssr.net.export import is_torchscript, load_torch_model
@@ -168,10 +165,7 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
             raise InputError(f"a torch checkpoint needs the torch extra: pip install "
                              f"'mehs[torch]' ({exc})", text) from None
         if Path(text).is_file() and is_torchscript(text):
-            side = read_sidecar(text)
-            if "wavelengths" in side and kwargs.get("wavelengths") is None:
-                kwargs["wavelengths"] = side["wavelengths"]
-            return _declare(load_torch_model(text, **kwargs), side)
+            return _with_sidecar(text, load_torch_model, kwargs)
         return load_torch_model(text, **kwargs)
     if low.endswith(".npz") or low.endswith(".json"):
         from mehs.ssr.baselines import RegressionModel
@@ -203,11 +197,6 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
 _FLOAT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
                 "tensor(double)": np.float64}
 _FLOAT16_MAX = float(np.finfo(np.float16).max)
-
-
-def _first_line(text: str) -> str:
-    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
-    return lines[0] if lines else "no message"
 
 
 def _output_layout(shape, fixed_size: tuple) -> str | None:
@@ -270,6 +259,15 @@ def read_sidecar(model_path: str | Path) -> dict[str, Any]:
                               path)
         out["wavelengths"] = wl
     return out
+
+
+def _with_sidecar(path: str, make: Callable[..., Any], kwargs: dict[str, Any]) -> Any:
+    """``make(path, **kwargs)`` with what its sidecar declares: the wavelengths (unless given)
+    and ``trained_for``."""
+    side = read_sidecar(path)
+    if "wavelengths" in side and kwargs.get("wavelengths") is None:
+        kwargs = {**kwargs, "wavelengths": side["wavelengths"]}
+    return _declare(make(path, **kwargs), side)
 
 
 def _declare(model: Any, side: dict[str, Any]) -> Any:
@@ -422,7 +420,7 @@ class OnnxModel(SSRModel):
                 raise  # ours, or out of memory: the tiler and the timing read those
             h, w = rgb.shape[:2]
             raise InputError(f"{self.name}: onnxruntime cannot run the graph on a {h}×{w} "
-                             f"image ({_first_line(msg)}); a graph that needs sizes divisible "
+                             f"image ({first_line(msg)}); a graph that needs sizes divisible "
                              "by 8, 16 or 32 must pad inside itself (as MST++'s does)",
                              self.path) from None
         return self._spectra(y, rgb.shape[:2])

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from mehs import __version__
-from mehs.errors import FormatError, InputError
+from mehs.errors import FormatError, InputError, first_line
 from mehs.io.atomic import atomic_path
 from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.contract import SSRModel, TrainedFor
@@ -197,7 +197,7 @@ class TorchScriptModel(SSRModel):
                 self.module = torch.jit.load(str(path), map_location=self.device)
         except Exception as exc:  # torch raises several unrelated types for damaged files
             raise FormatError(f"not a loadable TorchScript archive ({type(exc).__name__}: "
-                              f"{_first_line(exc)})", path) from None
+                              f"{first_line(exc)})", path) from None
         self.module.eval()
         self.path = path
         self.name = name or path.stem
@@ -224,7 +224,7 @@ class TorchScriptModel(SSRModel):
             if "memory" in str(exc).lower():
                 raise  # the timing reads allocation failures
             raise InputError(f"{self.name}: the TorchScript module fails on a {h}×{w} image "
-                             f"({_first_line(exc)})", self.path) from None
+                             f"({first_line(exc)})", self.path) from None
         if isinstance(y, (tuple, list)):
             y = y[0]  # the main output first, as MST++/AWAN return it
         if not isinstance(y, torch.Tensor) or y.ndim != 4 or y.shape[0] != 1 \
@@ -240,11 +240,6 @@ class TorchScriptModel(SSRModel):
             raise InputError(f"{self.name}: the module gives {y.shape[1]} bands; declare them "
                              "with wavelengths= or a 'wavelengths' attribute", self.path)
         return y[0].permute(1, 2, 0).float().cpu().numpy()
-
-
-def _first_line(exc) -> str:
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return lines[0] if lines else type(exc).__name__
 
 
 def load_torch_model(checkpoint: str | Path, *, name: str | None = None,
