@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from mehs.cube import SpectralCube
-from mehs.errors import InputError
+from mehs.errors import FormatError, InputError
 from mehs.io.atomic import write_json_atomic, write_text_atomic
 from mehs.io.exr import write_exr_gray, write_exr_spectral
 
@@ -148,15 +148,22 @@ def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = Fa
 def radiance_scale(cube: SpectralCube) -> float | None:
     """The power-of-two factor a dataset cube's values carry (``mehs radiance scale`` in its
     header: stored = radiance × scale, to fit half floats), or None."""
-    v = (cube.metadata or {}).get("mehs radiance scale")
-    if v in (None, ""):
+    return parse_radiance_scale((cube.metadata or {}).get("mehs radiance scale"), cube.source)
+
+
+def parse_radiance_scale(value, where=None) -> float | None:
+    """A stored radiance scale (a number, or its text from a header or listing), validated:
+    finite and > 0; None when absent. :class:`FormatError` naming ``where`` otherwise."""
+    if value is None or value == "":
         return None
     try:
-        f = float(v)
+        f = float(value)
     except (TypeError, ValueError):
-        raise InputError(f"'mehs radiance scale' must be a number, got {v!r}", cube.source) from None
+        raise FormatError(f"the radiance scale ('mehs radiance scale') must be a number, "
+                          f"got {value!r}", where) from None
     if not (np.isfinite(f) and f > 0):
-        raise InputError(f"'mehs radiance scale' must be finite and > 0, got {v!r}", cube.source)
+        raise FormatError(f"the radiance scale ('mehs radiance scale') must be finite and > 0, "
+                          f"got {value!r}", where)
     return f
 
 

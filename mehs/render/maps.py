@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+from mehs.export import parse_radiance_scale
 from mehs.rgb import WAVELENGTHS_31, hdr_rgb, spectra_to_XYZ
 
 
@@ -96,7 +97,7 @@ def _read_per_wavelength_folder(folder: Path) -> EnvMap:
     if len(files) != len(wl) or not files:
         raise FormatError(f"{len(files)} files for {len(wl)} wavelengths", listing[0])
     _check_units(doc.get("units"), listing[0])
-    scale = _scale_value(doc.get("radiance_scale"), listing[0])
+    scale = parse_radiance_scale(doc.get("radiance_scale"), listing[0])
     planes = []
     for name in files:
         p = folder / name
@@ -127,19 +128,6 @@ def _check_units(units, where) -> None:
                          "must hold radiance (a fused HDR cube)", where)
 
 
-def _scale_value(value, where) -> float | None:
-    """A stored radiance scale (number or text), validated: finite and > 0; None if absent."""
-    if value is None or value == "":
-        return None
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        raise FormatError(f"the radiance scale must be a number, got {value!r}", where) from None
-    if not (np.isfinite(f) and f > 0):
-        raise FormatError(f"the radiance scale must be finite and > 0, got {value!r}", where)
-    return f
-
-
 def _unscaled(radiance: np.ndarray, scale: float | None) -> np.ndarray:
     # stored = radiance × scale (a power of two: dividing is exact)
     r = np.asarray(radiance, dtype=np.float32)
@@ -166,7 +154,7 @@ def _exr_scale(path: Path) -> float | None:
         header = OpenEXR.File(str(path), header_only=True).header()
     except (RuntimeError, ValueError, OSError) as exc:
         raise FormatError(f"cannot read the OpenEXR header ({exc})", path) from None
-    return _scale_value(header.get("mehsRadianceScale"), path)
+    return parse_radiance_scale(header.get("mehsRadianceScale"), path)
 
 
 def load_envmap(path: str | Path) -> EnvMap:
@@ -191,7 +179,7 @@ def load_envmap(path: str | Path) -> EnvMap:
     _check_units(cube.units, p)
     # the EXR reader keeps no header in the cube's metadata: read the factor from the file
     scale = (_exr_scale(p) if p.suffix.lower() == ".exr"
-             else _scale_value((cube.metadata or {}).get("mehs radiance scale"), p))
+             else parse_radiance_scale((cube.metadata or {}).get("mehs radiance scale"), p))
     light, neg = _as_light(_unscaled(cube.data, scale))
     return EnvMap(light, cube.wavelengths, str(p),
                   {"units": str(cube.units), "radiance_scale": scale, "negative_fraction": neg})
