@@ -33,9 +33,10 @@ class ResponseUndeterminedWarning(UserWarning):
 
 def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothness: float,
                              samples: int | None, seed: int, shared: bool,
-                             saturation: np.ndarray) -> dict[str, Any]:
+                             saturation: np.ndarray, probe=None) -> dict[str, Any]:
     """Run :func:`mehs.synthesis.response_check.response_uncertainty` on a curve recovered
-    by :func:`recover_response` (raw levels) from ``bracket``."""
+    by :func:`recover_response` (raw levels) from ``bracket``, and
+    :func:`exposure_consistency` (on ``probe``, the bracket's default probe, when given)."""
     from mehs.synthesis.response_check import response_uncertainty
 
 
@@ -73,7 +74,7 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
     except InputError as exc:   # a half-bracket too small to recover on its own
         return {"determined": False, "median": None, "p95": None,
                 "reason": f"check impossible ({exc.problem})"}
-    out.update(exposure_consistency(bracket, curve, saturation))
+    out.update(exposure_consistency(bracket, curve, saturation, probe=probe))
     dev = out["exposure_consistency"]
     if out["determined"] and dev is not None and dev > CONSISTENCY_TOLERANCE:
         out["determined"] = False
@@ -93,15 +94,17 @@ CONSISTENCY_TOLERANCE = 0.03
 
 
 def exposure_consistency(bracket: Bracket, curve: ResponseCurve,
-                         saturation: np.ndarray) -> dict[str, Any]:
+                         saturation: np.ndarray, probe=None) -> dict[str, Any]:
     """``Σy_k/(r·Σy_j)`` of consecutive exposures linearised by ``curve`` (the merge's own
     linearisation), per signal level — the linearity test of ``response="auto"`` applied to
     a recovered curve: ``exposure_consistency`` (p75 of |ratio − 1|, noise removed) and its
-    ``exposure_consistency_resolution``; None when no level is seen by two exposures."""
+    ``exposure_consistency_resolution``; None when no level is seen by two exposures.
+    ``probe``: :func:`mehs.synthesis.noise.probe_bracket`'s default probe of the bracket,
+    if already read."""
     from mehs.synthesis.fuse import _lineariser
     from mehs.synthesis.noise import linearity_PTC, probe_bracket
 
-    probe = probe_bracket(bracket, saturation)
+    probe = probe if probe is not None else probe_bracket(bracket, saturation)
     lin = _lineariser(curve, "linear", bracket.bit_depth,
                       has_dark=[d is not None for d in bracket.darks])
     try:
@@ -349,9 +352,11 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
     if kind == "linear":
         return ResponseCurve.linear(bracket.bit_depth), auto_info, probe
     curve = None
+    default_probe = None      # the bracket's default probe, once read (check, noise model)
     if kind == "auto":
         try:
             probe, lin = linearity_auto(bracket, saturation)
+            default_probe = None if lin.get("probe_refined") else probe
             dev = lin["deviation"]
             auto_info = {"linearity_deviation": dev, "tolerance": LINEARITY_TOLERANCE,
                          "linearity_deviation_max": lin["deviation_max"],
@@ -381,9 +386,14 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
         curve = recover_response(bracket, smoothness=smoothness, samples=samples,
                                  seed=seed, shared=shared, levels="raw", saturation=saturation)
         if check or auto_info.get("linearity_conclusive") is False:
+            if probe is None:
+                from mehs.synthesis.noise import probe_bracket
+
+                # read once: the check's consistency test, then the noise model
+                probe = default_probe = probe_bracket(bracket, saturation)
             auto_info["check"] = check_recovered_response(
                 bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
-                shared=shared, saturation=saturation)
+                shared=shared, saturation=saturation, probe=default_probe)
         if (auto_info.get("linearity_conclusive") is False
                 and not auto_info["check"].get("determined", False)):
             # neither test can tell: a linear sensor is the likelier (and the
