@@ -69,3 +69,24 @@ def write_mat73(path: Path, variables: dict) -> Path:
     with open(path, "r+b") as fh:
         fh.write(header)
     return path
+
+
+def colorchecker_pair(h: int, w: int, seed: int, block: int = 8):
+    """A :class:`mehs.ssr.net.train.TrainingPair` ``(h, w)``: blocks of ColorChecker
+    reflectances (colour-science) under D65 at brightnesses 0.5–20× (a 40× range), id
+    ``s<seed>`` (torch needed)."""
+    import colour
+
+    from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB
+    from mehs.ssr.net.train import TrainingPair
+
+    shape = colour.SpectralShape(400, 700, 10)
+    refl = np.array([sd.copy().align(shape).values
+                     for sd in colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"].values()])
+    ill = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values / 100
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, 24, size=(-(-h // block), -(-w // block)))
+    gain = rng.uniform(0.5, 20, size=idx.shape + (1,))
+    up = lambda a: a.repeat(block, 0).repeat(block, 1)[:h, :w]  # noqa: E731
+    hs = (up(refl[idx]) * ill * up(gain)).astype(np.float32)
+    return TrainingPair(spectra_to_linear_sRGB(hs, WAVELENGTHS_31), hs, id=f"s{seed}")

@@ -9,8 +9,8 @@ torch = pytest.importorskip("torch")
 # tiny nets: a second thread only spins on a shared 2-core machine
 torch.set_num_threads(1)
 
+from _checks import colorchecker_pair  # noqa: E402
 from mehs.errors import FormatError, InputError  # noqa: E402
-from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB  # noqa: E402
 from mehs.ssr.net.model import NetConfig, build_network  # noqa: E402
 from mehs.ssr.net.train import (TrainConfig, TrainingPair, augment_patch,  # noqa: E402
                                 evaluate_pairs, load_network, read_checkpoint,
@@ -19,28 +19,11 @@ from mehs.ssr.net.train import (TrainConfig, TrainingPair, augment_patch,  # noq
 TINY = dict(first_channels=8, down_layers=(1, 1), bottleneck_layers=1, growth=8, n_basis=10)
 
 
-def _checker_pair(h, w, seed, block=8):
-    """Blocks of ColorChecker reflectances under D65 at brightnesses spanning 40×."""
-    import colour
-
-    shape = colour.SpectralShape(400, 700, 10)
-    refl = np.array([sd.copy().align(shape).values
-                     for sd in colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"].values()])
-    ill = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values / 100
-    rng = np.random.default_rng(seed)
-    gh, gw = -(-h // block), -(-w // block)
-    idx = rng.integers(0, 24, size=(gh, gw))
-    gain = rng.uniform(0.5, 20, size=(gh, gw, 1))
-    up = lambda a: a.repeat(block, 0).repeat(block, 1)[:h, :w]  # noqa: E731
-    hs = (up(refl[idx]) * ill * up(gain)).astype(np.float32)
-    return TrainingPair(spectra_to_linear_sRGB(hs, WAVELENGTHS_31), hs, id=f"s{seed}")
-
-
 # The end-to-end variant must also learn the absolute scale (a 40× brightness range
 # here), so it needs more steps for the same 10× drop.
 @pytest.mark.parametrize("variant,epochs", [("hdrssr", 40), ("fcdensenet", 80)])
 def test_tiny_network_overfits_a_tiny_set(tmp_path, variant, epochs):
-    pairs = [_checker_pair(32, 32, 0)]
+    pairs = [colorchecker_pair(32, 32, 0)]
     cfg = NetConfig.from_dict(dict(variant=variant, **TINY))
     torch.manual_seed(0)
     before = evaluate_pairs(build_network(cfg), pairs)["loss"]
@@ -56,8 +39,8 @@ def test_tiny_network_overfits_a_tiny_set(tmp_path, variant, epochs):
 
 
 def test_checkpoints_resume_and_determinism(tmp_path):
-    pairs = [_checker_pair(24, 24, 1), _checker_pair(24, 16, 2)]
-    val = [_checker_pair(16, 24, 3)]
+    pairs = [colorchecker_pair(24, 24, 1), colorchecker_pair(24, 16, 2)]
+    val = [colorchecker_pair(16, 24, 3)]
     cfg = NetConfig.from_dict(dict(variant="hdrssr", **TINY))
     tc = TrainConfig(epochs=4, batch=2, patch=16, patches_per_image=2, seed=7)
     full = train_network(pairs, tmp_path / "full", net_config=cfg, train_config=tc,
@@ -99,7 +82,7 @@ def test_bad_checkpoints_and_inputs_raise_clear_errors(tmp_path):
     torch.save({"weights": torch.zeros(2)}, other)
     with pytest.raises(FormatError, match="not a mehs SSR network checkpoint"):
         read_checkpoint(other)
-    pr = _checker_pair(16, 16, 0)
+    pr = colorchecker_pair(16, 16, 0)
     with pytest.raises(InputError, match="bands"):
         train_network([TrainingPair(pr.rgb, pr.hs[..., :30])], tmp_path / "x", progress=False)
     with pytest.raises(InputError, match="CUDA|device"):
@@ -111,7 +94,7 @@ def test_bad_checkpoints_and_inputs_raise_clear_errors(tmp_path):
 
 
 def test_nan_pixels_are_masked_not_learned():
-    pr = _checker_pair(16, 16, 0)
+    pr = colorchecker_pair(16, 16, 0)
     pr.hs[3, 4, 5] = np.nan
     p2 = TrainingPair(pr.rgb, pr.hs)
     assert not p2.valid[3, 4] and p2.valid.sum() == 255
@@ -163,11 +146,11 @@ def test_resume_on_other_scenes_is_refused(tmp_path):
     other scenes (another split, dataset or hold-out seed) are refused, not mixed in."""
     cfg = NetConfig.from_dict(dict(variant="hdrssr", **TINY))
     tc = TrainConfig(epochs=1, batch=2, patch=16, patches_per_image=2, seed=0)
-    pairs = [_checker_pair(16, 16, 1), _checker_pair(16, 16, 2)]
+    pairs = [colorchecker_pair(16, 16, 1), colorchecker_pair(16, 16, 2)]
     train_network(pairs, tmp_path, net_config=cfg, train_config=tc, progress=False)
     tc2 = TrainConfig(epochs=2, batch=2, patch=16, patches_per_image=2, seed=0)
     with pytest.raises(InputError, match="other scenes"):
-        train_network([pairs[0], _checker_pair(16, 16, 3)], tmp_path, net_config=cfg,
+        train_network([pairs[0], colorchecker_pair(16, 16, 3)], tmp_path, net_config=cfg,
                       train_config=tc2, resume=True, progress=False)
     res = train_network(pairs, tmp_path, net_config=cfg, train_config=tc2, resume=True,
                         progress=False)

@@ -12,28 +12,16 @@ import pytest
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)  # tiny nets on a shared 2-core machine
 
-from _checks import write_mat73  # noqa: E402
+from _checks import colorchecker_pair, write_mat73  # noqa: E402
 from mehs.errors import FormatError, InputError  # noqa: E402
-from mehs.rgb import WAVELENGTHS_31, spectra_to_linear_sRGB  # noqa: E402
+from mehs.rgb import WAVELENGTHS_31  # noqa: E402
 from mehs.ssr.net.base import NetConfig  # noqa: E402
-from mehs.ssr.net.train import (TrainConfig, TrainingPair, evaluate_pairs,  # noqa: E402
-                                read_checkpoint, train_network)
+from mehs.ssr.net.train import (TrainConfig, evaluate_pairs, read_checkpoint,  # noqa: E402
+                                train_network)
 
 
 def _pair(h, w, seed, block=4):
-    """Blocks of ColorChecker reflectances (colour-science) under D65, 0.5–20× bright."""
-    import colour
-
-    shape = colour.SpectralShape(400, 700, 10)
-    refl = np.array([sd.copy().align(shape).values
-                     for sd in colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"].values()])
-    ill = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values / 100
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, 24, size=(-(-h // block), -(-w // block)))
-    gain = rng.uniform(0.5, 20, size=idx.shape + (1,))
-    up = lambda a: a.repeat(block, 0).repeat(block, 1)[:h, :w]  # noqa: E731
-    hs = (up(refl[idx]) * ill * up(gain)).astype(np.float32)
-    return TrainingPair(spectra_to_linear_sRGB(hs, WAVELENGTHS_31), hs, id=f"s{seed}")
+    return colorchecker_pair(h, w, seed, block)
 
 
 # ----------------------------------------------------------------------------- resume
