@@ -134,13 +134,18 @@ def load_training_pairs(dataset, *, split: str | None, kind: str = "hdr"):
     return out, wl
 
 
-def _splits(dataset):
-    """``(train split or None, val split or None)`` of ``dataset``; ``None`` for training
-    means every scene, allowed only when the dataset defines no split at all."""
+def _nonempty_splits(dataset) -> dict:
+    """The dataset's splits that hold scenes (one listing of the dataset)."""
     from mehs.ssr.data import load_pairs
 
-    ps = load_pairs(dataset)
-    sp = {k: v for k, v in (ps.splits or {}).items() if v}
+    return {k: v for k, v in (load_pairs(dataset).splits or {}).items() if v}
+
+
+def _splits(dataset, sp: dict | None = None):
+    """``(train split or None, val split or None)`` of ``dataset`` (``sp``: its
+    :func:`_nonempty_splits`, if listed already); ``None`` for training means every
+    scene, allowed only when the dataset defines no split at all."""
+    sp = _nonempty_splits(dataset) if sp is None else sp
     if sp and "train" not in sp:
         # training on "all scenes" here would train on the very scenes the evaluation
         # scores (an evaluation-only set such as ME HS, or a download of ARAD's
@@ -148,12 +153,6 @@ def _splits(dataset):
         raise InputError(f"the dataset defines splits ({', '.join(sorted(sp))}) but no "
                          "training scenes; train on a dataset with a train split", dataset)
     return ("train" if "train" in sp else None), ("val" if "val" in sp else None)
-
-
-def _has_test_split(dataset) -> bool:
-    from mehs.ssr.data import load_pairs
-
-    return bool((load_pairs(dataset).splits or {}).get("test"))
 
 
 def hold_out_validation(pairs, count: int, seed: int):
@@ -196,10 +195,11 @@ def run(args):
     apply_source_arguments(args, args.dataset)
     if args.val_count < 0:
         raise InputError("--val-count must be 0 or more")
-    train_split, val_split = _splits(args.dataset)
+    sp = _nonempty_splits(args.dataset)
+    train_split, val_split = _splits(args.dataset, sp)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val_source = val_split
-    if val_split and not _has_test_split(args.dataset):
+    if val_split and "test" not in sp:
         # No test split: the val split is the one scored (ARAD-1K's official validation
         # list, which the paper used as its test set, §3.6.1). Choosing best.pt on it would
         # select the model on its own test scenes, so validate as the paper did: on scenes
