@@ -102,8 +102,10 @@ def collect_hs_cubes(inputs: list[str | Path]) -> list[SceneSource]:
     for item in inputs:
         p = Path(item)
         if p.is_dir():
+            from mehs.io.envi import header_files
+
             # any case, as the ENVI reader takes them: glob("*.hdr") left x.HDR cubes out
-            hdrs = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() == ".hdr")
+            hdrs = header_files(p)
             if not hdrs:
                 raise InputError("folder holds no ENVI .hdr files", p)
         elif p.is_file():

@@ -122,6 +122,14 @@ class EnviHeader:
 # --------------------------------------------------------------------- reading
 
 
+def header_files(folder: str | Path) -> list[Path]:
+    """``folder``'s ENVI headers, sorted, ``.hdr`` in any case (FAT/Windows copies: x.HDR)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".hdr" and p.is_file())
+
+
 def find_header_file(path: str | Path) -> Path:
     """The ``.hdr`` belonging to ``path`` (a header or an ENVI data file)."""
     p = Path(path)

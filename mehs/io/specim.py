@@ -42,7 +42,7 @@ import numpy as np
 from mehs.cube import SpectralCube
 from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path, write_text_atomic
-from mehs.io.envi import read_envi, write_envi
+from mehs.io.envi import header_files, read_envi, write_envi
 
 __all__ = ["SpecimCapture", "read_specim_folder", "write_specim_folder", "find_captures",
            "is_specim_folder", "REFERENCE_PREFIXES", "make_preview"]
@@ -139,17 +139,6 @@ def _read_metadata_xml(path: Path) -> dict[str, str]:
             for el in tree.getroot().iter("key") if el.get("field")}
 
 
-def _headers(folder: Path) -> list[Path]:
-    """The ``*.hdr`` files of ``folder``, whatever the extension's case.
-
-    Captures copied through FAT/exFAT media or Windows tools can arrive as
-    ``444.HDR``/``444.RAW``; a case-sensitive glob would find no capture at all.
-    """
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".hdr" and p.is_file())
-
-
 def _existing(path: Path) -> Path:
     """``path``, or the one file in its folder whose name differs only in case (else ``path``)."""
     if path.is_file() or not path.parent.is_dir():
@@ -166,7 +155,7 @@ def _capture_id(root: Path, manifest: list[tuple[str, str, str]]) -> str:
     for typ, ext, rel in manifest:
         if typ == "raw":
             return Path(rel).stem
-    stems = sorted({p.stem for p in _headers(root / "capture")
+    stems = sorted({p.stem for p in header_files(root / "capture")
                     if not _REF_PREFIX_RE.match(p.name)})
     if len(stems) == 1:
         return stems[0]
@@ -210,7 +199,7 @@ def is_specim_folder(path: str | Path) -> bool:
         return False
     if (p / "manifest.xml").is_file():
         return True
-    return any(not _REF_PREFIX_RE.match(h.name) for h in _headers(p / "capture"))
+    return any(not _REF_PREFIX_RE.match(h.name) for h in header_files(p / "capture"))
 
 
 def read_specim_folder(path: str | Path, *, require_dark: bool = True,
