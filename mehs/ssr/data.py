@@ -204,6 +204,18 @@ def _inside(root: Path, rel: str | None, what: str, scene: str) -> Path | None:
     return p
 
 
+def check_disjoint_splits(splits: dict[str, list], where, how: str = "") -> dict[str, str]:
+    """Scene id → its split; :class:`FormatError` naming ``where`` for a scene in two splits
+    (it would be trained on and then scored as unseen: a hand-merged manifest or list files)."""
+    split_of: dict[str, str] = {}
+    for name, ids in splits.items():
+        for sid in map(str, ids):
+            if split_of.setdefault(sid, name) != name:
+                raise FormatError(f"scene {sid!r} is in two splits ({split_of[sid]!r} and "
+                                  f"{name!r}){how}; each scene belongs to one split", where)
+    return split_of
+
+
 def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
                    verify: str = "stat") -> PairSet:
     mpath = root / "manifest.json"
@@ -222,14 +234,7 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
         raise FormatError("'scenes' must be a list of scene objects with an 'id'", mpath)
     if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
         raise FormatError("'splits' must map split names to lists of scene ids", mpath)
-    split_of: dict[str, str] = {}
-    for name, ids in splits.items():
-        for sid in map(str, ids):
-            # a scene in two splits (a hand-merged manifest) would be trained on and then
-            # scored as unseen; the splits are by scene, so this is a broken manifest
-            if split_of.setdefault(sid, name) != name:
-                raise FormatError(f"scene {sid!r} is in two splits ({split_of[sid]!r} and "
-                                  f"{name!r}); each scene belongs to one split", mpath)
+    split_of = check_disjoint_splits(splits, mpath)
     if split is not None and split not in splits:
         raise InputError(f"no split {split!r} in the manifest (has {sorted(splits)})", mpath)
     wanted = None if split is None else set(map(str, splits[split]))

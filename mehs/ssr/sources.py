@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from mehs.errors import FormatError, InputError
+from mehs.errors import InputError
 from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
                                   read_source_cube)
-from mehs.ssr.data import Pair, PairSet, srgb_decode_8bit
+from mehs.ssr.data import Pair, PairSet, check_disjoint_splits, srgb_decode_8bit
 
 _HINTS: dict[Path, tuple[str, SourceOptions]] = {}
 _LAST: dict[str, Any] = {}
@@ -121,13 +121,7 @@ def _splits(root: Path, entries: list[tuple[str, Path]]) -> dict[str, list[str]]
         splits.setdefault(name, []).extend(s for s in listed if s in ids)
     if splits:
         out = {k: sorted(set(v)) for k, v in splits.items()}
-        seen: dict[str, str] = {}
-        for name, sids in out.items():
-            for sid in sids:
-                # (a hand-made list naming a scene for training and for validation)
-                if seen.setdefault(sid, name) != name:
-                    raise FormatError(f"scene {sid!r} is listed in two splits ({seen[sid]!r} "
-                                      f"and {name!r}) by the *_list.txt files", root)
+        check_disjoint_splits(out, root, " by the *_list.txt files")
         return out
     for sid, p in entries:
         name = next((n for part in p.relative_to(root).parts[:-1]
