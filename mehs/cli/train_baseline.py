@@ -47,7 +47,9 @@ def run(args):
     apply_source_arguments(args, root)
     split = None if args.split == "all" else args.split
     if split is not None and not (root / "manifest.json").is_file():
-        have = {k for k, v in (load_pairs(root).splits or {}).items() if v}
+        from mehs.ssr.data import nonempty_splits
+
+        have = set(nonempty_splits(root))
         if not have:
             split = None  # a plain folder of pairs, or a public set without splits: all scenes
         elif split not in have:

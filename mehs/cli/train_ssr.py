@@ -134,18 +134,13 @@ def load_training_pairs(dataset, *, split: str | None, kind: str = "hdr"):
     return out, wl
 
 
-def _nonempty_splits(dataset) -> dict:
-    """The dataset's splits that hold scenes (one listing of the dataset)."""
-    from mehs.ssr.data import load_pairs
-
-    return {k: v for k, v in (load_pairs(dataset).splits or {}).items() if v}
-
-
 def _splits(dataset, sp: dict | None = None):
     """``(train split or None, val split or None)`` of ``dataset`` (``sp``: its
-    :func:`_nonempty_splits`, if listed already); ``None`` for training means every
+    :func:`mehs.ssr.data.nonempty_splits`, if listed already); ``None`` for training means every
     scene, allowed only when the dataset defines no split at all."""
-    sp = _nonempty_splits(dataset) if sp is None else sp
+    from mehs.ssr.data import nonempty_splits
+
+    sp = nonempty_splits(dataset) if sp is None else sp
     if sp and "train" not in sp:
         # training on "all scenes" here would train on the very scenes the evaluation
         # scores (an evaluation-only set such as ME HS, or a download of ARAD's
@@ -195,7 +190,9 @@ def run(args):
     apply_source_arguments(args, args.dataset)
     if args.val_count < 0:
         raise InputError("--val-count must be 0 or more")
-    sp = _nonempty_splits(args.dataset)
+    from mehs.ssr.data import nonempty_splits
+
+    sp = nonempty_splits(args.dataset)
     train_split, val_split = _splits(args.dataset, sp)
     pairs, wl = load_training_pairs(args.dataset, split=train_split, kind=args.input)
     val_source = val_split

@@ -340,6 +340,11 @@ def load_pairs(path: str | Path, *, split: str | None = None,
     return pairs
 
 
+def nonempty_splits(path: str | Path) -> dict[str, list[str]]:
+    """The splits of the dataset at ``path`` that hold scenes (one listing of it)."""
+    return {k: v for k, v in (load_pairs(path).splits or {}).items() if v}
+
+
 def write_index_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     """Write ``rows`` (dicts with the same keys) as CSV, atomically."""
     import io
