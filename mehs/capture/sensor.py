@@ -3,20 +3,29 @@
 For one spatial line (samples × bands) exposed for ``t`` ms to radiance ``L``::
 
     λ  = L · qe · radiance_to_e_per_ms · t + dark_current_e_per_ms · t      [electrons]
-    e  = Poisson(λ), clipped at full_well_e                                   (shot noise)
-    x  = gain_dn_per_e · e + black_level_dn + fpn[sample, band]
-         + gain_dn_per_e · read_noise_e · N(0, 1)                             [linear DN]
-    z  = clip(round(R(x)), 0, 2**bit_depth − 1)                               (response, ADC)
+    e  = min(Poisson(λ), full_well_e) + read_noise_e · N(0, 1)              (shot, well, read)
+    x  = gain_dn_per_e · e + black_level_dn + fpn[sample, band]            [linear DN]
+    z  = clip(round(R(max(x, 0))), 0, 2**bit_depth − 1)                     (response, ADC)
+
+The order is the camera's (EMVA 1288's linear model, with the well as a charge
+limit): photo- and dark electrons (Poisson) collect in the pixel up to its full
+well; read noise joins at read-out, so a pixel clipped by its well still varies
+by ``gain·read_noise_e`` DN about ``gain·full_well_e + black + fpn``; the ADC then
+clips at ``0`` and ``2**bit_depth − 1``, whichever of the two limits comes first
+(at the defaults, 20 000 e⁻ × 0.25 DN/e⁻ + 32 = 5032 DN: the ADC's 4095).
 
 ``R`` is the camera response on the DN scale (``R(0) = 0``, ``R(full) = full``):
 linear, a mild gamma ``full·(x/full)**gamma``, an S-curve
 ``full·(u − a·sin(2πu)/2π)`` with ``u = x/full``, or any monotonic callable.
 Column fixed-pattern noise ``fpn`` is an offset fixed per (sample, band), drawn
-from the sensor seed. Shot and read noise are drawn together as one normal
-``λ + √(λ + σ_read²)·N`` (same mean and variance as Poisson + Gaussian). Where
-the difference could show — λ < 16 e⁻ with read noise below 6 e⁻ (skewness of
-the sum above 0.05) — the shot noise is drawn exactly from a Poisson law. This
-keeps a 512×512×204×3 bracket to a few seconds.
+from the sensor seed. Away from the well, shot and read noise are drawn together
+as one normal ``λ + √(λ + σ_read²)·N`` (same mean and variance as Poisson +
+Gaussian); the shot noise is drawn exactly from a Poisson law wherever the
+sum's skewness ``λ / (λ + σ_read²)^1.5`` exceeds :data:`MAX_NORMAL_SKEW` (it
+peaks at ``0.385/σ_read`` for ``λ = 2σ_read²``, so never with ≥ 8 e⁻ read
+noise; with none, for ``λ < 400``). Within 6 σ of the well the shot noise is
+drawn apart from the read noise, to be clipped alone. This keeps a
+512×512×204×3 bracket to a few seconds.
 
 Determinism: the noise of a line comes from a generator keyed by
 ``(seed, exposure_seed, line_index, shutter_open)`` only, so :meth:`expose`
@@ -38,10 +47,13 @@ import numpy as np
 
 from mehs.errors import InputError
 
-#: Above this mean (electrons) the Poisson draw uses its normal approximation.
-POISSON_NORMAL_SWITCH_E = 16.0
-#: With at least this read noise (e⁻) the normal approximation is used for every λ.
-EXACT_POISSON_BELOW_READ_E = 6.0
+#: The normal draw of shot + read noise stands in for Poisson + Gaussian where the
+#: sum's skewness ``λ / (λ + σ_read²)^1.5`` is at most this; above it the shot noise is
+#: drawn from a Poisson law.
+MAX_NORMAL_SKEW = 0.05
+#: Shot noise within this many of its σ of the full well is drawn apart from the read
+#: noise (which is added after the well's clip); farther below, P(clip) < 1e-9.
+WELL_MARGIN_SIGMA = 6.0
 
 
 def silicon_qe(wavelengths: np.ndarray) -> np.ndarray:
@@ -51,6 +63,23 @@ def silicon_qe(wavelengths: np.ndarray) -> np.ndarray:
     """
     wl = np.asarray(wavelengths, dtype=np.float64)
     return 0.7 * np.exp(-((wl - 660.0) / 200.0) ** 2)
+
+
+def _skewed_span(read_e: float, skew: float) -> tuple[float, float] | None:
+    """The means ``λ`` (e⁻) with ``λ / (λ + σ²)^1.5 > skew`` for read noise ``σ``: an
+    interval ``(lo, hi)`` (unimodal, peak ``0.385/σ`` at ``2σ²``), or None if empty.
+
+    Its ends are the non-negative real roots of ``skew²(λ + σ²)³ − λ² = 0``.
+    """
+    s2, c2 = read_e * read_e, skew * skew
+    if 2.0 / 3.0 ** 1.5 <= skew * read_e:
+        return None
+    if s2 == 0.0:
+        return 0.0, 1.0 / c2
+    r = np.roots([c2, 3 * c2 * s2 - 1.0, 3 * c2 * s2 * s2, c2 * s2 ** 3])
+    r = np.sort(r[np.abs(r.imag) < 1e-9 * np.abs(r).max()].real)
+    r = r[r >= 0]
+    return float(r[0]), float(r[-1])
 
 
 RESPONSES = ("linear", "gamma", "s-curve")
@@ -263,6 +292,38 @@ class SensorModel:
         z = self.response_dn(np.maximum(x, 0))
         return np.clip(z, 0, self.saturation_dn).astype(np.float32)
 
+    def _electrons(self, lam: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """float32 electrons read out of pixels of mean ``lam`` (float32, any shape):
+        shot noise clipped at the full well, then read noise (see the module notes)."""
+        read = np.float32(self.read_noise_e)
+        fw = np.float32(self.full_well_e)
+        n = rng.standard_normal(lam.shape, dtype=np.float32)
+        # Shot + read noise as one normal draw (variance λ + σ²), where neither the
+        # Poisson law's skew nor the well's clip can show.
+        e = lam + np.sqrt(lam + read * read) * n
+        # The skewness λ/(λ + σ²)^1.5 of Poisson + Gaussian peaks at 2/(3^1.5·σ) =
+        # 0.385/σ (λ = 2σ²): below 7.7 e⁻ of read noise some λ need the exact Poisson
+        # draw (clipped at the well on its own: its tail reaches far beyond 6√λ for small λ).
+        exact = None
+        span = _skewed_span(float(read), MAX_NORMAL_SKEW)
+        if span is not None:
+            exact = (lam > np.float32(span[0])) & (lam < np.float32(span[1]))
+            if exact.any():
+                e[exact] = (np.minimum(rng.poisson(lam[exact]).astype(np.float32), fw)
+                            + read * n[exact])
+        # Near the well the shot electrons clip alone (the well holds charge; the read
+        # noise is added at read-out): a second, independent draw for the read noise.
+        # λ + k√λ = FW  ⇔  √λ = √(k²/4 + FW) − k/2.
+        k = WELL_MARGIN_SIGMA
+        near = lam >= np.float32((np.sqrt(k * k / 4 + float(fw)) - k / 2) ** 2)
+        if exact is not None:
+            near &= ~exact
+        if near.any():
+            ln = lam[near]
+            shot = np.minimum(ln + np.sqrt(ln) * n[near], fw)
+            e[near] = shot + read * rng.standard_normal(ln.size, dtype=np.float32)
+        return e
+
     def expose_line(self, radiance_line: np.ndarray, integration_time_ms: float, *,
                     exposure_seed: int = 0, line_index: int = 0, shutter_open: bool = True,
                     wavelengths: np.ndarray | None = None) -> np.ndarray:
@@ -293,18 +354,7 @@ class SensorModel:
         lam = self._mean_electrons(radiance_line, t, qe, shutter_open)
         if not np.all(np.isfinite(lam)) or np.any(lam < 0):
             raise InputError("radiance must be finite and >= 0")
-        n = rng.standard_normal(lam.shape, dtype=np.float32)
-        read2 = np.float32(self.read_noise_e ** 2)
-        # Large means: shot + read noise as one normal draw (variance λ + σ²).
-        e = lam + np.sqrt(lam + read2) * n
-        # Exact Poisson only where its skew could show: with ≥ 6 e⁻ read noise the
-        # skewness of (shot + read) stays below 0.05 for every λ, so one normal
-        # draw is indistinguishable and 5× faster at short exposures.
-        small = (lam < POISSON_NORMAL_SWITCH_E) if self.read_noise_e < EXACT_POISSON_BELOW_READ_E else None
-        if small is not None and small.any():
-            e[small] = (rng.poisson(lam[small]).astype(np.float32)
-                        + np.float32(self.read_noise_e) * n[small])
-        np.minimum(e, np.float32(self.full_well_e), out=e)
+        e = self._electrons(lam, rng)
         x = e * np.float32(self.gain_dn_per_e)
         x += np.float32(self.black_level_dn)
         x += self.fpn(samples, bands)
