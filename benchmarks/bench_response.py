@@ -17,6 +17,11 @@ error after one global scale (the curves' gauge) and median SAM (°), over
 pixels unsaturated in the shortest exposure, and whether mehs flagged the curve
 as undetermined ("flag").
 
+Then the dark-offset solves of :func:`mehs.synthesis.fuse_response.recover_response` side by
+side — ``offset="rounds"`` (fixed-point rounds) and ``"direct"`` (one linear solve,
+:mod:`mehs.synthesis.response_offset`) — for shared and per-band curves: recovery time
+and the merged radiance's bias across brightness deciles (ptp) against the truth.
+
 Run: ``python benchmarks/bench_response.py [--quick]``.
 """
 
@@ -112,5 +117,51 @@ def main() -> None:
                     print(f"{resp:8s} {name:12s} {label:18s} {m:7.4f} {p:7.3f} {a:6.2f}  {flag}")
 
 
+def offset_solves(quick: bool) -> None:
+    """Rounds vs direct solve of the dark offset: time and decile bias vs the truth."""
+    import time
+
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import fuse_bracket
+    from mehs.synthesis.fuse_response import recover_response
+
+    size, step = (72, 24) if quick else (96, 4)
+    wl = SPECIM_IQ_WAVELENGTHS[::step]
+    scene = make_scene("colorchecker", lines=size, samples=size, wavelengths=wl, seed=1)
+    print(f"\ndark offset: rounds vs direct solve; colorchecker {size}×{size}×{wl.size} bands, "
+          "radiance bias across brightness deciles (ptp, %) vs truth")
+    print(f"{'sensor':8s} {'bracket':10s} {'curve':8s} {'rounds s':>8s} {'ptp %':>6s} "
+          f"{'direct s':>8s} {'ptp %':>6s}")
+    for resp, times in (("gamma", (0.04, 0.16, 0.64, 2.56, 10.24)), ("gamma", (0.1, 0.8, 6.4)),
+                        ("linear", (0.1, 0.8, 6.4)), ("s-curve", (1.0, 4.0, 16.0))):
+        sim = simulate_bracket(scene, SensorModel(response=resp, seed=3), list(times))
+        br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
+                     [None] * len(times), sim.times_ms, wl, bit_depth=12)
+        truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
+        for shared in (True, False):
+            row = []
+            for offset in ("rounds", "direct"):
+                t0 = time.perf_counter()
+                curve = recover_response(br, shared=shared, offset=offset)
+                dt = time.perf_counter() - t0
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    res = fuse_bracket(br, response=curve, ghosts="off")
+                rad = np.asarray(res.radiance.data, np.float64)
+                ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
+                lr = np.log(np.maximum(rad[ok], 1e-12) / truth[ok])
+                qs = np.quantile(truth[ok], np.linspace(0, 1, 11))
+                dec = [np.median(lr[(truth[ok] >= a) & (truth[ok] < b)])
+                       for a, b in zip(qs[:-1], qs[1:])]
+                row += [dt, 100 * np.ptp(np.expm1(np.array(dec) - np.median(lr)))]
+            print(f"{resp:8s} {len(times)} exp.     {'shared' if shared else 'per-band':8s} "
+                  f"{row[0]:8.2f} {row[1]:6.1f} {row[2]:8.2f} {row[3]:6.1f}")
+
+
 if __name__ == "__main__":
     main()
+    offset_solves("--quick" in sys.argv)

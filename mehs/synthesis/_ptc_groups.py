@@ -167,14 +167,27 @@ def _noise_curve(e: np.ndarray, q: np.ndarray, g: np.ndarray, groups: int,
         ok = n >= 16
         if not ok.any():
             break
-        s2 = np.bincount(g[keep], weights=e[keep] ** 2, minlength=groups)[ok] / n[ok]
-        qm = np.bincount(g[keep], weights=q[keep], minlength=groups)[ok] / n[ok]
+        with np.errstate(over="ignore", invalid="ignore"):
+            s2 = np.bincount(g[keep], weights=e[keep] ** 2, minlength=groups)[ok] / n[ok]
+            qm = np.bincount(g[keep], weights=q[keep], minlength=groups)[ok] / n[ok]
+        # a group whose variance overflows float64 (a diverged response curve linearised
+        # the data to ~1e160 and beyond) has no usable noise; if every group does, no
+        # line can be fitted: say so instead of dividing by a zero sum of weights
+        fin = np.isfinite(s2) & np.isfinite(qm)
+        if not fin.any():
+            from mehs.errors import InputError
+
+            raise InputError("the variance of the linearised signal overflows in every "
+                             "signal group: the response curve (or the data) maps levels "
+                             "to non-finite or astronomically large values")
+        s2, qm = s2[fin], qm[fin]
         if not np.any(s2 > 0):
             break
         s2f = np.maximum(s2, s2[s2 > 0].min())
-        flat = float(np.average(s2f, weights=1.0 / s2f ** 2))
+        # weights 1/s2f², relative to the smallest: no underflow to a zero sum (1/1e160²)
+        flat = float(np.average(s2f, weights=(s2f.min() / s2f) ** 2))
         a, c = 0.0, flat
-        if ok.sum() >= 2 and np.ptp(qm) > 0:
+        if qm.size >= 2 and np.ptp(qm) > 0:
             A = np.stack([np.maximum(qm, 0.0), np.ones(qm.size)], axis=1) / s2f[:, None]
             (fa, fc), *_ = np.linalg.lstsq(A, np.ones(qm.size), rcond=None)
             if np.isfinite(fa) and np.isfinite(fc) and fa > 0:
