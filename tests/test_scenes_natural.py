@@ -100,6 +100,8 @@ def test_paired_set_from_natural_scenes_uses_split_pools(tmp_path):
 
 
 def test_dataset_diversity_held_out_split_is_farther_than_colorchecker(tmp_path, capsys):
+    import json
+
     from mehs.ssr.diversity import dataset_diversity, main
     from mehs.ssr.synthetic import make_paired_set
 
@@ -111,8 +113,19 @@ def test_dataset_diversity_held_out_split_is_farther_than_colorchecker(tmp_path,
     # disjoint pools: the held-out scenes lie farther from anything trained on than
     # ColorChecker scenes do (same 24 patches in every split)
     assert d_nat["nn_angle_median"] > 2 * d_cc["nn_angle_median"]
-    assert main([str(nat), "--per-scene", "200"]) == 0
-    assert "nearest training pixel, median angle" in capsys.readouterr().out
+    # noise-free scenes: the noise test measured them and excluded few of their pixels
+    # (24×24 scenes change from pixel to pixel: 4 % here)
+    assert d_nat["noise_source"] == ["neighbours"] * d_nat["scenes"]
+    assert d_nat["excluded_noise_fraction"] < 0.1 and d_nat["pixels_total"] > 0
+    assert d_nat["reference_pixels_total"] > 0 and "reference_excluded_noise" in d_nat
+    out = tmp_path / "div.json"
+    assert main([str(nat), "--per-scene", "200", "--angle", "2", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "nearest training pixel, median angle" in text
+    assert "below the noise (angular noise > 1°), excluded" in text
+    rec = json.loads(out.read_text())
+    assert rec["noise_angle_deg"] == 1.0 and rec["angle_deg"] == 2.0
+    assert {"excluded_noise", "excluded_noise_fraction", "reference_excluded_noise"} <= set(rec)
 
 
 def test_capture_simulate_natural_scene(tmp_path, capsys):
