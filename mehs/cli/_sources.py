@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-FORMAT_CHOICES = ("auto", "arad1k", "arad", "icvl", "cave", "kaust")
+# spelled out, not imported from mehs.io.ssr_datasets, to keep the parsers' import light;
+# tests/test_ssr_harvard_reader.py checks it lists every format
+FORMAT_CHOICES = ("auto", "arad1k", "arad", "icvl", "cave", "kaust", "harvard")
 
 
 def add_source_arguments(parser) -> None:
-    """Options for reading ARAD-1K, ARAD/BGU-HS, ICVL, CAVE and KAUST folders directly."""
+    """Options for reading ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST and Harvard folders directly."""
     parser.add_argument("--format", dest="source_format", choices=FORMAT_CHOICES, default="auto",
                         help="dataset layout: auto (a mehs dataset, a folder of pairs, or a public "
                              "SSR dataset detected by its files) or a public format "

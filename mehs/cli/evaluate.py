@@ -7,7 +7,7 @@ def configure(parser):
     parser.add_argument("dataset", metavar="DATASET",
                         help="dataset folder (manifest.json), a plain folder of pairs "
                              "(<stem>.hdr with <stem>.exr and/or <stem>.png), or a public SSR "
-                             "dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST; see --format)")
+                             "dataset (ARAD-1K, ARAD, ICVL, CAVE, KAUST, Harvard; see --format)")
     parser.add_argument("--models", "-m", default="smits,mallett",
                         help="comma-separated models, each optionally NAME=SPEC to name its "
                              "row: built-in names (smits, mallett, regression = fitted on the "

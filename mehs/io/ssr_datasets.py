@@ -17,7 +17,21 @@ format     layout                                                      bands
 ``kaust``  KAUST-HS (Li et al. 2021): ``*.h5`` / ``*.hdf5`` with one     ``bands`` /
            3-D dataset (``img``, ``cube``, ``rad``, ``data`` or the      ``wavelengths`` if
            only one)                                                   stored, else 400–730
+``harvard`` Harvard (Chakrabarti & Zickler 2011): one MATLAB v5 ``.mat``  420–720 nm, 10 nm
+           per scene (``img1.mat``, ``imga1.mat`` …) with ``ref``
+           (1040×1392×31, double) and ``lbl`` (1040×1392), no RGB
 =========  ==========================================================  ======================
+
+Harvard: ``lbl`` marks the pixels to use; the dataset's moving objects (leaves, people)
+changed during the scan and are 0 there. Those pixels are masked (bit 2, "ghost", of
+:mod:`mehs.ssr.data`'s masks) and enter no metric and no training sample
+(:func:`read_source_mask`). The polarity is that of public loaders of the dataset (e.g.
+``HarvardHSIDataset`` in github.com/Gesetz13/Moi: ``hsi[lbl == 0] = 0``); a scene whose
+``lbl`` leaves no pixel usable is refused rather than scored empty. The cube starts at
+420 nm: nothing is extrapolated. The default band selection keeps its 29 bands in
+400–700 nm (as KAUST-HS keeps its 31 of 34), models' 400 and 410 nm outputs go unscored,
+and the pseudo-HDR-RGB is integrated over 420–700 nm (the CMFs' 400–410 nm share, 2.6 %
+of Z for a flat spectrum, is absent from the data, as it is from the camera's).
 
 MATLAB files are read with :mod:`h5py` (v7.3: HDF5 behind a 512-byte MATLAB userblock; arrays
 are stored column-major, so every axis order is reversed: a MATLAB ``H×W×B`` cube reads as
@@ -38,6 +52,8 @@ References
 - Yasuma, Mitsunaga, Iso & Nayar (2010), "Generalized assorted pixel camera", IEEE TIP (CAVE).
 - Li, Fu, Heidrich et al. (2021), "Multispectral illumination estimation using deep
   unrolling network", ICCV (KAUST-HS).
+- Chakrabarti & Zickler (2011), "Statistics of real-world hyperspectral images", CVPR
+  (Harvard).
 - MathWorks, "MAT-file versions" (v7.3 is HDF5 with a 512-byte header).
 """
 
@@ -53,11 +69,14 @@ import numpy as np
 from mehs.errors import FormatError, InputError
 
 #: Public dataset formats read here.
-FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust")
+FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust", "harvard")
 
 _CAVE_BANDS = np.arange(400.0, 701.0, 10.0)
 _KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
 _KAUST_KEYS = ("img", "cube", "rad", "data", "hsi", "reflectance")
+_HARVARD_BANDS = np.arange(420.0, 721.0, 10.0)
+#: Mask value of a pixel Harvard's ``lbl`` excludes (bit 2, "ghost": it moved during the scan).
+HARVARD_MOTION = 2
 _RGB_EXT = (".jpg", ".jpeg", ".png", ".bmp")
 RGB_ENCODINGS = ("auto", "linear", "srgb")
 #: Words of list-file stems and folder names that name a split. Folder names are the
@@ -293,7 +312,75 @@ def read_kaust(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
     return data, (bands if bands is not None else _KAUST_DEFAULT.copy()), info
 
 
+# --------------------------------------------------------------------------- Harvard
+def read_harvard(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A Harvard ``.mat`` → ``(cube (H, W, 31) as stored, bands 420:720:10, info)``.
+
+    The ``lbl`` mask is read by :func:`read_source_mask`, not here.
+    """
+    path = Path(path)
+    cube = read_mat_variables(path, ("ref",))["ref"]
+    if cube.dtype.kind not in "fiub":
+        raise FormatError(f"'ref' must be real numbers, got {cube.dtype}", path)
+    if cube.ndim != 3 or cube.shape[2] != _HARVARD_BANDS.size:
+        raise FormatError(f"'ref' must be rows × columns × 31 bands (420–720 nm), got shape "
+                          f"{cube.shape}", path)
+    return cube, _HARVARD_BANDS.copy(), {"variable": "ref", "bands_from": "Harvard 420:720:10"}
+
+
+def _harvard_mask(path: Path) -> np.ndarray | None:
+    """Harvard's ``lbl`` as a mask ``(H, W)`` uint8: :data:`HARVARD_MOTION` where it is 0;
+    ``None`` for a file without ``lbl``."""
+    try:
+        lbl = read_mat_variables(path, ("lbl",))["lbl"]
+    except FormatError as exc:
+        if "no variable 'lbl'" in exc.problem:
+            return None
+        raise
+    if lbl.ndim != 2 or lbl.dtype.kind not in "fiub":
+        raise FormatError(f"'lbl' must be a rows × columns mask, got {lbl.dtype} "
+                          f"{lbl.shape}", path)
+    if not np.any(lbl):
+        raise FormatError("'lbl' marks no pixel as usable (all 0): nothing of this scene could "
+                          "be scored", path)
+    return np.where(lbl != 0, 0, HARVARD_MOTION).astype(np.uint8)
+
+
+#: format → reader of a scene's mask (0 = valid), for formats that ship one.
+MASK_READERS = {"harvard": _harvard_mask}
+
+
+def read_source_mask(fmt: str, path: str | Path, shape: tuple[int, int],
+                     opts: SourceOptions = SourceOptions()) -> np.ndarray:
+    """The scene's mask, uint8 ``(H, W)`` (0 = valid; :mod:`mehs.ssr.data`'s bits), after the
+    same central crop as its cube (:func:`apply_options`); zeros for formats without one.
+
+    ``shape`` is the cube's ``(H, W)`` after the options; a mask of another size is refused.
+    """
+    path = Path(path)
+    reader = MASK_READERS.get(fmt)
+    m = None if reader is None else reader(path)
+    if m is None:
+        return np.zeros(tuple(shape), dtype=np.uint8)
+    if opts.crop is not None and m.shape != tuple(shape):
+        m = m[central_crop(m.shape, opts.crop, path)]
+    if m.shape != tuple(shape):
+        raise FormatError(f"the mask is {m.shape[0]}×{m.shape[1]}, the cube "
+                          f"{shape[0]}×{shape[1]}", path)
+    return np.ascontiguousarray(m)
+
+
 # --------------------------------------------------------------------------- options
+def central_crop(hw: tuple[int, int], crop, path: Path) -> tuple[slice, slice]:
+    """The row and column slices of a central ``crop`` (H, W) of an ``hw`` image (cube,
+    mask), or :class:`InputError` naming ``path`` when it does not fit."""
+    h, w = (int(v) for v in hw[:2])
+    ch, cw = (int(v) for v in crop)
+    if not (0 < ch <= h and 0 < cw <= w):
+        raise InputError(f"crop {ch}×{cw} does not fit the {h}×{w} image", path)
+    return slice((h - ch) // 2, (h - ch) // 2 + ch), slice((w - cw) // 2, (w - cw) // 2 + cw)
+
+
 def apply_options(cube: np.ndarray, bands: np.ndarray, opts: SourceOptions,
                   path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Band selection, central crop and scale; float32 ``(H, W, B')`` and ``(B',)``."""
@@ -315,13 +402,8 @@ def apply_options(cube: np.ndarray, bands: np.ndarray, opts: SourceOptions,
     if keep.size == 0:
         raise InputError(f"no band in 400–700 nm (the file has {bands.min():g}–{bands.max():g} nm)",
                          path)
-    h, w = cube.shape[:2]
-    rows, cols = slice(None), slice(None)
-    if opts.crop is not None:
-        ch, cw = (int(v) for v in opts.crop)
-        if not (0 < ch <= h and 0 < cw <= w):
-            raise InputError(f"crop {ch}×{cw} does not fit the {h}×{w} image", path)
-        rows, cols = slice((h - ch) // 2, (h - ch) // 2 + ch), slice((w - cw) // 2, (w - cw) // 2 + cw)
+    rows, cols = (slice(None), slice(None)) if opts.crop is None else \
+        central_crop(cube.shape[:2], opts.crop, path)
     out = np.asarray(cube[rows, cols][..., keep], dtype=np.float32)
     if opts.scale != 1.0:
         out = out * np.float32(opts.scale)
@@ -348,4 +430,5 @@ READERS = {
     "icvl": lambda p: _mat_cube(p, "rad"),
     "cave": read_cave,
     "kaust": read_kaust,
+    "harvard": read_harvard,
 }

@@ -24,13 +24,14 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.contract import applies_preprocessing, trained_for
+from mehs.ssr.contract import trained_for
 from mehs.ssr.data import RGB_INPUTS, PairSet, load_pairs
 from mehs.ssr.metrics import METRIC_NAMES, image_metrics, sam_map
-from mehs.ssr.pipeline import predict
 from mehs.ssr.preprocess import Preprocessing
-from mehs.ssr.protocol import (PREPROCESS_CHOICES, model_settings, preprocessing_for,
-                               protocol_notes)
+from mehs.ssr.protocol import PREPROCESS_CHOICES, model_settings
+from mehs.ssr.scoring_models import (defined_settings, evaluation_notes, predict_setting,
+                                     resolve_models)
+
 
 def config_key(input: str, preprocess: str, restore: bool, model: str) -> str:
     """A file-name-safe key of one configuration, e.g. ``hdr-pp_on-lr_on-smits``."""
@@ -67,69 +68,6 @@ def _restore_tuple(restore) -> tuple[bool, ...]:
     if isinstance(restore, bool):
         return (restore,)
     return tuple(dict.fromkeys(bool(r) for r in restore))
-
-
-def _fit_regressions(pairs: PairSet, label: str, pp: tuple, ins: tuple, default_pp: Preprocessing,
-                     seed: int) -> list[tuple[Any, str]]:
-    """A bare ``regression``: one fit per requested pre-processing setting, as the paper
-    trains one network per setting; all share the row ``label``."""
-    from mehs.ssr.baselines import fit_regression_baseline
-
-    train_ids = (pairs.splits or {}).get("train") or []
-    if pairs.manifest is None or not train_ids:
-        raise InputError("the 'regression' baseline needs a train split to fit on; run "
-                         "'mehs train-baseline' and pass the .npz instead", pairs.root)
-    kind = "hdr" if "hdr" in ins else "ldr"
-    train = load_pairs(pairs.root, split="train")
-    out = []
-    for p in pp:
-        spec = default_pp if p == "on" else None
-        model = fit_regression_baseline(train, seed=seed, input=kind, preprocessing=spec)
-        model.name = label
-        out.append((model, f"fitted on the train split ({len(train_ids)} scenes, "
-                           f"{kind.upper()}, {spec.label() if spec else 'no pre-processing'})"))
-    return out
-
-
-def _resolve_models(models, pairs: PairSet, *, seed: int = 0, pp: tuple = PREPROCESS_CHOICES,
-                    ins: tuple = ("hdr",), default_pp: Preprocessing | None = None
-                    ) -> list[tuple[Any, str, str]]:
-    """Load each spec (``NAME=SPEC`` names the row); a bare ``regression`` is fitted here."""
-    from mehs.ssr.models import load_model, split_named_spec
-
-    default_pp = default_pp or Preprocessing()
-    if isinstance(models, str):
-        models = [m for m in models.split(",") if m.strip()]
-    resolved: list = []
-    names: dict[str, set] = {}
-    for spec in models:
-        label = None
-        if isinstance(spec, str):
-            label, spec = split_named_spec(spec.strip())
-        if isinstance(spec, str) and spec.strip().lower() == "regression":
-            group = _fit_regressions(pairs, label or "regression", pp, ins, default_pp, seed)
-        else:
-            model = load_model(spec)
-            if label:
-                model.name = label
-            group = [(model, str(getattr(model, "description", "")))]
-        base = label or str(getattr(group[0][0], "name", spec))
-        mine = {x for m, _ in group for x in model_settings(m, ins, pp, (True, False))}
-        name, k = base, 2
-        while name in names:
-            if label and not (names[name] & mine):
-                break  # one row, several models each trained for other settings (the paper's)
-            if label:
-                raise InputError(f"two models are named {label!r} and were trained for the "
-                                 "same setting; give each row its own name")
-            name = f"{base}_{k}"
-            k += 1
-        names[name] = names.get(name, set()) | mine
-        for model, note in group:
-            resolved.append((model, name, note))
-    if not resolved:
-        raise InputError("no models given")
-    return resolved
 
 
 def _preview(rgb: np.ndarray) -> np.ndarray:
@@ -205,26 +143,6 @@ class EvaluationResult:
 
         return format_tables(self.summary, self.config, fmt=fmt, metrics=metrics,
                              timing=self.timing)
-
-
-def _predict_setting(model, tf, rgb: np.ndarray, preprocess: str, restore: bool,
-                     default_pp: Preprocessing, wl: np.ndarray):
-    """:func:`mehs.ssr.pipeline.predict` in one setting, ``(cube, stats)``.
-
-    Restoration off with pre-processing on: ``predict`` maps the output back with
-    the inverse Reinhard, which is right for a *fixed* method run on tone-mapped
-    RGB (Smits then returns a tone-mapped spectrum) but not for a model *fitted*
-    on pre-processed input: it was fitted to the ground-truth spectra, so its
-    output already is one (the inverse sent a Reinhard-fitted regression's MRAE
-    from 0.7 to 4·10⁶: spectra above 1 clip at the operator's pole). Such a model
-    gets the pre-processed RGB and its output is taken as is.
-    """
-    spec = preprocessing_for(tf, preprocess, default_pp)
-    if (spec is not None and not restore and tf.declared and not tf.fixed
-            and not applies_preprocessing(model)):
-        return predict(model, spec(rgb), restore=False, wavelengths=wl, return_stats=True)
-    return predict(model, rgb, restore=restore, wavelengths=wl, return_stats=True,
-                   preprocessing=spec)
 
 
 def _scored_count(flags: np.ndarray | None, valid: np.ndarray | None, crop: int) -> int | None:
@@ -322,12 +240,14 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     unknown = sorted(set(want_pix) - {p.id for p in pairs})
     if unknown:
         raise InputError(f"--pixels names scene(s) {unknown} not among the scored scenes", pairs.root)
-    resolved = _resolve_models(models, all_pairs, seed=seed, pp=pp, ins=ins, default_pp=default_pp)
-    plans = [(model, name, model_settings(model, ins, pp, rs_req, fixed_preprocess=fixed_preprocess))
-             for model, name, _ in resolved]
+    resolved = resolve_models(models, all_pairs, seed=seed, pp=pp, ins=ins, default_pp=default_pp)
+    plans = [(model, name, defined_settings(model, model_settings(
+        model, ins, pp, rs_req, fixed_preprocess=fixed_preprocess))) for model, name, _ in resolved]
     rs = tuple(dict.fromkeys(r for _, _, st in plans for _, _, r in st)) or rs_req
+    undefined = ([name for model, name, _ in resolved if not trained_for(model).declared]
+                 if "on" in pp and False in rs_req else [])
     if not any(st for _, _, st in plans):
-        notes = protocol_notes(resolved, ins, pp, rs, fixed_preprocess=fixed_preprocess)
+        notes = evaluation_notes(resolved, ins, pp, rs_req, fixed_preprocess, undefined)
         raise InputError("no model was trained for the requested settings (input "
                          f"{'/'.join(ins)}, pre-processing {'/'.join(pp)}): " + "; ".join(notes) +
                          " — use --preprocess both, or --fixed-preprocess for fixed baselines")
@@ -380,7 +300,7 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
                     if s_inp != inp:
                         continue
                     t0 = time.perf_counter()
-                    pred, st = _predict_setting(model, tf, rgb, p, r, default_pp, wl)
+                    pred, st = predict_setting(model, tf, rgb, p, r, default_pp, wl)
                     dt = time.perf_counter() - t0
                     m = image_metrics(pred, gt, valid=valid, crop=crop,
                                       mrae_threshold=mrae_threshold, mrae_relative=mrae_relative,
@@ -414,7 +334,7 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
               "split": split, "n_scenes": len(pairs), "seed": seed,
               "preprocessing": default_pp.to_dict(), "fixed_preprocess": bool(fixed_preprocess),
               "mrae_rule": rule, "pixels": {k: [list(v) for v in vs] for k, vs in want_pix.items()},
-              "notes": protocol_notes(resolved, ins, pp, rs, fixed_preprocess=fixed_preprocess)}
+              "notes": evaluation_notes(resolved, ins, pp, rs, fixed_preprocess, undefined)}
     fitted = [n for _, n, d in resolved if d.startswith("fitted on the train split")]
     if fitted and split not in ("test", "val"):
         config["notes"].append(f"{', '.join(dict.fromkeys(fitted))} fitted on the train split "

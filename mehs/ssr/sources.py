@@ -1,4 +1,4 @@
-"""Public SSR datasets (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST) as :class:`PairSet` s.
+"""Public SSR datasets (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST, Harvard) as :class:`PairSet` s.
 
 :func:`load_source` lists a dataset folder's scenes (format detected, or given), with their
 splits when the dataset defines them (ARAD-1K ``train_list.txt`` / ``valid_list.txt``, or
@@ -22,7 +22,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
-                                  read_source_cube)
+                                  read_source_cube, read_source_mask)
 from mehs.ssr.data import Pair, PairSet, check_disjoint_splits, srgb_decode_8bit
 
 _HINTS: dict[Path, tuple[str, SourceOptions]] = {}
@@ -72,6 +72,8 @@ def detect_format(root: str | Path) -> str | None:
             return "arad1k"
         if "rad" in keys:
             return "arad" if f.stem.upper().startswith(("BGU", "ARAD")) else "icvl"
+        if {"ref", "lbl"} <= keys:
+            return "harvard"
     if mats:
         return None
     if next(root.rglob("*.h5"), None) is not None or next(root.rglob("*.hdf5"), None) is not None:
@@ -191,9 +193,9 @@ class SourcePair(Pair):
 
             img = read_png(self.ldr_path)
             if self.options.crop is not None:  # the same central crop as the cube
-                ch, cw = self.options.crop
-                h, w = img.shape[:2]
-                img = img[(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
+                from mehs.io.ssr_datasets import central_crop
+
+                img = img[central_crop(img.shape, self.options.crop, self.ldr_path)]
             encoding = self.options.rgb_encoding_for(self.fmt)
             lin = (srgb_decode_8bit(img) if encoding == "srgb"
                    else img.astype(np.float32) / np.float32(255.0))
@@ -210,9 +212,16 @@ class SourcePair(Pair):
         return srgb_decode_8bit(np.asarray(ldr, dtype=np.uint8)) / np.float32(exposure)
 
     def mask(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """The dataset's own mask (Harvard's ``lbl``: moving objects), zeros for the others."""
         if shape is None:
             shape = self.hs_array()[0].shape[:2]
-        return np.zeros(shape, dtype=np.uint8)
+        key = (str(self.hs_path), self.fmt, self.options, tuple(shape))
+        if _LAST.get("mask_key") != key:  # one scene cached, as the cube
+            m = read_source_mask(self.fmt, self.hs_path, tuple(shape), self.options)
+            _LAST["mask_key"], _LAST["mask"] = key, m
+        m = _LAST["mask"]
+        self.info["masked_pixels"] = int(np.count_nonzero(m))
+        return m.copy()
 
 
 def load_source(root: str | Path, fmt: str | None = None, *, split: str | None = None,

@@ -215,7 +215,9 @@ class OnnxImageMeans:
         if not self.k:
             return
         old = model.session
-        self.spectra = old.get_outputs()[0].name
+        # the output the model reads its spectra from (not the graph's first: it may
+        # have several, mehs.ssr.onnx_model)
+        self.spectra = model.output_name
         self.extras = [f"mehs_{what}_{i}" for i in range(self.k) for what in ("sum", "map")]
         # both sessions draw on one process-wide arena: two arenas would each keep
         # their peak
