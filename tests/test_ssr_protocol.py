@@ -200,7 +200,7 @@ def test_mrae_rule_and_pixels_are_recorded(ds, tmp_path):
                    mrae_bands=(450, 650))
     base = evaluate(ds, "smits", preprocess="off", split=None)
     assert res.config["mrae_rule"] == {"threshold": 0.05, "relative": True,
-                                       "band_range": [450.0, 650.0]}
+                                       "band_range": [450.0, 650.0], "score_unresolved": False}
     assert res.summary[0]["mrae"] != base.summary[0]["mrae"]
     assert res.summary[0]["mrae_excluded"] > base.summary[0]["mrae_excluded"]
     assert res.figures == [scene]                 # kept for the chosen pixel although figures=0

@@ -31,6 +31,10 @@ def configure(parser):
                         help="--mrae-threshold is a fraction of each image's maximum")
     parser.add_argument("--mrae-bands", default=None, metavar="LO-HI",
                         help="MRAE over the bands LO..HI nm only, e.g. 420-680")
+    parser.add_argument("--score-unresolved", action="store_true",
+                        help="also score pixels and elements whose ground truth is not resolved "
+                             "above its own noise (mask bit 8 of a mehs dataset; the MRAE's "
+                             "10-sigma floor): the paper's protocol, every measured pixel")
     parser.add_argument("--input", default="hdr",
                         help="RGB input(s): hdr, ldr or hdr,ldr (default: %(default)s)")
     parser.add_argument("--restore", nargs="?", const="on", default="on",
@@ -164,11 +168,17 @@ def run(args):
                    preprocessing=preprocessing_from_args(args),
                    fixed_preprocess=args.fixed_preprocess, pixels=args.pixels,
                    mrae_threshold=args.mrae_threshold, mrae_relative=args.mrae_relative,
-                   mrae_bands=_bands(args.mrae_bands))
+                   mrae_bands=_bands(args.mrae_bands), score_unresolved=args.score_unresolved)
     fmt = "markdown" if args.markdown else "text"
     print(res.tables(fmt))
     if any(s.get(f"{k}_undefined") for s in res.summary for k in METRIC_NAMES):
         print("note: some images had no usable pixels for a metric (see summary.csv)")
+    unresolved = max((s.get("unresolved_pixels") or 0 for s in res.summary), default=0)
+    floor = max((s.get("mrae_floor_excluded") or 0 for s in res.summary), default=0)
+    if unresolved or floor:
+        print(f"note: {unresolved} pixels whose ground truth is not resolved above its noise "
+              f"were not scored, and {floor} more elements were left out of MRAE "
+              f"(--score-unresolved scores them)")
     for note in res.config.get("notes", []):
         print(f"note: {note}")
     for s in res.skipped:

@@ -12,10 +12,16 @@ ghosts                      ``ghost_fraction`` (pixels flagged moving)    > 0.01
 saturated in every exposure ``saturated_fraction``                        > 0.005
 other invalid pixels        ``invalid_fraction`` (mask bit 4)             > 0.05
 dynamic range too low       ``dynamic_range_stops``                       < 4.0
+unresolved by the noise     ``noise_floor_fraction`` (mask bit 8, ground  off
+                            truth SNR < 10: :mod:`mehs.dataset.noisefloor`)
 response undetermined       ``response_uncertainty`` (median, relative;   > 0.02
                             :mod:`mehs.synthesis.response_check`)
 uncalibrated                ``radiometric_unit`` is DN/ms                 allowed
 ==========================  ============================================  =========
+
+Unresolved pixels are deep shadows, what an HDR scene is for: they are not scored
+(every metric skips mask bit 8), so the rule is off unless ``max_noise_floor_fraction``
+sets it (a scene too dim to teach anything).
 
 Figures that are unknown (``None``, e.g. ghosts for ``--from-hs`` cubes) are
 not judged; a NaN/Inf figure fails the scene (a broken figure is no pass).
@@ -45,10 +51,14 @@ class QualityRules:
     min_exposures: int = 2
     max_response_uncertainty: float = 0.02
     require_calibration: bool = False
+    max_noise_floor_fraction: float | None = None
 
     def __post_init__(self):
-        for name in ("max_ghost_fraction", "max_saturated_fraction", "max_invalid_fraction"):
+        for name in ("max_ghost_fraction", "max_saturated_fraction", "max_invalid_fraction",
+                     "max_noise_floor_fraction"):
             v = getattr(self, name)
+            if v is None and name == "max_noise_floor_fraction":   # the rule is off
+                continue
             if not (v is not None and 0 <= v <= 1):  # NaN fails too
                 raise InputError(f"{name} must be a fraction between 0 and 1, got {v}")
         v = self.min_dynamic_range_stops
@@ -107,6 +117,8 @@ def judge(quality: dict[str, Any], rules: QualityRules = QualityRules(),
     over("ghost_fraction", rules.max_ghost_fraction, "ghost fraction")
     over("saturated_fraction", rules.max_saturated_fraction, "saturated-in-all fraction")
     over("invalid_fraction", rules.max_invalid_fraction, "invalid fraction")
+    over("noise_floor_fraction", rules.max_noise_floor_fraction,
+         "fraction not resolved above the noise")
     dr = figure("dynamic_range_stops", "dynamic range")
     lim = rules.min_dynamic_range_stops
     if dr is not None and lim is not None and dr < lim:  # None: the rule is off

@@ -373,11 +373,12 @@ def _card(s: dict, thumb: str | None) -> str:
 def _row(s: dict, split: str) -> str:
     q = s.get("quality") or {}
     return ("<tr class='{st}'><td><a href='#scene-{id}'>{id}</a></td><td>{st}</td><td>{split}</td>"
-            "<td>{dr}</td><td>{sat}</td><td>{gh}</td><td>{inv}</td><td>{ratios}</td>"
+            "<td>{dr}</td><td>{sat}</td><td>{gh}</td><td>{inv}</td><td>{unres}</td><td>{ratios}</td>"
             "<td>{reasons}</td></tr>").format(
         id=html.escape(s["id"]), st=s["status"], split=html.escape(split),
         dr=_fmt(q.get("dynamic_range_stops")), sat=_fmt(q.get("saturated_fraction"), True),
         gh=_fmt(q.get("ghost_fraction"), True), inv=_fmt(q.get("invalid_fraction"), True),
+        unres=_fmt(q.get("noise_floor_fraction"), True),
         ratios=_fmt_ratios(q.get("exposure_ratios")),
         reasons=html.escape("; ".join(s.get("reasons", []))))
 
@@ -441,7 +442,9 @@ mehs {version}.</p>
 </div>
 <h2>Scenes</h2>
 <table><thead><tr><th>scene</th><th>status</th><th>split</th><th>DR (stops)</th>
-<th>saturated</th><th>ghost</th><th>invalid</th><th>exposure ratios</th><th>reasons</th></tr></thead>
+<th>saturated</th><th>ghost</th><th>invalid</th>
+<th title="ground truth not resolved above its noise (mask bit 8): not scored">unresolved</th>
+<th>exposure ratios</th><th>reasons</th></tr></thead>
 <tbody>
 {rows}
 </tbody></table>

@@ -21,7 +21,12 @@ recorded and an HDR-RGB exists it is estimated as the ratio of the two over
 well-exposed pixels (linear LDR in 0.02..0.9); otherwise it is taken as 1.
 
 Masks: 8-bit, 0 = valid; bits 1 (saturated in every exposure), 2 (ghost) and
-4 (other invalid) exclude a pixel from every metric.
+4 (other invalid) exclude a pixel from every metric. Bit 8 (ground truth not resolved
+above its own noise: spectrum SNR below 10, :mod:`mehs.dataset.noisefloor`) excludes it
+too unless the pairs are loaded with ``score_unresolved=True`` (the paper's protocol:
+every pixel the camera measured); masks of datasets built before it lack the bit and
+read as before. A scene whose manifest entry records ``quality.noise_model`` also gives
+the MRAE's element floor (:meth:`Pair.mrae_floor`).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from mehs.dataset.noisefloor import MASK_UNRESOLVED  # the bit the dataset build sets
 from mehs.errors import FormatError, InputError
 
 DATASET_FORMAT = "mehs-dataset/1"
@@ -105,6 +111,10 @@ class Pair:
     ldr_exposure: float | None = None
     split: str | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    #: the ground truth's band noise model (``quality.noise_model`` of the manifest), or None
+    noise_model: dict[str, Any] | None = None
+    #: score pixels flagged only as not resolved above the noise (mask bit 8)
+    score_unresolved: bool = False
 
     def hs(self):
         """The ground truth as a :class:`~mehs.cube.SpectralCube` (memory-mapped when possible)."""
@@ -175,8 +185,26 @@ class Pair:
         return m
 
     def valid(self, shape: tuple[int, int] | None = None) -> np.ndarray:
-        """Boolean ``(H, W)``: True where the mask is 0."""
-        return self.mask(shape) == 0
+        """Boolean ``(H, W)``: True where the mask is 0 (bit 8 ignored with
+        ``score_unresolved``); the pixels bit 8 removes are counted in
+        ``info["unresolved_pixels"]``."""
+        m = self.mask(shape)
+        other = (m & np.uint8(0xFF ^ MASK_UNRESOLVED)) == 0      # no other bit set
+        self.info["unresolved_pixels"] = int(np.count_nonzero(other & (m != 0)))
+        return other if self.score_unresolved else m == 0
+
+    def mrae_floor(self, gt: np.ndarray) -> np.ndarray | None:
+        """MRAE's element floor for the ground truth ``gt (H, W, B)``: 10·σ of its own
+        noise (:func:`mehs.dataset.noisefloor.mrae_floor`), float32 like ``gt``; ``None``
+        when the scene records no noise model or with ``score_unresolved``."""
+        if self.noise_model is None or self.score_unresolved:
+            return None
+        from mehs.dataset.noisefloor import mrae_floor
+
+        try:
+            return mrae_floor(gt, self.noise_model)
+        except InputError as exc:
+            raise exc.with_path(self.hs_path) from None
 
 
 class PairSet(list):
@@ -217,7 +245,7 @@ def check_disjoint_splits(splits: dict[str, list], where, how: str = "") -> dict
 
 
 def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
-                   verify: str = "stat") -> PairSet:
+                   verify: str = "stat", score_unresolved: bool = False) -> PairSet:
     mpath = root / "manifest.json"
     try:
         manifest = json.loads(mpath.read_text(encoding="utf-8"))
@@ -273,7 +301,9 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
             ldr_path=_inside(root, files.get("ldr_rgb"), "ldr_rgb", sid),
             mask_path=_inside(root, files.get("mask"), "mask", sid),
             ldr_exposure=None if exposure is None else float(exposure),
-            split=split_of.get(sid)))
+            split=split_of.get(sid), noise_model=(sc.get("quality") or {}).get("noise_model")
+            if isinstance(sc.get("quality"), dict) else None,
+            score_unresolved=bool(score_unresolved)))
     return PairSet(pairs, root=root, manifest=manifest, splits=splits)
 
 
@@ -305,7 +335,8 @@ def _public_format(root: Path) -> bool:
 
 
 def load_pairs(path: str | Path, *, split: str | None = None,
-               include_failed: bool = False, verify: str = "stat") -> PairSet:
+               include_failed: bool = False, verify: str = "stat",
+               score_unresolved: bool = False) -> PairSet:
     """List the paired scenes of a dataset folder or a plain folder of pairs.
 
     Nothing is read but the manifest: each :class:`Pair` loads its files when
@@ -313,6 +344,8 @@ def load_pairs(path: str | Path, *, split: str | None = None,
     a manifest that records their SHA-256 are verified (``verify``: ``"stat"``
     hashes only files whose size/mtime changed since the build, ``"full"``
     hashes all, ``"none"`` skips), so a damaged scene is never scored.
+    ``score_unresolved`` scores the pixels mask bit 8 flags as not resolved above the
+    ground truth's noise (the paper's protocol; see the module notes).
 
     Raises
     ------
@@ -325,7 +358,8 @@ def load_pairs(path: str | Path, *, split: str | None = None,
     if not root.is_dir():
         raise InputError("no such dataset folder", root)
     if (root / "manifest.json").is_file():
-        pairs = _load_manifest(root, split=split, include_failed=include_failed, verify=verify)
+        pairs = _load_manifest(root, split=split, include_failed=include_failed, verify=verify,
+                               score_unresolved=score_unresolved)
     elif _public_format(root):
         from mehs.ssr.sources import load_source
 

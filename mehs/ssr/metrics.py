@@ -144,10 +144,28 @@ def psnr(pred, gt, *, valid=None, crop: int = 0, peak: float | None = None):
     return float(10 * np.log10(pk * pk / mse))
 
 
+def _floor_rows(floor, gt, valid, crop: int) -> np.ndarray | None:
+    """``floor`` as rows matching :func:`_prepare`'s ``(N, B)`` (or ``(B,)``); checked."""
+    if floor is None:
+        return None
+    f = np.asarray(floor, dtype=np.float64)
+    gshape = np.shape(gt)
+    if f.shape == (gshape[-1],):
+        out = f
+    elif f.shape == tuple(gshape):
+        out = _prepare(f, f, valid, crop)[0]
+    else:
+        raise InputError(f"MRAE floor has shape {f.shape}, expected ({gshape[-1]},) or {gshape}")
+    if np.isnan(out).any():
+        raise InputError("MRAE floor contains NaN")
+    return out
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None = None,
                   crop: int = 0, peak: float | None = None, mrae_threshold: float = 0.0,
                   mrae_relative: bool = False,
-                  mrae_band_mask: np.ndarray | None = None) -> dict[str, Any]:
+                  mrae_band_mask: np.ndarray | None = None,
+                  mrae_floor: np.ndarray | None = None) -> dict[str, Any]:
     """All four metrics of one image plus the counts behind them.
 
     Returns
@@ -162,8 +180,14 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None 
     truth's maximum over the scored pixels when ``mrae_relative``) count; the
     others are excluded and counted. ``mrae_band_mask`` (bool ``(B,)``)
     restricts the scalar MRAE to those bands (``band_mrae`` keeps every band).
-    The default (0, absolute, all bands) is the NTIRE form of the module notes.
+    ``mrae_floor`` (float ``(B,)`` or the ground truth's shape ``(H, W, B)`` / ``(N, B)``):
+    an element also needs ``y > floor`` — e.g. 10·σ of the ground truth's own noise
+    (:func:`mehs.dataset.noisefloor.mrae_floor`), where ``|ŷ − y| / y`` measures the
+    noise of ``y`` rather than the model; excluded elements are counted in
+    ``mrae_excluded`` and ``mrae_floor_excluded`` (those only the floor excluded).
+    The default (0, absolute, all bands, no floor) is the NTIRE form of the module notes.
     """
+    fl = _floor_rows(mrae_floor, gt, valid, crop)
     p, g, _ = _prepare(pred, gt, valid, crop)
     out: dict[str, Any] = {"n_pixels": int(p.shape[0])}
     dot = np.einsum("nb,nb->n", p, g)
@@ -174,6 +198,10 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, *, valid: np.ndarray | None 
     out["sam_excluded"] = int(np.count_nonzero(~ok))
     thr = float(mrae_threshold) * (float(g.max()) if mrae_relative and g.size else 1.0)
     pos = g > max(thr, 0.0)
+    if fl is not None:
+        above = g > fl
+        out["mrae_floor_excluded"] = int(np.count_nonzero(pos & ~above))
+        pos &= above
     with np.errstate(invalid="ignore", divide="ignore"):
         rel = np.where(pos, np.abs(p - g) / np.where(pos, g, 1.0), 0.0)
     n_pos = pos.sum(0)
