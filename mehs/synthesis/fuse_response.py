@@ -20,7 +20,7 @@ from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import warm_merge_kernel
 from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
-                                     sample_pixels, to_levels)
+                                     sample_pixels, to_levels, weighting_table)
 
 #: "auto" uses the linear curve while consecutive exposures agree with it within this
 #: relative error at every well-exposed signal level
@@ -186,6 +186,13 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
       left them biased), rounds for a shared curve (the direct solve is as accurate or
       better on 3–5 exposures, worse on 2, and ~2× slower: see the module's notes).
 
+    A per-band curve (``shared=False``) is solved with the shared curve of the same
+    bracket as its pilot and as the shape its smoothness prefers, then each band is put on
+    that curve's scale over the levels the band's own samples cover
+    (:func:`mehs.synthesis.response_offset.tie_bands_to_reference`): a band's scale is
+    not fixed by its data, and the gauge at ``Z_mid`` took it from the extrapolation of a
+    dark band that never reaches ``Z_mid`` (its radiance −100 %… +70 % of the truth).
+
     A constant added to ``f`` is not fixed by the data (it cancels in
     ``f(raw) − f(dark)``, so the merge does not see it); it is set so that the curve
     follows the plain Debevec–Malik curve over the well-exposed levels
@@ -198,21 +205,66 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     n = samples or int(np.ceil(2.0 * L / (P - 1)))
     npix = bracket.shape[0] * bracket.shape[1] if pool is None else len(pool)
     if shared:
-        n_per = max(64, int(np.ceil(n / nb)) + 1)
+        n_per = _shared_per_band(n, nb)
     else:
         n_per = n
+    if offset not in ("auto", "direct", "rounds"):
+        raise InputError(f"unknown offset solve {offset!r}; use 'auto', 'direct' or 'rounds'")
+    if not shared and npix < n:
+        raise InputError(f"{npix} pixels are too few for a per-band "
+                         f"{bracket.bit_depth}-bit curve from {P} exposures ({n} "
+                         "needed); use a shared curve", bracket.source)
     cand, cdark = _candidate_levels(bracket, max(4 * n_per, 8192), seed, sat, levels != "raw",
                                     pool=pool)
+    opts = {"smoothness": smoothness, "seed": seed, "levels": levels, "weighting": weighting,
+            "offset": offset, "offset_iterations": offset_iterations}
+    if shared:
+        return _recover_from(bracket, cand, cdark, True, n_per, **opts)[0]
+    # the reference by the same linear-domain solve as the bands (unless rounds were asked
+    # for): its darkest decile was nearer the truth than 60 rounds' (5 exposures ×4: −4.7
+    # vs −7.3 % per band, the true curve −2.5 %)
+    ref = _recover_from(bracket, cand, cdark, True, _shared_per_band(n, nb),
+                        **{**opts, "offset": "rounds" if offset == "rounds" else "direct"})[0]
+    curve, Z, D, f = _recover_from(bracket, cand, cdark, False, n_per, reference=ref, **opts)
+    # one scale per band is not fixed by the data (E_i is per band too): the gauge
+    # g(Z_mid) = ln Z_mid fixed it at a level a dark band never reaches, so its scale was
+    # the smoothness prior's extrapolation (lamp scene, gamma sensor: the blue band at
+    # −97 % or +63 % of the truth). Tie each band to the shared curve — the sensor's
+    # common non-linearity — over the levels that band's samples cover.
+    from mehs.synthesis.response_offset import tie_bands_to_reference
+
+    # the linear-domain table before its constant was chosen (offset model), else g
+    g, stats = tie_bands_to_reference(curve.table(nb) if f is None else f, ref.g, Z,
+                                      None if f is None else D, weighting_table(weighting, L))
+    return ResponseCurve(g, curve.bit_depth, method=curve.method, smoothness=curve.smoothness,
+                         weighting=curve.weighting, wavelengths=curve.wavelengths,
+                         parameters={**curve.parameters, **stats})
+
+
+def _shared_per_band(n: int, nb: int) -> int:
+    """Samples per band of a shared curve that is to have ``n`` samples in all."""
+    return max(64, int(np.ceil(n / nb)) + 1)
+
+
+def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared: bool,
+                  n: int, *, smoothness: float, seed: int, levels: str, weighting,
+                  offset: str, offset_iterations: int | None,
+                  reference: ResponseCurve | None = None):
+    """The curve of :func:`recover_response` from candidate levels ``cand`` and raw darks
+    ``cdark`` (P, M, bands); returns ``(curve, Z, D, f)``: the samples it was solved from,
+    (n, P, C) levels and their raw darks, and the linear-domain table (C, L) of the
+    dark-offset model before :func:`_match_constant` set its constant (D and f None
+    without that model). ``reference``: a shared curve that a per-band direct solve takes
+    as its pilot and its smoothness's shape (``shape_prior`` of
+    :func:`~mehs.synthesis.response_offset.solve_offset_response`)."""
+    L = 1 << bracket.bit_depth
+    nb = bracket.shape[2]
     lt = np.log(bracket.times_ms)
     params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
     try:
         if shared:
-            Z, idx = _sample_shared(cand, n_per, seed, bracket.bit_depth)
+            Z, idx = _sample_shared(cand, n, seed, bracket.bit_depth)
         else:
-            if npix < n:
-                raise InputError(f"{npix} pixels are too few for a per-band "
-                                 f"{bracket.bit_depth}-bit curve from {P} exposures ({n} "
-                                 "needed); use a shared curve", bracket.source)
             Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth,
                                    return_index=True)
         curve = plain = recover_response_Debevec1997(
@@ -221,13 +273,9 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
             parameters=params)
     except InputError as exc:   # array-level checks know no file: name the bracket
         raise exc.with_path(bracket.source) from None
-    if offset not in ("auto", "direct", "rounds"):
-        raise InputError(f"unknown offset solve {offset!r}; use 'auto', 'direct' or 'rounds'")
     has_dark = levels == "raw" and all(d is not None for d in bracket.darks)
     if not has_dark:
-        return curve
-    from mehs.synthesis.response import weighting_table
-
+        return curve, Z, None, None
     # the raw dark level of every sample: (n, P, C) like Z
     D = np.take_along_axis(cdark.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None],
                            axis=1).transpose(1, 2, 0)
@@ -237,19 +285,25 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
         from mehs.synthesis.response_offset import solve_offset_response
 
         try:
-            f, stats = solve_offset_response(Z, D, bracket.times_ms, wt,
-                                             plain.table(None if plain.shared else nb),
-                                             smoothness=smoothness, shared=shared)
+            # per band, the plain curve of a dark band is its prior's extrapolation: the
+            # shared curve is the better pilot, and the shape its data are too few to set
+            # (a dark band's prior towards a straight line put its darkest levels 30 % high)
+            pilot = (reference.table() if reference is not None
+                     else plain.table(None if plain.shared else nb))
+            f, stats = solve_offset_response(Z, D, bracket.times_ms, wt, pilot,
+                                             smoothness=smoothness, shared=shared,
+                                             shape_prior=reference is not None)
         except InputError as exc:
             raise exc.with_path(bracket.source) from None
         # f is 1 a quarter of the range above the dark: scaled to DN-like values, as the
         # floors of _match_constant expect
-        return _match_constant(f * (L // 2), plain, zmin,
-                               {**plain.parameters, **stats, "offset": "direct"})
+        f = f * (L // 2)
+        return _match_constant(f, plain, zmin,
+                               {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
     if offset_iterations is None:
         offset_iterations = OFFSET_ITERATIONS_SHARED if shared else OFFSET_ITERATIONS_PER_BAND
     if offset_iterations <= 0:
-        return curve
+        return curve, Z, None, None
     w = wt[Z]
     t = bracket.times_ms[None, :, None]
     lev = np.arange(L)
@@ -271,8 +325,8 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
             Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
             weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
             parameters={**params, "offset_iterations": int(offset_iterations)})
-    return _match_constant(np.exp(curve.table(None if curve.shared else nb)), plain, zmin,
-                           {**curve.parameters, "offset": "rounds"})
+    f = np.exp(curve.table(None if curve.shared else nb))
+    return _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"}), Z, D, f
 
 
 def _match_constant(f: np.ndarray, plain: ResponseCurve, zmin: int,
