@@ -77,8 +77,9 @@ def test_stage_checksums_both_ways():
     assert stage.position() == 5
     port.assert_done()
     stage, port = stage_for([(cmd, b"@01 1 OK IDLE -- 5\r\n")] * 4, checksum=True, retries=3)
-    with pytest.raises(ZaberProtocolError, match="without checksum"):
+    with pytest.raises(ZaberProtocolError, match="without checksum") as err:
         stage.position()
+    assert "comm.checksum = 1" in str(err.value)        # what to change, on the device
 
 
 def test_stage_rejection_is_an_error_and_again_is_retried():

@@ -164,7 +164,9 @@ class ZaberStage(SerialDriver):
     device, axis
         Device address (1 = first in the chain) and axis number (1-based).
     checksum
-        Append ``:CC`` to commands and require it to be valid on replies.
+        Append ``:CC`` to commands and require it to be valid on replies. A device
+        verifies a command's checksum whenever one is sent, but adds one to its
+        replies only with its ``comm.checksum`` setting at 1 (default 0).
     message_ids
         Number each command (ids 0–99, the ASCII protocol's message id) and take
         only the reply that echoes it. A reply that comes after its timeout (a slow
@@ -219,7 +221,12 @@ class ZaberStage(SerialDriver):
             except ZaberProtocolError as exc:
                 raise ZaberProtocolError(exc.problem, self.name) from None
             if self.checksum and not re.search(r":[0-9A-F]{2}$", text):
-                raise ZaberProtocolError(f"reply without checksum {text!r}", self.name)
+                # a Zaber device checks a command's checksum when one is sent, but adds one
+                # to its replies only with its comm.checksum setting at 1 (default 0)
+                raise ZaberProtocolError(
+                    f"reply without checksum {text!r}: the device adds checksums to its replies "
+                    "only with comm.checksum = 1 (send '/set comm.checksum 1' once), or run "
+                    "without --checksum", self.name)
             if reply.device != self.device or reply.axis not in (self.axis, 0):
                 raise ZaberProtocolError(
                     f"reply from device {reply.device} axis {reply.axis}, expected "
