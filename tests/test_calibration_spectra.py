@@ -12,11 +12,12 @@ from mehs.errors import MehsError
 
 
 def _gaussian_band_exact(wl, v, centres, fwhm):
-    """Gaussian (±3σ) band average of the linearly interpolated table on a 0.0001 nm grid."""
+    """Gaussian band average of the linearly interpolated table on a fine grid, over ±8σ
+    (the response beyond is below 1e-14 of it) or the table's range."""
     out = []
     for c, f in zip(centres, fwhm):
         s = f / (2 * np.sqrt(2 * np.log(2)))
-        x = np.linspace(max(wl[0], c - 3 * s), min(wl[-1], c + 3 * s), 200001)
+        x = np.linspace(max(wl[0], c - 8 * s), min(wl[-1], c + 8 * s), 400001)
         w = np.exp(-0.5 * ((x - c) / s) ** 2)
         out.append(np.sum(w * np.interp(x, wl, v)) / np.sum(w))
     return np.array(out)
@@ -36,6 +37,21 @@ def test_band_average_of_a_line_spectrum_matches_the_exact_integral():
     got = band_average(sp, c, fw)
     ref = _gaussian_band_exact(sp.wavelengths, sp.values, c, fw)
     assert np.max(np.abs(got / ref - 1)) < 1e-3
+
+
+def test_band_average_keeps_a_line_beyond_three_sigma():
+    # a 1 nm line 4σ from a 7 nm band's centre, 200× the continuum: the Gaussian's tail
+    # there weighs it by e^-8; averaging over ±3σ only dropped it (0.4 % low)
+    s = 7.0 / (2 * np.sqrt(2 * np.log(2)))
+    wl = np.arange(400.0, 700.01, 0.5)
+    v = np.ones_like(wl)
+    line = np.argmin(np.abs(wl - (550.0 + 4 * s)))
+    v[line] = 200.0
+    sp = Spectrum(wl, v, "continuum + line")
+    got = band_average(sp, np.array([550.0]), np.array([7.0]))
+    ref = _gaussian_band_exact(wl, v, [550.0], [7.0])
+    assert ref[0] > 1.003                                   # the line does count
+    assert got[0] == pytest.approx(ref[0], rel=2e-5)
 
 
 def test_spectrum_file_with_space_aligned_columns_is_read(tmp_path):

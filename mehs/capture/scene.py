@@ -27,7 +27,7 @@ Band values
 -----------
 A band of the camera sees its spectral response function (a Gaussian of the
 scene's ``fwhm``), not the spectrum at its centre. Lights are therefore
-averaged over each band's Gaussian (±3σ), as a calibration against the same
+averaged over each band's Gaussian (±5σ), as a calibration against the same
 tabulated SPD does (:func:`mehs.calibration.spectra.band_average`): a
 discharge or fluorescent line narrower than a band would otherwise be 30–60 %
 off in the bands around it. Reflectances are smooth at this scale (point
