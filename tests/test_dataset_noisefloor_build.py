@@ -174,3 +174,28 @@ def test_mehs_evaluate_leaves_them_out_and_says_so_unless_asked(dim, tmp_path, c
     assert "not resolved" not in text_all
     assert res_all["config"]["mrae_rule"]["score_unresolved"] is True
     assert row_all["mrae"] > 2 * row["mrae"]
+    # the HTML report says what the table's scores leave out
+    from mehs.ssr.report import write_evaluation_report
+
+    html = write_evaluation_report(tmp_path / "default").read_text(encoding="utf-8")
+    assert f"{n_unresolved} / {row['mrae_floor_excluded']}" in html
+    assert "--score-unresolved" in html
+
+
+def test_mehs_build_max_unresolved_fails_a_scene_too_dim(dim, tmp_path):
+    # the build's rule is off by default (deep shadows are what HDR scenes are for);
+    # --max-unresolved turns it on from the command line
+    from mehs.cli import main
+
+    ds, entry, _ = dim
+    frac = entry["quality"]["noise_floor_fraction"]
+    assert entry["status"] == "pass" and frac > 0.5
+    out = tmp_path / "strict"
+    folder = next(p for p in ds.parent.iterdir() if p.is_dir() and p.name == "cc")
+    assert main(["build", str(folder), "--out", str(out), "--response",
+                 str(ds.parent / "lin.json"), "--max-unresolved", "0.5", "--quiet",
+                 "--workers", "1"]) in (0, 1)
+    m = json.loads((out / "manifest.json").read_text())
+    sc = m["scenes"][0]
+    assert sc["status"] == "fail"
+    assert any("unresolved" in r or "noise" in r for r in sc.get("reasons", [])), sc

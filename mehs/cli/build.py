@@ -46,6 +46,9 @@ def configure(parser):
                    help="max saturated-in-every-exposure fraction (default 0.005)")
     q.add_argument("--max-invalid", type=float, default=0.05, metavar="F",
                    help="max other-invalid fraction (default 0.05)")
+    q.add_argument("--max-unresolved", type=float, default=None, metavar="F",
+                   help="max fraction of pixels whose ground truth is not resolved above its "
+                        "noise (mask bit 8; they are never scored). Default: no limit")
     q.add_argument("--min-dr", type=float, default=None, metavar="STOPS",
                    help="min dynamic range in stops (default 4; off with --from-hs)")
     q.add_argument("--max-response-uncertainty", type=float, default=0.02, metavar="F",
@@ -76,7 +79,8 @@ def run(args):
                          max_invalid_fraction=args.max_invalid,
                          min_dynamic_range_stops=min_dr,
                          max_response_uncertainty=args.max_response_uncertainty,
-                         require_calibration=args.require_calibration)
+                         require_calibration=args.require_calibration,
+                         max_noise_floor_fraction=args.max_unresolved)
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
                   scheduler=args.scheduler, progress=not args.quiet, verify=args.verify)

@@ -246,6 +246,15 @@ def write_evaluation_report(results_dir: str | Path, out_html: str | Path | None
                      "MRAE rule): " +
                      "; ".join(f"{e(s['model'])} {s['input']} pp {s['preprocess']}: "
                                f"{s['sam_excluded']} / {s['mrae_excluded']}" for s in excl) + "</p>")
+    unres = [s for s in summary if s.get("unresolved_pixels") or s.get("mrae_floor_excluded")]
+    if unres:
+        # the scores above leave out ground truth buried in its own noise: say how much
+        parts.append("<p>Ground truth not resolved above its own noise, not scored (pixels "
+                     "of mask bit 8 / further elements left out of MRAE, y ≤ 10σ): " +
+                     "; ".join(f"{e(s['model'])} {s['input']} pp {s['preprocess']}: "
+                               f"{s.get('unresolved_pixels') or 0} / "
+                               f"{s.get('mrae_floor_excluded') or 0}" for s in unres) +
+                     ". <code>mehs evaluate --score-unresolved</code> scores them.</p>")
     if doc.get("skipped"):
         parts.append("<p>Skipped: " + e("; ".join(f"{s['scene']} {s['input']}: {s['reason']}"
                                                    for s in doc["skipped"])) + "</p>")
