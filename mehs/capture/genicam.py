@@ -22,7 +22,10 @@ calibration given by the user).
 
 Reliability: a step-mode line is software-triggered; a timeout or an
 incomplete / lost buffer (missing packets) is counted in :attr:`events` and
-the line triggered again (same stage position) up to ``retries`` times;
+the line triggered again (same stage position) up to ``retries`` times; a
+late frame of an earlier trigger, which may come after the stage moved on, is
+recognised by its block id and arrival time, dropped and logged
+(:class:`~mehs.capture.genicam_frames.TriggerLedger`);
 a buffer whose pixel format or size does not match the configured frame
 is a :class:`~mehs.errors.DeviceError` at once (a configuration fault, not a
 transient one). A lost control channel ("camera unplugged") is
@@ -39,27 +42,19 @@ https://aravisproject.github.io/aravis/.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+import time
 from typing import Any, Callable
 
 import numpy as np
 
 from mehs.capture import pixfmt
 from mehs.capture.aravis import SCHEMES, import_aravis
+from mehs.capture.genicam_frames import Frame, FrameStream, TriggerLedger
 from mehs.capture.spectral_cal import polynomial_wavelengths
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputError
 
 
-@dataclass
-class Frame:
-    """One received spectral frame.
-
-    ``line``: uint16 ``(samples, bands)``; ``t``: host time (s) of mid-exposure.
-    """
-
-    line: np.ndarray
-    t: float
-    frame_id: int
+__all__ = ["Frame", "FrameStream", "GenicamCamera"]   # Frame, FrameStream: re-exported
 
 
 class GenicamCamera:
@@ -84,6 +79,11 @@ class GenicamCamera:
         Enumeration feature and its ``(open, closed)`` entries.
     n_buffers
         Stream buffers queued to the receiver.
+    frame_ids
+        Tell a step-mode line's frame from a late one of an earlier trigger by
+        block id (default); False for a camera whose ids do not increase (URL
+        option ``?frame-ids=off``): then only frames that arrived before the
+        line's trigger are recognised as late.
     """
 
     default_timeout = 2.0
@@ -92,7 +92,7 @@ class GenicamCamera:
     def __init__(self, device_id: str, *, timeout: float | None = None, retries: int = 3,
                  wavelengths: np.ndarray | None = None, dark_prompt: Callable[[str], None] | None = None,
                  shutter_feature: str = "Shutter", shutter_values: tuple[str, str] = ("Open", "Closed"),
-                 n_buffers: int = 16, name: str | None = None):
+                 n_buffers: int = 16, name: str | None = None, frame_ids: bool = True):
         self.Aravis, self.GLib = import_aravis()
         self.device_id = str(device_id)
         self._name = name or f"{self.url_scheme}{self.device_id}"
@@ -104,6 +104,7 @@ class GenicamCamera:
         self.n_buffers = int(n_buffers)
         self.events: list[str] = []
         self.lost_buffers = 0
+        self._ledger = TriggerLedger(self._name, frame_ids=frame_ids)
         self._control_lost = False
         self._acquiring: str | None = None   # None, "trigger" or "free"
         self._shutter_open: bool | None = None
@@ -122,12 +123,17 @@ class GenicamCamera:
     # ------------------------------------------------------------ plumbing
     @classmethod
     def open(cls, url: str, *, timeout: float | None = None, **kwargs: Any) -> "GenicamCamera":
-        """Open ``aravis://DEVICE-ID`` or ``genicam://DEVICE-ID``."""
+        """Open ``aravis://DEVICE-ID`` or ``genicam://DEVICE-ID`` (option ``?frame-ids=off``)."""
         for s in SCHEMES:
             if str(url).startswith(s):
-                dev = str(url)[len(s):]
+                dev, _, query = str(url)[len(s):].partition("?")
                 if not dev:
                     raise InputError(f"camera URL {url!r} names no device; give {s}DEVICE-ID")
+                if query:
+                    if query not in ("frame-ids=off", "frame-ids=on"):
+                        raise InputError(f"camera URL {url!r}: unknown option {query!r} "
+                                         "(the one option is ?frame-ids=off)")
+                    kwargs["frame_ids"] = query == "frame-ids=on"
                 return cls(dev, timeout=timeout, name=str(url), **kwargs)
         raise InputError(f"not a GenICam camera URL: {url!r} (use aravis://DEVICE-ID)")
 
@@ -322,15 +328,24 @@ class GenicamCamera:
             self._gi("TLParamsLocked", lambda: self.dev.set_integer_feature_value("TLParamsLocked", 1))
         self._gi("AcquisitionStart", lambda: self.dev.execute_command("AcquisitionStart"))
         self._acquiring = mode
+        self._ledger.reset()   # a camera may number its frames afresh from AcquisitionStart
 
-    def _drain(self) -> None:
+    def _drain(self, ledger: TriggerLedger | None = None) -> None:
+        """Re-queue every buffer received; with ``ledger`` note and log them (frames of earlier triggers)."""
         if self._stream is None:
             return
         while True:
             b = self._stream.try_pop_buffer()
             if b is None:
                 return
-            self._stream.push_buffer(b)
+            try:
+                if ledger is not None and b.get_status() == self.Aravis.BufferStatus.SUCCESS:
+                    fid = int(b.get_frame_id())
+                    ledger.seen(fid)
+                    self.events.append(f"camera: dropped frame {fid} of an earlier trigger "
+                                       "(arrived before the line's trigger)")
+            finally:
+                self._stream.push_buffer(b)
 
     def _frame_wait_us(self) -> int:
         t = (self._t_ms or 0.0) / 1000.0
@@ -376,25 +391,41 @@ class GenicamCamera:
         """Software-trigger one frame and return it: uint16 ``(samples, bands)``.
 
         A timeout or an incomplete buffer triggers the line again (the stage has
-        not moved), up to ``retries`` times.
+        not moved), up to ``retries`` times. A frame of an earlier line's trigger
+        (late: it came after the stage moved on) is dropped and logged, and the
+        wait for this line's frame goes on.
         """
         self._start("trigger")
-        self._drain()  # frames of an earlier, abandoned trigger
+        led = self._ledger
+        self._drain(led)  # frames of an earlier, abandoned trigger that already arrived
+        led.begin_line(time.time_ns())
         last = "no frame"
         for attempt in range(self.retries + 1):
+            led.triggered()
             self._gi("TriggerSoftware", lambda: self.dev.execute_command("TriggerSoftware"))
-            b = self._pop(self._frame_wait_us())
-            if b is None:
-                last = f"no frame within {self._frame_wait_us() / 1e6:.1f} s"
-                self.events.append(f"camera: timeout waiting for a triggered frame (attempt {attempt + 1})")
-                continue
-            if b is False:
-                last = "incomplete frame (lost packets)"
-                continue
-            try:
-                return self._decode(b)
-            finally:
-                self._stream.push_buffer(b)
+            deadline = time.monotonic() + self._frame_wait_us() / 1e6
+            while True:
+                left_us = int((deadline - time.monotonic()) * 1e6)
+                b = self._pop(left_us) if left_us > 0 else None
+                if b is None:
+                    last = f"no frame within {self._frame_wait_us() / 1e6:.1f} s"
+                    self.events.append("camera: timeout waiting for a triggered frame "
+                                       f"(attempt {attempt + 1})")
+                    if led.timed_out():
+                        self.events.append("camera: frame count re-synchronised after a timeout "
+                                           "(the camera ignored a trigger?)")
+                    break
+                if b is False:
+                    last = "incomplete frame (lost packets)"
+                    break
+                try:
+                    fid = int(b.get_frame_id())
+                    why = led.stale_reason(fid, int(b.get_system_timestamp()))
+                    if why is None:
+                        return self._decode(b)
+                    self.events.append(f"camera: dropped late frame {fid} of an earlier trigger ({why})")
+                finally:
+                    self._stream.push_buffer(b)
         err = DeviceDisconnected if self._control_lost else DeviceTimeout
         raise err(f"{last} (after {self.retries + 1} triggers of one line)", self.name)
 
@@ -422,73 +453,6 @@ class GenicamCamera:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-
-class FrameStream:
-    """Free-running acquisition; :meth:`poll` returns the frames received so far with host times.
-
-    Host time of a frame = camera timestamp + clock offset + t_exposure / 2
-    (timestamps mark the exposure start: GigE Vision cameras latch them at the
-    frame-start trigger). A camera whose clock is the host's (IEEE 1588 PTP
-    synchronised; the simulator) needs no offset; otherwise the offset is the
-    smallest ``system_timestamp − timestamp`` seen (the minimum transfer
-    latency, as NTP's minimum-delay filter), which places frames late by at
-    most the fastest frame's transfer time.
-    """
-
-    def __init__(self, camera: GenicamCamera, frame_rate_hz: float):
-        self.cam = camera
-        self.requested = float(frame_rate_hz)
-        self.rate = None
-        self._raw: list[tuple[np.ndarray, int, int, int]] = []
-        self._offset_ns: int | None = None
-
-    def __enter__(self) -> "FrameStream":
-        c = self.cam
-        c._stop()
-        if c._has("AcquisitionFrameRateEnable"):   # SFNC: the rate applies only when enabled
-            c._gi("AcquisitionFrameRateEnable",
-                  lambda: c.dev.set_boolean_feature_value("AcquisitionFrameRateEnable", True))
-        c._gi("setting AcquisitionFrameRate",
-              lambda: c.dev.set_float_feature_value("AcquisitionFrameRate", self.requested))
-        self.rate = c.frame_rate()
-        c._start("free")
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.cam._stop()
-
-    def poll(self, timeout_s: float = 0.0) -> list[Frame]:
-        """Frames received since the last call (waiting up to ``timeout_s`` for the first)."""
-        c = self.cam
-        out: list[Frame] = []
-        wait = int(max(timeout_s, 0.0) * 1e6)
-        while True:
-            b = c._pop(wait)
-            if b is None:
-                break
-            wait = 0
-            if b is False:
-                continue
-            try:
-                line = c._decode(b)
-                ts, sys_ts, fid = int(b.get_timestamp()), int(b.get_system_timestamp()), int(b.get_frame_id())
-            finally:
-                c._stream.push_buffer(b)
-            off = sys_ts - ts
-            self._offset_ns = off if self._offset_ns is None else min(self._offset_ns, off)
-            self._raw.append((line, ts, sys_ts, fid))
-            out.append(Frame(line, 0.0, fid))
-        return out
-
-    def frames(self) -> list[Frame]:
-        """All frames with host mid-exposure times (final clock offset applied)."""
-        half = (self.cam._t_ms or 0.0) / 2000.0
-        off = self._offset_ns or 0
-        if self._raw and abs(float(np.median([s - t for _l, t, s, _f in self._raw]))) < 1e9:
-            # the camera clock already is the host's (IEEE 1588 PTP, or the simulator): no offset
-            off = 0
-        return [Frame(line, (ts + off) / 1e9 + half, fid) for line, ts, _s, fid in self._raw]
 
 
 def _gerror(exc: BaseException) -> str:

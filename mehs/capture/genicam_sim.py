@@ -29,7 +29,11 @@ bracket however many frames a free-running continuous scan took before it):
 ``incomplete`` — frame N's data packets are dropped on the way (the
 receiver gets a leader and trailer only: an incomplete buffer);
 ``pixfmt`` — from frame N on the camera sends Mono8 frames (a
-misconfigured camera). Stage faults are those of :mod:`mehs.capture.simdevice`.
+misconfigured camera); ``late`` — frame N is held on the way and delivered just
+before the camera's next frame (with ``x2`` frames N and N+1 each come one
+frame late: in a step scan the first trigger of a line times out, its frame is
+taken by the retry, and the retry's own frame arrives after the next line's
+trigger — the stale frame a driver must recognise). Stage faults are those of :mod:`mehs.capture.simdevice`.
 """
 
 from __future__ import annotations
@@ -57,8 +61,8 @@ from mehs.capture.simserver import DeviceServer
 from mehs.capture.simulate import motion_phase, world_radiance_line
 from mehs.errors import DeviceError, InputError
 
-GV_FAULT_KINDS = ("unplug", "incomplete", "pixfmt")
-_GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt)@(\d+)(?:x(\d+))?(?:/(\d+(?:\.\d+)?)ms)?$")
+GV_FAULT_KINDS = ("unplug", "incomplete", "pixfmt", "late")
+_GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt|late)@(\d+)(?:x(\d+))?(?:/(\d+(?:\.\d+)?)ms)?$")
 #: Trigger-mode polling rate of the fake camera (Aravis's default, 25 Hz, caps step scans at ~24 lines/s).
 TRIGGER_POLL_HZ = 2000.0
 
@@ -182,6 +186,7 @@ class GenicamSimCamera:
         self.frames = 0
         self._fault_frames = [0] * len(self.faults)   # frames each fault has counted
         self._drop: set[int] = set()             # frame numbers an incomplete fault drops
+        self._late: set[int] = set()             # frame numbers a late fault holds back
         self.fired: list[tuple[int, str]] = []
         self.unplugged = threading.Event()
         self.errors: list[str] = []
@@ -233,10 +238,10 @@ class GenicamSimCamera:
                 reg(off + i, struct.unpack(">I", raw[i:i + 4].ljust(4, b"\0"))[0])
         self._fc, self._gv = fc, gv
         self._lib.arv_fake_camera_set_fill_pattern(_gobject_pointer(fc), self._cb, None)
-        if any(f.kind == "incomplete" for f in self.faults):
+        if any(f.kind in ("incomplete", "late") for f in self.faults):
             from mehs.capture.gvrelay import StreamRelay
 
-            self._relay = StreamRelay(fc, drop=self._drop_frame).start()
+            self._relay = StreamRelay(fc, drop=self._drop_frame, hold=self._late.__contains__).start()
         return self
 
     def stop(self) -> None:
@@ -301,6 +306,8 @@ class GenicamSimCamera:
                 continue
             if f.kind == "incomplete":
                 self._drop.add(n)
+            elif f.kind == "late":
+                self._late.add(n)
             else:
                 self.fired.append((n, f.kind))
                 if f.kind == "unplug":

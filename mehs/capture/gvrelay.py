@@ -1,13 +1,20 @@
-"""A GVSP relay that loses packets on purpose: incomplete buffers for the fault tests.
+"""A GVSP relay that loses or delays packets on purpose: incomplete and late buffers for the fault tests.
 
 GigE Vision streams frames as UDP packets (GVSP): a leader, data packets, a
 trailer, all tagged with the frame's block id. Aravis's fake camera sends them
 to the stream destination the receiver wrote into the camera's bootstrap
 registers (SCDA / SCP0). The relay watches those registers, puts itself in
 between (rewriting the port once the receiver has set it), and forwards every
-packet, except the data packets of the frames ``drop(n)`` selects (n = 1-based
-frame count): the receiver then gets a leader and a trailer without data, as
-when packets are lost on a real link, and reports an incomplete buffer.
+packet, except
+
+* the data packets of the frames ``drop(n)`` selects (n = 1-based frame
+  count): the receiver then gets a leader and a trailer without data, as when
+  packets are lost on a real link, and reports an incomplete buffer;
+* all packets of the frames ``hold(n)`` selects, which are kept and sent just
+  before the camera's next frame (a frame delayed past the receiver's timeout
+  — a congested switch, a camera slow to read out — that then arrives whole and
+  in order: Aravis discards a frame older than one it has already seen, so
+  a late frame is delivered only when it comes before the next one).
 
 References
 ----------
@@ -38,8 +45,9 @@ def gvsp_header(packet: bytes) -> tuple[int, int]:
 class StreamRelay:
     """Forward GVSP from the fake camera to the receiver, dropping the data of selected frames."""
 
-    def __init__(self, fake_camera, *, drop: Callable[[int], bool]):
-        self.fc, self.drop = fake_camera, drop
+    def __init__(self, fake_camera, *, drop: Callable[[int], bool] = lambda n: False,
+                 hold: Callable[[int], bool] = lambda n: False):
+        self.fc, self.drop, self.hold = fake_camera, drop, hold
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         self.sock.bind(("127.0.0.1", 0))
@@ -48,7 +56,10 @@ class StreamRelay:
         self.dest: tuple[str, int] | None = None
         self.frames = 0
         self.dropped_frames: list[int] = []
+        self.held_frames: list[int] = []
         self._dropping: int | None = None
+        self._holding: int | None = None          # block id of the frame being held
+        self._held: list[bytes] = []
         self._closed = threading.Event()
         self._threads = [threading.Thread(target=self._watch, daemon=True, name="gvsp-relay-watch"),
                          threading.Thread(target=self._forward, daemon=True, name="gvsp-relay")]
@@ -94,12 +105,24 @@ class StreamRelay:
             fmt, block = gvsp_header(pkt)
             if fmt == _LEADER:
                 self.frames += 1
+                held, self._held = self._held, []
+                for old in held:              # the late frame arrives just before this one
+                    self._send(old)
                 self._dropping = block if self.drop(self.frames) else None
                 if self._dropping is not None:
                     self.dropped_frames.append(self.frames)
+                self._holding = block if self.hold(self.frames) else None
+                if self._holding is not None:
+                    self.held_frames.append(self.frames)
             elif fmt == _DATA and block == self._dropping:
                 continue
-            try:
-                self.sock.sendto(pkt, self.dest)
-            except OSError:
-                time.sleep(0.001)
+            if self._holding is not None and block == self._holding:
+                self._held.append(pkt)
+                continue
+            self._send(pkt)
+
+    def _send(self, pkt: bytes) -> None:
+        try:
+            self.sock.sendto(pkt, self.dest)
+        except OSError:
+            time.sleep(0.001)
