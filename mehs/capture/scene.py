@@ -27,7 +27,7 @@ Band values
 -----------
 A band of the camera sees its spectral response function (a Gaussian of the
 scene's ``fwhm``), not the spectrum at its centre. Lights are therefore
-averaged over each band's Gaussian (±5σ), as a calibration against the same
+averaged over each band's Gaussian (±5σ, :data:`~mehs.calibration.spectra.GAUSS_SUPPORT_SIGMA`), as a calibration against the same
 tabulated SPD does (:func:`mehs.calibration.spectra.band_average`): a
 discharge or fluorescent line narrower than a band would otherwise be 30–60 %
 off in the bands around it. Reflectances are smooth at this scale (point
@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from mehs.calibration.spectra import GAUSS_SUPPORT_SIGMA
 from mehs.errors import InputError
 
 
@@ -93,7 +94,10 @@ def srf_average(fn, wavelengths: np.ndarray, fwhm: np.ndarray | float | None) ->
         return np.asarray(fn(wl), dtype=np.float64)
     fw = band_fwhm(fwhm, wl)
     sig = fw / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-    o = np.linspace(-3.0, 3.0, 121)
+    # the same ±5σ support as the calibration's band_average (GAUSS_SUPPORT_SIGMA), in steps
+    # of σ/20: a camera's band has no edge at 3σ, and lines beyond it are still seen
+    k = GAUSS_SUPPORT_SIGMA
+    o = np.linspace(-k, k, int(round(40 * k)) + 1)
     w = np.exp(-0.5 * o * o)
     x = wl[:, None] + sig[:, None] * o[None, :]
     return (np.asarray(fn(x), dtype=np.float64) * w).sum(axis=1) / w.sum()
