@@ -4,11 +4,12 @@ from __future__ import annotations
 
 # spelled out, not imported from mehs.io.ssr_datasets, to keep the parsers' import light;
 # tests/test_ssr_harvard_reader.py checks it lists every format
-FORMAT_CHOICES = ("auto", "arad1k", "arad", "icvl", "cave", "kaust", "harvard")
+FORMAT_CHOICES = ("auto", "arad1k", "arad", "icvl", "cave", "kaust", "harvard", "kaist", "cassi28")
 
 
 def add_source_arguments(parser) -> None:
-    """Options for reading ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST and Harvard folders directly."""
+    """Options for reading ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST, Harvard, KAIST and CASSI-28
+    folders directly."""
     parser.add_argument("--format", dest="source_format", choices=FORMAT_CHOICES, default="auto",
                         help="dataset layout: auto (a mehs dataset, a folder of pairs, or a public "
                              "SSR dataset detected by its files) or a public format "

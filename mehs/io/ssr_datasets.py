@@ -20,7 +20,13 @@ format     layout                                                      bands
 ``harvard`` Harvard (Chakrabarti & Zickler 2011): one MATLAB v5 ``.mat``  420–720 nm, 10 nm
            per scene (``img1.mat``, ``imga1.mat`` …) with ``ref``
            (1040×1392×31, double) and ``lbl`` (1040×1392), no RGB
+``kaist``  KAIST (Choi et al. 2017): ``sceneNN_reflectance.exr`` with    ``w<λ>nm`` names:
+           channels ``w420nm`` … ``w720nm`` (and ``R, G, B``, unused)   420–720 nm, 10 nm
+``cassi28`` the CASSI benchmarks' KAIST cubes: ``.mat`` with ``img``    453.5 … 648 nm (28)
+           (256×256×28) or ``HSI`` (2704×3376×28)
 =========  ==========================================================  ======================
+
+KAIST and its CASSI derivatives: :mod:`mehs.io.ssr_kaist` (layouts and their sources).
 
 Harvard: ``lbl`` marks the pixels to use; the dataset's moving objects (leaves, people)
 changed during the scan and are 0 there. Those pixels are masked (bit 2, "ghost", of
@@ -67,9 +73,10 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+from mehs.io.ssr_kaist import read_cassi28, read_kaist
 
 #: Public dataset formats read here.
-FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust", "harvard")
+FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust", "harvard", "kaist", "cassi28")
 
 _CAVE_BANDS = np.arange(400.0, 701.0, 10.0)
 _KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
@@ -431,4 +438,6 @@ READERS = {
     "cave": read_cave,
     "kaust": read_kaust,
     "harvard": read_harvard,
+    "kaist": read_kaist,
+    "cassi28": read_cassi28,
 }

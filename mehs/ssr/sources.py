@@ -1,4 +1,5 @@
-"""Public SSR datasets (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST, Harvard) as :class:`PairSet` s.
+"""Public SSR datasets (ARAD-1K, ARAD/BGU-HS, ICVL, CAVE, KAUST, Harvard, KAIST and its 28-band
+CASSI cubes) as :class:`PairSet` s.
 
 :func:`load_source` lists a dataset folder's scenes (format detected, or given), with their
 splits when the dataset defines them (ARAD-1K ``train_list.txt`` / ``valid_list.txt``, or
@@ -23,6 +24,7 @@ import numpy as np
 from mehs.errors import InputError
 from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
                                   read_source_cube, read_source_mask)
+from mehs.io.ssr_kaist import CASSI28_KEYS, is_kaist_exr
 from mehs.ssr.data import Pair, PairSet, check_disjoint_splits, srgb_decode_8bit
 
 _HINTS: dict[Path, tuple[str, SourceOptions]] = {}
@@ -44,38 +46,54 @@ def _cave_scene_dirs(root: Path) -> list[Path]:
     return sorted({p.parent for p in root.rglob("*_01.png") if len(_cave_pngs(p.parent)) >= 2})
 
 
-def _mat_keys(path: Path) -> set[str]:
-    """Variable names of a MATLAB file (v7.3 or v5); empty if it cannot be read."""
+def _mat_shapes(path: Path) -> dict[str, tuple]:
+    """Variable names of a MATLAB file (v7.3 or v5) → their shapes in MATLAB's axis order
+    (``()`` for a struct); empty if it cannot be read. Reads headers only."""
     import h5py
     from scipy.io.matlab import MatReadError
 
     try:
         if h5py.is_hdf5(str(path)):
             with h5py.File(path, "r") as h:
-                return set(h.keys())
+                # column-major on disk: the reversed shape is MATLAB's
+                return {k: tuple(reversed(v.shape)) if isinstance(v, h5py.Dataset) else ()
+                        for k, v in h.items()}
         import scipy.io
 
-        return {n for n, *_ in scipy.io.whosmat(path)}
+        return {n: tuple(shape) for n, shape, *_ in scipy.io.whosmat(path)}
     except (MatReadError, ValueError, TypeError, OSError, NotImplementedError, EOFError,
             IndexError, AssertionError):
-        return set()
+        return {}
+
+
+def _is_cassi28(shapes: dict[str, tuple]) -> bool:
+    """A CASSI benchmark cube: ``img`` or ``HSI`` of rows × columns × 28 (the variable names
+    alone are too common to tell)."""
+    return any(len(shapes.get(k, ())) == 3 and shapes[k][2] == 28 for k in CASSI28_KEYS)
 
 
 def detect_format(root: str | Path) -> str | None:
-    """The public format of a dataset folder, or ``None`` (by file types and MATLAB variables)."""
+    """The public format of a dataset folder, or ``None`` (by file types, MATLAB variables and
+    EXR channel names)."""
     root = Path(root)
     mats = sorted(root.rglob("*.mat"))
     # a few files, so one truncated download does not hide the format of the rest
     for f in mats[:5]:
-        keys = _mat_keys(f)
+        shapes = _mat_shapes(f)
+        keys = set(shapes)
         if "cube" in keys:
             return "arad1k"
         if "rad" in keys:
             return "arad" if f.stem.upper().startswith(("BGU", "ARAD")) else "icvl"
         if {"ref", "lbl"} <= keys:
             return "harvard"
+        if _is_cassi28(shapes):
+            return "cassi28"
     if mats:
         return None
+    # KAIST by its w<λ>nm channels: RGB EXRs (mehs's own HDR-RGB) are no KAIST scenes
+    if any(is_kaist_exr(f) for f in sorted(root.rglob("*.exr"))[:5]):
+        return "kaist"
     if next(root.rglob("*.h5"), None) is not None or next(root.rglob("*.hdf5"), None) is not None:
         return "kaust"
     if _cave_scene_dirs(root):
@@ -90,8 +108,15 @@ def _scene_files(root: Path, fmt: str) -> list[tuple[str, Path]]:
             sid = d.name[:-3] if d.name.lower().endswith("_ms") else d.name
             out.append((sid, d))
         return out
-    pats = ("*.h5", "*.hdf5") if fmt == "kaust" else ("*.mat",)
-    return sorted((p.stem, p) for pat in pats for p in root.rglob(pat))
+    pats = {"kaust": ("*.h5", "*.hdf5"), "kaist": ("*.exr",)}.get(fmt, ("*.mat",))
+    out = sorted((p.stem, p) for pat in pats for p in root.rglob(pat))
+    if fmt == "cassi28":
+        # the benchmarks ship their coded aperture beside the cubes (TSA_simu_data/mask.mat,
+        # mask_3d_shift.mat): a readable file without a cube variable is no scene; an
+        # unreadable one stays listed, so its error is seen
+        out = [(sid, p) for sid, p in out
+               if not (shapes := _mat_shapes(p)) or set(shapes) & set(CASSI28_KEYS)]
+    return out
 
 
 def _rgb_index(root: Path) -> dict[str, Path]:
