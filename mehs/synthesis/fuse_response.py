@@ -21,6 +21,7 @@ from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import warm_merge_kernel
 from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
                                      sample_pixels, to_levels, weighting_table)
+from mehs.synthesis.response_offset import match_constant as _match_constant
 
 #: "auto" uses the linear curve while consecutive exposures agree with it within this
 #: relative error at every well-exposed signal level
@@ -146,11 +147,11 @@ def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation
 #: is right but reached sublinearly: on a gamma-0.8 sensor (5 exposures ×4) the radiance
 #: error across brightness deciles spanned 13 % after 12 plain rounds, 3.6 % after 60
 #: over-relaxed ones (1.7 % after 300 plain). A shared curve's round costs ~7 ms; a
-#: per-band curve's ~200× that, so per-band curves use the direct solve instead
-#: (``offset="auto"``): after 12 rounds their radiance ran −15…+2 % of the truth across
-#: brightness deciles (gamma sensor, 5 exposures ×4), −38…+8 % on a linear sensor.
+#: per-band curve's ~200× that, so per-band curves take the direct solve only: after the
+#: 12 rounds they could afford their radiance ran −15…+2 % of the truth across brightness
+#: deciles (gamma sensor, 5 exposures ×4), −38…+8 % on a linear sensor, and the darkest
+#: decile of a natural scene (s-curve, 3 × ×4) +67 % (the true curve −14 %, direct −18 %).
 OFFSET_ITERATIONS_SHARED = 60
-OFFSET_ITERATIONS_PER_BAND = 12
 #: over-relaxation of those rounds: ×1.5 halves the rounds needed and stays stable (×3 diverged)
 OFFSET_RELAXATION = 1.5
 
@@ -178,13 +179,15 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     - ``"direct"``: one linear least-squares solve in the linear domain of ``f``
       (:func:`mehs.synthesis.response_offset.solve_offset_response`, the plain
       Debevec–Malik curve as pilot of its noise weights);
-    - ``"rounds"``: ``offset_iterations`` rounds (None: :data:`OFFSET_ITERATIONS_SHARED`
-      for a shared curve, :data:`OFFSET_ITERATIONS_PER_BAND` per band) re-solve with
+    - ``"rounds"`` (shared curves only): ``offset_iterations`` rounds (None:
+      :data:`OFFSET_ITERATIONS_SHARED`) re-solve with
       per-sample effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))``,
       ``E_i`` the pixel's current estimate — whose fixed point is the same model;
     - ``"auto"`` (default): direct for per-band curves (the 12 rounds they can afford
       left them biased), rounds for a shared curve (the direct solve is as accurate or
-      better on 3–5 exposures, worse on 2, and ~2× slower: see the module's notes).
+      better on 3–5 exposures, worse on 2, and ~2× slower: see the module's notes; on
+      dark gamma brackets, light ×10⁻³, its straight-line prior outweighs the few samples
+      above the dark: −24 % at level 1000, where the rounds are −6 %).
 
     A per-band curve (``shared=False``) is solved with the shared curve of the same
     bracket as its pilot and as the shape its smoothness prefers, then each band is put on
@@ -210,6 +213,11 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
         n_per = n
     if offset not in ("auto", "direct", "rounds"):
         raise InputError(f"unknown offset solve {offset!r}; use 'auto', 'direct' or 'rounds'")
+    if offset == "rounds" and not shared:
+        # the rounds a per-band curve can afford stop far from their fixed point
+        # (OFFSET_ITERATIONS_SHARED's notes): refused rather than silently biased
+        raise InputError("offset='rounds' is for shared curves only; a per-band curve "
+                         "takes the direct solve (offset='auto' or 'direct')", bracket.source)
     if not shared and npix < n:
         raise InputError(f"{npix} pixels are too few for a per-band "
                          f"{bracket.bit_depth}-bit curve from {P} exposures ({n} "
@@ -224,7 +232,7 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
     # for): its darkest decile was nearer the truth than 60 rounds' (5 exposures ×4: −4.7
     # vs −7.3 % per band, the true curve −2.5 %)
     ref = _recover_from(bracket, cand, cdark, True, _shared_per_band(n, nb),
-                        **{**opts, "offset": "rounds" if offset == "rounds" else "direct"})[0]
+                        **{**opts, "offset": "direct"})[0]
     curve, Z, D, f = _recover_from(bracket, cand, cdark, False, n_per, reference=ref, **opts)
     # one scale per band is not fixed by the data (E_i is per band too): the gauge
     # g(Z_mid) = ln Z_mid fixed it at a level a dark band never reaches, so its scale was
@@ -301,22 +309,16 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
         return _match_constant(f, plain, zmin,
                                {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
     if offset_iterations is None:
-        offset_iterations = OFFSET_ITERATIONS_SHARED if shared else OFFSET_ITERATIONS_PER_BAND
+        offset_iterations = OFFSET_ITERATIONS_SHARED
     if offset_iterations <= 0:
         return curve, Z, None, None
     w = wt[Z]
     t = bracket.times_ms[None, :, None]
     lev = np.arange(L)
     lt_cur = np.broadcast_to(np.log(t), Z.shape)
-    for _ in range(int(offset_iterations)):
-        G = curve.table(None if curve.shared else nb)
-        f = np.exp(G)
-        if curve.shared:
-            B = np.interp(D, lev, f[0])
-            gz = G[0][Z]
-        else:
-            B = np.stack([np.interp(D[:, :, c], lev, f[c]) for c in range(nb)], axis=2)
-            gz = G[np.arange(nb)[None, None, :], Z]
+    for _ in range(int(offset_iterations)):     # shared curves only (recover_response)
+        G = curve.table()[0]
+        B, gz = np.interp(D, lev, np.exp(G)), G[Z]
         W = w.sum(axis=1)
         lnE = np.where(W > 0, (w * (gz - lt_cur)).sum(axis=1) / np.where(W > 0, W, 1), 0.0)
         # over-relaxed (OFFSET_RELAXATION): the plain step converges sublinearly
@@ -325,48 +327,8 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
             Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
             weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
             parameters={**params, "offset_iterations": int(offset_iterations)})
-    f = np.exp(curve.table(None if curve.shared else nb))
+    f = np.exp(curve.table())
     return _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"}), Z, D, f
-
-
-def _match_constant(f: np.ndarray, plain: ResponseCurve, zmin: int,
-                    parameters: dict[str, Any]) -> ResponseCurve:
-    """The curve ``g = ln(f − c)`` of a linear-domain table ``f`` (C, L) whose additive
-    constant is free, with ``c`` chosen so that ``g`` follows ``plain``.
-
-    ``plain`` (Debevec–Malik without the offset) is accurate over the
-    well-exposed levels ``L/8 … 0.9·L``, where the offset is negligible; the
-    constant ``c`` that makes ``ln(f − c)`` parallel to it there is kept,
-    subject to ``f − c > 0`` at every level from ``zmin`` (the lowest
-    level seen) up. The result has the gauge ``g(Z_mid) = ln Z_mid``.
-    """
-    L = plain.levels
-    f = np.asarray(f, dtype=np.float64)
-    g0 = plain.table(None if plain.shared else f.shape[0])
-    if g0.shape[0] != f.shape[0]:
-        g0 = np.broadcast_to(g0, f.shape)
-    zs = np.arange(L // 8, int(0.9 * L), 16)
-    cmax = 0.98 * f[:, zmin:].min(axis=1)
-    cmin = -0.5 * f[:, L // 2]
-    frac = np.linspace(0.0, 1.0, 301)
-    c = cmin[:, None] + (cmax - cmin)[:, None] * frac[None, :]          # (C, K)
-    lg = np.log(np.maximum(f[:, None, zs] - c[:, :, None], 1e-12))      # (C, K, Z)
-    d = lg - g0[:, None, zs]
-    err = d.var(axis=2)
-    best = c[np.arange(c.shape[0]), np.argmin(err, axis=1)]
-    f2 = f - best[:, None]
-    slope = np.maximum(f2[:, zmin + 1] - f2[:, zmin], 1e-6)
-    f2[:, :zmin] = np.maximum(f2[:, zmin][:, None] - slope[:, None] * (zmin - np.arange(zmin)),
-                              1e-6 * slope[:, None])
-    f2 = np.maximum(f2, 1e-12)
-    mid = L // 2
-    g2 = np.log(f2)
-    g2 += np.log(mid) - g2[:, mid:mid + 1]
-    params = dict(parameters)
-    params["offset_constant"] = best.tolist() if best.size > 1 else float(best[0])
-    return ResponseCurve(g2[0] if plain.shared else g2, plain.bit_depth, method=plain.method,
-                         smoothness=plain.smoothness, weighting=plain.weighting,
-                         wavelengths=plain.wavelengths, parameters=params)
 
 
 def _sample_shared(cand: np.ndarray, n_per: int, seed: int,

@@ -30,7 +30,7 @@ Two constants are free: ``f → s·f`` with ``E → s·E`` (the scale) and ``f �
 (cancels in ``f(Z) − f(D)``). They are fixed by ``f(z_d) = 0`` at the median dark level
 and ``f(z_1) = 1`` at a level well above it; the caller then applies the curves'
 normalisation (``g = ln f``, ``g(Z_mid) = ln Z_mid``, the constant ``k`` chosen by
-:func:`mehs.synthesis.fuse_response._match_constant`).
+:func:`match_constant`).
 
 Weights (noise-aware): a sample's residual is in linear DN, whose noise is shot noise
 plus a floor, ``σ² ∝ y + y₀`` (``y = f(Z) − f(D)``, the pilot's linear signal — the
@@ -70,9 +70,27 @@ SHAPE_PRIOR_SCALE = 10.0
 PERMC = "MMD_AT_PLUS_A"
 
 
-def _pilot_linear(pilot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``f = exp(g)`` of a pilot curve table (C, L), and its slope per level (> 0)."""
-    f = np.exp(pilot - pilot.max(axis=1, keepdims=True))
+def _pilot_linear(pilot: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """``f = exp(g)`` of a pilot curve table (C, L), and its slope per level (> 0).
+
+    ``lo…hi``: the levels the samples cover. Outside them the pilot is the plain
+    solve's extrapolation (``g`` straight, ``f`` exponential), which says nothing about the
+    sensor: ``f`` is continued there as a straight line (the prior's own shape), and is
+    scaled to its largest value *inside* them. On a dark bracket (data up to level ~240
+    of 4096) the extrapolation rose ~e⁵⁰ to level L−1: scaled to it, the data's slopes
+    underflowed to 1e-22 and the smoothness vanished at the top levels, whose solved
+    ``f`` then ran to −1e27 (a flat curve after :func:`match_constant`, or a singular
+    per-band system)."""
+    g = np.asarray(pilot, dtype=np.float64)
+    L = g.shape[1]
+    f = np.exp(np.clip(g - g[:, lo:hi + 1].max(axis=1, keepdims=True), -700.0, 0.0))
+    lev = np.arange(L)
+    k = max(1, min(16, (hi - lo) // 4))
+    mean = (f[:, hi] - f[:, lo]) / max(hi - lo, 1)
+    s_hi = np.maximum((f[:, hi] - f[:, hi - k]) / k if hi - k >= lo else mean, mean)
+    s_lo = np.maximum((f[:, lo + k] - f[:, lo]) / k if lo + k <= hi else mean, 0.0)
+    f = np.where(lev > hi, f[:, hi:hi + 1] + s_hi[:, None] * (lev - hi), f)
+    f = np.where(lev < lo, f[:, lo:lo + 1] - s_lo[:, None] * (lo - lev), f)
     slope = np.gradient(f, axis=1)
     # a pilot flat or falling somewhere (noise at unseen levels) must not give the
     # smoothness an infinite weight there: floor at 1e-3 of the median slope
@@ -123,14 +141,18 @@ def solve_offset_response(Z: np.ndarray, D: np.ndarray, times: np.ndarray, level
         Dc = D.transpose(1, 0, 2).reshape(P, N * C).T[None]
     else:
         Zc, Dc = Z.transpose(2, 0, 1), D.transpose(2, 0, 1)       # (C, N, P)
-    fp_all, slope_all = _pilot_linear(np.asarray(pilot, dtype=np.float64))
+    seen = Z[level_w[Z] > 0]
+    if seen.size == 0:
+        raise InputError("no sample is unsaturated; the bracket cannot determine the response")
+    lo, hi = int(seen.min()), int(seen.max())
+    fp_all, slope_all = _pilot_linear(np.asarray(pilot, dtype=np.float64), lo, hi)
     out = np.empty((Zc.shape[0], L))
     violations = []
     for c in range(Zc.shape[0]):
         out[c], v = _solve_channel(Zc[c], np.clip(Dc[c], 0.0, L - 2.0), t, level_w,
                                    fp_all[min(c, fp_all.shape[0] - 1)],
                                    slope_all[min(c, slope_all.shape[0] - 1)],
-                                   smoothness, sp, spla, shape_prior)
+                                   smoothness, sp, spla, shape_prior, (lo, hi))
         violations.append(v)
     return out, {"solver": "offset-direct", "monotonic_violations": int(np.sum(violations))}
 
@@ -153,7 +175,8 @@ def _second_differences(fp, shape_prior, sp):
                     [0, 1, 2], shape=(L - 2, L))
 
 
-def _solve_channel(Z, D, t, level_w, fp, slope, smoothness, sp, spla, shape_prior=False):
+def _solve_channel(Z, D, t, level_w, fp, slope, smoothness, sp, spla, shape_prior=False,
+                   zrange=(0, 1 << 30)):
     """One curve: (N, P) levels ``Z`` and darks ``D`` → ``f`` (L,), count of non-rising levels."""
     N, P = Z.shape
     L = level_w.size
@@ -194,7 +217,10 @@ def _solve_channel(Z, D, t, level_w, fp, slope, smoothness, sp, spla, shape_prio
     if shape_prior:
         lam *= SHAPE_PRIOR_SCALE
     zs = np.arange(1, L - 1)
-    ws = np.maximum(level_w[zs], 1e-3) / slope[zs] * slope[L // 2]
+    # normalised at L/2, or the nearest level the samples cover (a dark bracket's data end
+    # far below it, where the pilot's slope is its continuation, not a measurement)
+    zr = int(np.clip(L // 2, *zrange))
+    ws = np.maximum(level_w[zs], 1e-3) / slope[zs] * slope[zr]
     D2 = _second_differences(fp, shape_prior, sp)
     A = A + lam * (D2.T @ sp.diags(ws ** 2) @ D2)
     # the gauge: f(z_d) = 0 at the median dark, f(z_1) = 1 a quarter of the range higher
@@ -298,3 +324,60 @@ def tie_bands_to_reference(tables: np.ndarray, ref_g: np.ndarray, Z: np.ndarray,
     g = np.where(inside, g, ref_g[None, :] + np.where(lev[None, :] < lo[:, None], d_lo, d_hi))
     g[~ok] = ref_g
     return g, {"bands_from_reference": int((~ok).sum())}
+
+
+def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict):
+    """The curve ``g = ln(f − c)`` of a linear-domain table ``f`` (C, L) whose additive
+    constant is free, with ``c`` chosen so that ``g`` follows ``plain``.
+
+    ``plain`` (Debevec–Malik without the offset) is accurate over the
+    well-exposed levels ``L/8 … 0.9·L``, where the offset is negligible; the
+    constant ``c`` that makes ``ln(f − c)`` parallel to it there is kept,
+    subject to ``f − c > 0`` at every level — with ``f`` continued as a straight line
+    below ``zmin`` (the lowest level seen) and kept from falling above it — so that
+    ``exp g`` is that continuation everywhere and the merge's ``f(Z) − f(D)`` never
+    meets a floor. The result has the gauge ``g(Z_mid) = ln Z_mid``.
+
+    (The constraint used to be ``0.98·min f`` from ``zmin`` up, which is the bound
+    ``plain`` always pushed ``c`` to: ``f − c`` was 2 % of ``f(zmin)`` there — and
+    negative where the direct solve's ``f`` is, below the dark level — so every level
+    at or below the lowest sampled one was floored to ~0, clipping the signed samples
+    of dark pixels the rest of the image reaches. Its minimum also ran over levels no
+    sample covers: a table falling there (to −1e23) made the curve flat.)
+    """
+    L = plain.levels
+    f = np.asarray(f, dtype=np.float64)
+    g0 = plain.table(None if plain.shared else f.shape[0])
+    if g0.shape[0] != f.shape[0]:
+        g0 = np.broadcast_to(g0, f.shape)
+    zmin = int(min(max(zmin, 0), L - 2))
+    lev = np.arange(L)
+    # no level above the lowest seen maps to less signal; below it, a straight line with
+    # the low end's mean slope (a few levels: the lowest one alone is noise)
+    f = f.copy()
+    f[:, zmin:] = np.maximum.accumulate(f[:, zmin:], axis=1)
+    k = max(1, min(8, L - 1 - zmin))
+    mid = max(L // 2, zmin + 1)
+    rise = (f[:, mid] - f[:, zmin]) / (mid - zmin)
+    slope = np.maximum((f[:, zmin + k] - f[:, zmin]) / k, 1e-3 * np.maximum(rise, 1e-300))
+    f[:, :zmin] = f[:, zmin:zmin + 1] - slope[:, None] * (zmin - lev[:zmin])
+    zs = np.arange(L // 8, int(0.9 * L), 16)
+    # one level's rise of headroom at level 0: exp g never reaches 0 on the table
+    cmax = f[:, 0] - slope
+    cmin = np.minimum(-0.5 * f[:, L // 2], cmax - (f[:, L // 2] - f[:, 0]))
+    frac = np.linspace(0.0, 1.0, 301)
+    c = cmin[:, None] + (cmax - cmin)[:, None] * frac[None, :]          # (C, K)
+    lg = np.log(np.maximum(f[:, None, zs] - c[:, :, None], 1e-12))      # (C, K, Z)
+    d = lg - g0[:, None, zs]
+    err = d.var(axis=2)
+    best = c[np.arange(c.shape[0]), np.argmin(err, axis=1)]
+    f2 = np.maximum(f - best[:, None], 1e-12 * np.maximum(f[:, -1] - best, 1e-300)[:, None])
+    g2 = np.log(f2)
+    g2 += np.log(L // 2) - g2[:, L // 2:L // 2 + 1]
+    params = dict(parameters)
+    params["offset_constant"] = best.tolist() if best.size > 1 else float(best[0])
+    from mehs.synthesis.response import ResponseCurve
+
+    return ResponseCurve(g2[0] if plain.shared else g2, plain.bit_depth, method=plain.method,
+                         smoothness=plain.smoothness, weighting=plain.weighting,
+                         wavelengths=plain.wavelengths, parameters=params)
