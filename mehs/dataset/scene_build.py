@@ -284,6 +284,10 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     with _timed(run, "fuse"):
         result = fuse_bracket(bracket, method=p.method, response=p.response or "auto",
                               ghosts=p.ghosts, seed=p.seed, calibration=p.calibration)
+    from mehs.dataset.noisefloor_sat import record_saturation
+
+    # where each exposure saturates (fusion.json): the noise model of what the merge used
+    record_saturation(result.summary, bracket, result.response)
     del bracket
     summary = dict(result.summary or {})
     # wall-clock figures belong to the volatile provenance, never to a data file
