@@ -90,3 +90,24 @@ def colorchecker_pair(h: int, w: int, seed: int, block: int = 8):
     up = lambda a: a.repeat(block, 0).repeat(block, 1)[:h, :w]  # noqa: E731
     hs = (up(refl[idx]) * ill * up(gain)).astype(np.float32)
     return TrainingPair(spectra_to_linear_sRGB(hs, WAVELENGTHS_31), hs, id=f"s{seed}")
+
+
+def decile_bias(br, sim, curve) -> np.ndarray:
+    """Radiance bias per brightness decile of the simulator's truth, one global scale
+    removed: ``(10,)`` of ``median(fused / truth) / overall median − 1`` when ``br`` (the
+    bracket of ``sim``) is fused with ``curve``. The response tests' measure of a curve."""
+    import warnings
+
+    from mehs.synthesis.fuse import fuse_bracket
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fuse_bracket(br, response=curve, ghosts="off")
+    rad = np.asarray(res.radiance.data, np.float64)
+    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
+    ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
+    lr = np.log(np.maximum(rad[ok], 1e-12) / truth[ok])
+    tv = truth[ok]
+    qs = np.quantile(tv, np.linspace(0, 1, 11))
+    return np.array([np.expm1(np.median(lr[(tv >= a) & (tv < b)]) - np.median(lr))
+                     for a, b in zip(qs[:-1], qs[1:])])

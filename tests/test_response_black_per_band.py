@@ -9,7 +9,6 @@ the curve flat) or +71 % (gamma sensor), and on a natural scene the direct solve
 singular. Bands are now tied to the shared curve over the levels they cover.
 """
 
-import warnings
 
 import numpy as np
 import pytest
@@ -19,7 +18,7 @@ from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
 from mehs.cube import SpectralCube
 from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.fuse import fuse_bracket
+from _checks import decile_bias
 from mehs.synthesis.fuse_response import recover_response
 from mehs.synthesis.response import ResponseCurve, weighting_table
 from mehs.synthesis.response_offset import tie_bands_to_reference
@@ -40,21 +39,6 @@ def _bracket(kind, response, times=(1.0, 4.0, 16.0), size=72):
     return sim, br, sensor
 
 
-def _deciles(br, sim, curve):
-    """Median radiance bias per brightness decile of the truth, one global scale removed."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = fuse_bracket(br, response=curve, ghosts="off")
-    rad = np.asarray(res.radiance.data, np.float64)
-    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
-    ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
-    lr = np.log(np.maximum(rad[ok], 1e-12) / truth[ok])
-    tv = truth[ok]
-    qs = np.quantile(tv, np.linspace(0, 1, 11))
-    return np.array([np.expm1(np.median(lr[(tv >= a) & (tv < b)]) - np.median(lr))
-                     for a, b in zip(qs[:-1], qs[1:])])
-
-
 def _true_curve(sensor):
     z = np.arange(4096)
     return ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
@@ -66,7 +50,7 @@ def test_dark_bands_of_a_per_band_curve_keep_their_scale(response):
     # before: darkest decile −100 % (s-curve), +71 % (gamma); the true curve +1 %, +5 %
     sim, br, _ = _bracket("lamp", response)
     curve = recover_response(br, shared=False)
-    bias = _deciles(br, sim, curve)
+    bias = decile_bias(br, sim, curve)
     assert np.abs(bias).max() < 0.12 and np.ptp(bias) < 0.12, np.round(bias, 3)
 
 
@@ -75,7 +59,7 @@ def test_per_band_curve_of_a_natural_scene_follows_the_true_curve():
     # darkest deciles −100 % and +1.5e6 % with the rounds
     sim, br, sensor = _bracket("natural", "s-curve")
     curve = recover_response(br, shared=False)
-    excess = _deciles(br, sim, curve) - _deciles(br, sim, _true_curve(sensor))
+    excess = decile_bias(br, sim, curve) - decile_bias(br, sim, _true_curve(sensor))
     assert np.abs(excess).max() < 0.07, np.round(excess, 3)
 
 

@@ -7,7 +7,6 @@ exposures ×8). The direct linear solve (:mod:`mehs.synthesis.response_offset`) 
 for that model.
 """
 
-import warnings
 
 import numpy as np
 import pytest
@@ -18,7 +17,7 @@ from mehs.capture.simulate import simulate_bracket
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
 from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.fuse import fuse_bracket
+from _checks import decile_bias
 from mehs.synthesis.fuse_response import recover_response
 from mehs.synthesis.response import weighting_table
 from mehs.synthesis.response_offset import solve_offset_response
@@ -34,20 +33,6 @@ def _bracket(response, times, step, size):
     return sim, br
 
 
-def _decile_bias(br, sim, curve):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = fuse_bracket(br, response=curve, ghosts="off")
-    rad = np.asarray(res.radiance.data, np.float64)
-    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
-    ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
-    lr = np.log(np.maximum(rad[ok], 1e-12) / truth[ok])
-    tv = truth[ok]
-    qs = np.quantile(tv, np.linspace(0, 1, 11))
-    return np.array([np.expm1(np.median(lr[(tv >= a) & (tv < b)]) - np.median(lr))
-                     for a, b in zip(qs[:-1], qs[1:])])
-
-
 @pytest.mark.parametrize("response, times, size, limit", [
     ("gamma", (0.04, 0.16, 0.64, 2.56, 10.24), 48, 0.10),   # 12 rounds: ptp 17 %
     # the shared curve on it: ptp 9–10 %, the true curve 7 % (its darkest decile −6 %)
@@ -57,7 +42,7 @@ def test_per_band_curve_radiance_has_no_brightness_dependent_bias(response, time
     sim, br = _bracket(response, times, 24, size)
     curve = recover_response(br, shared=False)
     assert curve.parameters["offset"] == "direct"
-    bias = _decile_bias(br, sim, curve)
+    bias = decile_bias(br, sim, curve)
     # per-band curves follow the shared curve where a band's data are thin (its pilot,
     # shape and scale), and so its bias near black (linear: −8 … −9 %, the true curve −6 %)
     assert np.ptp(bias) < limit and np.abs(bias).max() < 0.1, np.round(bias, 3)
@@ -67,7 +52,7 @@ def test_direct_shared_curve_on_a_five_exposure_ladder():
     # 60 over-relaxed rounds: −4.1…+0.8 % across deciles; the true curve: −0.2…+0.6 %
     sim, br = _bracket("gamma", (0.04, 0.16, 0.64, 2.56, 10.24), 4, 32)
     curve = recover_response(br, shared=True, offset="direct")
-    bias = _decile_bias(br, sim, curve)
+    bias = decile_bias(br, sim, curve)
     assert np.ptp(bias) < 0.03, np.round(bias, 3)
 
 
