@@ -111,3 +111,24 @@ def decile_bias(br, sim, curve) -> np.ndarray:
     qs = np.quantile(tv, np.linspace(0, 1, 11))
     return np.array([np.expm1(np.median(lr[(tv >= a) & (tv < b)]) - np.median(lr))
                      for a, b in zip(qs[:-1], qs[1:])])
+
+
+def bracket_of(sim, wl):
+    """The :class:`~mehs.synthesis.bracket.Bracket` of a simulated bracket ``sim`` (12-bit,
+    its darks, no white references), bands ``wl``."""
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+
+    n = len(sim.exposures)
+    return Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
+                   [None] * n, sim.times_ms, wl, bit_depth=12)
+
+
+def true_curve(sensor):
+    """The simulated ``sensor``'s own inverse response as a raw-level 12-bit curve: merging
+    with it is the floor of the response tests' measures."""
+    from mehs.synthesis.response import ResponseCurve
+
+    z = np.arange(4096)
+    return ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
+                         parameters={"levels": "raw"})

@@ -16,11 +16,9 @@ import pytest
 from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
-from mehs.synthesis.bracket import Bracket
-from _checks import decile_bias
+from _checks import bracket_of, decile_bias, true_curve
 from mehs.synthesis.fuse_response import recover_response
-from mehs.synthesis.response import ResponseCurve, weighting_table
+from mehs.synthesis.response import weighting_table
 from mehs.synthesis.response_offset import tie_bands_to_reference
 
 
@@ -34,15 +32,8 @@ def _bracket(kind, response, times=(1.0, 4.0, 16.0), size=72):
         scene = make_scene(kind, lines=size, samples=size, wavelengths=wl, seed=1)
     sensor = SensorModel(response=response, seed=3)
     sim = simulate_bracket(scene, sensor, list(times))
-    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, wl, bit_depth=12)
+    br = bracket_of(sim, wl)
     return sim, br, sensor
-
-
-def _true_curve(sensor):
-    z = np.arange(4096)
-    return ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
-                         parameters={"levels": "raw"})
 
 
 @pytest.mark.parametrize("response", ["s-curve", "gamma"])
@@ -59,7 +50,7 @@ def test_per_band_curve_of_a_natural_scene_follows_the_true_curve():
     # darkest deciles −100 % and +1.5e6 % with the rounds
     sim, br, sensor = _bracket("natural", "s-curve")
     curve = recover_response(br, shared=False)
-    excess = decile_bias(br, sim, curve) - decile_bias(br, sim, _true_curve(sensor))
+    excess = decile_bias(br, sim, curve) - decile_bias(br, sim, true_curve(sensor))
     assert np.abs(excess).max() < 0.07, np.round(excess, 3)
 
 

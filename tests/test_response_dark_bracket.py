@@ -23,11 +23,9 @@ import pytest
 from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
-from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.fuse import fuse_bracket
 from mehs.synthesis.fuse_response import recover_response
-from mehs.synthesis.response import ResponseCurve
+from _checks import bracket_of, true_curve
 
 
 def _dark_bracket(response, scale=1e-3, size=96, times=(1.0, 4.0, 16.0)):
@@ -38,15 +36,8 @@ def _dark_bracket(response, scale=1e-3, size=96, times=(1.0, 4.0, 16.0)):
     scene.radiance = (scene.radiance * np.float32(scale)).astype(np.float32)
     sensor = SensorModel(response=response, seed=3)
     sim = simulate_bracket(scene, sensor, list(times))
-    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, wl, bit_depth=12)
+    br = bracket_of(sim, wl)
     return sim, br, sensor
-
-
-def _true_curve(sensor):
-    z = np.arange(4096)
-    return ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
-                         parameters={"levels": "raw"})
 
 
 def _fused(br, curve):
@@ -62,7 +53,7 @@ def _excess_over_true_curve(sim, br, sensor, curve):
     scaled to the truth's total), over the deciles where the true curve's merge is within
     50 % of the truth (the rest is noise: a median or a log there says nothing)."""
     truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
-    ra, oka = _fused(br, _true_curve(sensor))
+    ra, oka = _fused(br, true_curve(sensor))
     rb, okb = _fused(br, curve)
     ok = np.broadcast_to((oka & okb)[..., None] & (truth > 0), truth.shape)
     t, a, b = truth[ok], ra[ok], rb[ok]

@@ -14,10 +14,8 @@ import pytest
 from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
 from mehs.errors import InputError
-from mehs.synthesis.bracket import Bracket
-from _checks import decile_bias
+from _checks import bracket_of, decile_bias
 from mehs.synthesis.fuse_response import recover_response
 from mehs.synthesis.response import weighting_table
 from mehs.synthesis.response_offset import solve_offset_response
@@ -28,8 +26,7 @@ def _bracket(response, times, step, size):
     sim = simulate_bracket(make_scene("colorchecker", lines=size, samples=size,
                                       wavelengths=wl, seed=1),
                            SensorModel(response=response, seed=3), list(times))
-    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, wl, bit_depth=12)
+    br = bracket_of(sim, wl)
     return sim, br
 
 
