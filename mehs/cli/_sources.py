@@ -26,6 +26,16 @@ def add_source_arguments(parser) -> None:
                              "linear for ARAD-1K and ARAD/BGU-HS (the NTIRE challenges' camera "
                              "projections, no tone curve), sRGB for the others "
                              "(default: %(default)s)")
+    parser.add_argument("--harvard-lbl", choices=("zero-excluded", "nonzero-excluded", "ignore"),
+                        default="zero-excluded",
+                        help="Harvard: which pixels of 'lbl' are excluded as moving objects "
+                             "(default: %(default)s, as public loaders read it; the dataset's "
+                             "own statement could not be checked)")
+    parser.add_argument("--harvard-calib", choices=("none", "divide", "multiply"),
+                        default="none",
+                        help="Harvard: apply the dataset's calib.txt per band (public code "
+                             "disagrees on the direction; default: %(default)s, 'ref' as "
+                             "stored)")
 
 
 def apply_source_arguments(args, dataset) -> None:
@@ -36,8 +46,11 @@ def apply_source_arguments(args, dataset) -> None:
     from mehs.io.ssr_datasets import SourceOptions
 
     encoding = getattr(args, "rgb_encoding", "auto")
+    lbl = getattr(args, "harvard_lbl", "zero-excluded")
+    calib = getattr(args, "harvard_calib", "none")
     explicit = (args.source_format != "auto" or args.hs_bands != "visible" or args.hs_crop
-                or args.hs_scale != 1.0 or encoding != "auto")
+                or args.hs_scale != 1.0 or encoding != "auto" or lbl != "zero-excluded"
+                or calib != "none")
     if not explicit:
         return
     if not (math.isfinite(args.hs_scale) and args.hs_scale > 0):
@@ -61,8 +74,9 @@ def apply_source_arguments(args, dataset) -> None:
     if fmt == "auto":
         fmt = detect_format(dataset)
         if fmt is None:
-            raise InputError("--hs-bands/--hs-crop/--hs-scale/--rgb-encoding apply to public "
-                             "SSR datasets, and "
+            raise InputError("--hs-bands/--hs-crop/--hs-scale/--rgb-encoding/--harvard-* "
+                             "apply to public SSR datasets, and "
                              "this folder is not one (give --format)", dataset)
     remember_source(dataset, fmt, SourceOptions(bands=bands, crop=crop, scale=float(args.hs_scale),
-                                                rgb_encoding=encoding))
+                                                rgb_encoding=encoding, harvard_lbl=lbl,
+                                                harvard_calib=calib))

@@ -12,18 +12,11 @@ Channel order
     other tools are read in a conventional order: ``R, G, B, A`` (per layer)
     first, spectral channels by wavelength, anything else by name.
 
-Spectral layout (Fichet, Pacanowski & Wilkie 2021)
-    One channel per band named ``S0.<λ>nm`` for emissive data (radiance; the
-    unpolarised Stokes component S0) or ``T.<λ>nm`` for reflectance /
-    transmittance, where ``<λ>`` is the band centre in nm written with a comma
-    as decimal separator and the shortest digits that round-trip exactly, e.g.
-    ``S0.400nm``, ``S0.397,32nm``. Header attributes: ``spectralLayoutVersion
-    = "1.0"`` (Fichet 2021), ``wavelengths`` (float vector, nm, band order),
-    ``mehsWavelengths`` (the same as exact decimal text), ``mehsFWHM`` (text,
-    when known), ``mehsUnits`` (the cube's units). Readers that know the
-    Fichet layout (colour-science ``read_spectral_image_Fichet2021``, the
-    spectral-exr viewer, ART) read these files; the reader here also accepts
-    bare ``<λ>nm`` channel names.
+Spectral images
+    One channel per band (Fichet, Pacanowski & Wilkie 2021 layout):
+    :mod:`mehs.io.exr_spectral`, whose functions are re-exported here. The
+    names of spectral channels are parsed here (:func:`parse_spectral_channel`)
+    because the conventional order above needs them.
 
 References
 ----------
@@ -59,6 +52,11 @@ _UNIT_TO_NM = {"": 1e9, "m": 1e6, "u": 1e3, "n": 1.0, "p": 1e-3}
 # Fichet 2021 channel: component (S0..S3 or T), '.', number with ',' decimal, unit.
 _SPECTRAL_RE = re.compile(
     r"^(?:(?P<comp>S[0-3]|T)\.)?(?P<num>\d+(?:[,.]\d*)?(?:[eE][-+]?\d+)?)(?P<mult>[munp]?)m$")
+# KAIST (Choi et al. 2017): ``w420nm`` … ``w720nm`` (a decimal centre is accepted).
+_KAIST_RE = re.compile(r"^w(?P<num>\d+(?:\.\d+)?)nm$")
+#: Naming schemes of spectral channels (:func:`parse_spectral_channel`): Fichet 2021
+#: components, bare ``<λ>nm``, KAIST ``w<λ>nm``.
+SCHEME_BARE, SCHEME_KAIST = "", "w"
 _RGBA_ORDER = {"R": 0, "G": 1, "B": 2, "A": 3}
 
 
@@ -195,63 +193,6 @@ def write_exr_gray(path: str | Path, img: np.ndarray, *, half: bool = False,
     return write_exr(path, img, ["Y"], half=half, header=header)
 
 
-def wavelength_channel_name(wavelength_nm: float, component: str = "S0") -> str:
-    """Fichet 2021 channel name of one band, e.g. ``S0.400nm`` or ``T.397,32nm``."""
-    wl = float(wavelength_nm)
-    text = str(int(wl)) if wl.is_integer() else repr(wl)
-    return f"{component}.{text.replace('.', ',')}nm"
-
-
-def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float] | None = None, *,
-                       half: bool = False, header: dict[str, Any] | None = None) -> Path:
-    """Write a spectral image as one EXR channel per band (Fichet 2021 layout).
-
-    Parameters
-    ----------
-    cube
-        A :class:`~mehs.cube.SpectralCube` or an ``(H, W, B)`` array (then
-        ``wavelengths`` is required). A cube's lines become image rows.
-    wavelengths
-        Band centres in nm, ``(B,)``; overrides the cube's when given.
-    half
-        Store half floats (values beyond ±65504 raise).
-
-    Channels are ``S0.<λ>nm`` (``T.<λ>nm`` when the cube's units say
-    reflectance); see the module docstring for the header attributes.
-    """
-    from mehs.cube import SpectralCube, validate_wavelengths
-
-    path = Path(path)
-    units = "relative radiance"
-    fwhm = None
-    if isinstance(cube, SpectralCube):
-        data = cube.data
-        wl = cube.wavelengths if wavelengths is None else wavelengths
-        units = cube.units
-        fwhm = cube.fwhm if wavelengths is None else None
-    else:
-        data = np.asarray(cube)
-        if wavelengths is None:
-            raise InputError("wavelengths are required to write an array as a spectral EXR", path)
-        wl = wavelengths
-    if data.ndim != 3:
-        raise InputError(f"a spectral image must be (H, W, B), got shape {data.shape}", path)
-    wl = validate_wavelengths(wl, data.shape[2], path)
-    component = "T" if "reflect" in str(units).lower() or "transmit" in str(units).lower() else "S0"
-    names = [wavelength_channel_name(w, component) for w in wl]
-    hdr: dict[str, Any] = {
-        "spectralLayoutVersion": "1.0",
-        "wavelengths": [float(w) for w in wl],
-        "mehsWavelengths": " ".join(repr(float(w)) for w in wl),
-        "mehsUnits": str(units),
-    }
-    if fwhm is not None:
-        hdr["mehsFWHM"] = " ".join(repr(float(f)) for f in fwhm)
-    if header:
-        hdr.update(header)
-    return write_exr(path, data, names, half=half, header=hdr)
-
-
 # --------------------------------------------------------------------------- reading
 
 def _check_file(path: Path) -> None:
@@ -265,18 +206,33 @@ def _check_file(path: Path) -> None:
         raise FormatError("not an OpenEXR file (bad magic number)", path)
 
 
-def _channel_sort_key(name: str) -> tuple:
-    layer, _, base = name.rpartition(".")
+def parse_spectral_channel(name: str) -> tuple[str, float] | None:
+    """The naming scheme and band centre (nm) of a spectral channel name, else ``None``.
+
+    The one parser of spectral channel names in mehs (the generic reader here and the
+    KAIST reader of :mod:`mehs.io.ssr_kaist`). Schemes: ``"S0"`` … ``"S3"`` and ``"T"``
+    (Fichet 2021: ``S0.400nm``, ``T.397,32nm``, ``S0.0,4um``), :data:`SCHEME_BARE`
+    (``400nm``) and :data:`SCHEME_KAIST` (``w420nm``).
+    """
+    name = str(name)
     m = _SPECTRAL_RE.match(name)
     if m:
-        return (1, m.group("comp") or "", _parse_nm(m), name)
+        nm = float(m.group("num").replace(",", ".")) * _UNIT_TO_NM[m.group("mult")]
+        return (m.group("comp") or SCHEME_BARE), nm
+    m = _KAIST_RE.match(name)
+    if m:
+        return SCHEME_KAIST, float(m.group("num"))
+    return None
+
+
+def _channel_sort_key(name: str) -> tuple:
+    layer, _, base = name.rpartition(".")
+    parsed = parse_spectral_channel(name)
+    if parsed:
+        return (1, parsed[0], parsed[1], name)
     if base in _RGBA_ORDER:
         return (0, layer, _RGBA_ORDER[base], name)
     return (2, name, 0.0, name)
-
-
-def _parse_nm(m: re.Match) -> float:
-    return float(m.group("num").replace(",", ".")) * _UNIT_TO_NM[m.group("mult")]
 
 
 def read_exr(path: str | Path, *, check_finite: bool = True) -> ExrImage:
@@ -342,69 +298,8 @@ def read_exr(path: str | Path, *, check_finite: bool = True) -> ExrImage:
     return ExrImage(data=data, channels=names, header=header, path=path)
 
 
-def spectral_channels(channels: Sequence[str]) -> tuple[list[int], np.ndarray]:
-    """Indices and wavelengths (nm) of the emissive/reflective spectral channels.
-
-    Recognises Fichet 2021 names (``S0.<λ>nm``, ``T.<λ>nm``, units ``m``,
-    ``um``, ``nm``, ``pm``; comma or point decimal) and bare ``<λ>nm``.
-    Polarised components ``S1``–``S3`` are skipped. When both ``S0`` and
-    ``T`` channels exist, ``S0`` (emission) wins.
-    """
-    found: dict[str, list[tuple[int, float]]] = {}
-    for i, name in enumerate(channels):
-        m = _SPECTRAL_RE.match(name)
-        if m and m.group("comp") in (None, "S0", "T"):
-            found.setdefault(m.group("comp") or "", []).append((i, _parse_nm(m)))
-    for comp in ("S0", "T", ""):
-        if comp in found:
-            idx, wl = zip(*found[comp])
-            return list(idx), np.asarray(wl, dtype=np.float64)
-    return [], np.empty(0)
-
-
-def _text_floats(value: Any, n: int) -> np.ndarray | None:
-    if not isinstance(value, str):
-        return None
-    try:
-        out = np.asarray([float(v) for v in value.split()], dtype=np.float64)
-    except ValueError:
-        return None
-    return out if out.size == n else None
-
-
-def read_exr_spectral(path: str | Path):
-    """Read a spectral EXR (Fichet 2021 layout or bare ``<λ>nm`` channels).
-
-    Returns
-    -------
-    SpectralCube
-        float32 data ``(H, W, B)`` (rows → lines), wavelengths from the
-        exact ``mehsWavelengths`` attribute when present and consistent, else
-        from the channel names; units from ``mehsUnits`` (default
-        ``"relative radiance"``, or ``"reflectance"`` for ``T.`` channels).
-        Non-spectral channels (e.g. an ``R, G, B`` preview) are ignored.
-
-    Raises
-    ------
-    FormatError
-        No spectral channels.
-    """
-    from mehs.cube import SpectralCube
-
-    img = read_exr(path, check_finite=True)
-    idx, wl = spectral_channels(img.channels)
-    if not idx:
-        raise FormatError(
-            f"no spectral channels (expected names like 'S0.400nm'); channels are "
-            f"{img.channels[:8]}{'…' if len(img.channels) > 8 else ''}", img.path)
-    exact = _text_floats(img.header.get("mehsWavelengths"), len(idx))
-    if exact is not None and np.allclose(exact, wl, rtol=0, atol=1e-3):
-        wl = exact
-    comp = _SPECTRAL_RE.match(img.channels[idx[0]]).group("comp")
-    units = img.header.get("mehsUnits")
-    if not isinstance(units, str):
-        units = "reflectance" if comp == "T" else "relative radiance"
-    fwhm = _text_floats(img.header.get("mehsFWHM"), len(idx))
-    data = img.data if idx == list(range(img.data.shape[2])) else img.data[:, :, idx]
-    return SpectralCube(data=np.ascontiguousarray(data), wavelengths=wl, fwhm=fwhm, units=units,
-                        source=img.path, metadata={"exr_channels": [img.channels[i] for i in idx]})
+# the spectral layout lives in its own module (size); its names stay importable from here
+from mehs.io.exr_spectral import (ABSOLUTE_RADIANCE, EMISSIVE_UNITS,  # noqa: E402,F401
+                                  checked_spectral_channels, read_exr_spectral,
+                                  spectral_channels, wavelength_channel_name,
+                                  write_exr_spectral)

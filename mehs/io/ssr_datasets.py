@@ -28,16 +28,8 @@ format     layout                                                      bands
 
 KAIST and its CASSI derivatives: :mod:`mehs.io.ssr_kaist` (layouts and their sources).
 
-Harvard: ``lbl`` marks the pixels to use; the dataset's moving objects (leaves, people)
-changed during the scan and are 0 there. Those pixels are masked (bit 2, "ghost", of
-:mod:`mehs.ssr.data`'s masks) and enter no metric and no training sample
-(:func:`read_source_mask`). The polarity is that of public loaders of the dataset (e.g.
-``HarvardHSIDataset`` in github.com/Gesetz13/Moi: ``hsi[lbl == 0] = 0``); a scene whose
-``lbl`` leaves no pixel usable is refused rather than scored empty. The cube starts at
-420 nm: nothing is extrapolated. The default band selection keeps its 29 bands in
-400–700 nm (as KAUST-HS keeps its 31 of 34), models' 400 and 410 nm outputs go unscored,
-and the pseudo-HDR-RGB is integrated over 420–700 nm (the CMFs' 400–410 nm share, 2.6 %
-of Z for a flat spectrum, is absent from the data, as it is from the camera's).
+Harvard: :mod:`mehs.io.ssr_harvard` (``lbl`` polarity, ``calib.txt``, bands). Its moving
+objects are masked (bit 2, "ghost", of :mod:`mehs.ssr.data`'s masks; :func:`read_source_mask`).
 
 MATLAB files are read with :mod:`h5py` (v7.3: HDF5 behind a 512-byte MATLAB userblock; arrays
 are stored column-major, so every axis order is reversed: a MATLAB ``H×W×B`` cube reads as
@@ -73,6 +65,9 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+from mehs.io.ssr_harvard import HARVARD_MOTION  # noqa: F401 (re-exported)
+from mehs.io.ssr_harvard import (CALIB_MODES, LBL_POLARITIES, apply_harvard_calib, harvard_mask,
+                                 read_harvard)
 from mehs.io.ssr_kaist import read_cassi28, read_kaist
 
 #: Public dataset formats read here.
@@ -81,9 +76,6 @@ FORMATS = ("arad1k", "arad", "icvl", "cave", "kaust", "harvard", "kaist", "cassi
 _CAVE_BANDS = np.arange(400.0, 701.0, 10.0)
 _KAUST_DEFAULT = np.arange(400.0, 731.0, 10.0)
 _KAUST_KEYS = ("img", "cube", "rad", "data", "hsi", "reflectance")
-_HARVARD_BANDS = np.arange(420.0, 721.0, 10.0)
-#: Mask value of a pixel Harvard's ``lbl`` excludes (bit 2, "ghost": it moved during the scan).
-HARVARD_MOTION = 2
 _RGB_EXT = (".jpg", ".jpeg", ".png", ".bmp")
 RGB_ENCODINGS = ("auto", "linear", "srgb")
 #: Words of list-file stems and folder names that name a split. Folder names are the
@@ -107,6 +99,12 @@ class SourceOptions:
         ``(height, width)`` of a central crop, or ``None``.
     scale
         Multiplies the stored values (1 = as stored).
+    harvard_lbl
+        Harvard's ``lbl``: ``"zero-excluded"`` (default: 0 marks moving objects),
+        ``"nonzero-excluded"`` or ``"ignore"`` (:mod:`mehs.io.ssr_harvard`).
+    harvard_calib
+        Harvard's ``calib.txt``: ``"none"`` (default: ``ref`` as stored), ``"divide"`` or
+        ``"multiply"`` per band (:mod:`mehs.io.ssr_harvard`).
     rgb_encoding
         How the dataset's own 8-bit RGB images encode light: ``"linear"`` (values
         proportional to the camera's signal), ``"srgb"`` (the sRGB transfer curve), or
@@ -121,11 +119,15 @@ class SourceOptions:
     crop: tuple[int, int] | None = None
     scale: float = 1.0
     rgb_encoding: str = "auto"
+    harvard_lbl: str = LBL_POLARITIES[0]
+    harvard_calib: str = CALIB_MODES[0]
 
     def __post_init__(self) -> None:
-        if self.rgb_encoding not in RGB_ENCODINGS:
-            raise InputError(f"rgb_encoding must be one of {', '.join(RGB_ENCODINGS)}, "
-                             f"got {self.rgb_encoding!r}")
+        for name, value, allowed in (("rgb_encoding", self.rgb_encoding, RGB_ENCODINGS),
+                                     ("harvard_lbl", self.harvard_lbl, LBL_POLARITIES),
+                                     ("harvard_calib", self.harvard_calib, CALIB_MODES)):
+            if value not in allowed:
+                raise InputError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
 
     def rgb_encoding_for(self, fmt: str) -> str:
         """The encoding of ``fmt``'s RGB images: the option, or the format's own for auto."""
@@ -133,10 +135,17 @@ class SourceOptions:
             return self.rgb_encoding
         return "linear" if fmt in ("arad1k", "arad") else "srgb"
 
-    def record(self) -> dict:
+    def record(self, fmt: str | None = None) -> dict:
+        """The options as recorded with results; the Harvard-only ones for ``fmt`` harvard
+        (or when set), so other formats' records stay as they were."""
         d = asdict(self)
         if isinstance(self.bands, np.ndarray):
             d["bands"] = self.bands.tolist()
+        if fmt != "harvard":
+            for k, default in (("harvard_lbl", LBL_POLARITIES[0]),
+                               ("harvard_calib", CALIB_MODES[0])):
+                if d[k] == default:
+                    del d[k]
         return d
 
 
@@ -320,37 +329,8 @@ def read_kaust(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
 
 
 # --------------------------------------------------------------------------- Harvard
-def read_harvard(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
-    """A Harvard ``.mat`` → ``(cube (H, W, 31) as stored, bands 420:720:10, info)``.
-
-    The ``lbl`` mask is read by :func:`read_source_mask`, not here.
-    """
-    path = Path(path)
-    cube = read_mat_variables(path, ("ref",))["ref"]
-    if cube.dtype.kind not in "fiub":
-        raise FormatError(f"'ref' must be real numbers, got {cube.dtype}", path)
-    if cube.ndim != 3 or cube.shape[2] != _HARVARD_BANDS.size:
-        raise FormatError(f"'ref' must be rows × columns × 31 bands (420–720 nm), got shape "
-                          f"{cube.shape}", path)
-    return cube, _HARVARD_BANDS.copy(), {"variable": "ref", "bands_from": "Harvard 420:720:10"}
-
-
-def _harvard_mask(path: Path) -> np.ndarray | None:
-    """Harvard's ``lbl`` as a mask ``(H, W)`` uint8: :data:`HARVARD_MOTION` where it is 0;
-    ``None`` for a file without ``lbl``."""
-    try:
-        lbl = read_mat_variables(path, ("lbl",))["lbl"]
-    except FormatError as exc:
-        if "no variable 'lbl'" in exc.problem:
-            return None
-        raise
-    if lbl.ndim != 2 or lbl.dtype.kind not in "fiub":
-        raise FormatError(f"'lbl' must be a rows × columns mask, got {lbl.dtype} "
-                          f"{lbl.shape}", path)
-    if not np.any(lbl):
-        raise FormatError("'lbl' marks no pixel as usable (all 0): nothing of this scene could "
-                          "be scored", path)
-    return np.where(lbl != 0, 0, HARVARD_MOTION).astype(np.uint8)
+def _harvard_mask(path: Path, opts: SourceOptions) -> np.ndarray | None:
+    return harvard_mask(path, opts.harvard_lbl)
 
 
 #: format → reader of a scene's mask (0 = valid), for formats that ship one.
@@ -366,7 +346,7 @@ def read_source_mask(fmt: str, path: str | Path, shape: tuple[int, int],
     """
     path = Path(path)
     reader = MASK_READERS.get(fmt)
-    m = None if reader is None else reader(path)
+    m = None if reader is None else reader(path, opts)
     if m is None:
         return np.zeros(tuple(shape), dtype=np.uint8)
     if opts.crop is not None and m.shape != tuple(shape):
@@ -425,8 +405,11 @@ def read_source_cube(fmt: str, path: str | Path, opts: SourceOptions = SourceOpt
     if fmt not in READERS:
         raise InputError(f"unknown dataset format {fmt!r}; use one of {', '.join(FORMATS)}")
     cube, bands, info = READERS[fmt](path)
+    if fmt == "harvard":  # per stored band, before any band selection
+        cube, done = apply_harvard_calib(cube, path, opts.harvard_calib)
+        info.update(done)
     data, wl = apply_options(cube, bands, opts, path)
-    info.update({"format": fmt, "stored_shape": list(cube.shape), "options": opts.record()})
+    info.update({"format": fmt, "stored_shape": list(cube.shape), "options": opts.record(fmt)})
     return data, wl, info
 
 

@@ -60,8 +60,6 @@ import numpy as np
 
 from mehs.errors import FormatError, InputError
 
-#: A KAIST spectral channel: ``w<λ>nm`` (``w420nm``; a decimal centre is accepted).
-KAIST_CHANNEL = re.compile(r"^w(\d+(?:\.\d+)?)nm$")
 #: The 28 band centres (nm) of the CASSI benchmarks' KAIST cubes (TSA-Net; MST ``lam28``).
 CASSI28_BANDS = np.array([453.5, 457.5, 462.0, 466.0, 471.5, 476.5, 481.5, 487.0, 492.5, 498.0,
                           504.0, 510.0, 516.0, 522.5, 529.5, 536.5, 544.0, 551.5, 558.5, 567.5,
@@ -71,9 +69,15 @@ CASSI28_KEYS = ("img", "HSI")
 
 
 def kaist_channels(names) -> tuple[list[str], np.ndarray]:
-    """The ``w<λ>nm`` channel names of ``names`` in wavelength order, and their centres (nm)."""
-    found = sorted((float(m.group(1)), n)
-                   for n in names for m in [KAIST_CHANNEL.match(str(n))] if m)
+    """The ``w<λ>nm`` channel names of ``names`` in wavelength order, and their centres (nm).
+
+    Parsed by :func:`mehs.io.exr.parse_spectral_channel`, the one parser of spectral channel
+    names that the generic spectral EXR reader uses too.
+    """
+    from mehs.io.exr import SCHEME_KAIST, parse_spectral_channel
+
+    found = sorted((p[1], str(n)) for n in names for p in [parse_spectral_channel(str(n))]
+                   if p and p[0] == SCHEME_KAIST)
     return [n for _, n in found], np.asarray([w for w, _ in found], dtype=np.float64)
 
 

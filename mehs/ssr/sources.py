@@ -171,6 +171,24 @@ def _folder_split(part: str) -> str | None:
     return None
 
 
+def file_identity(path: Path) -> tuple:
+    """What tells one version of a scene's data from another: ``(inode, size, mtime_ns,
+    ctime_ns)`` of the file, or of every band PNG of a CAVE scene folder. A cache keyed by
+    the path alone served a file re-exported in the same process (a notebook re-run, a
+    scene rewritten in place or replaced by rename) as its old content, silently."""
+    path = Path(path)
+    files = _cave_pngs(path) if path.is_dir() else [path]
+    out = []
+    for f in files:
+        try:
+            st = f.stat()
+        except OSError:  # gone: the reader says so with the file's name
+            out.append((str(f), None))
+            continue
+        out.append((str(f), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
+    return tuple(out)
+
+
 @dataclass
 class SourcePair(Pair):
     """A scene of a public dataset; the cube is read (and the RGB rendered) on demand."""
@@ -178,8 +196,17 @@ class SourcePair(Pair):
     fmt: str = "arad1k"
     options: SourceOptions = field(default_factory=SourceOptions)
 
+    def _identity(self) -> tuple:
+        ident = file_identity(self.hs_path)
+        if self.fmt == "harvard" and self.options.harvard_calib != "none":
+            from mehs.io.ssr_harvard import find_calib
+
+            calib = find_calib(self.hs_path)  # read with the cube: its version counts too
+            ident += file_identity(calib) if calib is not None else ()
+        return ident
+
     def _read(self):
-        key = (str(self.hs_path), self.fmt, self.options)
+        key = (str(self.hs_path), self._identity(), self.fmt, self.options)
         if _LAST.get("key") != key:  # one scene cached: evaluate reads the cube, then its RGB
             _LAST.clear()
             _LAST["key"] = key
@@ -240,7 +267,7 @@ class SourcePair(Pair):
         """The dataset's own mask (Harvard's ``lbl``: moving objects), zeros for the others."""
         if shape is None:
             shape = self.hs_array()[0].shape[:2]
-        key = (str(self.hs_path), self.fmt, self.options, tuple(shape))
+        key = (str(self.hs_path), self._identity(), self.fmt, self.options, tuple(shape))
         if _LAST.get("mask_key") != key:  # one scene cached, as the cube
             m = read_source_mask(self.fmt, self.hs_path, tuple(shape), self.options)
             _LAST["mask_key"], _LAST["mask"] = key, m
@@ -279,7 +306,7 @@ def load_source(root: str | Path, fmt: str | None = None, *, split: str | None =
     pairs = [SourcePair(id=sid, hs_path=p, hdr_path=p, ldr_path=_rgb_for(sid, rgbs),
                         split=split_of.get(sid), fmt=fmt, options=opts)
              for sid, p in entries if wanted is None or sid in wanted]
-    manifest = {"format": f"public:{fmt}", "source_format": fmt, "options": opts.record(),
+    manifest = {"format": f"public:{fmt}", "source_format": fmt, "options": opts.record(fmt),
                 "splits": splits, "hdr_rgb": "pseudo-HDR-RGB of the cube (half float)",
                 "ldr_rgb": "dataset RGB image when shipped, else mehs.rgb.ldr_rgb"}
     return PairSet(pairs, root=root, manifest=manifest, splits=splits)
