@@ -2,7 +2,8 @@
 
 Needs Aravis (gir1.2-aravis-0.8 + PyGObject; `.ci/run` installs both); skipped
 with the install hint otherwise. One fake camera at a time (GVCP port 3956
-on 127.0.0.1), so these tests never run their simulators concurrently.
+on 127.0.0.1): these tests never run their simulators concurrently, and another
+test run's simulators are waited for (fixture ``gvcp_port_turns``).
 """
 
 import subprocess
@@ -13,7 +14,8 @@ import pytest
 from mehs.capture.aravis import aravis_available
 
 _why = aravis_available()
-pytestmark = pytest.mark.skipif(_why is not None, reason=f"Aravis unavailable: {_why}")
+pytestmark = [pytest.mark.skipif(_why is not None, reason=f"Aravis unavailable: {_why}"),
+              pytest.mark.usefixtures("gvcp_port_turns")]   # another run's camera: wait for it
 
 from mehs.capture import scenefolder as sf  # noqa: E402
 from mehs.capture.scene import make_scene  # noqa: E402
@@ -58,14 +60,9 @@ def median_rel_error(scene_dir):
 
 
 @pytest.fixture(scope="module")
-def serial_scene(tmp_path_factory):
+def serial_scene(serial_scene_factory):
     """The same scene through the serial camera path (in-process simulator)."""
-    from mehs.cli import main
-
-    out = tmp_path_factory.mktemp("serial") / "scene"
-    assert main(["capture", "--simulate", "--size", str(SIZE), "--seed", str(SEED), "--out", str(out),
-                 "--times", ",".join(map(str, TIMES)), "--no-progress"]) == 0
-    return out
+    return serial_scene_factory(SIZE, SEED, TIMES)
 
 
 def test_gige_capture_both_scan_modes_fuse_like_serial(tmp_path, serial_scene):

@@ -93,13 +93,13 @@ def test_unknown_url_option_is_a_clear_error():
 
 # ---------------------------------------------------------------- over GigE Vision (fake camera)
 @pytest.fixture(scope="module")
-def serial_scene(tmp_path_factory):
-    from mehs.cli import main
+def serial_scene(serial_scene_factory):
+    return serial_scene_factory(SIZE, SEED, TIMES)
 
-    out = tmp_path_factory.mktemp("serial") / "scene"
-    assert main(["capture", "--simulate", "--size", str(SIZE), "--seed", str(SEED), "--out", str(out),
-                 "--times", ",".join(map(str, TIMES)), "--no-progress"]) == 0
-    return out
+
+@pytest.fixture(autouse=True)
+def _port_turns(gvcp_port_turns):
+    """Another test run's simulated camera: wait for it (GVCP port 3956, one per host)."""
 
 
 def _raw(scene_dir, rec):

@@ -25,7 +25,8 @@ incomplete / lost buffer (missing packets) is counted in :attr:`events` and
 the line triggered again (same stage position) up to ``retries`` times; a
 late frame of an earlier trigger, which may come after the stage moved on, is
 recognised by its block id and arrival time, dropped and logged
-(:class:`~mehs.capture.genicam_frames.TriggerLedger`);
+(:class:`~mehs.capture.genicam_frames.TriggerLedger`); frames still on the way when a
+free-running acquisition stops are awaited and dropped (:meth:`GenicamCamera._flush`);
 a buffer whose pixel format or size does not match the configured frame
 is a :class:`~mehs.errors.DeviceError` at once (a configuration fault, not a
 transient one). A lost control channel ("camera unplugged") is
@@ -299,9 +300,14 @@ class GenicamCamera:
         return float(hi)
 
     # ------------------------------------------------------------ acquisition
-    def _stop(self) -> None:
+    def _stop(self, flush_s: float | None = None) -> None:
+        """AcquisitionStop; after free-running, discard the frames still on the way.
+
+        ``flush_s``: quiet time that ends the flush (default: :attr:`timeout`, the longest a
+        frame may be late; 0: no wait, as on close).
+        """
         if self._acquiring is not None:
-            self._acquiring = None
+            was, self._acquiring = self._acquiring, None
             if not self._control_lost:
                 try:
                     self._gi("AcquisitionStop", lambda: self.dev.execute_command("AcquisitionStop"))
@@ -310,7 +316,38 @@ class GenicamCamera:
                                  lambda: self.dev.set_integer_feature_value("TLParamsLocked", 0))
                 except DeviceError:
                     pass
-            self._drain()
+            if was == "free" and not self._control_lost:
+                self._flush(self.timeout if flush_s is None else flush_s)
+            else:
+                self._drain()
+
+    def _flush(self, quiet_s: float) -> None:
+        """Receive and discard frames until none came for ``quiet_s`` (bounded by :attr:`timeout`).
+
+        A free-running camera has frames on the way when AcquisitionStop is sent (SFNC: the
+        acquisition ends after the current frame; the link adds its latency). Arriving after
+        the next acquisition's first trigger, such a frame would be taken for that line, and
+        neither its arrival time nor its block id (a camera may number afresh from
+        AcquisitionStart) tells it apart: so they are awaited and dropped here, as GenTL
+        consumers flush the stream's queue after stopping.
+        """
+        if self._stream is None:
+            return
+        quiet_us = int(1e6 * max(0.0, min(float(quiet_s), self.timeout)))
+        deadline = time.monotonic() + self.timeout + 2 * (self._t_ms or 0.0) / 1000.0 + 1.0
+        n = 0
+        while time.monotonic() < deadline:   # (a camera that never stops: give up, leave it to the ledger)
+            try:
+                b = self._stream.timeout_pop_buffer(quiet_us) if quiet_us else self._stream.try_pop_buffer()
+            except Exception:   # GLib error of a vanished camera: nothing more will come
+                return
+            if b is None:
+                break
+            n += 1
+            self._stream.push_buffer(b)
+        if n:
+            self.events.append(f"camera: discarded {n} free-running frame(s) still on the way "
+                               "after AcquisitionStop")
 
     def _start(self, mode: str) -> None:
         if self._acquiring == mode:
@@ -435,7 +472,7 @@ class GenicamCamera:
 
     def close(self) -> None:
         try:
-            self._stop()
+            self._stop(flush_s=0.0)
         except DeviceError:
             pass
         held = [self._stream, self.dev, self.cam]

@@ -188,7 +188,23 @@ class FrameStream:
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        self.cam._stop()
+        self.cam._stop(flush_s=self.flush_quiet_s())
+
+    def flush_quiet_s(self) -> float:
+        """Quiet time that shows the frames sent before AcquisitionStop have all arrived.
+
+        While a free-running camera's frames are still on the way they arrive about one frame
+        period apart, give or take the link's jitter (the spread of ``system − camera``
+        timestamps seen, clock offset cancelling), plus the frame the camera finishes
+        exposing; a gap of two periods, one exposure and twice the jitter (at least 20 ms)
+        means the pipe is empty. The camera caps it at its frame timeout.
+        """
+        period = 1.0 / self.rate if self.rate else 0.0
+        jitter = 0.0
+        if self._raw:
+            lat = np.array([s - t for _l, t, s, _f in self._raw], dtype=np.float64)
+            jitter = float(lat.max() - lat.min()) / 1e9
+        return 2 * period + (self.cam._t_ms or 0.0) / 1000.0 + 2 * jitter + 0.02
 
     def poll(self, timeout_s: float = 0.0) -> list[Frame]:
         """Frames received since the last call (waiting up to ``timeout_s`` for the first)."""

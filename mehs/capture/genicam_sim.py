@@ -53,6 +53,7 @@ import numpy as np
 
 from mehs.capture import genicam_xml as gx
 from mehs.capture import pixfmt
+from mehs.capture.gvcp_lock import GvcpPortLock
 from mehs.capture.aravis import import_aravis
 from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
@@ -168,12 +169,19 @@ class GenicamSimCamera:
     max_frame_rate
         Highest ``AcquisitionFrameRate`` (Hz). Every frame is computed in Python
         (about 1 ms for 64 × 204); 100 Hz keeps a loaded two-core host on time.
+    link_delay_ms
+        Every GVSP packet reaches the receiver this much later (a slow link; 0: direct).
+    port_wait_s
+        Seconds to wait for another process's simulated camera to free GVCP port
+        3956 (default: environment ``MEHS_GVCP_WAIT_S``, else 0 — fail at once);
+        see :class:`~mehs.capture.gvcp_lock.GvcpPortLock`.
     """
 
     def __init__(self, world: SimWorld, *, serial: str = "MEHS0001", pixel_format: str = "Mono12",
                  pixel_formats: tuple[str, ...] = ("Mono12", "Mono16", "Mono12Packed", "Mono12p"),
                  shutter: bool = True, faults: list[GvFault] | str | None = None,
-                 interface: str | None = None, max_frame_rate: float = 100.0):
+                 interface: str | None = None, max_frame_rate: float = 100.0,
+                 link_delay_ms: float = 0.0, port_wait_s: float | None = None):
         self.Aravis, _ = import_aravis()
         self.world = world
         self.serial = serial
@@ -182,6 +190,8 @@ class GenicamSimCamera:
             raise InputError(f"pixel format {pixel_format} is not among the offered {pixel_formats}")
         self.pixel_format, self.pixel_formats, self.shutter = pixel_format, tuple(pixel_formats), shutter
         self.interface = interface or self.Aravis.GV_FAKE_CAMERA_DEFAULT_INTERFACE
+        self.link_delay_s = float(link_delay_ms) / 1000.0
+        self._port_lock = GvcpPortLock(self.interface, port_wait_s)
         self.lens_capped = False
         self.frames = 0
         self._fault_frames = [0] * len(self.faults)   # frames each fault has counted
@@ -208,15 +218,22 @@ class GenicamSimCamera:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "GenicamSimCamera":
+        self._port_lock.acquire()     # held until close(): see GvcpPortLock
+        try:
+            return self._start()
+        except BaseException:
+            self._release()
+            raise
+
+    def _start(self) -> "GenicamSimCamera":
         # The fill callback needs the GIL within a frame period; CPython's default 5 ms
         # switch interval would make a busy host thread skip frames of the simulated camera.
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(min(self._switch, 0.0005))
         gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial, str(self.xml_path))
         if gv is None or not gv.is_running():
-            raise DeviceError("cannot serve the simulated GigE Vision camera: is another one "
-                              "(arv-fake-gv-camera, mehs sim-device --genicam) already on port 3956?",
-                              self.interface)
+            raise DeviceError(f"cannot serve the simulated GigE Vision camera on {self.interface} "
+                              "(no such interface?)", self.interface)
         fc = gv.get_fake_camera()
         fc.set_trigger_frequency(TRIGGER_POLL_HZ)
         w = self.world
@@ -238,10 +255,11 @@ class GenicamSimCamera:
                 reg(off + i, struct.unpack(">I", raw[i:i + 4].ljust(4, b"\0"))[0])
         self._fc, self._gv = fc, gv
         self._lib.arv_fake_camera_set_fill_pattern(_gobject_pointer(fc), self._cb, None)
-        if any(f.kind in ("incomplete", "late") for f in self.faults):
+        if any(f.kind in ("incomplete", "late") for f in self.faults) or self.link_delay_s > 0:
             from mehs.capture.gvrelay import StreamRelay
 
-            self._relay = StreamRelay(fc, drop=self._drop_frame, hold=self._late.__contains__).start()
+            self._relay = StreamRelay(fc, drop=self._drop_frame, hold=self._late.__contains__,
+                                      delay_s=self.link_delay_s).start()
         return self
 
     def stop(self) -> None:
@@ -256,11 +274,17 @@ class GenicamSimCamera:
             del gv
         self.unplugged.set()
 
-    def close(self) -> None:
+    def _release(self) -> None:
         self.stop()
         if getattr(self, "_switch", None) is not None:
             sys.setswitchinterval(self._switch)
             self._switch = None
+        # (not in stop(): an "unplugged" camera keeps the port until the test is done with it,
+        # so that no other process's camera answers at its address meanwhile)
+        self._port_lock.release()
+
+    def close(self) -> None:
+        self._release()
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def __enter__(self):

@@ -14,7 +14,11 @@ packet, except
   before the camera's next frame (a frame delayed past the receiver's timeout
   — a congested switch, a camera slow to read out — that then arrives whole and
   in order: Aravis discards a frame older than one it has already seen, so
-  a late frame is delivered only when it comes before the next one).
+  a late frame is delivered only when it comes before the next one);
+
+and, with ``delay_s``, forwards every packet that much later (a link with a
+constant latency: frames keep arriving for ``delay_s`` after the camera stopped
+sending, as a frame in flight across AcquisitionStop does).
 
 References
 ----------
@@ -24,6 +28,7 @@ AIA, *GigE Vision 2.0*, 2011, §22 "GVSP header" and §28 bootstrap registers
 
 from __future__ import annotations
 
+import collections
 import socket
 import struct
 import threading
@@ -46,8 +51,10 @@ class StreamRelay:
     """Forward GVSP from the fake camera to the receiver, dropping the data of selected frames."""
 
     def __init__(self, fake_camera, *, drop: Callable[[int], bool] = lambda n: False,
-                 hold: Callable[[int], bool] = lambda n: False):
+                 hold: Callable[[int], bool] = lambda n: False, delay_s: float = 0.0):
         self.fc, self.drop, self.hold = fake_camera, drop, hold
+        self.delay_s = max(0.0, float(delay_s))
+        self._delayed: collections.deque[tuple[float, bytes]] = collections.deque()  # (due, packet)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         self.sock.bind(("127.0.0.1", 0))
@@ -94,7 +101,11 @@ class StreamRelay:
 
     def _forward(self) -> None:
         while not self._closed.is_set():
+            self._send_due()
+            # wake in time for the next delayed packet (one delay for all: first in, first due)
+            wait = min(0.05, max(1e-4, self._delayed[0][0] - time.monotonic())) if self._delayed else 0.05
             try:
+                self.sock.settimeout(wait)
                 pkt, _ = self.sock.recvfrom(65536)
             except socket.timeout:
                 continue
@@ -122,6 +133,17 @@ class StreamRelay:
             self._send(pkt)
 
     def _send(self, pkt: bytes) -> None:
+        if self.delay_s > 0:
+            self._delayed.append((time.monotonic() + self.delay_s, pkt))
+        else:
+            self._send_now(pkt)
+
+    def _send_due(self) -> None:
+        now = time.monotonic()
+        while self._delayed and self._delayed[0][0] <= now:
+            self._send_now(self._delayed.popleft()[1])
+
+    def _send_now(self, pkt: bytes) -> None:
         try:
             self.sock.sendto(pkt, self.dest)
         except OSError:
