@@ -132,3 +132,31 @@ def true_curve(sensor):
     z = np.arange(4096)
     return ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
                          parameters={"levels": "raw"})
+
+
+def signal_decile_excess(sim, br, sensor, curve, min_dn: float = 20.0) -> np.ndarray:
+    """``(10,)``: per brightness decile of the simulator's truth, the mean radiance merged
+    with ``curve`` minus that merged with the sensor's true curve, relative to the decile's
+    true radiance (each merge scaled to the truth's total). Only samples whose true signal
+    in the longest exposure is ``≥ min_dn`` DN count: on a dark bracket most samples are
+    read noise, whose deciles say nothing about a curve (the true curve's own merge is off
+    there by thousands of per cent)."""
+    import warnings
+
+    from mehs.synthesis.fuse import fuse_bracket
+
+    def fused(c):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = fuse_bracket(br, response=c, ghosts="off")
+        return np.asarray(res.radiance.data, np.float64), res.mask == 0
+
+    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
+    (ra, oka), (rb, okb) = fused(true_curve(sensor)), fused(curve)
+    ok = (np.broadcast_to((oka & okb)[..., None], truth.shape)
+          & (truth * float(np.max(br.times_ms)) >= min_dn))
+    t, a, b = truth[ok], ra[ok], rb[ok]
+    a, b = a * t.sum() / a.sum(), b * t.sum() / b.sum()
+    qs = np.quantile(t, np.linspace(0, 1, 11))
+    return np.array([(b[m].sum() - a[m].sum()) / t[m].sum()
+                     for m in ((t >= lo) & (t <= hi) for lo, hi in zip(qs[:-1], qs[1:]))])

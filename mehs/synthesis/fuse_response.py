@@ -40,10 +40,14 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
     :func:`exposure_consistency` (on ``probe``, the bracket's default probe, when given)."""
     from mehs.synthesis.response_check import response_uncertainty
 
+    # the solve that made a shared curve (offset="auto" kept one of two) is what is checked,
+    # at one solve per re-recovery instead of two
+    offset = curve.parameters.get("offset") if curve.shared else None
 
     def again(*, smoothness: float, pool):
         return recover_response(bracket, smoothness=smoothness, samples=samples, seed=seed,
-                                shared=shared, levels="raw", saturation=saturation, pool=pool)
+                                shared=shared, levels="raw", saturation=saturation, pool=pool,
+                                offset=offset if offset in ("direct", "rounds") else "auto")
 
     from mehs.synthesis.merge import merge_bracket
 
@@ -183,11 +187,10 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
       :data:`OFFSET_ITERATIONS_SHARED`) re-solve with
       per-sample effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))``,
       ``E_i`` the pixel's current estimate — whose fixed point is the same model;
-    - ``"auto"`` (default): direct for per-band curves (the 12 rounds they can afford
-      left them biased), rounds for a shared curve (the direct solve is as accurate or
-      better on 3–5 exposures, worse on 2, and ~2× slower: see the module's notes; on
-      dark gamma brackets, light ×10⁻³, its straight-line prior outweighs the few samples
-      above the dark: −24 % at level 1000, where the rounds are −6 %).
+    - ``"auto"`` (default): direct for per-band curves; for a shared curve the rounds, but
+      on a dark bracket both, keeping the one whose residual on held-out pixels is smaller
+      (:mod:`mehs.synthesis.response_select`: there either alone was 15–55 % off the true
+      curve's radiance in some brightness decile).
 
     A per-band curve (``shared=False``) is solved with the shared curve of the same
     bracket as its pilot and as the shape its smoothness prefers, then each band is put on
@@ -228,11 +231,12 @@ def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: in
             "offset": offset, "offset_iterations": offset_iterations}
     if shared:
         return _recover_from(bracket, cand, cdark, True, n_per, **opts)[0]
-    # the reference by the same linear-domain solve as the bands (unless rounds were asked
-    # for): its darkest decile was nearer the truth than 60 rounds' (5 exposures ×4: −4.7
-    # vs −7.3 % per band, the true curve −2.5 %)
-    ref = _recover_from(bracket, cand, cdark, True, _shared_per_band(n, nb),
-                        **{**opts, "offset": "direct"})[0]
+    # the reference (the bands' shape where their data are thin): the direct shared curve
+    # (its darkest decile nearer the truth than 60 rounds', 5 exposures ×4: −4.7 vs −7.3 % per
+    # band), but on a dark bracket the one auto keeps: the direct one put dark gamma brackets'
+    # bands 9–22 % off the true curve's merge; now ≤ 2 %
+    ref = _recover_from(bracket, cand, cdark, True, _shared_per_band(n, nb), **{
+        **opts, "offset": "auto-reference" if offset == "auto" else "direct"})[0]
     curve, Z, D, f = _recover_from(bracket, cand, cdark, False, n_per, reference=ref, **opts)
     # one scale per band is not fixed by the data (E_i is per band too): the gauge
     # g(Z_mid) = ln Z_mid fixed it at a level a dark band never reaches, so its scale was
@@ -266,7 +270,6 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
     as its pilot and its smoothness's shape (``shape_prior`` of
     :func:`~mehs.synthesis.response_offset.solve_offset_response`)."""
     L = 1 << bracket.bit_depth
-    nb = bracket.shape[2]
     lt = np.log(bracket.times_ms)
     params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
     try:
@@ -289,25 +292,52 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
                            axis=1).transpose(1, 2, 0)
     wt = weighting_table(weighting, L)
     zmin = int(max(Z[wt[Z] > 0].min(), 1)) if np.any(wt[Z] > 0) else 1
-    if offset == "direct" or (offset == "auto" and not shared):
-        from mehs.synthesis.response_offset import solve_offset_response
+    solve = (bracket, Z, D, plain, wt, zmin, smoothness)
+    if offset == "direct" or not shared:
+        return _offset_direct(*solve, shared=shared, reference=reference)
+    if offset == "rounds":
+        return _offset_rounds(*solve, weighting, params, offset_iterations)
+    # "auto", shared: on a dark bracket the curve that fits pixels neither solve saw, else the
+    # rounds (response_select: the rounds' prior suits a gamma sensor, the direct's a linear)
+    from mehs.synthesis.response_select import auto_offset_solve
 
-        try:
-            # per band, the plain curve of a dark band is its prior's extrapolation: the
-            # shared curve is the better pilot, and the shape its data are too few to set
-            # (a dark band's prior towards a straight line put its darkest levels 30 % high)
-            pilot = (reference.table() if reference is not None
-                     else plain.table(None if plain.shared else nb))
-            f, stats = solve_offset_response(Z, D, bracket.times_ms, wt, pilot,
-                                             smoothness=smoothness, shared=shared,
-                                             shape_prior=reference is not None)
-        except InputError as exc:
-            raise exc.with_path(bracket.source) from None
-        # f is 1 a quarter of the range above the dark: scaled to DN-like values, as the
-        # floors of _match_constant expect
-        f = f * (L // 2)
-        return _match_constant(f, plain, zmin,
-                               {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
+    return auto_offset_solve(
+        lambda: _offset_direct(*solve, shared=True, reference=None),
+        lambda: _offset_rounds(*solve, weighting, params, offset_iterations),
+        cand, cdark, idx, n, seed, bracket.times_ms, bracket.bit_depth, wt,
+        bright="direct" if offset == "auto-reference" else "rounds")
+
+
+def _offset_direct(bracket, Z, D, plain, wt, zmin, smoothness, *, shared, reference):
+    """The dark-offset model by one linear solve (``offset="direct"``); returns
+    ``(curve, Z, D, f)`` as :func:`_recover_from`."""
+    from mehs.synthesis.response_offset import solve_offset_response
+
+    L = 1 << bracket.bit_depth
+    try:
+        # per band, the plain curve of a dark band is its prior's extrapolation: the
+        # shared curve is the better pilot, and the shape its data are too few to set
+        # (a dark band's prior towards a straight line put its darkest levels 30 % high)
+        pilot = (reference.table() if reference is not None
+                 else plain.table(None if plain.shared else Z.shape[2]))
+        f, stats = solve_offset_response(Z, D, bracket.times_ms, wt, pilot,
+                                         smoothness=smoothness, shared=shared,
+                                         shape_prior=reference is not None)
+    except InputError as exc:
+        raise exc.with_path(bracket.source) from None
+    # f is 1 a quarter of the range above the dark: scaled to DN-like values, as the
+    # floors of _match_constant expect
+    f = f * (L // 2)
+    return _match_constant(f, plain, zmin,
+                           {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
+
+
+def _offset_rounds(bracket, Z, D, plain, wt, zmin, smoothness, weighting, params,
+                   offset_iterations):
+    """The dark-offset model by fixed-point rounds (``offset="rounds"``, shared curves);
+    returns ``(curve, Z, D, f)`` as :func:`_recover_from`."""
+    L = 1 << bracket.bit_depth
+    curve = plain
     if offset_iterations is None:
         offset_iterations = OFFSET_ITERATIONS_SHARED
     if offset_iterations <= 0:
@@ -325,7 +355,7 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
         lt_cur = lt_cur + OFFSET_RELAXATION * (np.log(t + B / np.exp(lnE)[:, None, :]) - lt_cur)
         curve = recover_response_Debevec1997(
             Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
-            weighting=weighting, shared=shared, wavelengths=bracket.wavelengths,
+            weighting=weighting, shared=True, wavelengths=bracket.wavelengths,
             parameters={**params, "offset_iterations": int(offset_iterations)})
     f = np.exp(curve.table())
     return _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"}), Z, D, f

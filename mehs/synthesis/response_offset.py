@@ -16,8 +16,10 @@ curves −15…+2 % (gamma, 5 exposures ×4) and −38…+8 % (linear, 3 × ×8)
 rounds, −1…+5 % and −5…+1 % here. A shared curve: 60 over-relaxed rounds and this
 solve are within the noise of each other on 3 exposures and this one is better on 5
 (ptp 1.2 % vs 4.9 %), worse on 2 (12.7 % vs 5.7 %: the prior fills more there); it
-costs ~2× the rounds (SuperLU on an L×L system, vs the rounds' numba CG), so
-``offset="auto"`` keeps the rounds for shared curves.
+costs ~2× the rounds (SuperLU on an L×L system, vs the rounds' numba CG). On dark brackets
+the prior decides (straight ``f`` here, straight ``ln f`` in the rounds), so ``offset="auto"``
+solves a shared curve both ways and keeps the one that fits held-out pixels better
+(:mod:`mehs.synthesis.response_select`).
 
 Per-band curves take the shared curve of the bracket as pilot and, with ``shape_prior``,
 as the shape their smoothness prefers; :func:`tie_bands_to_reference` then puts every
