@@ -39,6 +39,7 @@ References
 from __future__ import annotations
 
 import datetime as _dt
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -309,20 +310,32 @@ def _white_dn_per_ms(bracket, response, saturation: np.ndarray) -> tuple[np.ndar
     return best, rel
 
 
+def _region_rows(region: Any, bracket) -> np.ndarray | None:
+    """Scan lines of ``region`` (``"frame"``, ``"lines:A-B"``), or None for ``"white"``.
+
+    Checked before any work: a misspelt region (``"Frame"``, ``"whites"``) once
+    failed with an IndexError deep in the calibration, and any ``"<word>:A-B"``
+    (``"frame:0-9"``) was silently taken for ``"lines:A-B"``.
+    """
+    nl = bracket.shape[0]
+    if region == "white":
+        return None
+    if region == "frame":
+        return np.arange(nl)
+    m = re.fullmatch(r"lines:\s*(\d+)\s*-\s*(\d+)\s*", region) if isinstance(region, str) else None
+    if m is None:
+        raise InputError(f"region must be 'white', 'frame' or 'lines:A-B' (0-based, inclusive), "
+                         f"got {region!r}")
+    a, b = int(m.group(1)), int(m.group(2))
+    if not (0 <= a <= b < nl):
+        raise InputError(f"region lines {a}-{b} outside the capture's 0-{nl - 1}", bracket.source)
+    return np.arange(a, b + 1)
+
+
 def _frame_dn_per_ms(bracket, response, region: str, saturation) -> tuple[np.ndarray, np.ndarray]:
     from mehs.synthesis.fuse import fuse_bracket
 
-    nl = bracket.shape[0]
-    if region == "frame":
-        rows = np.arange(nl)
-    else:
-        try:
-            a, b = (int(v) for v in region.split(":", 1)[1].split("-"))
-        except ValueError:
-            raise InputError(f"region must be 'white', 'frame' or 'lines:A-B', got {region!r}") from None
-        if not (0 <= a <= b < nl):
-            raise InputError(f"region lines {a}-{b} outside the capture's 0-{nl - 1}", bracket.source)
-        rows = np.arange(a, b + 1)
+    rows = _region_rows(region, bracket)
     res = fuse_bracket(bracket, response=response, ghosts="off", saturation=saturation,
                        check_response=False)
     x = np.asarray(res.radiance.data, dtype=np.float64)[rows]
@@ -349,6 +362,7 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
                camera_id: str | None, saturation: float | np.ndarray | None) -> Calibration:
     from mehs.synthesis.response import ResponseCurve
 
+    _region_rows(region, bracket)          # a bad region is refused before any work
     nb = bracket.shape[2]
     L = 1 << bracket.bit_depth
     sat = np.broadcast_to(np.asarray(0.98 * (L - 1) if saturation is None else saturation,

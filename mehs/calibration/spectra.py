@@ -5,8 +5,9 @@ calibrated lamp's or integrating sphere's spectral radiance) arrives as
 
 - a CSV/text table: wavelength (nm) in the first column, value in the second,
   an optional third column with the value's relative standard uncertainty;
-  ``#`` comments, one header line and ``,``/``;``/tab/space separators are
-  accepted (the layouts calibration certificates and spectrometer exports use);
+  ``#`` comments, header lines before the numbers, ``,``/``;``/tab/space separators
+  and decimal commas with ``;``/tab separators (``400;0,95``) are accepted (the layouts
+  calibration certificates and spectrometer exports use);
 - an ENVI file (a spectral library ``.sli``/``.hdr`` with one spectrum, or a
   cube whose pixels are averaged), read by :func:`mehs.io.envi.read_envi`;
 - a colour-science illuminant name (``D65``, ``A``, ``HP1``, ``FL2``, ``LED-B3``, …).
@@ -21,6 +22,7 @@ band's width.
 from __future__ import annotations
 
 import csv
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,28 +41,47 @@ class Spectrum:
     uncertainty: np.ndarray | None = None
 
 
-def _rows_from_text(path: Path) -> list[list[float]]:
-    text = path.read_text(encoding="utf-8-sig", errors="strict")
-    rows: list[list[float]] = []
-    header_seen = False
-    sample = "\n".join(ln for ln in text.splitlines()[:20] if ln.strip() and not ln.lstrip().startswith("#"))
+#: a number written with a decimal comma (European spectrometer exports: ``0,95``)
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
+
+
+def _delimiter(data_lines: list[str]) -> str:
+    """The column separator of the table's data lines (``" "``: runs of blanks)."""
+    # ';' or a tab on every data line is the separator: the sniffer prefers ',' there,
+    # which in "400;0,95" (decimal comma, the European CSV convention) is the decimal mark
+    for d in (";", "\t"):
+        if data_lines and all(d in ln for ln in data_lines):
+            return d
+    sample = "\n".join(data_lines)
     try:
-        dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
-        delim = dialect.delimiter
+        return csv.Sniffer().sniff(sample, delimiters=",;\t ").delimiter
     except csv.Error:
         # columns aligned by runs of spaces/tabs (spectrometer exports) defeat the sniffer
-        delim = "," if ("," in sample or ";" in sample) else " "
-    for n, line in enumerate(text.splitlines(), 1):
-        s = line.split("#", 1)[0].strip()
-        if not s:
-            continue
-        parts = [p for p in (s.split(delim) if delim != " " else s.split()) if p.strip() != ""]
+        return "," if ("," in sample or ";" in sample) else " "
+
+
+def _rows_from_text(path: Path) -> list[list[float]]:
+    """Rows of numbers of a text table; any lines before the first row of numbers are a header."""
+    text = path.read_text(encoding="utf-8-sig", errors="strict")
+    body = [(n, ln.split("#", 1)[0].strip()) for n, ln in enumerate(text.splitlines(), 1)]
+    body = [(n, s) for n, s in body if s]
+    # the separator is sniffed on the data lines only: a certificate's title and column
+    # names ("Wavelength (nm); Radiance (W/(m2 sr nm))") mislead the sniffer
+    data_lines = [s for _, s in body if s[0].isdigit() or s[0] in "+-.,"][:20]
+    delim = _delimiter(data_lines)
+    rows: list[list[float]] = []
+    for n, s in body:
+        parts = [p.strip() for p in (s.split(delim) if delim != " " else s.split())]
+        parts = [p for p in parts if p]
+        if delim != ",":
+            parts = [p.replace(",", ".") if _DECIMAL_COMMA.match(p) else p for p in parts]
         try:
             rows.append([float(p) for p in parts])
         except ValueError:
-            if rows or header_seen:
-                raise FormatError(f"line {n} is not numbers: {line.strip()!r}", path) from None
-            header_seen = True
+            if rows:
+                raise FormatError(f"line {n} is not numbers: {s!r} (columns separated by "
+                                  f"{'blanks' if delim == ' ' else repr(delim)})", path) from None
+            # a header line (title, column names, certificate number) before the data
     return rows
 
 
@@ -83,8 +104,19 @@ def _read_library(hdr: Path, given: Path, what: str) -> tuple[np.ndarray, np.nda
         hdr.with_suffix(".sli"))
     try:
         lib = envi.open(str(hdr), str(data))
-        spectra = np.asarray(lib.spectra, dtype=np.float64)
         wl = np.asarray(lib.bands.centers, dtype=np.float64)
+        # SPy reads a library from byte 0 whatever its ``header offset`` (spectral 0.25
+        # envi.open: np.fromfile without offset), so a library with an embedded header
+        # came out shifted by that many bytes without any error; read the values here
+        p = envi.gen_params(h)
+        n = p.nrows * p.ncols
+        need = p.offset + n * np.dtype(p.dtype).itemsize
+        have = Path(data).stat().st_size
+        if have < need:
+            raise ValueError(f"data file holds {have} bytes, the header describes {need} "
+                             f"(header offset {p.offset} + {p.nrows} × {p.ncols} values)")
+        spectra = np.fromfile(data, dtype=p.dtype, count=n, offset=p.offset)
+        spectra = spectra.astype(np.float64).reshape(p.nrows, p.ncols)
     except Exception as exc:  # noqa: BLE001 - SPy raises several kinds for a bad library
         raise FormatError(f"unreadable ENVI spectral library {what} ({exc})", hdr) from None
     if spectra.ndim != 2 or spectra.shape[0] != 1:

@@ -139,6 +139,36 @@ def _read_metadata_xml(path: Path) -> dict[str, str]:
             for el in tree.getroot().iter("key") if el.get("field")}
 
 
+#: metadata keys of the integration time: "integration time" (Specim Lumo, HyperFusion
+#: gras_ia10.xml), "integration_time" (mehs), any case, "_"/"-"/blank-separated, with an
+#: optional unit suffix ("Integration Time (ms)", "integration_time_us")
+_TIME_KEY_RE = re.compile(r"^(?:integration[\s_-]*time|tint)(?:[\s_-]*[(\[]?\s*(ms|us|µs|s)\s*[)\]]?)?$",
+                          re.IGNORECASE)
+_TIME_VALUE_RE = re.compile(r"^\s*(\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE]([+-]?\d+))?\s*(ms|us|µs|s)?\s*$",
+                            re.IGNORECASE)
+_TIME_UNIT_MS = {"ms": 1.0, "us": 1e-3, "µs": 1e-3, "s": 1e3}
+
+
+def _metadata_time_ms(metadata: dict[str, str]) -> float | None:
+    """The integration time (ms) the metadata XML states, or None.
+
+    Only exact lower-case spellings were read before, so "Integration Time" or a value
+    written "15 ms" left a capture without a time (and ``load_bracket`` refused it). A
+    unit in the key or the value is honoured (µs ÷ 1000); without one, ms (the IQ's unit).
+    """
+    for key, text in metadata.items():
+        km = _TIME_KEY_RE.match(str(key).strip())
+        vm = _TIME_VALUE_RE.match(text or "") if km else None
+        if vm is None:
+            continue
+        value = float(vm.group(1).replace(",", ".")) * 10.0 ** int(vm.group(2) or 0)
+        unit = (vm.group(3) or km.group(1) or "ms").lower()
+        t = value * _TIME_UNIT_MS[unit]
+        if np.isfinite(t) and t > 0:
+            return t
+    return None
+
+
 def _existing(path: Path) -> Path:
     """``path``, or the one file in its folder whose name differs only in case (else ``path``)."""
     if path.is_file() or not path.parent.is_dir():
@@ -249,14 +279,7 @@ def read_specim_folder(path: str | Path, *, require_dark: bool = True,
         meta_path = _existing(root / "metadata" / f"{cid}.xml")
     metadata = _read_metadata_xml(meta_path) if meta_path.is_file() else {}
     if raw.integration_time_ms is None:
-        # key spellings: "integration time" (Specim, HyperFusion gras_ia10.xml)
-        t = next((metadata[k] for k in ("integration_time", "integration time",
-                                        "integrationtime") if metadata.get(k)), None)
-        try:
-            if t is not None and float(t) > 0:
-                raw.integration_time_ms = float(t)
-        except ValueError:
-            pass
+        raw.integration_time_ms = _metadata_time_ms(metadata)
 
     refs: dict[str, SpectralCube | None] = {}
     for kind, prefix in REFERENCE_PREFIXES.items():
