@@ -51,6 +51,8 @@ def run(args) -> int:
     if args.bands:
         from mehs.synthesis.resample import parse_bands, resample_cube
         cube = resample_cube(cube, parse_bands(args.bands))
+    if args.half:
+        _warn_half_precision(cube)
     from mehs.io.lock import OutputLock
 
     written = []
@@ -63,3 +65,28 @@ def run(args) -> int:
     wl = cube.wavelengths
     print(f"{out}: {len(written)} EXR file(s), {cube.bands} bands {wl[0]:g}..{wl[-1]:g} nm")
     return 0
+
+
+#: Share of the non-zero samples below half's smallest normal above which --half warns.
+SUBNORMAL_SHARE_WARN = 1e-3
+
+
+def _warn_half_precision(cube) -> None:
+    """Say on stderr when ``--half`` stores many samples as half subnormals (< 2^-14).
+
+    Half float keeps 11 bits only from 6.1e-5 up: a cube in absolute radiance or of a dim
+    scene lost its precision there without a word (a value at 10⁻⁶ keeps 4 bits). The
+    export keeps the values as they are (renderers read them as radiance), so it warns.
+    """
+    import sys
+
+    import numpy as np
+
+    a = np.abs(np.asarray(cube.data, dtype=np.float32))
+    nonzero = np.count_nonzero(a)
+    tiny = np.count_nonzero((a > 0) & (a < np.float32(2.0 ** -14)))
+    if nonzero and tiny > SUBNORMAL_SHARE_WARN * nonzero:
+        print(f"mehs export: warning: {100 * tiny / nonzero:.3g} % of the non-zero values of "
+              f"{cube.source or 'the cube'} lie below half float's smallest normal (6.1e-5) "
+              "and keep less than its 11-bit precision; export 32-bit float (no --half)",
+              file=sys.stderr)

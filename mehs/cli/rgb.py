@@ -1,6 +1,8 @@
 """`mehs rgb HS --out DIR` — pseudo-HDR-RGB (EXR), LDR-RGB (PNG) and a preview of an HS cube.
 
-Writes ``DIR/hdr_rgb.exr`` (half-float linear sRGB, unnormalised),
+Writes ``DIR/hdr_rgb.exr`` (half-float linear sRGB, unnormalised; a cube out of half
+float's range is stored times a power of two, ``mehsRadianceScale`` in its header and
+``radiance_scale`` in ``rgb.json``, as ``mehs build`` stores its scenes),
 ``DIR/ldr_rgb.png`` (exposed, clipped, sRGB-encoded 8-bit), ``DIR/preview.png``
 (Reinhard 2002 global tone mapping) and ``DIR/rgb.json`` (exposure used and
 the rules). A cube not on the 31 bands 400:700:10 is first resampled to them
@@ -61,10 +63,12 @@ def run(args) -> int:
     # every image is computed before the first is written, so a bad option
     # (e.g. --key 0) cannot leave a half-written output folder
     preview = tonemap(hdr, "reinhard", key=args.key)
+    stored, scale, total = _stored_scale(cube, hdr, half=args.half)
+    header = {} if total is None else {"mehsRadianceScale": total}
     from mehs.io.lock import OutputLock
 
     with OutputLock(out, what="mehs rgb"):   # creates --out; a second run is refused
-        write_exr_rgb(out / "hdr_rgb.exr", hdr, half=args.half)
+        write_exr_rgb(out / "hdr_rgb.exr", stored, half=args.half, header=header)
         write_png(out / "ldr_rgb.png", ldr)
         write_png(out / "preview.png", preview)
         write_json_atomic(out / "rgb.json", {
@@ -73,13 +77,46 @@ def run(args) -> int:
             "wavelengths": cube.wavelengths.tolist(),
             "xyz_scale": "1/sum(ybar)",
             "hdr_rgb": {"file": "hdr_rgb.exr", "encoding": "linear sRGB (IEC 61966-2-1), "
-                        "negatives clipped, unnormalised", "half": bool(args.half)},
-            "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure,
+                        "negatives clipped, unnormalised", "half": bool(args.half),
+                        # stored = RGB of the cube's radiance × radiance_scale (null: 1,
+                        # in the cube's own units)
+                        "radiance_scale": total},
+            # exposure of the stored EXR values: png = encode(clip(exposure · exr))
+            "ldr_rgb": {"file": "ldr_rgb.png", "exposure": exposure / scale,
                         "rule": "given by --ldr-exposure" if args.ldr_exposure is not None else
                         LDR_EXPOSURE_RULE,
                         "encoding": "clip [0,1], sRGB OETF, rint(255 v)"},
             "preview": {"file": "preview.png", "tonemap": "Reinhard2002 global", "key": args.key},
         })
-    print(f"{out}: hdr_rgb.exr, ldr_rgb.png (exposure {exposure:.6g}), preview.png"
+    print(f"{out}: hdr_rgb.exr{f' (stored × {total:g})' if total is not None else ''}, "
+          f"ldr_rgb.png (exposure {exposure:.6g}), preview.png"
           f"{' (resampled to 31 bands)' if resampled else ''}")
     return 0
+
+
+def _stored_scale(cube, hdr, *, half: bool):
+    """``(stored, scale, total)``: the RGB as written, the power of two applied here, and
+    the factor the file's values carry against the radiance (``mehsRadianceScale``; None
+    when it is 1 and the cube carried none).
+
+    A half-float EXR keeps 11 bits only between 2^-14 and 65504: a cube brighter or
+    dimmer than that (DN/ms light sources, absolute radiance of a dim scene) is stored
+    times the power of two :func:`mehs.dataset.cube_figures.half_float_scale` picks, as
+    ``mehs build`` does; a dataset cube's own ``mehs radiance scale`` is carried on, or
+    the EXR's values were 2^k off without a word.
+    """
+    import numpy as np
+
+    from mehs.dataset.cube_figures import half_float_scale, luminance_low_end
+    from mehs.export import radiance_scale
+    from mehs.rgb import spectra_to_XYZ
+
+    own = radiance_scale(cube)
+    scale = 1.0
+    if half and hdr.size:
+        y = spectra_to_XYZ(np.asarray(cube.data, dtype=np.float32), cube.wavelengths)[..., 1]
+        scale = half_float_scale(float(hdr.max()),
+                                 luminance_low_end(hdr, signed_luminance=y))
+    stored = hdr * np.float32(scale) if scale != 1.0 else hdr
+    total = (1.0 if own is None else own) * scale
+    return stored, scale, (None if own is None and scale == 1.0 else total)

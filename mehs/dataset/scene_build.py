@@ -28,7 +28,7 @@ from mehs.errors import InputError, MehsError
 from mehs.io.atomic import sha256_file
 # re-exported: the library API (and tests) import them from here
 from mehs.dataset.cube_figures import (dynamic_range_stops, half_float_scale,  # noqa: F401
-                                       to_31_bands)
+                                       luminance_low_end, to_31_bands)
 
 TMP_PREFIX = ".tmp-"
 
@@ -416,21 +416,25 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     report_stage(sid, "rgb")
     with _timed(run, "rgb"):
         hdr = hdr_rgb(data, WAVELENGTHS_31)
-        scale = half_float_scale(float(hdr.max()) if hdr.size else 0.0)
+        # the signed luminance of the cube (before the RGB step's clipping) tells the
+        # noise floor of a fused cube that keeps its negative estimates
+        y = spectra_to_XYZ(data, WAVELENGTHS_31)[..., 1]
+        # the scene's range, not its unit, decides the half floats' precision: a dim scene
+        # is lifted as a bright one is lowered (precision below the noise is no matter)
+        scale = half_float_scale(float(hdr.max()) if hdr.size else 0.0,
+                                 luminance_low_end(hdr, mask, signed_luminance=y))
         if scale != 1.0:
             # a power of two commutes exactly with float rounding: HS and RGB stay paired
             data = data * np.float32(scale)
             hdr = hdr * np.float32(scale)
+            y = y * np.float32(scale)
         # from the half floats the EXR stores, so that the LDR image and its exposure
         # follow from the dataset's own HDR file (from float32 1 code in ~0.5 % differed)
         ldr, exposure = ldr_rgb(hdr.astype(np.float16).astype(np.float32))
         preview = tonemap(hdr)
     if quality.get("dynamic_range_stops") is None:
-        # the signed luminance of the cube (before the RGB step's clipping) tells the
-        # noise floor of a fused cube that keeps its negative estimates
-        y = spectra_to_XYZ(data, WAVELENGTHS_31)[..., 1]
         quality["dynamic_range_stops"] = dynamic_range_stops(hdr, mask, signed_luminance=y)
-        del y
+    del y
     from mehs.dataset import noisefloor
 
     quality.update(noisefloor.screen(data, mask, None if noise is None
@@ -441,10 +445,27 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     report_stage(sid, "write")
     with _timed(run, "write"):
         hs = hs.with_data(data, units=cube.units, integration_time_ms=None, source=None,
-                          metadata={"mehs radiance scale": repr(scale)})
+                          metadata=_scale_header(scale, hs.bands))
         write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
         write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True,
                       header={"mehsRadianceScale": scale})
         write_png(tmp / "ldr_rgb.png", ldr)
         write_png(tmp / "mask.png", mask)
         write_png(tmp / "preview.png", preview)
+
+
+def _scale_header(scale: float, bands: int) -> dict[str, Any]:
+    """ENVI header keys stating that ``hs.dat`` holds ``value × scale`` in ``data units``.
+
+    ``mehs radiance scale`` is what mehs's readers divide out. Other readers (SPy, ENVI,
+    GDAL) know nothing of it and took the stored numbers for DN/ms or radiance, 2^k off;
+    ENVI's own way to say it is a per-band gain (``data units`` = gain · value + offset),
+    written whenever the scale is not 1. No reader applies it by itself, but it is
+    the documented field a user looks for; ``reflectance scale factor`` (which SPy does
+    divide out) would also make mehs's reader divide and break the HS/RGB pair.
+    """
+    meta: dict[str, Any] = {"mehs radiance scale": repr(scale)}
+    if scale != 1.0:
+        meta["data gain values"] = [repr(1.0 / scale)] * bands      # exact: a power of two
+        meta["data offset values"] = ["0"] * bands
+    return meta
