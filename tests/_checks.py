@@ -92,17 +92,23 @@ def colorchecker_pair(h: int, w: int, seed: int, block: int = 8):
     return TrainingPair(spectra_to_linear_sRGB(hs, WAVELENGTHS_31), hs, id=f"s{seed}")
 
 
-def decile_bias(br, sim, curve) -> np.ndarray:
-    """Radiance bias per brightness decile of the simulator's truth, one global scale
-    removed: ``(10,)`` of ``median(fused / truth) / overall median − 1`` when ``br`` (the
-    bracket of ``sim``) is fused with ``curve``. The response tests' measure of a curve."""
+def _fuse_quiet(br, curve):
+    """``br`` fused with ``curve``, no ghost detection, its warnings (a curve under test may
+    be poor) silenced: the merge the response measures below compare."""
     import warnings
 
     from mehs.synthesis.fuse import fuse_bracket
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = fuse_bracket(br, response=curve, ghosts="off")
+        return fuse_bracket(br, response=curve, ghosts="off")
+
+
+def decile_bias(br, sim, curve) -> np.ndarray:
+    """Radiance bias per brightness decile of the simulator's truth, one global scale
+    removed: ``(10,)`` of ``median(fused / truth) / overall median − 1`` when ``br`` (the
+    bracket of ``sim``) is fused with ``curve``. The response tests' measure of a curve."""
+    res = _fuse_quiet(br, curve)
     rad = np.asarray(res.radiance.data, np.float64)
     truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
     ok = np.broadcast_to((res.mask == 0)[..., None] & (truth > 0), rad.shape)
@@ -141,14 +147,8 @@ def signal_decile_excess(sim, br, sensor, curve, min_dn: float = 20.0) -> np.nda
     in the longest exposure is ``≥ min_dn`` DN count: on a dark bracket most samples are
     read noise, whose deciles say nothing about a curve (the true curve's own merge is off
     there by thousands of per cent)."""
-    import warnings
-
-    from mehs.synthesis.fuse import fuse_bracket
-
     def fused(c):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            res = fuse_bracket(br, response=c, ghosts="off")
+        res = _fuse_quiet(br, c)
         return np.asarray(res.radiance.data, np.float64), res.mask == 0
 
     truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
