@@ -156,6 +156,11 @@ class Frame:
     frame_id: int
 
 
+#: Shortest quiet time (s) that ends the flush after a free-running acquisition stops
+#: (:meth:`FrameStream.flush_quiet_s`): a loaded host's scheduling stalls, not the link's jitter.
+FLUSH_QUIET_MIN_S = 0.3
+
+
 class FrameStream:
     """Free-running acquisition; :meth:`poll` returns the frames received so far with host times.
 
@@ -196,15 +201,19 @@ class FrameStream:
         While a free-running camera's frames are still on the way they arrive about one frame
         period apart, give or take the link's jitter (the spread of ``system − camera``
         timestamps seen, clock offset cancelling), plus the frame the camera finishes
-        exposing; a gap of two periods, one exposure and twice the jitter (at least 20 ms)
-        means the pipe is empty. The camera caps it at its frame timeout.
+        exposing; a gap of two periods, one exposure and twice the jitter means the pipe is
+        empty. A busy host also stalls the delivery of frames already on the way, by more
+        than any jitter the stream showed (CI, two cores under load: a 150 ms link's lit
+        frame slipped past a 62 ms wait into a dark reference), so the wait is at least
+        :data:`FLUSH_QUIET_MIN_S`, paid once per switch out of free-running. The camera caps
+        it at its frame timeout.
         """
         period = 1.0 / self.rate if self.rate else 0.0
         jitter = 0.0
         if self._raw:
             lat = np.array([s - t for _l, t, s, _f in self._raw], dtype=np.float64)
             jitter = float(lat.max() - lat.min()) / 1e9
-        return 2 * period + (self.cam._t_ms or 0.0) / 1000.0 + 2 * jitter + 0.02
+        return max(2 * period + (self.cam._t_ms or 0.0) / 1000.0 + 2 * jitter, FLUSH_QUIET_MIN_S)
 
     def poll(self, timeout_s: float = 0.0) -> list[Frame]:
         """Frames received since the last call (waiting up to ``timeout_s`` for the first)."""
