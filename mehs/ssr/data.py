@@ -20,6 +20,13 @@ HDR-RGB's scale. The exposure is read from the manifest scene entry
 recorded and an HDR-RGB exists it is estimated as the ratio of the two over
 well-exposed pixels (linear LDR in 0.02..0.9); otherwise it is taken as 1.
 
+Units: a dataset scene's files store ``radiance × quality.radiance_scale`` (a power of two
+``mehs build`` picks per scene so that half floats keep their precision; stated in each
+file's header as ``mehs radiance scale`` / ``mehsRadianceScale``). :class:`Pair` divides it
+out, so that every scene of a set is in the dataset's own unit (DN/ms, or radiance when
+calibrated) whatever its ``k``: RMSE, a fixed-scale pre-processing and training pairs would
+otherwise mix units that differ by 2^k from scene to scene.
+
 Masks: 8-bit, 0 = valid; bits 1 (saturated in every exposure), 2 (ghost) and
 4 (other invalid) exclude a pixel from every metric. Bit 8 (ground truth not resolved
 above its own noise: spectrum SNR below 10, :mod:`mehs.dataset.noisefloor`) excludes it
@@ -87,7 +94,13 @@ def read_png(path: Path, *, gray: bool = False) -> np.ndarray:
 
 
 def read_rgb_exr(path: Path) -> np.ndarray:
-    """Read an HDR-RGB OpenEXR as float32 ``(H, W, 3)`` (channels R, G, B)."""
+    """Read an HDR-RGB OpenEXR as float32 ``(H, W, 3)`` (channels R, G, B), as stored."""
+    return _read_rgb_exr(path)[0]
+
+
+def _read_rgb_exr(path: Path) -> tuple[np.ndarray, float | None]:
+    """``(rgb as stored, its mehsRadianceScale or None)``."""
+    from mehs.export import parse_radiance_scale
     from mehs.io.exr import read_exr
 
     img = read_exr(path)
@@ -96,7 +109,12 @@ def read_rgb_exr(path: Path) -> np.ndarray:
         idx = [chans.index(c) for c in ("R", "G", "B")]
     except ValueError:
         raise FormatError(f"HDR-RGB needs channels R, G, B; found {img.channels}", path) from None
-    return np.ascontiguousarray(np.asarray(img.data, dtype=np.float32)[..., idx])
+    scale = parse_radiance_scale(img.header.get("mehsRadianceScale"), path)
+    return np.ascontiguousarray(np.asarray(img.data, dtype=np.float32)[..., idx]), scale
+
+
+#: ENVI keys that describe the stored values' scale, void once it is divided out
+_SCALE_KEYS = ("mehs radiance scale", "data gain values", "data offset values")
 
 
 @dataclass
@@ -115,13 +133,37 @@ class Pair:
     noise_model: dict[str, Any] | None = None
     #: score pixels flagged only as not resolved above the noise (mask bit 8)
     score_unresolved: bool = False
+    #: ``quality.radiance_scale`` of the manifest (files store radiance × it), or None
+    radiance_scale: float | None = None
+
+    def _scale(self, stated: float | None, path: Path) -> float:
+        """The factor ``path`` stores its values multiplied by: its header's, checked against
+        the manifest's (a file edited or copied from another build must not be silently
+        2^k off its pair), else the manifest's, else 1."""
+        if stated is None:
+            return 1.0 if self.radiance_scale is None else float(self.radiance_scale)
+        if self.radiance_scale is not None and not np.isclose(stated, self.radiance_scale,
+                                                              rtol=1e-6, atol=0):
+            raise FormatError(f"scene {self.id!r}: the file states radiance scale {stated!r}, "
+                              f"manifest.json {self.radiance_scale!r} (files of different "
+                              "builds?)", path)
+        return float(stated)
 
     def hs(self):
-        """The ground truth as a :class:`~mehs.cube.SpectralCube` (memory-mapped when possible)."""
+        """The ground truth as a :class:`~mehs.cube.SpectralCube` in the dataset's unit
+        (memory-mapped when it was stored unscaled)."""
+        from mehs.export import radiance_scale
         from mehs.io.envi import read_envi
 
         cube = read_envi(self.hs_path)
-        return cube
+        s = self._scale(radiance_scale(cube), self.hs_path)
+        self.info["radiance_scale"] = s
+        if s == 1.0:
+            return cube
+        meta = {k: v for k, v in (cube.metadata or {}).items() if k not in _SCALE_KEYS}
+        # a power of two: the division is exact, the values are the fused radiance's
+        return cube.with_data(np.asarray(cube.data, dtype=np.float32) / np.float32(s),
+                              metadata=meta)
 
     def hs_array(self) -> tuple[np.ndarray, np.ndarray]:
         """``(data float32 (H, W, B), wavelengths (B,))``, checked finite."""
@@ -132,13 +174,15 @@ class Pair:
         return data, cube.wavelengths
 
     def hdr_rgb(self) -> np.ndarray:
-        """Linear HDR-RGB float32 ``(H, W, 3)``."""
+        """Linear HDR-RGB float32 ``(H, W, 3)`` in the dataset's unit."""
         if self.hdr_path is None:
             raise InputError(f"scene {self.id!r} has no HDR-RGB file", self.hs_path.parent)
-        rgb = read_rgb_exr(self.hdr_path)
+        rgb, stated = _read_rgb_exr(self.hdr_path)
         if not np.all(np.isfinite(rgb)):
             raise InputError("HDR-RGB contains NaN or inf", self.hdr_path)
-        return rgb
+        s = self._scale(stated, self.hdr_path)
+        self.info["hdr_rgb_scale"] = s
+        return rgb if s == 1.0 else rgb / np.float32(s)
 
     def ldr_rgb(self) -> np.ndarray:
         """LDR-RGB linearised and brought to the HDR scale, float32 ``(H, W, 3)``."""
@@ -146,12 +190,24 @@ class Pair:
             raise InputError(f"scene {self.id!r} has no LDR-RGB file", self.hs_path.parent)
         lin = srgb_decode_8bit(read_png(self.ldr_path))
         exposure = self.ldr_exposure
-        if exposure is None and self.hdr_path is not None:
-            exposure = self._estimate_exposure(lin)
+        if exposure is not None:
+            # metered on the stored HDR-RGB (ldr = encode(exposure · stored)), so the
+            # exposure onto the dataset's unit also carries the stored scale
+            exposure = exposure * self._ldr_scale()
+        elif self.hdr_path is not None:
+            exposure = self._estimate_exposure(lin)      # against hdr_rgb(): already unscaled
         if exposure is None or not (np.isfinite(exposure) and exposure > 0):
             exposure = 1.0
         self.info["ldr_exposure_used"] = float(exposure)
         return lin / np.float32(exposure)
+
+    def _ldr_scale(self) -> float:
+        """Scale of the HDR-RGB the recorded LDR exposure was metered on."""
+        if self.radiance_scale is not None:
+            return float(self.radiance_scale)
+        if self.hdr_path is not None:
+            return self._scale(_read_rgb_exr(self.hdr_path)[1], self.hdr_path)
+        return 1.0
 
     def _estimate_exposure(self, lin: np.ndarray) -> float | None:
         hdr = self.hdr_rgb()
@@ -199,10 +255,15 @@ class Pair:
         when the scene records no noise model or with ``score_unresolved``."""
         if self.noise_model is None or self.score_unresolved:
             return None
-        from mehs.dataset.noisefloor import mrae_floor
+        from mehs.dataset.noisefloor import mrae_floor, scaled
 
+        model = self.noise_model
+        # recorded for the stored values; ``gt`` is in the dataset's unit (hs() divided)
+        s = self.info.get("radiance_scale", self.radiance_scale) or 1.0
+        if s != 1.0:
+            model = scaled(model, 1.0 / s)
         try:
-            return mrae_floor(gt, self.noise_model)
+            return mrae_floor(gt, model)
         except InputError as exc:
             raise exc.with_path(self.hs_path) from None
 
@@ -295,15 +356,19 @@ def _load_manifest(root: Path, *, split: str | None, include_failed: bool,
                          full=verify == "full", what=f"scene {sid!r}")
         exposure = next((d["ldr_exposure"] for d in (sc.get("quality"), sc.get("rgb"), sc)
                          if isinstance(d, dict) and d.get("ldr_exposure") is not None), None)
+        quality = sc.get("quality") if isinstance(sc.get("quality"), dict) else {}
+        from mehs.export import parse_radiance_scale
+
+        scale = parse_radiance_scale(quality.get("radiance_scale"),
+                                     f"{mpath} (scene {sid!r}, quality.radiance_scale)")
         pairs.append(Pair(
             id=sid, hs_path=hs,
             hdr_path=_inside(root, files.get("hdr_rgb"), "hdr_rgb", sid),
             ldr_path=_inside(root, files.get("ldr_rgb"), "ldr_rgb", sid),
             mask_path=_inside(root, files.get("mask"), "mask", sid),
             ldr_exposure=None if exposure is None else float(exposure),
-            split=split_of.get(sid), noise_model=(sc.get("quality") or {}).get("noise_model")
-            if isinstance(sc.get("quality"), dict) else None,
-            score_unresolved=bool(score_unresolved)))
+            split=split_of.get(sid), noise_model=quality.get("noise_model"),
+            score_unresolved=bool(score_unresolved), radiance_scale=scale))
     return PairSet(pairs, root=root, manifest=manifest, splits=splits)
 
 
