@@ -48,10 +48,20 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: Header attribute recording the written channel order.
 ORDER_ATTR = "mehsChannelOrder"
 
-_UNIT_TO_NM = {"": 1e9, "m": 1e6, "u": 1e3, "n": 1.0, "p": 1e-3}
-# Fichet 2021 channel: component (S0..S3 or T), '.', number with ',' decimal, unit.
-_SPECTRAL_RE = re.compile(
-    r"^(?:(?P<comp>S[0-3]|T)\.)?(?P<num>\d+(?:[,.]\d*)?(?:[eE][-+]?\d+)?)(?P<mult>[munp]?)m$")
+#: SI prefixes of Fichet 2021's channel quantities, as powers of ten (``u``/``µ``: micro).
+_SI_EXP = {"Y": 24, "Z": 21, "E": 18, "P": 15, "T": 12, "G": 9, "M": 6, "k": 3, "h": 2,
+           "da": 1, "": 0, "d": -1, "c": -2, "m": -3, "u": -6, "\u00b5": -6, "\u03bc": -6,
+           "n": -9, "p": -12, "f": -15, "a": -18, "z": -21, "y": -24}
+#: Speed of light in vacuum (m/s, exact by the SI): a channel named by its frequency
+_LIGHT_SPEED = 299792458.0
+_QUANTITY = (r"(?P<num>\d+(?:[,.]\d*)?(?:[eE][-+]?\d+)?)"
+             r"(?P<mult>da|[YZEPTGMkhdcmu\u00b5\u03bcnpfazy]?)(?P<unit>m|Hz)")
+# Fichet 2021 channel: component (S0..S3 or T), '.', a wavelength or frequency with ','
+# decimal and an SI prefix (``S0.400nm``, ``S0.0,4um``, ``T.749,48THz``).
+_SPECTRAL_RE = re.compile(r"^(?:(?P<comp>S[0-3]|T)\.)?" + _QUANTITY + "$")
+# Fichet 2021 bi-spectral (re-radiation) channel: ``T.<λ in>.<λ out>``
+BISPECTRAL_RE = re.compile(r"^T\." + _QUANTITY.replace("?P<", "?P<i") + r"\."
+                           + _QUANTITY.replace("?P<", "?P<o") + "$")
 # KAIST (Choi et al. 2017): ``w420nm`` … ``w720nm`` (a decimal centre is accepted).
 _KAIST_RE = re.compile(r"^w(?P<num>\d+(?:\.\d+)?)nm$")
 #: Naming schemes of spectral channels (:func:`parse_spectral_channel`): Fichet 2021
@@ -211,18 +221,29 @@ def parse_spectral_channel(name: str) -> tuple[str, float] | None:
 
     The one parser of spectral channel names in mehs (the generic reader here and the
     KAIST reader of :mod:`mehs.io.ssr_kaist`). Schemes: ``"S0"`` … ``"S3"`` and ``"T"``
-    (Fichet 2021: ``S0.400nm``, ``T.397,32nm``, ``S0.0,4um``), :data:`SCHEME_BARE`
-    (``400nm``) and :data:`SCHEME_KAIST` (``w420nm``).
+    (Fichet 2021: ``S0.400nm``, ``T.397,32nm``, ``S0.0,4um``, or a frequency with any SI
+    prefix, ``S0.749,48THz`` → c/ν = 400 nm), :data:`SCHEME_BARE` (``400nm``) and
+    :data:`SCHEME_KAIST` (``w420nm``).
     """
     name = str(name)
     m = _SPECTRAL_RE.match(name)
     if m:
-        nm = float(m.group("num").replace(",", ".")) * _UNIT_TO_NM[m.group("mult")]
-        return (m.group("comp") or SCHEME_BARE), nm
+        nm = _quantity_nm(m.group("num"), m.group("mult"), m.group("unit"))
+        return None if nm is None else ((m.group("comp") or SCHEME_BARE), nm)
     m = _KAIST_RE.match(name)
     if m:
         return SCHEME_KAIST, float(m.group("num"))
     return None
+
+
+def _quantity_nm(num: str, mult: str, unit: str) -> float | None:
+    """Wavelength (nm) of a channel's quantity: a wavelength, or a frequency (λ = c/ν)."""
+    v = float(num.replace(",", "."))
+    e = _SI_EXP[mult]
+    if unit == "m":
+        return v * 10.0 ** (e + 9)      # exact for nm (10**0) and um
+    v *= 10.0 ** e
+    return _LIGHT_SPEED / v * 1e9 if v > 0 else None
 
 
 def _channel_sort_key(name: str) -> tuple:

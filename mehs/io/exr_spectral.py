@@ -46,8 +46,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from mehs.errors import FormatError, InputError
-from mehs.io.exr import (SCHEME_BARE, SCHEME_KAIST, parse_spectral_channel, read_exr,
-                         write_exr)
+from mehs.io.exr import (BISPECTRAL_RE, SCHEME_BARE, SCHEME_KAIST, parse_spectral_channel,
+                         read_exr, write_exr)
 
 #: mehs's unit of absolute spectral radiance (= :data:`mehs.calibration.UNIT_ABSOLUTE`).
 ABSOLUTE_RADIANCE = "W sr-1 m-2 nm-1"
@@ -148,8 +148,8 @@ _SCHEME_PRIORITY = ("S0", "T", SCHEME_BARE, SCHEME_KAIST)
 def spectral_channels(channels: Sequence[str]) -> tuple[list[int], np.ndarray]:
     """Indices and wavelengths (nm) of the emissive/reflective spectral channels.
 
-    Recognises Fichet 2021 names (``S0.<λ>nm``, ``T.<λ>nm``, units ``m``,
-    ``um``, ``nm``, ``pm``; comma or point decimal), bare ``<λ>nm`` and KAIST's
+    Recognises Fichet 2021 names (``S0.<λ>nm``, ``T.<λ>nm``, a wavelength in ``m`` or a
+    frequency in ``Hz`` with any SI prefix; comma or point decimal), bare ``<λ>nm`` and KAIST's
     ``w<λ>nm`` (:func:`parse_spectral_channel`). Polarised components
     ``S1``–``S3`` are skipped. When both ``S0`` and ``T`` channels exist, ``S0``
     (emission) wins (a Fichet file may hold both). Lenient (for summaries):
@@ -178,6 +178,18 @@ def checked_spectral_channels(channels: Sequence[str], path=None) -> tuple[list[
     """
     found = _spectral_groups(channels)
     schemes = [c for c in _SCHEME_PRIORITY if c in found]
+    rerad = [c for c in channels if BISPECTRAL_RE.match(str(c))]
+    if rerad and schemes:
+        import warnings
+
+        # a fluorescent sample's re-radiation matrix has no place in a cube; its diagonal
+        # (T.<λ>) is the reflectance without fluorescence, which is what is read
+        warnings.warn(f"{path}: {len(rerad)} bi-spectral re-radiation channels "
+                      f"({rerad[0]!r} …) are ignored: the cube holds the diagonal "
+                      "(non-fluorescent) reflectance only", UserWarning, stacklevel=3)
+    elif rerad:
+        raise FormatError(f"only bi-spectral re-radiation channels ({rerad[0]!r} …, "
+                          f"{len(rerad)} channels) and no T.<λ> diagonal: not a cube", path)
     if len(schemes) > 1 and set(schemes) != {"S0", "T"}:
         def show(c):
             return f"{channels[found[c][0][0]]!r} ({len(found[c])} channels)"
