@@ -142,8 +142,10 @@ def write_exposure(scene_dir: str | Path, k: int, t_ms: float, raw: np.ndarray,
     raw
         uint16 ``(lines, samples, bands)``.
     dark, white
-        float ``(samples, bands)`` references at this time (stored as 1-line
-        uint16 slabs, rounded, as a Specim IQ does), or ``None``.
+        References at this time, or ``None``: the lines as read, integer ``(n, samples,
+        bands)``, stored exactly as an ``n``-line uint16 slab (as a Specim IQ stores its
+        references; readers average the lines), or a float mean line ``(samples, bands)``,
+        stored as a 1-line slab rounded to whole DN (±0.5 DN).
     extra
         Fields merged into the record (frame rate, temperature, stage, …).
     """
@@ -162,7 +164,16 @@ def write_exposure(scene_dir: str | Path, k: int, t_ms: float, raw: np.ndarray,
     def slab(ref):
         if ref is None:
             return None
-        data = np.clip(np.rint(np.asarray(ref, dtype=np.float64)), 0, 65535).astype(np.uint16)
+        ref = np.asarray(ref)
+        if ref.ndim == 3 and np.issubdtype(ref.dtype, np.integer):
+            if ref.min(initial=0) < 0 or ref.max(initial=0) > 65535:
+                raise InputError(f"reference lines out of uint16 range "
+                                 f"[{ref.min()}, {ref.max()}]", folder)
+            return SpectralCube(ref.astype(np.uint16), wl, **common)
+        if ref.ndim != 2:
+            raise InputError(f"a reference is (samples, bands) or integer (lines, samples, "
+                             f"bands), got {ref.dtype} {ref.shape}", folder)
+        data = np.clip(np.rint(ref.astype(np.float64)), 0, 65535).astype(np.uint16)
         return SpectralCube(data[None], wl, **common)
 
     meta = {"integration_time": format_time_ms(t_ms), "datetime": date,

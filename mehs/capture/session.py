@@ -58,6 +58,10 @@ class Scanner:
         self.goto(line)
         return self.camera.read_line()
 
+    def read_lines(self, lines: Sequence[int]) -> np.ndarray:
+        """uint16 ``(len(lines), samples, bands)``: the lines as the camera sent them."""
+        return np.stack([self.read(ln) for ln in lines])
+
     def read_mean(self, lines: Sequence[int]) -> np.ndarray:
         acc = None
         for ln in lines:
@@ -437,12 +441,14 @@ def _scan_exposure(scanner: Scanner, k: int, t: float, *, lines: int, samples: i
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     cam, stage = scanner.camera, scanner.stage
     # Dark reference at this time: shutter closed, stepping so each line is a new frame.
+    # The lines are kept as sent (a reader averages them): one rounded mean line would
+    # carry a ±0.5 DN error into every dark-subtracted sample of its column and band.
     cam.set_shutter(False)
-    dark = scanner.read_mean(range(dark_lines))
+    dark = scanner.read_lines(range(dark_lines))
     cam.set_shutter(True)
     white = None
     if white_lines:
-        white = scanner.read_mean(range(white_start_line, white_start_line + white_lines))
+        white = scanner.read_lines(range(white_start_line, white_start_line + white_lines))
     if scan == "continuous":
         from mehs.capture.scan import scan_continuous
 

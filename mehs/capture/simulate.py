@@ -94,6 +94,10 @@ class SimulatedBracket:
     dark_lines: int = 16
     saturation_fractions: list[float] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    #: uint16 ``(dark_lines, samples, bands)`` per exposure: the lines ``darks`` averages
+    dark_frames: list[np.ndarray] | None = None
+    #: uint16 ``(WHITE_TILE_LINES, samples, bands)`` per exposure: the lines ``whites`` averages
+    white_frames: list[np.ndarray] | None = None
 
 
 def _check_times(times_ms: Sequence[float]) -> np.ndarray:
@@ -105,15 +109,24 @@ def _check_times(times_ms: Sequence[float]) -> np.ndarray:
     return t
 
 
+def dark_lines_at(sensor: SensorModel, samples: int, bands: int, t: float, *,
+                  dark_lines: int = 16, exposure_seed: int, wavelengths=None) -> np.ndarray:
+    """uint16 ``(dark_lines, samples, bands)``: shutter-closed lines at ``t``."""
+    zeros = np.zeros((samples, bands), dtype=np.float32)
+    return np.stack([sensor.expose_line(zeros, t, exposure_seed=exposure_seed, line_index=j,
+                                        shutter_open=False, wavelengths=wavelengths)
+                     for j in range(dark_lines)])
+
+
 def dark_reference(sensor: SensorModel, samples: int, bands: int, t: float, *, dark_lines: int = 16,
                    exposure_seed: int, wavelengths=None) -> np.ndarray:
     """float32 ``(samples, bands)``: mean of ``dark_lines`` shutter-closed lines at ``t``."""
-    zeros = np.zeros((samples, bands), dtype=np.float32)
-    acc = np.zeros((samples, bands), dtype=np.float64)
-    for j in range(dark_lines):
-        acc += sensor.expose_line(zeros, t, exposure_seed=exposure_seed, line_index=j,
-                                  shutter_open=False, wavelengths=wavelengths)
-    return (acc / dark_lines).astype(np.float32)
+    return _line_mean(dark_lines_at(sensor, samples, bands, t, dark_lines=dark_lines,
+                                    exposure_seed=exposure_seed, wavelengths=wavelengths))
+
+
+def _line_mean(stack: np.ndarray) -> np.ndarray:
+    return stack.mean(axis=0, dtype=np.float64).astype(np.float32)
 
 
 def simulate_bracket(scene: Scene, sensor: SensorModel, times_ms: Sequence[float], *, seed: int = 0,
@@ -142,27 +155,32 @@ def simulate_bracket(scene: Scene, sensor: SensorModel, times_ms: Sequence[float
     lines, samples, bands = scene.radiance.shape
     wl = scene.wavelengths
     exposures, darks, whites, sat = [], [], [], []
+    dark_frames, white_frames = [], []
     for k, tk in enumerate(t):
         es = exposure_seed_for(tk) + (int(seed) << 64)
         rad = scene.radiance_at(k)
         cube = sensor.expose(rad, tk, exposure_seed=es, wavelengths=wl)
         exposures.append(cube)
         sat.append(float(np.count_nonzero(cube >= sensor.saturation_dn) / cube.size))
-        darks.append(dark_reference(sensor, samples, bands, tk, dark_lines=dark_lines,
-                                    exposure_seed=es, wavelengths=wl))
+        dstack = dark_lines_at(sensor, samples, bands, tk, dark_lines=dark_lines,
+                               exposure_seed=es, wavelengths=wl)
+        dark_frames.append(dstack)
+        darks.append(_line_mean(dstack))
         if white and scene.white_radiance is not None:
             w0 = white_tile_first_line(lines)
             tile = np.broadcast_to(scene.white_radiance.astype(np.float32),
                                    (WHITE_TILE_LINES, samples, bands))
             wc = sensor.expose(tile, tk, exposure_seed=es, line_offset=w0, wavelengths=wl)
-            whites.append(wc.mean(axis=0, dtype=np.float64).astype(np.float32))
+            white_frames.append(wc)
+            whites.append(_line_mean(wc))
     return SimulatedBracket(
         exposures=exposures, darks=darks, white=whites[0] if whites else None, times_ms=t,
         wavelengths=np.asarray(wl, dtype=np.float64),
         fwhm=None if scene.fwhm is None else np.asarray(scene.fwhm, dtype=np.float64),
         truth=scene.radiance, scene=scene, sensor=sensor, whites=whites or None,
         truth_dn_per_ms=sensor.signal_scale(bands, wl), seed=int(seed), dark_lines=dark_lines,
-        saturation_fractions=sat, info=dict(scene.info))
+        saturation_fractions=sat, info=dict(scene.info), dark_frames=dark_frames,
+        white_frames=white_frames or None)
 
 
 def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
@@ -190,9 +208,12 @@ def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
                                    "sensor": sf.sensor_info(sim.sensor)})
     sf.write_scene_json(scene_dir, doc)
     for k, tk in enumerate(sim.times_ms):
-        white = sim.whites[k] if sim.whites else None
+        # the lines themselves when known: the device stores them, a reader averages them
+        white = (sim.white_frames[k] if sim.white_frames else
+                 sim.whites[k] if sim.whites else None)
+        dark = sim.dark_frames[k] if sim.dark_frames else sim.darks[k]
         rec = sf.write_exposure(
-            scene_dir, k, float(tk), sim.exposures[k], sim.darks[k], white,
+            scene_dir, k, float(tk), sim.exposures[k], dark, white,
             wavelengths=sim.wavelengths, fwhm=sim.fwhm, requested_ms=float(tk),
             extra={"frame_rate_hz": sf.frame_rate_hz(float(tk)), "temperature_c": 25.0,
                    "saturation_fraction": sim.saturation_fractions[k],
