@@ -160,3 +160,37 @@ def signal_decile_excess(sim, br, sensor, curve, min_dn: float = 20.0) -> np.nda
     qs = np.quantile(t, np.linspace(0, 1, 11))
     return np.array([(b[m].sum() - a[m].sum()) / t[m].sum()
                      for m in ((t >= lo) & (t <= hi) for lo, hi in zip(qs[:-1], qs[1:]))])
+
+
+#: the dataset's 31 bands (400-700 nm, 10 nm)
+_WL31 = np.arange(400.0, 701.0, 10.0)
+
+
+def ohta_chart(level, lines=12, samples=18):
+    """ColorChecker N Ohta reflectances × D65 (colour-science's measured spectra) on the
+    31 bands, brightness rising left to right, a 100× lamp block: times ``level``."""
+    import colour
+
+    cc = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
+    d65 = colour.SDS_ILLUMINANTS["D65"]
+    refl = np.array([[sd[w] for w in _WL31] for sd in cc.values()])
+    ill = np.array([d65[w] for w in _WL31]) / 100.0
+    r = (np.arange(lines) * 4 // lines)[:, None]
+    c = (np.arange(samples) * 6 // samples)[None, :]
+    cube = refl[r * 6 + c] * ill * np.linspace(0.2, 2.0, samples)[None, :, None]
+    cube[:2, :3] *= 100.0
+    return (cube * level).astype(np.float32)
+
+
+def colour_srgb(cube):
+    """Pseudo-HDR-RGB the outside way: colour.msds_to_XYZ (integration, flat illuminant,
+    k = 100/Σȳ) then the IEC 61966-2-1 matrix, negatives clipped (float64)."""
+    import colour
+
+    shape = colour.SpectralShape(400, 700, 10)
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
+    xyz = colour.msds_to_XYZ(cube.astype(np.float64), cmfs=cmfs, method="Integration",
+                             shape=shape) / 100.0
+    from mehs.rgb import XYZ_TO_SRGB
+
+    return np.maximum(xyz @ XYZ_TO_SRGB.T, 0.0)

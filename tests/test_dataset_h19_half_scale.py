@@ -6,45 +6,18 @@ import json
 import numpy as np
 import pytest
 
+from _checks import colour_srgb, ohta_chart
 from mehs.cube import SpectralCube
 from mehs.dataset.build import build_from_hs
 from mehs.dataset.cube_figures import half_float_scale
 from mehs.dataset.manifest import read_manifest
 from mehs.io.envi import write_envi
 from mehs.io.exr import HALF_MAX, read_exr
-from mehs.rgb import WAVELENGTHS_31, XYZ_TO_SRGB
+from mehs.rgb import WAVELENGTHS_31
 
 UNIT = "W sr-1 m-2 nm-1"
 #: half float's smallest normal 2^-14, six stops up: where a scene's low end is stored
 HALF_LOW_END = 2.0 ** -8
-
-
-def _chart(level, lines=12, samples=18):
-    """ColorChecker N Ohta reflectances × D65 (colour-science's measured spectra) on the
-    31 bands, brightness rising left to right, a 100× lamp block: times ``level``."""
-    import colour
-
-    cc = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
-    d65 = colour.SDS_ILLUMINANTS["D65"]
-    refl = np.array([[sd[w] for w in WAVELENGTHS_31] for sd in cc.values()])
-    ill = np.array([d65[w] for w in WAVELENGTHS_31]) / 100.0
-    r = (np.arange(lines) * 4 // lines)[:, None]
-    c = (np.arange(samples) * 6 // samples)[None, :]
-    cube = refl[r * 6 + c] * ill * np.linspace(0.2, 2.0, samples)[None, :, None]
-    cube[:2, :3] *= 100.0
-    return (cube * level).astype(np.float32)
-
-
-def _colour_rgb(cube):
-    """Pseudo-HDR-RGB the outside way: colour.msds_to_XYZ (integration, flat illuminant,
-    k = 100/Σȳ) then the IEC 61966-2-1 matrix, negatives clipped (float64)."""
-    import colour
-
-    shape = colour.SpectralShape(400, 700, 10)
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
-    xyz = colour.msds_to_XYZ(cube.astype(np.float64), cmfs=cmfs, method="Integration",
-                             shape=shape) / 100.0
-    return np.maximum(xyz @ XYZ_TO_SRGB.T, 0.0)
 
 
 def _build(tmp_path, cube):
@@ -57,13 +30,13 @@ def _build(tmp_path, cube):
 def test_dim_scene_keeps_half_float_precision_in_the_rgb_exr(tmp_path, level):
     """A chart at 10⁻⁵ (absolute radiance of a dim scene) lay below half's smallest normal:
     the EXR was off by up to 32 % (0.36 % at 10⁻³); lifted by 2^k it keeps 11 bits."""
-    cube = _chart(level)
+    cube = ohta_chart(level)
     s = _build(tmp_path, cube)
     scale = s["quality"]["radiance_scale"]
     exr = read_exr(tmp_path / "ds" / s["files"]["hdr_rgb"])
     assert exr.header["mehsRadianceScale"] == scale > 1
     got = exr.data[:, :, :3].astype(np.float64) / scale
-    ref = _colour_rgb(cube)
+    ref = colour_srgb(cube)
     ok = ref > 1e-6 * ref.max()          # channels not decided by rounding in the matrix
     rel = np.abs(got - ref)[ok] / ref[ok]
     assert rel.max() < 2 ** -10          # half rounding (2^-11) and float32 sums
@@ -76,7 +49,7 @@ def test_dim_scene_keeps_half_float_precision_in_the_rgb_exr(tmp_path, level):
 
 
 def test_a_scene_in_range_keeps_its_values_and_header(tmp_path):
-    s = _build(tmp_path, _chart(1.0))
+    s = _build(tmp_path, ohta_chart(1.0))
     assert s["quality"]["radiance_scale"] == 1.0
     text = (tmp_path / "ds" / s["files"]["hs"]).read_text()
     assert "data gain values" not in text
@@ -88,7 +61,7 @@ def test_spy_reads_the_radiance_through_the_envi_gain(tmp_path, level):
     way (``data gain values``; value · gain + offset is in ``data units``)."""
     import spectral
 
-    cube = _chart(level)
+    cube = ohta_chart(level)
     s = _build(tmp_path, cube)
     scale = s["quality"]["radiance_scale"]
     assert scale != 1
@@ -122,10 +95,10 @@ def test_rgb_cli_keeps_precision_and_carries_a_dataset_cubes_scale(tmp_path):
     ``hs.hdr`` wrote its 2^-k values into the EXR without saying so."""
     from mehs.cli import main
 
-    cube = _chart(1e-5)
+    cube = ohta_chart(1e-5)
     s = _build(tmp_path, cube)
     ds_scale = s["quality"]["radiance_scale"]
-    ref = _colour_rgb(cube)
+    ref = colour_srgb(cube)
     ok = ref > 1e-6 * ref.max()
     for src in (tmp_path / "in" / "cc.hdr", tmp_path / "ds" / s["files"]["hs"]):
         out = tmp_path / f"rgb_{src.parent.name}"
@@ -150,11 +123,11 @@ def test_export_half_warns_when_values_fall_below_half_normal(tmp_path, capsys):
     from mehs.cli import main
 
     dim = write_envi(tmp_path / "dim" / "c.hdr",
-                     SpectralCube(_chart(1e-5), WAVELENGTHS_31, units=UNIT))
+                     SpectralCube(ohta_chart(1e-5), WAVELENGTHS_31, units=UNIT))
     assert main(["export", str(dim), "--out", str(tmp_path / "e1"), "--half"]) == 0
     err = capsys.readouterr().err
     assert "warning" in err and "smallest normal" in err and str(dim) in err
-    s = _build(tmp_path, _chart(1e-5))
+    s = _build(tmp_path, ohta_chart(1e-5))
     assert main(["export", str(tmp_path / "ds" / s["files"]["hs"]), "--out",
                  str(tmp_path / "e2"), "--half"]) == 0
     assert "warning" not in capsys.readouterr().err
@@ -162,4 +135,4 @@ def test_export_half_warns_when_values_fall_below_half_normal(tmp_path, capsys):
     exr = read_exr(tmp_path / "e2" / "band_015.exr")
     assert exr.header["mehsRadianceScale"] == s["quality"]["radiance_scale"]
     np.testing.assert_allclose(exr.data[:, :, 0] / s["quality"]["radiance_scale"],
-                               _chart(1e-5)[:, :, 15], rtol=2 ** -11)
+                               ohta_chart(1e-5)[:, :, 15], rtol=2 ** -11)

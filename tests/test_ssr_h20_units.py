@@ -7,41 +7,16 @@ import json
 import numpy as np
 import pytest
 
+from _checks import colour_srgb, ohta_chart
 from mehs.cube import SpectralCube
 from mehs.dataset.build import build_from_hs
 from mehs.errors import FormatError
 from mehs.io.envi import write_envi
-from mehs.rgb import WAVELENGTHS_31, XYZ_TO_SRGB
+from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.data import load_pairs
 from mehs.ssr.metrics import rmse
 
 UNIT = "W sr-1 m-2 nm-1"
-
-
-def _chart(level, lines=12, samples=18):
-    """ColorChecker N Ohta × D65 (colour-science's measured spectra) on the 31 bands, a
-    brightness ramp and a 100× lamp block: times ``level``."""
-    import colour
-
-    cc = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
-    d65 = colour.SDS_ILLUMINANTS["D65"]
-    refl = np.array([[sd[w] for w in WAVELENGTHS_31] for sd in cc.values()])
-    ill = np.array([d65[w] for w in WAVELENGTHS_31]) / 100.0
-    r = (np.arange(lines) * 4 // lines)[:, None]
-    c = (np.arange(samples) * 6 // samples)[None, :]
-    cube = refl[r * 6 + c] * ill * np.linspace(0.2, 2.0, samples)[None, :, None]
-    cube[:2, :3] *= 100.0
-    return (cube * level).astype(np.float32)
-
-
-def _colour_rgb(cube):
-    import colour
-
-    shape = colour.SpectralShape(400, 700, 10)
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
-    xyz = colour.msds_to_XYZ(cube.astype(np.float64), cmfs=cmfs, method="Integration",
-                             shape=shape) / 100.0
-    return np.maximum(xyz @ XYZ_TO_SRGB.T, 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +26,7 @@ def three_levels(tmp_path_factory):
     levels = {"dim": 1e-5, "mid": 1.0, "bright": 1e5}
     for name, lv in levels.items():
         write_envi(root / "in" / f"{name}.hdr",
-                   SpectralCube(_chart(lv), WAVELENGTHS_31, units=UNIT))
+                   SpectralCube(ohta_chart(lv), WAVELENGTHS_31, units=UNIT))
     build_from_hs([root / "in"], root / "ds", workers=1, progress=False)
     return root / "ds", levels
 
@@ -65,12 +40,12 @@ def test_dataset_pairs_share_one_unit_whatever_the_stored_scale(three_levels):
     pairs = {p.id: p for p in load_pairs(ds, include_failed=True)}
     for name, lv in levels.items():
         p = pairs[name]
-        truth = _chart(lv)
+        truth = ohta_chart(lv)
         hs, wl = p.hs_array()
         np.testing.assert_allclose(wl, WAVELENGTHS_31)
         # exact: the stored factor is a power of two
         np.testing.assert_array_equal(hs, truth)
-        ref = _colour_rgb(truth)
+        ref = colour_srgb(truth)
         ok = ref > 1e-4 * ref.max()
         rel = np.abs(p.hdr_rgb() - ref)[ok] / ref[ok]
         assert rel.max() < 2 ** -9, (name, rel.max())
