@@ -17,11 +17,16 @@ Spectra outside the tables
 --------------------------
 colour-science tabulates reflectances to 730/780 nm and illuminants to
 780 nm, while the Specim IQ grid reaches 1004 nm. Reflectances are extended
-with their last tabulated value (pigments are flat in the near infrared, to
-first order). Illuminant A is Planck's law at 2856 K and is evaluated exactly
-at every wavelength; the other illuminants are extended with the mean of their
-last 20 nm (which keeps a discharge lamp's continuum, not its last line).
-Nothing is ever extrapolated to negative values.
+with their last tabulated value (no measured data; see the limits below).
+Lights continue as :mod:`mehs.scenes.lights` says: illuminant A by its CIE
+formula, the D illuminants as the CIE D series (tabulated to 830 nm),
+tungsten lamps by Planck's law, the others with the mean of their last 20 nm
+(which keeps a discharge lamp's continuum, not its last line). Nothing is ever
+extrapolated to negative values.
+
+The flat reflectance beyond 780 nm is a stand-in, not a measurement: most
+organic pigments of a real chart turn transparent in the near infrared and
+its patches rise there (all but the carbon-black ones).
 
 Band values
 -----------
@@ -50,6 +55,7 @@ import numpy as np
 
 from mehs.calibration.spectra import GAUSS_SUPPORT_SIGMA
 from mehs.errors import InputError
+from mehs.scenes.lights import light_function, planck  # noqa: F401 - planck is public here
 
 
 def _specim_iq_grid() -> np.ndarray:
@@ -103,13 +109,6 @@ def srf_average(fn, wavelengths: np.ndarray, fwhm: np.ndarray | float | None) ->
     return (np.asarray(fn(x), dtype=np.float64) * w).sum(axis=1) / w.sum()
 
 
-def planck(wavelengths_nm, kelvin: float) -> np.ndarray:
-    """Planck's law at ``kelvin`` K up to a constant (``λ⁻⁵/(exp(c₂/λT) − 1)``, λ in m), shaped
-    like the input. c₂ = 1.4388e-2 m·K, the value the CIE's illuminant A is defined with."""
-    lam = np.asarray(wavelengths_nm, dtype=np.float64) * 1e-9
-    return lam ** -5 / np.expm1(1.4388e-2 / (lam * kelvin))
-
-
 def relative_band_spd(fn, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None,
                       what: str) -> np.ndarray:
     """A light's SPD ``fn(λ)`` as the bands see it (:func:`srf_average`), clipped at 0 and scaled
@@ -151,34 +150,19 @@ def check_wavelengths(wavelengths, what: str = "scene") -> np.ndarray:
     return wl
 
 
-def _extend(wl_src: np.ndarray, values: np.ndarray, wl: np.ndarray, *, tail_nm: float = 0.0) -> np.ndarray:
-    """Linear interpolation inside the table; constant (last value or tail mean) outside."""
-    lo_val = values[0]
-    if tail_nm > 0:
-        hi_val = float(values[wl_src >= wl_src[-1] - tail_nm].mean())
-    else:
-        hi_val = values[-1]
-    return np.interp(wl, wl_src, values, left=lo_val, right=hi_val)
+def _extend(wl_src: np.ndarray, values: np.ndarray, wl: np.ndarray) -> np.ndarray:
+    """Linear interpolation inside the table; its first / last value outside."""
+    return np.interp(wl, wl_src, values, left=values[0], right=values[-1])
 
 
 @lru_cache(maxsize=16)
 def _illuminant(name: str, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None = None) -> np.ndarray:
     import colour
 
-    if name == "A":
-        # CIE A is defined as Planck's law at 2856 K, so evaluate it everywhere.
-        def fn(x):
-            return planck(x, 2856.0)
-    else:
-        if name not in colour.SDS_ILLUMINANTS:
-            raise InputError(f"unknown illuminant {name!r}; use one of colour.SDS_ILLUMINANTS "
-                             "(D65, A, HP1, FL2, FL11, LED-B3, …)")
-        sd = colour.SDS_ILLUMINANTS[name]
-        w_src, v_src = np.asarray(sd.wavelengths), np.asarray(sd.values, dtype=np.float64)
-
-        def fn(x):
-            return _extend(w_src, v_src, x, tail_nm=20.0)
-    return relative_band_spd(fn, wl_key, fw_key, f"illuminant {name!r}")
+    if name not in colour.SDS_ILLUMINANTS:
+        raise InputError(f"unknown illuminant {name!r}; use one of colour.SDS_ILLUMINANTS "
+                         "(D65, A, HP1, FL2, FL11, LED-B3, …)")
+    return relative_band_spd(light_function(name), wl_key, fw_key, f"illuminant {name!r}")
 
 
 def illuminant_spectrum(name: str, wavelengths: np.ndarray, fwhm: np.ndarray | float | None = None) -> np.ndarray:
@@ -319,9 +303,13 @@ def make_scene(kind: str = "colorchecker", lines: int = 64, samples: int = 64,
         with a visible lamp of ``light_source`` SPD (default: the illuminant);
         ``"lamp"`` — the chart under a high-pressure sodium lamp (HP1) that is
         itself in view; ``"window"`` — the chart under tungsten light (A) with a
-        daylight window (D65) in view; ``"ramp"`` — neutral patches stepping
-        over 4 decades of radiance (flat-ish grey spectra), handy for response
-        recovery.
+        daylight window (D65) in view; ``"ramp"`` — 8 neutral patches stepping
+        down over 4 decades of reflectance from left to right (the chart's
+        white spectrum, scaled), handy for response recovery. Its lamp sits on
+        the brightest step, so the radiance still falls monotonically, but the
+        lamp's glare (2 % of it at the rim, falling as 1/r³) floors the far
+        steps at ≈ 0.6 % of the white at ``source_ratio=1000``: 4 decades of
+        radiance need ``source_ratio=0`` (the demo's response ladder).
     lines, samples
         Spatial size (the scan direction is ``lines``).
     wavelengths
@@ -383,7 +371,9 @@ def make_scene(kind: str = "colorchecker", lines: int = 64, samples: int = 64,
         steps = 8
         grey = refl[18]  # the chart's white patch spectrum, scaled
         factors = np.logspace(0, -4, steps)
-        table = np.vstack([grey[None, :] * factors[:, None] / grey.mean(), np.full((1, wl.size), 0.04)])
+        # scaled by its peak, not its mean: by the mean the top step reflected 102 % of the
+        # light in the red, more than a non-fluorescent surface can
+        table = np.vstack([grey[None, :] * factors[:, None] / grey.max(), np.full((1, wl.size), 0.04)])
         bg = steps
         labels[:] = np.clip((u * steps).astype(np.int32), 0, steps - 1)
         labels[(v < 0.06) | (v > 0.94)] = bg
@@ -415,8 +405,10 @@ def make_scene(kind: str = "colorchecker", lines: int = 64, samples: int = 64,
             radiance[win] = (src * source_ratio).astype(np.float32)
             info["source_pixels"] = int(win.sum())
         else:
-            # A round lamp with a 1/r² glow around it, on the right of the frame.
-            cy, cx = 0.30 * (lines - 1), 0.86 * (samples - 1)
+            # A round lamp with a 1/r³ glow around it, on the right of the frame; on a ramp,
+            # on its brightest step: over the darkest ones it hid them, and its glare turned
+            # the ramp round (steps 4–8 brightened towards the lamp, as bright as the chart's)
+            cy, cx = 0.30 * (lines - 1), (0.5 / 8 if kind == "ramp" else 0.86) * (samples - 1)
             rad = max(1.5, 0.06 * min(lines, samples))
             r = np.sqrt((yy - cy) ** 2 + (xx - cx) ** 2)
             core = r <= rad

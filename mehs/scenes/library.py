@@ -22,9 +22,10 @@ training.
 
 Spectra outside the tables
 --------------------------
-As :mod:`mehs.capture.scene`: reflectances hold their last tabulated value beyond the table,
-measured lights the mean of their last 20 nm; D series and Planck are evaluated (D series
-beyond 830 nm: the tail mean). Everything is clipped at 0 (reflectance also at 1). Lights are
+As :mod:`mehs.capture.scene`: reflectances hold their last tabulated value beyond the table;
+measured lights continue as :mod:`mehs.scenes.lights` says (illuminant A by its formula,
+tungsten lamps by Planck's law, the others with the mean of their last 20 nm); D series and
+Planck are evaluated (D series beyond 830 nm: the tail mean). Everything is clipped at 0 (reflectance also at 1). Lights are
 averaged over each band's Gaussian response when a ``fwhm`` is given (see
 :mod:`mehs.capture.scene`, "Band values").
 
@@ -226,24 +227,25 @@ def draw_light(family: str, pool: str, rng: np.random.Generator) -> Light:
 def _light_spd(light: Light, wl_key: tuple[float, ...], fw_key: tuple[float, ...] | None = None) -> np.ndarray:
     import colour
 
-    from mehs.capture.scene import planck, relative_band_spd
+    from mehs.capture.scene import relative_band_spd
+    from mehs.scenes.lights import light_function, planck
 
     if light.kelvin is not None and light.family == "tungsten":
         def fn(x):
             return planck(x, light.kelvin)
-    else:
-        if light.kelvin is not None:
-            xy = colour.temperature.CCT_to_xy_CIE_D(light.kelvin * 1.4388 / 1.4380)
-            sd = colour.sd_CIE_illuminant_D_series(xy)
-        else:
-            src = colour.SDS_ILLUMINANTS if light.name in colour.SDS_ILLUMINANTS else colour.SDS_LIGHT_SOURCES
-            if light.name not in src:
-                raise InputError(f"colour-science has no light {light.name!r}")
-            sd = src[light.name]
+    elif light.kelvin is not None:
+        xy = colour.temperature.CCT_to_xy_CIE_D(light.kelvin * 1.4388 / 1.4380)
+        sd = colour.sd_CIE_illuminant_D_series(xy)
         w_src, v_src = np.asarray(sd.wavelengths), np.asarray(sd.values, np.float64)
 
         def fn(x):
             return _table(w_src, v_src, x, 20.0)
+    else:
+        if light.name not in colour.SDS_ILLUMINANTS and light.name not in colour.SDS_LIGHT_SOURCES:
+            raise InputError(f"colour-science has no light {light.name!r}")
+        # measured lamps continue past their table as the simulator's lights do (tungsten
+        # by Planck, illuminant A by its formula), not flat from 690 / 780 nm
+        fn = light_function(light.name)
     # the camera sees each band's Gaussian response, not the SPD at its centre (lines!)
     return relative_band_spd(fn, wl_key, fw_key, f"light {light.label!r}")
 
