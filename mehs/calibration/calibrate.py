@@ -332,10 +332,11 @@ def _region_rows(region: Any, bracket) -> np.ndarray | None:
     return np.arange(a, b + 1)
 
 
-def _frame_dn_per_ms(bracket, response, region: str, saturation) -> tuple[np.ndarray, np.ndarray]:
+def _frame_dn_per_ms(bracket, response, rows: np.ndarray,
+                     saturation) -> tuple[np.ndarray, np.ndarray]:
+    """DN/ms of the scan lines ``rows`` (from :func:`_region_rows`) of the fused frame."""
     from mehs.synthesis.fuse import fuse_bracket
 
-    rows = _region_rows(region, bracket)
     res = fuse_bracket(bracket, response=response, ghosts="off", saturation=saturation,
                        check_response=False)
     x = np.asarray(res.radiance.data, dtype=np.float64)[rows]
@@ -362,7 +363,7 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
                camera_id: str | None, saturation: float | np.ndarray | None) -> Calibration:
     from mehs.synthesis.response import ResponseCurve
 
-    _region_rows(region, bracket)          # a bad region is refused before any work
+    rows = _region_rows(region, bracket)   # a bad region is refused before any work
     nb = bracket.shape[2]
     L = 1 << bracket.bit_depth
     sat = np.broadcast_to(np.asarray(0.98 * (L - 1) if saturation is None else saturation,
@@ -377,10 +378,10 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
         curve = ResponseCurve.load(response)
         resp_info = {"method": curve.method, "path": str(response), "sha256": sha256_file(response)}
     resp_info["g_sha256"] = curve.fingerprint()
-    if region == "white":
+    if rows is None:
         dn, rel = _white_dn_per_ms(bracket, curve, sat)
     else:
-        dn, rel = _frame_dn_per_ms(bracket, curve, region, sat)
+        dn, rel = _frame_dn_per_ms(bracket, curve, rows, sat)
     if not per_column:
         rel = np.sqrt(np.mean(rel ** 2, axis=0) / dn.shape[0])[None]
         dn = dn.mean(axis=0, keepdims=True)

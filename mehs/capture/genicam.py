@@ -368,7 +368,9 @@ class GenicamCamera:
         self._ledger.reset()   # a camera may number its frames afresh from AcquisitionStart
 
     def _drain(self, ledger: TriggerLedger | None = None) -> None:
-        """Re-queue every buffer received; with ``ledger`` note and log them (frames of earlier triggers)."""
+        """Re-queue every buffer received; with ``ledger`` note and log them (frames of earlier
+        triggers). A failed buffer is counted and logged as :meth:`_pop` does: re-queued
+        silently, a lost frame went missing from the capture's figures."""
         if self._stream is None:
             return
         while True:
@@ -376,7 +378,12 @@ class GenicamCamera:
             if b is None:
                 return
             try:
-                if ledger is not None and b.get_status() == self.Aravis.BufferStatus.SUCCESS:
+                status = b.get_status()
+                if status != self.Aravis.BufferStatus.SUCCESS:
+                    self.lost_buffers += 1
+                    self.events.append(f"camera: buffer {b.get_frame_id()} {status.value_nick} "
+                                       "(lost / incomplete)")
+                elif ledger is not None:
                     fid = int(b.get_frame_id())
                     ledger.seen(fid)
                     self.events.append(f"camera: dropped frame {fid} of an earlier trigger "

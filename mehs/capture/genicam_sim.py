@@ -394,7 +394,12 @@ class SimGenicamDevices:
                               start_homed=start_homed, speed=speed)
         self.stage = SimStage(self.world)
         self.server = DeviceServer(self.stage.handle, host=host, port=port, name="stage")
-        self.camera = GenicamSimCamera(self.world, faults=gv, **camera_options)
+        self._serving = False
+        try:
+            self.camera = GenicamSimCamera(self.world, faults=gv, **camera_options)
+        except BaseException:
+            self.server.sock.close()   # bound above: no object is left to close() it
+            raise
 
     @property
     def stage_url(self) -> str:
@@ -411,11 +416,20 @@ class SimGenicamDevices:
     def start(self) -> "SimGenicamDevices":
         self.camera.start()
         self.server.start()
+        self._serving = True
         return self
 
     def close(self) -> None:
-        self.server.close()
-        self.camera.close()
+        """Stop both devices and free their ports; safe at any point (before or after a
+        failed :meth:`start`, and twice)."""
+        try:
+            if self._serving:
+                self.server.close()
+            else:
+                # DeviceServer.close() joins its thread, which raises for one never started
+                self.server.sock.close()
+        finally:
+            self.camera.close()
 
     def __enter__(self) -> "SimGenicamDevices":
         return self.start()

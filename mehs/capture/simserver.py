@@ -71,7 +71,8 @@ class DeviceServer:
                 except OSError:
                     pass
                 s.close()
-        self.thread.join(timeout=2)
+        if self.thread.ident is not None:     # join() raises for a thread never started
+            self.thread.join(timeout=2)
 
     def _serve(self) -> None:
         while not self._closed.is_set():

@@ -31,9 +31,10 @@ KAIST and its CASSI derivatives: :mod:`mehs.io.ssr_kaist` (layouts and their sou
 Harvard: :mod:`mehs.io.ssr_harvard` (``lbl`` polarity, ``calib.txt``, bands). Its moving
 objects are masked (bit 2, "ghost", of :mod:`mehs.ssr.data`'s masks; :func:`read_source_mask`).
 
-MATLAB files are read with :mod:`h5py` (v7.3: HDF5 behind a 512-byte MATLAB userblock; arrays
-are stored column-major, so every axis order is reversed: a MATLAB ``H×W×B`` cube reads as
-``(B, W, H)`` and is transposed back) or :func:`scipy.io.loadmat` (v5). No hand-written parser.
+MATLAB files are read by :mod:`mehs.io.matfile`: :mod:`h5py` (v7.3: HDF5 behind a 512-byte
+MATLAB userblock; arrays are stored column-major, so every axis order is reversed: a MATLAB
+``H×W×B`` cube reads as ``(B, W, H)`` and is transposed back) or :func:`scipy.io.loadmat`
+(v5). No hand-written parser.
 
 Every cube becomes float32 ``(H, W, B)`` (``H`` = MATLAB rows) and goes through the explicit,
 recorded options of :class:`SourceOptions`: band selection (default: the bands in 400–700 nm),
@@ -65,6 +66,8 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+# read_mat_variables lived here first; ssr_kaist and outside code still import it from here
+from mehs.io.matfile import read_mat_variables
 from mehs.io.ssr_harvard import HARVARD_MOTION  # noqa: F401 (re-exported)
 from mehs.io.ssr_harvard import (CALIB_MODES, LBL_POLARITIES, apply_harvard_calib, harvard_mask,
                                  read_harvard)
@@ -149,67 +152,7 @@ class SourceOptions:
         return d
 
 
-# --------------------------------------------------------------------------- MATLAB / HDF5
-def _is_hdf5(path: Path) -> bool:
-    import h5py
-
-    try:
-        return bool(h5py.is_hdf5(str(path)))
-    except OSError as exc:
-        raise FormatError(f"cannot open ({exc})", path) from None
-
-
-def read_mat_variables(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Read ``keys`` from a MATLAB file (v7.3 via h5py, v5 via scipy.io) in MATLAB axis order.
-
-    Raises
-    ------
-    FormatError
-        Unreadable or truncated file, or a key missing (the message names the key and lists
-        the variables present).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("no such file", path)
-    out: dict[str, np.ndarray] = {}
-    if _is_hdf5(path):
-        import h5py
-
-        try:
-            with h5py.File(path, "r") as f:
-                for k in keys:
-                    if k not in f:
-                        raise FormatError(f"no variable {k!r} in the MATLAB v7.3 file "
-                                          f"(variables: {', '.join(sorted(f.keys())) or 'none'})", path)
-                    # column-major on disk: reversing the axes gives MATLAB's order
-                    out[k] = np.asarray(f[k][()]).transpose()
-        except FormatError:
-            raise
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            raise FormatError(f"unreadable or truncated MATLAB v7.3 (HDF5) file ({exc})", path) from None
-        return out
-    import scipy.io
-    from scipy.io.matlab import MatReadError
-
-    if path.stat().st_size == 0:
-        raise FormatError("empty file (an interrupted download?)", path)
-    try:
-        mat = scipy.io.loadmat(path, variable_names=list(keys))
-        present = [n for n, *_ in scipy.io.whosmat(path)]
-    except NotImplementedError as exc:
-        raise FormatError(f"MATLAB file version not supported ({exc})", path) from None
-    # (a short v5 file ends inside its header: scipy raises IndexError or MatReadError)
-    except (MatReadError, ValueError, TypeError, OSError, EOFError, AssertionError,
-            IndexError) as exc:
-        raise FormatError(f"unreadable or truncated MATLAB file ({exc})", path) from None
-    for k in keys:
-        if k not in mat:
-            raise FormatError(f"no variable {k!r} in the MATLAB file (variables: "
-                              f"{', '.join(sorted(present)) or 'none'})", path)
-        out[k] = np.asarray(mat[k])
-    return out
-
-
+# --------------------------------------------------------------------------- MATLAB
 def _mat_cube(path: Path, cube_key: str) -> tuple[np.ndarray, np.ndarray, dict]:
     v = read_mat_variables(path, (cube_key, "bands"))
     cube = v[cube_key]

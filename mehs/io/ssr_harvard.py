@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+from mehs.io.matfile import read_mat_variables
 
 HARVARD_BANDS = np.arange(420.0, 721.0, 10.0)
 #: Mask value of a pixel Harvard's ``lbl`` excludes (bit 2, "ghost": it moved during the scan).
@@ -54,8 +55,6 @@ def read_harvard(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
     The ``lbl`` mask is read by :func:`harvard_mask`, ``calib.txt`` applied by
     :func:`apply_harvard_calib`, not here.
     """
-    from mehs.io.ssr_datasets import read_mat_variables
-
     path = Path(path)
     cube = read_mat_variables(path, ("ref",))["ref"]
     if cube.dtype.kind not in "fiub":
@@ -115,8 +114,6 @@ def apply_harvard_calib(cube: np.ndarray, scene: Path, mode: str) -> tuple[np.nd
 def harvard_mask(path: Path, polarity: str = LBL_POLARITIES[0]) -> np.ndarray | None:
     """Harvard's ``lbl`` as a mask ``(H, W)`` uint8, :data:`HARVARD_MOTION` on the pixels
     ``polarity`` excludes; ``None`` for a file without ``lbl`` or ``polarity="ignore"``."""
-    from mehs.io.ssr_datasets import read_mat_variables
-
     if polarity not in LBL_POLARITIES:
         raise InputError(f"harvard_lbl must be one of {', '.join(LBL_POLARITIES)}, "
                          f"got {polarity!r}")

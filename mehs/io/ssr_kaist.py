@@ -152,7 +152,7 @@ def read_cassi28(path: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
     FormatError
         Neither variable, or not a real rows × columns × 28 array.
     """
-    from mehs.io.ssr_datasets import read_mat_variables
+    from mehs.io.matfile import read_mat_variables
 
     path = Path(path)
     cube, key, missing = None, None, []

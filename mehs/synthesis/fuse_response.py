@@ -274,7 +274,7 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
     params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
     try:
         if shared:
-            Z, idx = _sample_shared(cand, n, seed, bracket.bit_depth)
+            Z, idx = sample_shared(cand, n, seed, bracket.bit_depth)
         else:
             Z, idx = sample_pixels(cand, n, seed=seed, bit_depth=bracket.bit_depth,
                                    return_index=True)
@@ -361,8 +361,18 @@ def _offset_rounds(bracket, Z, D, plain, wt, zmin, smoothness, weighting, params
     return _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"}), Z, D, f
 
 
-def _sample_shared(cand: np.ndarray, n_per: int, seed: int,
-                   bit_depth: int) -> tuple[np.ndarray, np.ndarray]:
+def sample_shared(cand: np.ndarray, n_per: int, seed: int,
+                  bit_depth: int) -> tuple[np.ndarray, np.ndarray]:
+    """The stratified sample of a shared curve's solve (and of its held-out pixels:
+    :func:`mehs.synthesis.response_select.held_out_samples`, so that both draw alike).
+
+    The picker of :func:`~mehs.synthesis.response.sample_pixels` on ``cand`` int32
+    ``(P, M, C)`` (saturated samples at ``L − 1``, ``L = 2**bit_depth``), visiting order
+    permuted by ``seed``, but a channel short of ``n_per`` eligible pixels is not refused:
+    its unfilled slots hold ``L − 1`` (weight 0 in every weighting), the other channels
+    still determine the shared curve. Returns ``Z`` int32 ``(n_per, P, C)`` and ``idx``
+    int64 ``(C, n_per)``, the pixel indices into ``cand`` (−1 where unfilled).
+    """
     from mehs.synthesis._kernels import stratified_pick
 
     P, M, C = cand.shape

@@ -90,7 +90,7 @@ def held_out_samples(cand: np.ndarray, cdark: np.ndarray, used: np.ndarray, n: i
     ``Z`` int32 ``(n, P, C)`` (``L − 1``, weight 0, in unfilled slots) and ``D`` float
     ``(n, P, C)`` their raw darks.
     """
-    from mehs.synthesis.fuse_response import _sample_shared
+    from mehs.synthesis.fuse_response import sample_shared
 
     L = 1 << bit_depth
     rest = np.array(cand, dtype=np.int32, copy=True)
@@ -99,7 +99,7 @@ def held_out_samples(cand: np.ndarray, cdark: np.ndarray, used: np.ndarray, n: i
     ok = used >= 0
     # a used pixel is made ineligible in its channel (saturated in every exposure)
     rest[:, used[ok], ch[ok]] = L - 1
-    Z, idx = _sample_shared(rest, n, seed, bit_depth)
+    Z, idx = sample_shared(rest, n, seed, bit_depth)
     D = np.take_along_axis(cdark.transpose(2, 1, 0), np.maximum(idx, 0)[:, :, None],
                            axis=1).transpose(1, 2, 0)
     return Z, D
