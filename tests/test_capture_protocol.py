@@ -299,6 +299,10 @@ def test_sim_stage_bytes(world):
     assert st.handle(b"/2 1 get pos\n")[0] is None  # another device's address
     cmd = format_command(1, 1, "get pos", checksum=True)
     rep = st.handle(cmd)[0]
+    # a device checks the command's checksum but adds one only with comm.checksum = 1
+    assert rep == b"@01 1 OK IDLE -- 128\r\n"
+    assert st.handle(b"/1 0 set comm.checksum 1\n")[0].rstrip()[-3:-2] == b":"
+    rep = st.handle(cmd)[0]
     assert parse_reply(rep).data == "128" and rep.rstrip()[-3:-2] == b":"
     assert st.handle(cmd[:-4] + b":00\n")[0] is None  # bad checksum: ignored
 

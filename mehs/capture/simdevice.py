@@ -36,7 +36,8 @@ from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
 from mehs.capture.simulate import (WHITE_TILE_LINES, motion_phase, white_tile_first_line,
                                    world_radiance_line)
-from mehs.capture.zaber import format_reply, lrc, speed_from_setting, speed_setting
+from mehs.capture.zaber import (WARNING_FLAGS, format_reply, lrc, speed_from_setting,
+                                speed_setting)
 from mehs.capture.simserver import DeviceServer, PtyServer
 from mehs.errors import InputError
 
@@ -123,6 +124,7 @@ class SimWorld:
         self.pos = 0.0
         self._move: tuple[float, float, float, float] | None = None  # from, to, t0, duration
         self._stall_at: float | None = None
+        self._homing = False        # WR clears when homing reaches the home sensor, not before
         self.flags: set[str] = set()
         self.maxspeed = speed_setting(self.speed)    # the device's unit, as a real stage's
         # camera
@@ -141,13 +143,15 @@ class SimWorld:
         frac = 1.0 if dur <= 0 else min(1.0, (time.monotonic() - t0) / dur)
         if self._stall_at is not None and frac >= self._stall_at:
             self.pos = p0 + (p1 - p0) * self._stall_at
-            self._move, self._stall_at = None, None
+            self._move, self._stall_at, self._homing = None, None, False
             self.flags.add("FS")
             return
         self.pos = p0 + (p1 - p0) * frac
         if frac >= 1.0:
             self.pos = p1
             self._move = None
+            if self._homing:
+                self.homed, self._homing = True, False
 
     def busy(self) -> bool:
         self._update()
@@ -157,29 +161,25 @@ class SimWorld:
         self._update()
         return int(round(self.pos))
 
-    def start_move(self, target: float, *, stall: bool = False) -> None:
+    def start_move(self, target: float, *, stall: bool = False, homing: bool = False) -> None:
         self._update()
+        self._homing = homing
         dur = abs(target - self.pos) / speed_from_setting(max(self.maxspeed, 1))
         self._move = (self.pos, float(target), time.monotonic(), dur)
         self._stall_at = 0.5 if stall else None
 
     def stop(self) -> None:
         if self.busy():
-            self._move = None
+            self._move, self._homing = None, False
             self.flags.add("NI")
 
     def world_line(self) -> int:
         return int(round(self.position() / self.pitch))
 
     def flag(self) -> str:
-        active = sorted(self.flags)
-        for prefix in ("F", "W", "N"):
-            for f in active:
-                if f.startswith(prefix):
-                    return f
-        if not self.homed:
-            return "WR"
-        return "--"
+        # the reply shows the highest-priority active flag (WR outranks the N* notices)
+        active = set(self.warning_list())
+        return next((f for f in WARNING_FLAGS if f in active), "--")
 
     def warning_list(self) -> list[str]:
         out = sorted(self.flags)
@@ -206,7 +206,10 @@ class SimWorld:
 
 
 # ---------------------------------------------------------------- protocol handlers
-_CMD_RE = re.compile(r"^/(?P<dev>\d+)?(?: (?P<axis>\d+))?(?: (?P<id>\d{1,2}))?(?: (?P<cmd>[^:]*?))?"
+# device, axis and id are optional leading numbers ("/home" goes to every device, axis 0);
+# each must be a whole word ("/1hi" is the command "1hi")
+_CMD_RE = re.compile(r"^/(?:(?P<dev>\d+)(?![^ :])(?: +(?P<axis>\d+)(?![^ :])"
+                     r"(?: +(?P<id>\d{1,2})(?![^ :]))?)?)? *(?P<cmd>[^:]*?) *"
                      r"(?::(?P<cc>[0-9A-Fa-f]{2}))?$")
 
 
@@ -217,6 +220,9 @@ class SimStage:
 
     def __init__(self, world: SimWorld):
         self.w = world
+        # the device setting that puts a checksum on every reply, as on a real Zaber
+        # device (default 0): a command's own checksum is checked but not echoed
+        self.comm_checksum = 0
 
     def handle(self, raw: bytes) -> tuple[bytes | None, str | None]:
         text = raw.decode("ascii", "replace").strip("\r\n")
@@ -240,8 +246,8 @@ class SimStage:
             with w.lock:
                 busy = w.busy()
                 fl = flag or w.flag()
-            return format_reply(self.device_address, axis, ok, busy, fl, data, checksum=cs,
-                                msg_id=msg_id)
+            return format_reply(self.device_address, axis, ok, busy, fl, data,
+                                checksum=self.comm_checksum == 1, msg_id=msg_id)
 
         if axis not in (0, 1):
             return reply(False, "BADAXIS"), None
@@ -260,9 +266,8 @@ class SimStage:
                 if head == "home":
                     if args:
                         return reply(False, "BADDATA"), fault
-                    w.homed = True
                     w.flags.discard("NI")
-                    w.start_move(0, stall=fault == "fault")
+                    w.start_move(0, stall=fault == "fault", homing=True)
                     return reply(True), fault
                 if len(args) != 1 or not re.fullmatch(r"-?\d+", args[0]):
                     return reply(False, "BADDATA"), fault
@@ -280,6 +285,15 @@ class SimStage:
                 return reply(True, str(w.maxspeed)), None
             if head == "get limit.max" and not args:
                 return reply(True, str(w.limit_max)), None
+            if head in ("get comm.checksum", "set comm.checksum"):
+                if axis != 0:
+                    return reply(False, "DEVICEONLY"), None   # a device-scope setting
+                if head == "get comm.checksum" and not args:
+                    return reply(True, str(self.comm_checksum)), None
+                if head == "get comm.checksum" or args not in (["0"], ["1"]):
+                    return reply(False, "BADDATA"), None
+                self.comm_checksum = int(args[0])
+                return reply(True), None
             if head == "set maxspeed":
                 if len(args) != 1 or not args[0].isdigit() or int(args[0]) < 1:
                     return reply(False, "BADDATA"), None

@@ -6,15 +6,25 @@ Command (host → device)::
 
 Reply (device → host)::
 
-    @<DD> <A> [<ID>] <OK|RJ> <IDLE|BUSY> <flag> <data>[:<CC>]\\r\\n
+    @<DD> <A> [<ID>] <OK|RJ> <IDLE|BUSY> <flag> <data>[\\][:<CC>]\\r\\n
 
-``#`` lines are info messages, ``!`` lines alerts. ``CC`` is the optional
-longitudinal redundancy check: the two's complement of the byte sum (mod 256)
-of everything between the leading ``/`` or ``@`` and the ``:``, as two
-upper-case hex digits. The flag field is the most urgent warning: ``--`` none,
-``F*`` faults (e.g. ``FS`` stalled), ``W*`` warnings (``WR`` = not homed:
-``home`` first), ``N*`` notices (``NI`` = move interrupted). ``RJ`` replies carry
-the reason (``BADDATA``, ``BADCOMMAND``, ``BADAXIS``, ``AGAIN``, …) as data.
+``#`` lines are info messages, ``!`` lines alerts; a reply longer than a packet ends in
+``\\`` and goes on in ``#<DD> <A> [<ID>] cont <more>`` packets. ``CC`` is the LRC:
+the two's complement of the byte sum (mod 256) of everything between the leading
+marker and the ``:``, as two hex digits. A device checks a command's ``CC`` whenever one
+is sent but puts one on its own messages only with its setting ``comm.checksum`` = 1
+(default 0). The message id (0–99) is echoed in the reply.
+
+The flag field shows only the most urgent active flag (:data:`WARNING_FLAGS`): ``--``
+none, ``F*`` faults, ``W*`` warnings (``WR`` no reference: ``home`` first; ``WL`` limit
+sensor hit), ``N*`` notices (``NI`` move interrupted, ``NC`` manual knob); ``WT``
+(controller hot) thus hides ``NI``. ``RJ`` replies carry the reason (``BADDATA``,
+``BADCOMMAND``, ``BADAXIS``, ``AGAIN``, ``DEVICEONLY``, …) as data.
+
+Positions are microsteps. ``home`` sets the position to ``limit.home.preset`` (0 on most
+stages, not all). Microsteps → mm needs the product's microstep size, which the ASCII
+protocol does not report (Zaber's libraries look it up by peripheral id in their device
+database), so mehs keeps every stage quantity (``--pitch``, positions) in microsteps.
 
 Reliability policy of :class:`ZaberStage`:
 
@@ -24,24 +34,29 @@ Reliability policy of :class:`ZaberStage`:
 - A motion command is **never repeated blindly**: after a lost reply or a
   disconnect the driver reconnects if needed, re-reads status, position and
   warnings, and re-issues the absolute move only if the stage is idle away
-  from the target. Relative moves are not re-issued at all.
-- Faults (``F*`` flags) and rejections other than AGAIN raise
-  :class:`~mehs.errors.DeviceError` at once.
+  from the target. Relative moves are not re-issued at all; ``home`` (which
+  Zaber lists as safe to repeat) is re-issued whenever the stage is idle.
+- Faults (``F*`` flags), ``NI``, ``WL``, ``NC``, ``WR`` after a move and rejections other
+  than AGAIN raise :class:`~mehs.errors.DeviceError` at once.
 
 References
 ----------
 - Zaber Technologies, "ASCII Protocol Manual" (message format, reply flags,
-  warning flags, checksums), https://www.zaber.com/protocol-manual
+  warning flags, checksums, ``home``), https://www.zaber.com/protocol-manual
+- Zaber Motion Library, ``WarningFlags`` (flag names and priority order),
+  https://github.com/zabertech/zaber-motion-lib-swift
+- zproto (Rust), ``ascii/parse`` (continuation packets, LRC test vector
+  ``"01 tools echo"`` → ``8F``), https://github.com/stphnt/zproto
 """
 
 from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
-from mehs.capture.transport import Channel, PartialReply, SerialDriver
+from mehs.capture.transport import Channel, SerialDriver
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 #: Zaber's speed settings (``maxspeed``, ``move vel``) count in 1/1.6384 microsteps/s:
@@ -59,16 +74,30 @@ def speed_from_setting(value: float) -> float:
     """Microsteps/s of a ``maxspeed`` value."""
     return float(value) / SPEED_UNITS_PER_MICROSTEP_S
 
+#: Warning flags, highest priority first (Zaber Motion Library ``WarningFlags``): the
+#: reply's flag field shows the first active one.
+WARNING_FLAGS = ("FF", "FN", "FZ", "FH", "FV", "FO", "FC", "FM", "FD", "FQ", "FI", "FA", "FR",
+                 "FS", "FB", "FP", "FE", "FT",
+                 "WL", "WV", "WT", "WS", "WM", "WP", "WR", "WH",
+                 "NC", "NI", "ND", "NR", "NT", "NU", "NJ", "NB")
+
+#: Besides the faults (``F*``), the flags after a finished move that mean the stage is not
+#: where it was sent. The others (``WT`` hot, ``WV`` supply, ``WH``/``WP`` calibration,
+#: ``NU``, …) are logged; the position check after an absolute move still applies.
+MOTION_STOP_FLAGS = {"NI": "the move was interrupted",
+                     "WL": "a limit sensor stopped the move (unexpected limit trigger)",
+                     "NC": "the axis was moved with the manual knob",
+                     "WR": "the axis has no reference position (home it)"}
+
 _REPLY_RE = re.compile(
-    r"^@(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{2}) )?(?P<reply>OK|RJ) "
+    r"^@(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{1,2}) )?(?P<reply>OK|RJ) "
     r"(?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2}) (?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
-_INFO_RE = re.compile(r"^#(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{2}) )?(?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
-_ALERT_RE = re.compile(r"^!(?P<dev>\d{2}) (?P<axis>\d+) (?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2})"
-                       r"(?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
+_INFO_RE = re.compile(r"^#(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{1,2}) )?(?P<data>.*?)"
+                      r"(?::(?P<cc>[0-9A-F]{2}))?$")
 
 
 def lrc(body: bytes) -> int:
-    """Zaber checksum of ``body`` (the bytes between ``/``/``@`` and ``:``)."""
+    """Zaber checksum of ``body`` (the bytes between ``/``, ``@``, ``#`` or ``!`` and ``:``)."""
     return (-sum(body)) & 0xFF
 
 
@@ -132,8 +161,18 @@ class ZaberReply:
         return "BUSY" if self.busy else "IDLE"
 
 
+def _verify_checksum(text: str, cc: str | None) -> None:
+    if cc is not None:
+        body = text[1:text.rindex(":")].encode("ascii")
+        if lrc(body) != int(cc, 16):
+            raise ZaberProtocolError(f"checksum mismatch in {text!r}")
+
+
 def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberReply:
     """Parse one ``@`` reply line (terminator optional).
+
+    The message id may be one or two digits (Zaber's own parsers take any number);
+    a reply continued in ``cont`` packets keeps its trailing ``\\`` in :attr:`data`.
 
     Raises
     ------
@@ -145,13 +184,23 @@ def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberRepl
     m = _REPLY_RE.match(text)
     if not m:
         raise ZaberProtocolError(f"garbled reply {text!r}")
-    if m["cc"] is not None and verify_checksum:
-        body = text[1:text.rindex(":")].encode("ascii")
-        if lrc(body) != int(m["cc"], 16):
-            raise ZaberProtocolError(f"reply checksum mismatch in {text!r}")
+    if verify_checksum:
+        _verify_checksum(text, m["cc"])
     return ZaberReply(device=int(m["dev"]), axis=int(m["axis"]),
                       msg_id=None if m["id"] is None else int(m["id"]), ok=m["reply"] == "OK",
                       busy=m["status"] == "BUSY", flag=m["flag"], data=m["data"])
+
+
+def parse_info(line: bytes | str, *, verify_checksum: bool = True) -> tuple[int, int, int | None, str]:
+    """``(device, axis, msg id, data)`` of one ``#`` info line; raises ZaberProtocolError."""
+    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
+    text = text.rstrip("\r\n")
+    m = _INFO_RE.match(text)
+    if not m:
+        raise ZaberProtocolError(f"garbled info message {text!r}")
+    if verify_checksum:
+        _verify_checksum(text, m["cc"])
+    return int(m["dev"]), int(m["axis"]), None if m["id"] is None else int(m["id"]), m["data"]
 
 
 class ZaberStage(SerialDriver):
@@ -202,6 +251,8 @@ class ZaberStage(SerialDriver):
         self.info: list[str] = []
         self.alerts: list[str] = []
         self.events: list[str] = []   # recoveries, for the capture log
+        self.home_position: int | None = None
+        self._logged_flags: list[str] = []
 
     # ------------------------------------------------------------ low level
     def _read_reply(self, expect_id: int | None = None) -> ZaberReply:
@@ -220,13 +271,7 @@ class ZaberStage(SerialDriver):
                 reply = parse_reply(text, verify_checksum=True)
             except ZaberProtocolError as exc:
                 raise ZaberProtocolError(exc.problem, self.name) from None
-            if self.checksum and not re.search(r":[0-9A-F]{2}$", text):
-                # a Zaber device checks a command's checksum when one is sent, but adds one
-                # to its replies only with its comm.checksum setting at 1 (default 0)
-                raise ZaberProtocolError(
-                    f"reply without checksum {text!r}: the device adds checksums to its replies "
-                    "only with comm.checksum = 1 (send '/set comm.checksum 1' once), or run "
-                    "without --checksum", self.name)
+            self._require_checksum(text)
             if reply.device != self.device or reply.axis not in (self.axis, 0):
                 raise ZaberProtocolError(
                     f"reply from device {reply.device} axis {reply.axis}, expected "
@@ -241,9 +286,51 @@ class ZaberStage(SerialDriver):
                     self.events.append(f"stage: dropped a late reply {text!r} "
                                        f"(id {reply.msg_id:02d}, waiting for {expect_id:02d})")
                     continue
+            if reply.data.endswith("\\"):
+                reply = self._read_continuation(reply)
             return reply
         raise ZaberProtocolError("too many info/alert lines or stale replies without the reply",
                                  self.name)
+
+    def _require_checksum(self, text: str) -> None:
+        if self.checksum and not re.search(r":[0-9A-F]{2}$", text):
+            # a Zaber device checks a command's checksum when one is sent, but adds one
+            # to its replies only with its comm.checksum setting at 1 (default 0)
+            raise ZaberProtocolError(
+                f"reply without checksum {text!r}: the device adds checksums to its replies "
+                "only with comm.checksum = 1 (send '/set comm.checksum 1' once), or run "
+                "without --checksum", self.name)
+
+    def _read_continuation(self, reply: ZaberReply) -> ZaberReply:
+        """Join a reply ending in ``\\`` with its ``#.. cont`` packets (a reply longer than
+        the device's packet size, ``comm.packet.size.max``, 80 bytes by default)."""
+        parts = [reply.data[:-1].rstrip()]
+        for _ in range(64):
+            text = self.channel.read_line(b"\n", what="continuation of a stage reply")
+            text = text.decode("ascii", "replace").rstrip("\r\n")
+            if text.startswith("!"):
+                self.alerts.append(text)
+                continue
+            if not text.startswith("#"):
+                raise ZaberProtocolError(f"expected the 'cont' packets of the reply "
+                                         f"{parts[0]!r}, got {text!r}", self.name)
+            try:
+                dev, axis, mid, data = parse_info(text)
+            except ZaberProtocolError as exc:
+                raise ZaberProtocolError(exc.problem, self.name) from None
+            m = re.fullmatch(r"cont(?: +(.*))?", data)
+            if (m is None or (dev, axis) != (reply.device, reply.axis)
+                    or mid not in (None, reply.msg_id)):
+                self.info.append(text)
+                continue
+            self._require_checksum(text)
+            more = (m[1] or "").strip()
+            if more.endswith("\\"):
+                parts.append(more[:-1].rstrip())
+                continue
+            parts.append(more)
+            return replace(reply, data=" ".join(x for x in parts if x))
+        raise ZaberProtocolError("a continued reply never ended", self.name)
 
     def _take_id(self) -> int | None:
         if not self.message_ids:
@@ -330,8 +417,25 @@ class ZaberStage(SerialDriver):
                                  f"({last.problem if last else 'no attempt'})", self.name)
 
     # ------------------------------------------------------------ motion
-    def wait_idle(self, *, target: int | None = None) -> ZaberReply:
-        """Poll until IDLE; raise on a fault flag, an interrupted move or a timeout."""
+    def _check_flags(self, flags: list[str], what: str) -> None:
+        """Raise StageFault on a fault or a :data:`MOTION_STOP_FLAGS` flag; log the rest once."""
+        faults = [f for f in flags if f.startswith("F")]
+        if faults:
+            raise StageFault(f"stage fault {' '.join(faults)} {what}; warnings {flags}", self.name)
+        for f in flags:
+            if f in MOTION_STOP_FLAGS:
+                raise StageFault(f"{MOTION_STOP_FLAGS[f]} ({f}) {what}; warnings {flags}",
+                                 self.name)
+        info = sorted(set(flags))
+        if info and info != self._logged_flags:
+            self.events.append(f"stage: warning flags {' '.join(info)} {what}")
+        self._logged_flags = info
+
+    def wait_idle(self, *, target: int | None = None, _flags_read_by_caller: bool = False) -> ZaberReply:
+        """Poll until IDLE; raise on a fault, a :data:`MOTION_STOP_FLAGS` flag or a timeout.
+
+        The flag field shows only the highest-priority flag (``WT`` hides ``NI``), so
+        a move that ends showing any flag has its full warning list read."""
         deadline = time.monotonic() + self.move_timeout_s
         while True:
             r = self.poll()
@@ -342,15 +446,18 @@ class ZaberStage(SerialDriver):
             if time.monotonic() > deadline:
                 raise DeviceTimeout(f"stage still BUSY after {self.move_timeout_s} s", self.name)
             time.sleep(self.poll_interval_s)
-        if r.flag == "NI":
-            raise StageFault(f"move interrupted (NI); warnings {self.warnings()}", self.name)
+        if r.flag in MOTION_STOP_FLAGS and r.flag != "WR":
+            raise StageFault(f"{MOTION_STOP_FLAGS[r.flag]} ({r.flag}); warnings {self.warnings()}",
+                             self.name)
+        if r.flag != "--" and not _flags_read_by_caller:
+            self._check_flags(self.warnings(), "after the move")
         if target is not None:
             pos = self.position()
             if pos != target:
                 raise StageFault(f"stage stopped at {pos} instead of {target} (flag {r.flag})", self.name)
         return r
 
-    def _motion(self, command: str, target: int | None, wait: bool) -> None:
+    def _motion(self, command: str, target: int | None, wait: bool, *, home: bool = False) -> None:
         issues = 0
         while True:
             try:
@@ -366,30 +473,38 @@ class ZaberStage(SerialDriver):
                 if st["status"] == "BUSY":
                     r = self.last_reply
                     break  # it received the command and is moving; wait for it below
-                # (a lost home is done only once WR, "no reference position", is gone:
-                # an unhomed stage may rest at 0 too; Zaber lists home as safe to repeat)
-                homed = command != "home" or "WR" not in st["warnings"]
-                if target is not None and st["position"] == target and homed:
-                    return self._finish(target, wait, moved=False)
-                if target is None or issues >= self.retries:
+                # A lost home is sent again: Zaber lists home as safe to repeat, and where it
+                # ends (limit.home.preset) is not known here, so an idle stage at some
+                # position without WR may or may not have homed just now.
+                if target is not None and st["position"] == target and not home:
+                    return self._finish(target, wait, home)
+                if (target is None and not home) or issues >= self.retries:
                     raise DeviceError(f"{command!r} may not have been executed and cannot be "
                                       f"safely repeated; stage state {st}", self.name) from None
                 issues += 1
                 self.events.append(f"stage: re-issuing {command!r} from position {st['position']}")
         if r is not None and r.flag.startswith("F"):
             raise StageFault(f"stage fault {r.flag} on {command!r}", self.name)
-        self._finish(target, wait, moved=True)
+        self._finish(target, wait, home)
 
-    def _finish(self, target: int | None, wait: bool, moved: bool) -> None:
+    def _finish(self, target: int | None, wait: bool, home: bool) -> None:
         if wait:
-            self.wait_idle(target=target)
+            self.wait_idle(target=target, _flags_read_by_caller=home)
 
     def home(self, *, wait: bool = True) -> None:
-        """Home the axis (clears ``WR``); with ``wait``, a ``WR`` left after it is a fault."""
-        self._motion("home", 0, wait)
-        if wait and "WR" in self.warnings():
-            raise StageFault("homing ended without a reference position (WR still set)",
-                             self.name)
+        """Home the axis; with ``wait``, a ``WR`` (no reference) left after it is a fault.
+
+        Homing sets the position to the axis setting ``limit.home.preset`` (0 on most
+        stages); the position it ended at is kept in :attr:`home_position`.
+        """
+        self._motion("home", None, wait, home=True)
+        if wait:
+            self.home_position = self.position()
+            flags = self.warnings()
+            if "WR" in flags:
+                raise StageFault("homing ended without a reference position (WR still set)",
+                                 self.name)
+            self._check_flags(flags, "after homing")
 
     def move_abs(self, position: int, *, wait: bool = True) -> None:
         """Move to ``position`` (microsteps); waits until IDLE there when ``wait``."""
