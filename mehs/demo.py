@@ -182,7 +182,7 @@ def run_demo(out: str | Path = "mehs-demo", *, scenes: int = 6, size: str | int 
         Delete the demo's earlier captures and outputs in ``out`` and start over.
     known_response
         Give the builder the simulated sensor's known linear curve instead of
-        recovering the response from each bracket.
+        the curve fused from a captured response ladder (no ladder is captured).
     progress
         Progress bars (default: when stderr is a terminal).
     log

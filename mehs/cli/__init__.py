@@ -30,7 +30,8 @@ COMMANDS: list[tuple[str, str, str]] = [
     ("report", "report", "write the HTML report of a dataset or an evaluation"),
     ("train-baseline", "train_baseline", "fit the regression SSR baseline on a dataset"),
     ("evaluate", "evaluate", "score SSR models on a dataset (SAM, MRAE, RMSE, PSNR)"),
-    ("train-ssr", "train_ssr", "train the HDR SSR network (needs the torch extra)"),
+    ("train-ssr", "train_ssr", "train a network of the SSR zoo: the paper's, Mikamoto, Galliani, "
+                               "HSCNN-D, AWAN, MST++ (torch extra)"),
     ("paper", "paper", "train every SSR method in both settings and write Tables 1-5"),
     ("demo", "demo", "run the whole pipeline on the simulated device"),
 ]
@@ -73,6 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("mehs: interrupted", file=sys.stderr)
         return 130
+
+
+def progress_bars(off: bool = False) -> bool:
+    """Whether a command draws progress bars: not when asked not to, nor into a log or a
+    pipe, where every redraw of a bar is one more line of carriage returns."""
+    return not off and sys.stderr.isatty()
 
 
 def small_pages() -> bool:

@@ -30,13 +30,15 @@ def configure(parser):
                         help="radiometric calibration file (mehs calibrate): cubes in radiance "
                              "(W sr-1 m-2 nm-1 or relative) instead of DN/ms")
     parser.add_argument("--method", default="poisson",
+                        choices=["poisson", "inverse-variance", "robertson", "debevec"],
                         help="merge estimator (default: poisson)")
     parser.add_argument("--ghosts", default="detect", choices=["detect", "deghost", "off"],
                         help="ghost handling (default: detect)")
     parser.add_argument("--resample", default="gaussian", choices=["gaussian", "linear", "box"],
                         help="resampling to 400..700 nm step 10 (default: gaussian)")
     parser.add_argument("--fwhm", type=float, default=10.0, help="target FWHM nm (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of sampling and splits")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of sampling and splits (default 0)")
     parser.add_argument("--splits", default="0.7,0.15,0.15", metavar="TRAIN,VAL,TEST",
                         help="split fractions over passing scenes (default 0.7,0.15,0.15)")
     q = parser.add_argument_group("pass/fail rules")
@@ -67,6 +69,7 @@ def configure(parser):
 
 
 def run(args):
+    from mehs.cli import progress_bars
     from mehs.dataset.build import build_dataset, build_from_hs
     from mehs.dataset.quality import QualityRules
     from mehs.errors import InputError
@@ -83,7 +86,7 @@ def run(args):
                          max_noise_floor_fraction=args.max_unresolved)
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
-                  scheduler=args.scheduler, progress=not args.quiet, verify=args.verify)
+                  scheduler=args.scheduler, progress=progress_bars(args.quiet), verify=args.verify)
     if args.from_hs:
         manifest = build_from_hs(args.scenes, args.out, **common)
     else:

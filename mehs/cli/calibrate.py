@@ -55,6 +55,9 @@ def run(args) -> int:
         raise InputError("--panel needs --illuminant (the SPD lighting the panel)")
     if args.source and args.illuminant:
         raise InputError("--illuminant goes with --panel, not --source")
+    from mehs.cli.fuse import check_bracket_paths
+
+    check_bracket_paths(args.capture)
     bracket = load_bracket(args.capture if len(args.capture) > 1 else args.capture[0])
     common = dict(response=args.response, per_column=not args.no_flat_field,
                   camera_id=args.camera_id, partial=args.partial)

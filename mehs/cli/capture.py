@@ -38,17 +38,22 @@ def configure(parser):
     parser.add_argument("--lines", type=int, default=None,
                         help="lines to scan (default 512, or the simulated scene's)")
     parser.add_argument("--pitch", type=int, default=64, help="stage microsteps per line (default 64)")
-    parser.add_argument("--start-position", type=int, default=0, help="stage position of line 0")
-    parser.add_argument("--dark-lines", type=int, default=16, help="lines averaged per dark reference")
+    parser.add_argument("--start-position", type=int, default=0,
+                        help="stage position of line 0 (default 0)")
+    parser.add_argument("--dark-lines", type=int, default=16,
+                        help="shutter-closed lines per dark reference, stored as read and "
+                             "averaged when fused (default 16)")
     parser.add_argument("--white-lines", type=int, default=16,
-                        help="lines averaged per white reference (0 = none)")
+                        help="white-tile lines per white reference, stored as read (0 = none; "
+                             "default 16)")
     parser.add_argument("--white-line", type=int, default=None,
                         help="scan line where the white tile starts (default lines+4)")
     parser.add_argument("--checksum", action="store_true", help="use Zaber message checksums")
     parser.add_argument("--no-message-ids", action="store_true",
                         help="send Zaber commands without message ids (a device that does not "
                              "echo them); with ids a late reply is recognised and dropped")
-    parser.add_argument("--timeout", type=float, default=2.0, help="reply timeout in seconds")
+    parser.add_argument("--timeout", type=float, default=2.0,
+                        help="reply timeout in seconds (default 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--simulate", action="store_true",
                         help="start the simulated stage and camera in-process (loopback TCP); "
@@ -182,8 +187,13 @@ def _list_cameras() -> int:
     return 0
 
 
-#: Options of --simulate that decide what the simulated scene looks like.
-_SIM_KEYS = ("scene", "size", "seed", "motion", "source_ratio", "response")
+#: Options of --simulate that decide what the simulated scene looks like (a natural scene's
+#: lighting is drawn from --seed when not given, so --pool and --lighting change the scene too).
+_SIM_KEYS = ("scene", "size", "seed", "motion", "source_ratio", "response", "pool", "lighting")
+
+#: Their defaults (the resume hint gives only the options that differ).
+_SIM_DEFAULTS = {"scene": "colorchecker", "size": 64, "seed": 0, "motion": False,
+                 "source_ratio": 1000.0, "response": "linear", "pool": "all", "lighting": None}
 
 
 def _sim_options(args) -> dict:
@@ -202,12 +212,21 @@ def _check_same_simulated_scene(out, options: dict) -> None:
     recorded = (read_scene_json(out).get("device") or {}).get("sim_options")
     if recorded is None:
         return  # captured before the options were recorded (or on real devices)
+    # scenes captured before --pool/--lighting were recorded: compare what was recorded
     differ = {k: (recorded.get(k), options.get(k)) for k in _SIM_KEYS
-              if recorded.get(k) != options.get(k)}
+              if k in recorded and recorded.get(k) != options.get(k)}
     if differ:
-        was = " ".join(f"--{k.replace('_', '-')} {v[0]}" for k, v in differ.items())
+        was = " ".join(_flag(k, v[0]) for k, v in differ.items())
         raise InputError(f"this scene was simulated with other options ({was}); resuming "
                          "with these would mix two scenes in one bracket", out)
+
+
+def _flag(key: str, value) -> str:
+    """An option as the user would have typed it (``no --lighting`` when it was not given)."""
+    flag = f"--{key.replace('_', '-')}"
+    if value is None or value is False:
+        return f"no {flag}"
+    return flag if value is True else f"{flag} {value}"
 
 
 def _resume_hint(args) -> str:
@@ -217,10 +236,10 @@ def _resume_hint(args) -> str:
     parts = ["mehs", "capture", "--resume", "--out", str(args.out)]
     if args.simulate:
         parts.append("--simulate")
-        defaults = {"scene": "colorchecker", "size": 64, "seed": 0, "motion": False,
-                    "source_ratio": 1000.0, "response": "linear"}
+        if getattr(args, "genicam", False):
+            parts.append("--genicam")
         for k, v in _sim_options(args).items():
-            if v != defaults.get(k) and v is not None:
+            if v != _SIM_DEFAULTS.get(k) and v is not None:
                 flag = f"--{k.replace('_', '-')}"
                 parts += [flag] if v is True else [flag, str(v)]
     else:

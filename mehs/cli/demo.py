@@ -22,7 +22,8 @@ def configure(parser):
                         help="delete this demo folder's earlier captures and outputs and start over")
     parser.add_argument("--known-response", action="store_true",
                         help="give the builder the simulated sensor's known linear curve instead "
-                             "of recovering the response from each bracket")
+                             "of the curve fused from a captured response ladder (no ladder is "
+                             "captured)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

@@ -43,7 +43,7 @@ def configure(parser):
     parser.add_argument("--no-restore", dest="restore", action="store_const", const="off",
                         help="same as --restore off")
     parser.add_argument("--crop", type=int, default=0, metavar="N",
-                        help="border pixels removed on every side before scoring")
+                        help="border pixels removed on every side before scoring (default 0)")
     parser.add_argument("--split", default="auto",
                         help="manifest split to score (train/val/test), 'all', or 'auto' = "
                              "test if the dataset has one, else val (ARAD-1K's official "
@@ -161,10 +161,13 @@ def run(args):
         load_pairs(args.dataset, verify="full")
     inputs = tuple(s.strip() for s in args.input.split(",") if s.strip())
     split = None if args.split == "all" else args.split
+    from mehs.cli import progress_bars
+
     res = evaluate(args.dataset, args.models, preprocess=args.preprocess, inputs=inputs,
                    restore={"on": True, "off": False, "both": "both"}[args.restore],
                    crop=args.crop, split=split, out=args.out, figures=_figures(args.figures),
-                   timing=args.timing, timing_shape=(h, w), seed=args.seed, progress=True,
+                   timing=args.timing, timing_shape=(h, w), seed=args.seed,
+                   progress=progress_bars(),
                    preprocessing=preprocessing_from_args(args),
                    fixed_preprocess=args.fixed_preprocess, pixels=args.pixels,
                    mrae_threshold=args.mrae_threshold, mrae_relative=args.mrae_relative,

@@ -11,7 +11,9 @@ def configure(parser):
                         choices=["poisson", "inverse-variance", "robertson", "debevec"],
                         help="merge estimator (default: poisson, Hanji et al. 2020)")
     parser.add_argument("--response", default="auto",
-                        help="auto | linear | debevec | path of a saved curve (response.json)")
+                        help="auto | linear | debevec | path of a saved curve (response.json); auto "
+                             "(default): linear when the exposure ratios prove the sensor "
+                             "linear, else a checked Debevec curve")
     parser.add_argument("--lambda", dest="smoothness", type=float, default=100.0,
                         help="Debevec smoothness λ (bit-depth independent; default 100)")
     parser.add_argument("--samples", type=int, default=None,
@@ -20,9 +22,10 @@ def configure(parser):
                         help="one response curve per band instead of one shared curve")
     parser.add_argument("--ghosts", default="detect", choices=["detect", "off", "deghost"],
                         help="flag moving pixels (detect), also take them from one exposure "
-                             "(deghost), or skip the test (off)")
+                             "(deghost), or skip the test (off) (default: detect)")
     parser.add_argument("--reference", default="auto",
-                        help="exposure index used for ghost pixels with --ghosts deghost")
+                        help="exposure index used for ghost pixels with --ghosts deghost (default "
+                             "auto: the one with most usable samples there)")
     parser.add_argument("--noise", default="auto", choices=["auto", "recorded"],
                         help="noise model: measured from the bracket by photon transfer across "
                              "exposures (auto, default) or the sensor recorded in scene.json")
@@ -38,7 +41,8 @@ def configure(parser):
                         help="clip negative radiance (noise around zero) to 0; by default "
                              "the unbiased signed estimate is kept (clipping biases dark "
                              "pixels upward)")
-    parser.add_argument("--seed", type=int, default=0, help="pixel sampling seed")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="pixel sampling seed (default 0)")
     parser.add_argument("--verify", default="sha256", choices=["sha256", "size", "none"],
                         help="check scene files against scene.json (default sha256)")
     parser.add_argument("--force", action="store_true",
@@ -47,6 +51,29 @@ def configure(parser):
     parser.add_argument("--allow-partial", action="store_true",
                         help="fuse the complete exposures of a scene whose capture did not "
                              "finish (refused by default; 'mehs capture --resume' finishes it)")
+
+
+def check_bracket_paths(paths) -> None:
+    """Say what a lone path is when it cannot be a bracket, before the loader's generic
+    "not a scene folder" (which read as nonsense for a scene's own scene.json)."""
+    from pathlib import Path
+
+    from mehs.errors import InputError
+
+    if len(paths) != 1:
+        return
+    p = Path(paths[0])
+    if p.is_file() and p.name == "scene.json":
+        raise InputError(f"give the scene folder, not its scene.json: {p.parent}", p)
+    if p.is_file():
+        raise InputError("a file, not a scene folder or a bracket: give a scene folder "
+                         "(scene.json + exposures/) or two or more Specim IQ folders of the "
+                         "same view", p)
+    if p.is_dir() and not (p / "scene.json").exists() and (
+            (p / "capture").is_dir() or (p / "manifest.xml").is_file()):
+        raise InputError("one Specim IQ capture is not a bracket: give two or more of the "
+                         "same view (shortest exposure first), or the scene folder holding "
+                         "them", p)
 
 
 #: Files ``mehs fuse`` writes into ``--out`` (see :func:`mehs.synthesis.fuse.write_fusion`).
@@ -62,6 +89,7 @@ def run(args) -> int:
 
     from mehs.io.atomic import check_output_dir
 
+    check_bracket_paths(args.scene)
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
     from mehs.cli._overwrite import refuse_existing
 

@@ -19,7 +19,7 @@ def configure(parser):
     parser.add_argument("--epochs", type=int, default=None,
                         help="epochs per network (default: 100, the paper's; 3 with --quick)")
     parser.add_argument("--device", default="auto",
-                        help="training device: auto (CUDA when available), cpu, cuda, cuda:N")
+                        help="training device: auto (CUDA when available; default), cpu, cuda, cuda:N")
     parser.add_argument("--arch", action="append", default=None, metavar="NAME",
                         help="only this registered architecture (repeatable; default: all)")
     parser.add_argument("--baselines", default="smits",
@@ -35,15 +35,24 @@ def configure(parser):
 
     add_preprocessing_args(parser, "the networks are trained with")
     parser.set_defaults(reinhard_key="none")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of training, the regression timing baseline and the "
+                             "figures' pixel picks (default 0)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args):
+    from mehs.cli import progress_bars
     from mehs.cli.evaluate import preprocessing_from_args
     from mehs.errors import InputError
     from mehs.ssr.paper import run_paper
 
+    from pathlib import Path
+
+    # before the first of 20-odd training runs starts (and creates --out), not inside it
+    for what, path in (("dataset", args.dataset), ("--real dataset", args.real)):
+        if path is not None and not Path(path).exists():
+            raise InputError(f"no such {what}", path)
     if args.timing_size is None:
         args.timing_size = "512x256" if args.quick else "2048x1024"
     try:
@@ -65,7 +74,7 @@ def run(args):
                    baselines=[b for b in args.baselines.split(",") if b.strip()],
                    checkpoints=ckpts, archs=args.arch,
                    preprocessing=preprocessing_from_args(args), timing_shape=(h, w),
-                   seed=args.seed, progress=not args.no_progress)
+                   seed=args.seed, progress=progress_bars(args.no_progress))
     print(md.read_text(encoding="utf-8"))
     print(f"written: {md} and {md.with_suffix('.html')}")
     return 0

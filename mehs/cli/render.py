@@ -35,6 +35,7 @@ def configure(parser) -> None:
 
 
 def run(args) -> int:
+    from mehs.cli import progress_bars
     from mehs.render.run import render_comparison
     from mehs.render.scene import RenderSettings, parse_size
 
@@ -44,7 +45,8 @@ def run(args) -> int:
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     inputs = ("hdr", "ldr") if args.ssr_input == "both" else (args.ssr_input,)
     doc = render_comparison(args.hs_map, args.out, settings, ssr=args.ssr, methods=methods,
-                            ssr_inputs=inputs, progress=not args.no_progress, say=print)
+                            ssr_inputs=inputs, progress=progress_bars(args.no_progress),
+                            say=print)
     print(f"{'render':<14}{'mean ΔE2000':>12}{'rel. error':>12}{'SAM (°)':>9}{'time (s)':>10}")
     for r in doc["results"]:
         de, rel, sam = r.get("mean_delta_E2000"), r.get("relative_error"), r.get("mean_sam_deg")

@@ -13,8 +13,14 @@ def configure(parser):
 
 
 def run(args):
-    from mehs.dataset.report import write_report
+    from pathlib import Path
 
+    from mehs.dataset.report import write_report
+    from mehs.errors import InputError
+
+    if not Path(args.folder).exists():
+        raise InputError("no such folder (give a dataset folder or an evaluation results "
+                         "folder)", args.folder)
     out = write_report(args.folder, args.out)
     print(out)
     return 0

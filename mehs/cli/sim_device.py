@@ -29,7 +29,8 @@ def add_scene_arguments(parser, *, geometry: bool = True) -> None:
                             help="scene lines (default --size)")
         parser.add_argument("--samples", dest="scene_samples", type=int, default=None,
                             help="scene samples (default --size)")
-    parser.add_argument("--seed", type=int, default=0, help="scene texture and sensor noise seed")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="scene texture and sensor noise seed (default 0)")
     parser.add_argument("--motion", action="store_true", help="a bright patch drifts between exposures")
     parser.add_argument("--source-ratio", type=float, default=1000.0,
                         help="visible light source radiance / diffuse white (default 1000)")
@@ -37,7 +38,19 @@ def add_scene_arguments(parser, *, geometry: bool = True) -> None:
                         help="sensor response curve (default linear)")
     parser.add_argument("--faults", default="",
                         help="inject faults, e.g. 'camera:garble@40,stage:disconnect@10x2' "
-                             "(kinds: timeout garble partial disconnect again fault)")
+                             "(kinds: timeout garble partial disconnect again fault; default: none)")
+
+
+def check_scene_kind(kind: str) -> None:
+    """Refuse an unknown ``--scene`` naming every kind (make_scene's list lacks ``natural``,
+    which the command line makes itself)."""
+    from mehs.calibration.targets import TARGET_KINDS
+    from mehs.capture.scene import SCENE_KINDS
+    from mehs.errors import InputError
+
+    kinds = (*SCENE_KINDS, "natural", *TARGET_KINDS)
+    if kind not in kinds:
+        raise InputError(f"unknown --scene {kind!r}; use one of {', '.join(kinds)}")
 
 
 def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool = False):
@@ -47,6 +60,7 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool 
 
     lines = getattr(args, "scene_lines", None) or args.size
     samples = getattr(args, "scene_samples", None) or args.size
+    check_scene_kind(args.scene)
     if args.scene == "natural":
         from mehs.scenes.natural import make_natural_scene
 
@@ -68,13 +82,14 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool 
 
 def configure(parser):
     parser.add_argument("--port", type=int, default=0,
-                        help="TCP port of the stage (camera on port+1); 0 picks free ports")
+                        help="TCP port of the stage (camera on port+1); 0 picks free ports (default 0)")
     parser.add_argument("--pty", action="store_true", help="serve on pseudo-terminals instead of TCP")
     parser.add_argument("--genicam", action="store_true",
                         help="serve the camera over GigE Vision on 127.0.0.1 (Aravis fake camera; "
                              "camera: aravis://127.0.0.1); the stage stays on TCP")
     parser.add_argument("--pixel-format", choices=["Mono12", "Mono16", "Mono12Packed", "Mono12p"],
-                        default="Mono12", help="--genicam: pixel format the camera starts in")
+                        default="Mono12",
+                        help="--genicam: pixel format the camera starts in (default Mono12)")
     parser.add_argument("--no-shutter", action="store_true",
                         help="--genicam: a camera without a shutter feature (darks need --dark-prompt)")
     add_scene_arguments(parser)

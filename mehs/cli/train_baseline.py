@@ -63,10 +63,12 @@ def run(args):
     pairs = load_pairs(root, split=split)
     from mehs.cli.evaluate import preprocessing_from_args
 
+    from mehs.cli import progress_bars
+
     spec = preprocessing_from_args(args) if args.preprocess == "on" else None
     model = fit_regression_baseline(pairs, degree=args.degree, n_samples=args.samples,
                                     input=args.input, ridge=args.ridge, seed=args.seed,
-                                    preprocessing=spec, progress=True)
+                                    preprocessing=spec, progress=progress_bars())
     model.info.update({"dataset": str(root), "split": split})
     out = model.save(args.out)
     print(f"fitted root-polynomial regression (degree {model.degree}) on "

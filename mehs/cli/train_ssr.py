@@ -219,8 +219,10 @@ def run(args):
           f"{f', validating on {len(val)}' if val else ''} ({args.input.upper()}-RGB, "
           f"{'Reinhard' if args.reinhard else 'linear'} input), {args.epochs} epochs, "
           f"lr {lr_max:g}..{lr_min:g}, device {args.device}")
+    from mehs.cli import progress_bars
+
     res = train_network(pairs, args.out, net_config=net_config, train_config=tc, val_pairs=val,
-                        resume=args.resume, progress=not args.quiet,
+                        resume=args.resume, progress=progress_bars(args.quiet),
                         extra={"dataset": str(Path(args.dataset).resolve()),
                                "input": args.input, "train_split": train_split,
                                "val_split": val_source,
