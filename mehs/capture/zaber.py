@@ -168,6 +168,18 @@ def _verify_checksum(text: str, cc: str | None) -> None:
             raise ZaberProtocolError(f"checksum mismatch in {text!r}")
 
 
+def _match(line: bytes | str, pattern: re.Pattern, what: str, verify_checksum: bool):
+    """``pattern``'s match of one message line (terminator optional), its checksum checked."""
+    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
+    text = text.rstrip("\r\n")
+    m = pattern.match(text)
+    if not m:
+        raise ZaberProtocolError(f"garbled {what} {text!r}")
+    if verify_checksum:
+        _verify_checksum(text, m["cc"])
+    return m
+
+
 def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberReply:
     """Parse one ``@`` reply line (terminator optional).
 
@@ -179,13 +191,7 @@ def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberRepl
     ZaberProtocolError
         On anything that is not a well-formed reply (or a bad checksum).
     """
-    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
-    text = text.rstrip("\r\n")
-    m = _REPLY_RE.match(text)
-    if not m:
-        raise ZaberProtocolError(f"garbled reply {text!r}")
-    if verify_checksum:
-        _verify_checksum(text, m["cc"])
+    m = _match(line, _REPLY_RE, "reply", verify_checksum)
     return ZaberReply(device=int(m["dev"]), axis=int(m["axis"]),
                       msg_id=None if m["id"] is None else int(m["id"]), ok=m["reply"] == "OK",
                       busy=m["status"] == "BUSY", flag=m["flag"], data=m["data"])
@@ -193,13 +199,7 @@ def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberRepl
 
 def parse_info(line: bytes | str, *, verify_checksum: bool = True) -> tuple[int, int, int | None, str]:
     """``(device, axis, msg id, data)`` of one ``#`` info line; raises ZaberProtocolError."""
-    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
-    text = text.rstrip("\r\n")
-    m = _INFO_RE.match(text)
-    if not m:
-        raise ZaberProtocolError(f"garbled info message {text!r}")
-    if verify_checksum:
-        _verify_checksum(text, m["cc"])
+    m = _match(line, _INFO_RE, "info message", verify_checksum)
     return int(m["dev"]), int(m["axis"]), None if m["id"] is None else int(m["id"]), m["data"]
 
 
