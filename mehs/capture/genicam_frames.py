@@ -238,11 +238,20 @@ class FrameStream:
             out.append(Frame(line, 0.0, fid))
         return out
 
+    def _clock_offset_ns(self) -> int:
+        if self._raw and abs(float(np.median([s - t for _l, t, s, _f in self._raw]))) < 1e9:
+            # the camera clock already is the host's (IEEE 1588 PTP, or the simulator): no offset
+            return 0
+        return self._offset_ns or 0
+
+    def newest_start(self) -> float | None:
+        """Host time (s) at which the newest frame received so far began its exposure."""
+        if not self._raw:
+            return None
+        return (self._raw[-1][1] + self._clock_offset_ns()) / 1e9
+
     def frames(self) -> list[Frame]:
         """All frames with host mid-exposure times (final clock offset applied)."""
         half = (self.cam._t_ms or 0.0) / 2000.0
-        off = self._offset_ns or 0
-        if self._raw and abs(float(np.median([s - t for _l, t, s, _f in self._raw]))) < 1e9:
-            # the camera clock already is the host's (IEEE 1588 PTP, or the simulator): no offset
-            off = 0
+        off = self._clock_offset_ns()
         return [Frame(line, (ts + off) / 1e9 + half, fid) for line, ts, _s, fid in self._raw]

@@ -16,6 +16,12 @@ serial one byte for byte. While the stage moves, a frame integrates over its
 exposure the world lines the slit passes (the world being a raster of lines
 one pitch apart, as for the serial simulator; five sub-intervals).
 
+Free-running frames keep a hardware frame clock: frame after frame is exposed on
+the ticks of ``AcquisitionFrameRate`` even when the host stalls the fake camera's
+thread; frames exposed meanwhile wait in an on-board buffer and are sent, late
+but with their exposure timestamps, as soon as the thread runs again (as a real
+camera's frame buffer drains after the link stalls).
+
 Facts this module relies on (Aravis 0.8): the fill-pattern callback must be
 installed through ctypes with a kept-alive ``CFUNCTYPE`` (PyGObject frees a
 Python callback at once); inside it ``arv_buffer_get_data`` reports size 0,
@@ -66,6 +72,11 @@ GV_FAULT_KINDS = ("unplug", "incomplete", "pixfmt", "late")
 _GV_RE = re.compile(r"^camera:(unplug|incomplete|pixfmt|late)@(\d+)(?:x(\d+))?(?:/(\d+(?:\.\d+)?)ms)?$")
 #: Trigger-mode polling rate of the fake camera (Aravis's default, 25 Hz, caps step scans at ~24 lines/s).
 TRIGGER_POLL_HZ = 2000.0
+#: Frames the simulated camera's on-board buffer holds: exposed on its frame clock while the host
+#: stalled the simulator's thread, and sent as soon as it runs again. Past this, frames are lost.
+FRAME_BUFFER = 128
+#: Wake-up period (µs) of the fake camera's thread while buffered frames wait to be sent.
+CATCH_UP_US = 1000
 
 
 @dataclass(frozen=True)
@@ -100,17 +111,6 @@ def split_faults(spec: str | None) -> tuple[list[GvFault], str]:
         else:
             rest.append(item)
     return gv, ",".join(rest)
-
-
-def _position_at(w: SimWorld, t_mono: float) -> float:
-    """Stage position (microsteps) at monotonic time ``t_mono`` from the current move."""
-    if w._move is None:
-        return float(w.pos)
-    p0, p1, t0, dur = w._move
-    frac = 1.0 if dur <= 0 else min(1.0, max(0.0, (t_mono - t0) / dur))
-    if w._stall_at is not None:
-        frac = min(frac, w._stall_at)
-    return p0 + (p1 - p0) * frac
 
 
 def _swept_radiance(scene: Scene, u0: float, u1: float, phase: float) -> np.ndarray:
@@ -198,6 +198,9 @@ class GenicamSimCamera:
         self._drop: set[int] = set()             # frame numbers an incomplete fault drops
         self._late: set[int] = set()             # frame numbers a late fault holds back
         self.fired: list[tuple[int, str]] = []
+        self._next_tick: int | None = None       # the frame clock (ns): see _frame_clock
+        self._tick_period = 0
+        self.buffer_overflows = 0
         self.unplugged = threading.Event()
         self.errors: list[str] = []
         self._gv = None
@@ -246,6 +249,7 @@ class GenicamSimCamera:
         reg(gx.REG_DYNAMIC_RANGE_MAX, (1 << w.sensor.bit_depth) - 1)
         reg(gx.REG_SHUTTER, 1)
         reg(gx.REG_FRAME_PERIOD_US, 10000)
+        reg(gx.REG_WAKE_PERIOD_US, 10000)
         for addr, v in zip((gx.REG_WL_A, gx.REG_WL_B, gx.REG_WL_C), self.coefficients):
             self._write_double(fc, addr, float(v))
         self._write_double(fc, gx.REG_TEMPERATURE, w.temperature())
@@ -308,6 +312,33 @@ class GenicamSimCamera:
         return frame_number in self._drop
 
     # ------------------------------------------------------------ frames
+    def _frame_clock(self, fc, ts_ns: int) -> int:
+        """Exposure start (ns) of this free-running frame: the next tick of the frame clock.
+
+        A hardware-timed camera exposes frame after frame on its clock whatever the
+        host does; the fake camera's thread only wakes on multiples of its period, and
+        on a busy host late, skipping the ticks it slept through (a stall of 0.1 s
+        while the stage moved left lines without frames). So the frame clock is kept
+        here: each frame takes the next tick, however late the thread woke, and while
+        ticks have passed unsent the thread is woken every :data:`CATCH_UP_US` to send
+        them — an on-board buffer of :data:`FRAME_BUFFER` frames draining after a stall.
+        """
+        period_us = max(1, self._read(gx.REG_FRAME_PERIOD_US))
+        period_ns = period_us * 1000
+        tick = ts_ns - ts_ns % period_ns          # the latest tick the thread woke after
+        nxt = self._next_tick
+        if nxt is None or self._tick_period != period_ns or nxt > tick:
+            nxt = tick                            # a new acquisition or frame rate
+        elif tick - nxt >= FRAME_BUFFER * period_ns:
+            self.buffer_overflows += 1            # the buffer was full: those frames are lost
+            nxt = tick
+        self._next_tick, self._tick_period = nxt + period_ns, period_ns
+        behind = self._next_tick <= time.time_ns()
+        wake = CATCH_UP_US if behind else period_us
+        if self._read(gx.REG_WAKE_PERIOD_US) != wake:
+            fc.write_register(gx.REG_WAKE_PERIOD_US, wake)
+        return nxt
+
     def _fill(self, buf, _data, exposure_us, _gain, pixel_format) -> None:
         # Runs on the fake camera's thread: never let an exception cross into C.
         try:
@@ -341,19 +372,19 @@ class GenicamSimCamera:
                 fc.write_register(gx.REG_PIXEL_FORMAT, pixfmt.PIXEL_FORMATS["Mono8"])
         w = self.world
         t_ms = exposure_us / 1000.0
-        # A hardware-timed camera: in free-run, frame n's exposure starts on the frame
-        # clock tick (the fake camera wakes on multiples of the period, but on a busy host
-        # late, and this callback later still, waiting for the GIL). The timestamp sent
-        # in the GVSP leader is set to that tick, and the exposure simulated there.
         ts_ns = int(self._lib.arv_buffer_get_timestamp(buf))
+        if self._read(gx.REG_ACQUISITION) == 1:
+            # AcquisitionStart wrote 1: a new acquisition, whose frame clock starts afresh.
+            # (Any non-zero value keeps the fake camera streaming; 2 marks this one as seen.)
+            fc.write_register(gx.REG_ACQUISITION, 2)
+            self._next_tick = None
         if self._read(0x300) == 0:   # TriggerMode Off: free-running on the frame clock
-            period_ns = max(1, self._read(gx.REG_FRAME_PERIOD_US)) * 1000
-            ts_ns -= ts_ns % period_ns
+            ts_ns = self._frame_clock(fc, ts_ns)
             self._lib.arv_buffer_set_timestamp(buf, ts_ns)
         ts = ts_ns / 1e9
         with w.lock:
             now = time.monotonic() - (time.time() - ts)
-            p0, p1 = _position_at(w, now), _position_at(w, now + t_ms / 1000.0)
+            p0, p1 = w.position_at(now), w.position_at(now + t_ms / 1000.0)
             shutter_open = self._read(gx.REG_SHUTTER) == 1 and not self.lens_capped
             w.lines_acquired += 1
             temp = w.temperature()

@@ -2,9 +2,15 @@
 
 Register map: the fixed addresses Aravis's fake camera (``ArvFakeCamera``)
 interprets (Width 0x100, Height 0x104, PixelFormat 0x128, ExposureTime µs
-0x120, acquisition 0x124, frame period µs 0x138, trigger 0x300–0x30c), plus
-mehs registers at 0xF00–0xF3F that the simulator's fill callback reads
-(shutter, spectral calibration, temperature, dynamic range, TLParamsLocked).
+0x120, acquisition 0x124, thread wake-up period µs 0x138, trigger
+0x300–0x30c), plus mehs registers at 0xF00–0xF3F that the simulator's fill
+callback reads (shutter, spectral calibration, temperature, dynamic range,
+TLParamsLocked, and the frame period µs that ``AcquisitionFrameRate`` sets).
+
+The frame period is a mehs register, not Aravis's 0x138, because the simulator
+drives 0x138 itself: the fake camera's thread wakes on multiples of 0x138, and
+after a stall of the host the simulator shortens it to deliver the frames its
+frame clock exposed meanwhile (see :mod:`mehs.capture.genicam_sim`).
 
 References
 ----------
@@ -19,13 +25,14 @@ from typing import Sequence
 from mehs.capture.pixfmt import PIXEL_FORMATS
 
 REG_WIDTH, REG_HEIGHT, REG_PIXEL_FORMAT = 0x100, 0x104, 0x128
-REG_EXPOSURE_US, REG_ACQUISITION, REG_FRAME_PERIOD_US = 0x120, 0x124, 0x138
+REG_EXPOSURE_US, REG_ACQUISITION, REG_WAKE_PERIOD_US = 0x120, 0x124, 0x138
 REG_SENSOR_WIDTH, REG_SENSOR_HEIGHT = 0x11C, 0x118
 REG_SHUTTER = 0xF00          # 1 = open, 0 = closed
 REG_WL_A, REG_WL_B, REG_WL_C = 0xF08, 0xF10, 0xF18   # IEEE-754 double, big-endian
 REG_TEMPERATURE = 0xF20      # double, °C
 REG_DYNAMIC_RANGE_MAX = 0xF28
 REG_TL_LOCKED = 0xF30
+REG_FRAME_PERIOD_US = 0xF34  # the camera's frame clock (AcquisitionFrameRate)
 
 _HEAD = """<?xml version="1.0" encoding="utf-8"?>
 <RegisterDescription ModelName="{model}" VendorName="MEHS" StandardNameSpace="None"

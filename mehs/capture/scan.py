@@ -33,6 +33,8 @@ DEFAULT_OVERSAMPLE = 2
 MAX_BLUR_LINES = 0.1
 #: Lines of run-up before the first and after the last scan line (acceleration, settling).
 RUN_UP_LINES = 4
+#: Longest wait (s) after the stage stopped for frames exposed during the scan to arrive
+LATE_FRAMES_S = 2.0
 
 
 def assign_frames(u: np.ndarray, lines: int) -> tuple[np.ndarray, int, np.ndarray]:
@@ -244,9 +246,16 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
                     raise DeviceTimeout(f"continuous scan did not reach position {p_to} within "
                                         f"{timeout:.0f} s (stuck at {pos})", getattr(stage, "name", None))
             if hasattr(camera, "stream"):
-                t_end = time.time() + 2.0 / rate + 0.05    # frames exposed before the last read
+                # Frames come in the order they were exposed, some late (a camera draining its
+                # buffer after a stall): once one that began after the last position read is
+                # in, all the scan needs is. Bounded, for a camera that stopped sending.
+                t_last = positions[-1][0]
+                t_end = time.time() + 2.0 / rate + LATE_FRAMES_S
                 while time.time() < t_end:
                     s.poll(0.005)
+                    newest = s.newest_start()
+                    if newest is not None and newest > t_last:
+                        break
             frames = s.frames()
             rate = s.rate or rate
     finally:

@@ -124,6 +124,9 @@ class SimWorld:
         self.pos = 0.0
         self._move: tuple[float, float, float, float] | None = None  # from, to, t0, duration
         self._stall_at: float | None = None
+        # recent moves [t0, from, to, duration, stall_at, t_stopped, stopped_at], so that a
+        # camera delivering frames from its buffer knows where the stage was when each was exposed
+        self._moves: deque[list] = deque(maxlen=64)
         self._homing = False        # WR clears when homing reaches the home sensor, not before
         self.flags: set[str] = set()
         self.maxspeed = speed_setting(self.speed)    # the device's unit, as a real stage's
@@ -167,11 +170,32 @@ class SimWorld:
         dur = abs(target - self.pos) / speed_from_setting(max(self.maxspeed, 1))
         self._move = (self.pos, float(target), time.monotonic(), dur)
         self._stall_at = 0.5 if stall else None
+        self._moves.append([self._move[2], self.pos, float(target), dur, self._stall_at, None, None])
 
     def stop(self) -> None:
         if self.busy():
             self._move, self._homing = None, False
             self.flags.add("NI")
+            if self._moves:
+                self._moves[-1][5:] = [time.monotonic(), self.pos]
+
+    def position_at(self, t_mono: float) -> float:
+        """Stage position (microsteps, unrounded) at monotonic time ``t_mono``, past or present.
+
+        Past times come from the record of recent moves (a stop freezes the position
+        where it happened; a stall fault freezes it half-way).
+        """
+        for t0, p0, p1, dur, stall_at, t_stop, p_stop in reversed(self._moves):
+            if t0 > t_mono:
+                continue
+            if t_stop is not None and t_mono >= t_stop:
+                return float(p_stop)
+            frac = 1.0 if dur <= 0 else min(1.0, max(0.0, (t_mono - t0) / dur))
+            if stall_at is not None:
+                frac = min(frac, stall_at)
+            return p0 + (p1 - p0) * frac
+        # before every recorded move: where the oldest began (or the stage never moved)
+        return float(self._moves[0][1]) if self._moves else float(self.pos)
 
     def world_line(self) -> int:
         return int(round(self.position() / self.pitch))
