@@ -11,6 +11,9 @@ pseudo-HDR-RGB and LDR-RGB images (:func:`mehs.rgb.hdr_rgb`,
 ``scenes/.tmp-<id>/``. The main process then renames that folder to
 ``scenes/<id>/`` and rewrites the manifest atomically (the commit point), so
 an interrupted build leaves no half scene listed and re-running finishes it.
+Python warnings a worker raises are kept with its scene (``provenance.run.warnings``) and
+printed by the main process after the build, one line per warning naming the scene
+(:mod:`mehs.dataset.scene_warnings`).
 The worker's part is :mod:`mehs.dataset.scene_build`; this module is the main
 process's (scene list, lock, scheduling, commits, splits, manifest).
 
@@ -47,6 +50,7 @@ from mehs.dataset.scene_build import (TMP_PREFIX, BuildParams, SceneTask, build_
                                       dynamic_range_stops, half_float_scale, input_files,
                                       to_31_bands)
 from mehs.dataset.scene_list import SceneSource, collect_hs_cubes, collect_scenes
+from mehs.dataset.scene_warnings import describe
 from mehs.dataset.splits import make_splits, parse_fractions, write_split_files
 from mehs.errors import InputError
 from mehs.io.atomic import sha256_file
@@ -263,11 +267,13 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
             if tid not in finished:  # stage messages can arrive after the result
                 stages[tid] = stage
                 show_stages()
-        failures = []
+        failures, warned = [], []
         try:
             for res in run_tasks(build_scene, tasks, workers=n_workers,
                                  scheduler=scheduler, on_stage=on_stage):
                 sid = res["id"]
+                if res.get("warnings"):
+                    warned.append(res)
                 finished.add(sid)
                 stages.pop(sid, None)
                 show_stages()
@@ -299,6 +305,10 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         print(f"mehs build: {len(moved)} existing scene(s) changed split (the split cuts "
               f"follow the number of passing scenes): "
               + ", ".join(f"{sid} {a} → {b}" for sid, a, b in moved), file=sys.stderr)
+    # after the progress bar, by scene id: the same lines whatever the workers' order
+    for res in sorted(warned, key=lambda r: r["id"]):
+        for w in res["warnings"]:
+            print(f"mehs build: scene {res['id']}: {describe(w)}", file=sys.stderr)
     for res in failures:
         tb = res["entry"]["provenance"]["run"].get("traceback")
         print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)

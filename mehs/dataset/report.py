@@ -17,9 +17,9 @@ Figures are drawn with matplotlib's Agg backend.
 
 from __future__ import annotations
 
+import contextlib
 import html
 import json
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -44,15 +44,35 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
 
     matplotlib.use("Agg", force=True)
     from mehs.io.atomic import write_text_atomic
+    from mehs.io.dirswap import remove_path, replace_folder
 
     dataset = Path(dataset)
     manifest = read_manifest(dataset)
     out_html = check_report_path(out_html) if out_html else dataset / "report.html"
     files_dir = out_html.parent / f"{out_html.stem}_files"
     tmp_dir = files_dir.with_name(files_dir.name + ".part")
-    shutil.rmtree(tmp_dir, ignore_errors=True)
+    # a killed run (SIGKILL, power loss) cannot clean up after itself: its unfinished
+    # folder, whatever it holds, is no output and goes before this run starts its own
+    remove_path(tmp_dir, "unfinished report folder of an interrupted run")
     tmp_dir.mkdir(parents=True)
-    rel = files_dir.name
+    try:
+        page = _write_pictures_and_page(dataset, manifest, tmp_dir, files_dir.name)
+        # the image folder first, then the page, so the page never points at missing
+        # images; the previous images stay until the new ones are all in place
+        replace_folder(tmp_dir, files_dir)
+    except BaseException:
+        # Ctrl-C, a full disk, a bug: no half folder left for a user to take for output;
+        # a previous complete report is untouched
+        with contextlib.suppress(MehsError):  # never hide the error that got us here
+            remove_path(tmp_dir, "unfinished report folder")
+        raise
+    write_text_atomic(out_html, page)
+    return out_html
+
+
+def _write_pictures_and_page(dataset: Path, manifest: dict[str, Any], tmp_dir: Path,
+                             rel: str) -> str:
+    """Draw every picture into ``tmp_dir``; return the HTML page, linking them as ``rel/…``."""
     scenes = manifest["scenes"]
     split_of = {s: k for k, ids in manifest.get("splits", {}).items() for s in ids}
 
@@ -79,7 +99,7 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
     _overview_figure(scenes, tmp_dir / overview)
 
     n_pass = sum(s["status"] == "pass" for s in scenes)
-    page = _PAGE.format(
+    return _PAGE.format(
         title=html.escape(f"ME HS dataset report: {dataset.resolve().name}"),
         n=len(scenes), n_pass=n_pass, n_fail=len(scenes) - n_pass,
         version=html.escape(str(manifest.get("software_version", ""))),
@@ -89,15 +109,6 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
         radiometry=_radiometry(manifest),
         overview=f"{rel}/{overview}",
         cards="\n".join(cards), rows="\n".join(rows), details="\n".join(details))
-    # swap the image folder in first, then the page, so the page never points at missing images
-    old = files_dir.with_name(files_dir.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if files_dir.exists():
-        files_dir.rename(old)
-    tmp_dir.rename(files_dir)
-    shutil.rmtree(old, ignore_errors=True)
-    write_text_atomic(out_html, page)
-    return out_html
 
 
 def check_report_path(out_html: str | Path) -> Path:
@@ -388,9 +399,21 @@ def _detail(s: dict, fig: str | None) -> str:
     body = (f'<img src="{html.escape(fig)}" alt="figures of {sid}">' if fig
             else "<p>No figures (scene not built).</p>")
     reasons = "".join(f"<li>{html.escape(r)}</li>" for r in s.get("reasons", []))
+    reasons += "".join(f'<li class="warning">warning while building: {html.escape(w)}</li>'
+                       for w in _build_warnings(s))
     inputs = html.escape(", ".join(s.get("provenance", {}).get("inputs", [])))
     return (f'<section id="scene-{sid}"><h3>{sid} — {s["status"]}</h3>'
             f'<ul>{reasons}</ul><p class="small">inputs: {inputs}</p>{body}</section>')
+
+
+def _build_warnings(s: dict) -> list[str]:
+    """The warnings recorded while the scene was built (``provenance.run.warnings``), as lines."""
+    from mehs.dataset.scene_warnings import describe
+
+    run = (s.get("provenance") or {}).get("run")
+    found = run.get("warnings") if isinstance(run, dict) else None
+    # a hand-edited or older manifest: anything but a list of objects is no record
+    return [describe(w) for w in found if isinstance(w, dict)] if isinstance(found, list) else []
 
 
 def _radiometry(manifest: dict) -> str:

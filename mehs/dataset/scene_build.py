@@ -161,12 +161,22 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         ``entry`` is the manifest entry (status judged later by the main
         process) and, for failures, ``"error"`` and ``"error_kind"``
         (``"input"`` for a :class:`MehsError`, deterministic and not retried;
-        ``"internal"`` otherwise, retried on the next run).
+        ``"internal"`` otherwise, retried on the next run). Python warnings raised
+        while building are not printed: they come back as ``"warnings"`` (also in
+        ``entry["provenance"]["run"]["warnings"]``; see
+        :mod:`mehs.dataset.scene_warnings`), absent when there were none.
     """
+    from mehs.dataset.scene_warnings import captured_warnings
     from mehs.dataset.threads import one_blas_thread
 
-    with one_blas_thread():
-        return _build_scene(task)
+    with one_blas_thread(), captured_warnings() as caught:
+        res = _build_scene(task)
+    if caught:
+        # shown by the main process, one line each (raw, from workers, they interleaved)
+        res["warnings"] = caught
+        if res["entry"] is not None:
+            res["entry"]["provenance"]["run"]["warnings"] = caught
+    return res
 
 
 def _build_scene(task: SceneTask) -> dict[str, Any]:

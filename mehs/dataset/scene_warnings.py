@@ -1,0 +1,114 @@
+"""Warnings raised while a scene is built: kept with the scene, shown as one line each.
+
+Left to Python, a build worker prints each warning raw on stderr (``file:line: Category:
+message`` and the source line), the workers' lines interleaved and none naming the
+scene; and a warning raised again at the same place in the same worker process (the
+next scene it builds) is not shown at all. :func:`captured_warnings` collects, instead,
+every warning the building thread raises, however often; the worker returns them with
+the scene's result, the build records them in the scene's manifest entry
+(``provenance.run.warnings``) and prints one line per warning naming the scene
+(:func:`describe`).
+
+Thread-safe: Dask runs scenes in threads of one process, and
+:class:`warnings.catch_warnings` is process-global (each thread's exit would restore
+the state another thread's entry saw). Here the first capture in a process installs
+one dispatcher that hands each warning to the list of the thread that raised it (and
+to Python's display when that thread captures nothing) and the last one out removes it.
+Warnings of threads a scene itself starts are shown, not captured.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import threading
+import warnings
+from typing import Any, Iterator
+
+#: distinct warnings kept per scene; the rest are counted
+MAX_KEPT = 20
+
+# ignored by Python's default filters (PEP 565): library deprecations are not the scene's
+_QUIET = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
+
+_LOCK = threading.Lock()
+_LOCAL = threading.local()
+_active = 0
+_outer: Any = None
+
+
+def _dispatch(forward, message, category, filename, lineno, file=None, line=None):
+    log = getattr(_LOCAL, "log", None)
+    if log is None:
+        return forward(message, category, filename, lineno, file, line)
+    name = category.__name__ if category.__module__ == "builtins" else (
+        f"{category.__module__}.{category.__qualname__}")
+    text = str(message)
+    for w in log:
+        if w["category"] == name and w["message"] == text:
+            w["count"] += 1
+            return None
+    log.append({"category": name, "message": text, "count": 1})
+    return None
+
+
+@contextlib.contextmanager
+def captured_warnings() -> Iterator[list[dict[str, Any]]]:
+    """Collect the warnings this thread raises inside the block.
+
+    Yields
+    ------
+    list of dict
+        Filled in as warnings come: ``{"category": qualified class name (builtins
+        bare), "message": str, "count": times raised}``, distinct (category, message)
+        pairs in the order first raised; complete once the block is left (at most
+        :data:`MAX_KEPT` entries, a last ``"mehs.more"`` entry counting the rest).
+        Deprecation, import and resource warnings are ignored, as Python's default
+        filters do.
+    """
+    global _active, _outer
+    log: list[dict[str, Any]] = []
+    with _LOCK:
+        if _active == 0:
+            outer = warnings.catch_warnings()  # restores filters and display on the way out
+            outer.__enter__()
+            forward = warnings.showwarning
+            # every warning, every time: "default" shows one only once per code place and
+            # process, so the second scene a worker builds would lose it
+            warnings.simplefilter("always")
+            for cat in _QUIET:
+                warnings.simplefilter("ignore", cat)
+            warnings.showwarning = functools.partial(_dispatch, forward)
+            _outer = outer
+        _active += 1
+    previous = getattr(_LOCAL, "log", None)
+    _LOCAL.log = log
+    try:
+        yield log
+    finally:
+        _LOCAL.log = previous
+        with _LOCK:
+            _active -= 1
+            if _active == 0:
+                outer, _outer = _outer, None
+                outer.__exit__(None, None, None)
+        if len(log) > MAX_KEPT:
+            rest = sum(w["count"] for w in log[MAX_KEPT:])
+            log[MAX_KEPT:] = [{"category": "mehs.more", "count": 1,
+                               "message": f"{len(log) - MAX_KEPT} more distinct warning(s), "
+                                          f"raised {rest} time(s), not kept"}]
+
+
+def describe(w: dict[str, Any]) -> str:
+    """One line for a recorded warning.
+
+    mehs's own warnings are written for the user (what happened, what it means, what to
+    do): their text alone; another library's keeps its class name (``RuntimeWarning:
+    divide by zero encountered in log``), which is part of what it says.
+    """
+    cat = str(w.get("category", "Warning"))
+    text = " ".join(str(w.get("message", "")).split())  # one line, whatever the message
+    if not cat.startswith("mehs."):
+        text = f"{cat.rsplit('.', 1)[-1]}: {text}"
+    n = w.get("count", 1)
+    return text + (f" (×{n})" if isinstance(n, int) and n > 1 else "")
