@@ -51,10 +51,15 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from mehs.demo_capture import (DEMO_AUTO_EXPOSURE, calibrate_demo_camera,  # noqa: F401
-                               capture_demo_scene, demo_response_ladder)
-from mehs.demo_scenes import DemoScene, demo_pools, demo_scenes  # noqa: F401  (re-exported)
+from mehs.demo_capture import (DEMO_AUTO_EXPOSURE, calibrate_demo_camera, capture_demo_scene,
+                               demo_response_ladder)
+from mehs.demo_scenes import demo_pools, demo_scenes
 from mehs.errors import InputError
+
+# DEMO_AUTO_EXPOSURE lives in mehs.demo_capture; re-exported (tests import it from here)
+__all__ = ["DEMO_AUTO_EXPOSURE", "DEMO_FORMAT", "DEMO_JSON", "DEMO_MODELS", "DEMO_SPLITS",
+           "PAPER_SMITS_SAM_ME_HS", "SIZES", "SUBFOLDERS", "format_summary", "run_demo",
+           "scene_size", "scene_table", "ssr_table"]
 
 DEMO_FORMAT = "mehs-demo/1"
 DEMO_JSON = "demo.json"

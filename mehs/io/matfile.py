@@ -2,7 +2,8 @@
 
 The lowest layer of the SSR dataset readers: :mod:`mehs.io.ssr_datasets`,
 :mod:`mehs.io.ssr_harvard` and :mod:`mehs.io.ssr_kaist` all read their ``.mat`` files here,
-so none of them has to import another for it.
+so none of them has to import another for it; :func:`mat_variable_shapes` lists a file's
+variables without reading their data (format detection, :mod:`mehs.ssr.sources`).
 
 v7.3 files are HDF5 behind a 512-byte MATLAB userblock (MathWorks, "MAT-file versions");
 their arrays are stored column-major, so every axis order is reversed on disk and is
@@ -79,3 +80,38 @@ def read_mat_variables(path: str | Path, keys: tuple[str, ...]) -> dict[str, np.
                               f"{', '.join(sorted(present)) or 'none'})", path)
         out[k] = np.asarray(mat[k])
     return out
+
+
+def mat_variable_shapes(path: str | Path) -> dict[str, tuple[int, ...]]:
+    """Variable names of a MATLAB file (v7.3 or v5) → their shapes in MATLAB's axis order.
+
+    Reads headers only (no array data), so a folder of multi-GB cubes is probed in
+    milliseconds. A struct or group (v7.3) has the shape ``()``.
+
+    Parameters
+    ----------
+    path
+        A ``.mat`` file.
+
+    Returns
+    -------
+    dict
+        ``{name: shape}``; empty when the file cannot be read (missing, truncated, not a
+        MATLAB file): the callers guess a folder's format and must not stop at one bad
+        file — reading it with :func:`read_mat_variables` names the problem.
+    """
+    import h5py
+    from scipy.io.matlab import MatReadError
+
+    try:
+        if h5py.is_hdf5(str(path)):
+            with h5py.File(path, "r") as h:
+                # column-major on disk: the reversed shape is MATLAB's
+                return {k: tuple(reversed(v.shape)) if isinstance(v, h5py.Dataset) else ()
+                        for k, v in h.items()}
+        import scipy.io
+
+        return {n: tuple(shape) for n, shape, *_ in scipy.io.whosmat(path)}
+    except (MatReadError, ValueError, TypeError, OSError, NotImplementedError, EOFError,
+            IndexError, AssertionError):
+        return {}

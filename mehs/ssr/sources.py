@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.io.matfile import mat_variable_shapes
 from mehs.io.ssr_datasets import (_RGB_EXT, _SPLIT_WORDS, FORMATS, SourceOptions, _cave_pngs,
                                   read_source_cube, read_source_mask)
 from mehs.io.ssr_kaist import CASSI28_KEYS, is_kaist_exr
@@ -46,26 +47,6 @@ def _cave_scene_dirs(root: Path) -> list[Path]:
     return sorted({p.parent for p in root.rglob("*_01.png") if len(_cave_pngs(p.parent)) >= 2})
 
 
-def _mat_shapes(path: Path) -> dict[str, tuple]:
-    """Variable names of a MATLAB file (v7.3 or v5) → their shapes in MATLAB's axis order
-    (``()`` for a struct); empty if it cannot be read. Reads headers only."""
-    import h5py
-    from scipy.io.matlab import MatReadError
-
-    try:
-        if h5py.is_hdf5(str(path)):
-            with h5py.File(path, "r") as h:
-                # column-major on disk: the reversed shape is MATLAB's
-                return {k: tuple(reversed(v.shape)) if isinstance(v, h5py.Dataset) else ()
-                        for k, v in h.items()}
-        import scipy.io
-
-        return {n: tuple(shape) for n, shape, *_ in scipy.io.whosmat(path)}
-    except (MatReadError, ValueError, TypeError, OSError, NotImplementedError, EOFError,
-            IndexError, AssertionError):
-        return {}
-
-
 def _is_cassi28(shapes: dict[str, tuple]) -> bool:
     """A CASSI benchmark cube: ``img`` or ``HSI`` of rows × columns × 28 (the variable names
     alone are too common to tell)."""
@@ -79,7 +60,7 @@ def detect_format(root: str | Path) -> str | None:
     mats = sorted(root.rglob("*.mat"))
     # a few files, so one truncated download does not hide the format of the rest
     for f in mats[:5]:
-        shapes = _mat_shapes(f)
+        shapes = mat_variable_shapes(f)
         keys = set(shapes)
         if "cube" in keys:
             return "arad1k"
@@ -115,7 +96,7 @@ def _scene_files(root: Path, fmt: str) -> list[tuple[str, Path]]:
         # mask_3d_shift.mat): a readable file without a cube variable is no scene; an
         # unreadable one stays listed, so its error is seen
         out = [(sid, p) for sid, p in out
-               if not (shapes := _mat_shapes(p)) or set(shapes) & set(CASSI28_KEYS)]
+               if not (shapes := mat_variable_shapes(p)) or set(shapes) & set(CASSI28_KEYS)]
     return out
 
 
