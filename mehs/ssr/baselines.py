@@ -29,10 +29,24 @@ Root-polynomial regression (Lin & Finlayson)
     r, g, b, √(rg), √(gb), √(rb); d = 3 adds the 7 cube-root terms). Every term
     is homogeneous of degree 1, so the model is exposure-invariant in shape and
     equivariant in scale. ``M`` is fitted by ridge-regularised least squares on
-    pixels sampled from a dataset's training split; each training pair is
-    divided by its ``r + g + b`` first so that bright HDR pixels do not dominate
-    the fit (the fit targets relative error, as MRAE does). Negative RGB is
-    clipped to 0 before the roots.
+    pixels sampled from a dataset's training split. Negative RGB is clipped to 0
+    before the roots. Two targets:
+
+    - ``"spectra"`` (linear input, no pre-processing): each training pair is
+      divided by its ``r + g + b`` so that bright HDR pixels do not dominate the
+      fit (the fit targets relative error, as MRAE does); the model predicts
+      absolute spectra (restoration optional).
+    - ``"shape"`` (the default with pre-processing, the paper's spectral
+      similarity, §3.3): the input is divided by its own ``r + g + b`` and the
+      spectrum by its own ``X + Y + Z``; the model predicts a shape, always
+      luminance-restored. On Reinhard input the absolute target is ill-posed:
+      ``x/(1+x)`` compresses and the per-image key removes the exposure, so
+      spectra divided by the tone-mapped ``r + g + b`` spanned three decades in
+      the demo (3 to 3077 on one scene), the least squares followed the
+      brightest pixels with cancelling coefficients (±300) and the predicted
+      shapes had ``X+Y+Z ≤ 0`` on 74 % of the test pixels (restoration fell back
+      to a flat spectrum there). Fitting the shape leaves nothing to fit but the
+      chromaticity → shape map.
 
 References
 ----------
@@ -234,11 +248,14 @@ class RegressionModel(SSRModel):
     wavelengths
         Output band centres, ``(B,)``.
     info
-        Provenance of the fit (dataset, split, samples, ridge, seed, …).
+        Provenance of the fit (dataset, split, samples, ridge, seed, …);
+        ``info["target"]`` is ``"shape"`` or ``"spectra"`` (older files: spectra).
     """
 
     FORMAT = "mehs-ssr-regression/1"
     description = "root-polynomial regression (Lin & Finlayson), exposure-invariant"
+    #: What a fit may target (see the module notes).
+    TARGETS = ("spectra", "shape")
 
     def __init__(self, matrix: np.ndarray, *, degree: int = 2,
                  wavelengths: np.ndarray = WAVELENGTHS_31, name: str = "regression",
@@ -252,14 +269,26 @@ class RegressionModel(SSRModel):
                              f"{self.degree} ({nf} terms) and {self.wavelengths.size} bands")
         self.name = name
         self.info = dict(info or {})
+        if self.info.get("preprocessing") and self.target == "spectra":
+            # files fitted before the shape target: their shapes are often non-positive
+            self.description = (f"{type(self).description}; fitted to absolute spectra on "
+                                "pre-processed input, whose shapes can have X+Y+Z ≤ 0 (a "
+                                "flat-spectrum fallback of the restoration): refit it with "
+                                "'mehs train-baseline' to fit the shape")
+
+    @property
+    def target(self) -> str:
+        """``"shape"`` or ``"spectra"``: what the fit targeted (older files: spectra)."""
+        return "shape" if self.info.get("target") == "shape" else "spectra"
 
     @property
     def trained_for(self) -> TrainedFor:
-        """Fitted on ``info["input"]`` RGB with ``info["preprocessing"]`` (older files: none)."""
+        """Fitted on ``info["input"]`` RGB with ``info["preprocessing"]`` (older files: none);
+        a shape fit is always luminance-restored, an absolute one either way."""
         inp = self.info.get("input")
         return TrainedFor(input=inp if inp in ("hdr", "ldr") else None,
                           preprocessing=Preprocessing.from_dict(self.info.get("preprocessing")),
-                          output="either")
+                          output="shape" if self.target == "shape" else "either")
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
         phi = root_polynomial_features(rgb, self.degree)
@@ -268,16 +297,21 @@ class RegressionModel(SSRModel):
     @classmethod
     def fit(cls, rgb: np.ndarray, spectra: np.ndarray, *, degree: int = 2,
             wavelengths: np.ndarray = WAVELENGTHS_31, ridge: float = 1e-6,
-            info: dict[str, Any] | None = None) -> "RegressionModel":
+            info: dict[str, Any] | None = None, target: str = "spectra") -> "RegressionModel":
         """Least-squares fit on pairs ``rgb (N, 3)``, ``spectra (N, B)``.
 
-        Pairs are normalised by their ``r + g + b`` (pairs with a non-positive or
-        non-finite sum are dropped); ``ridge`` is relative to the mean diagonal
-        of ``ΦᵀΦ``.
+        ``target="spectra"``: pairs are normalised by their ``r + g + b`` (pairs
+        with a non-positive or non-finite sum are dropped). ``target="shape"``:
+        the RGB by its ``r + g + b`` and the spectrum by its own ``X + Y + Z``
+        (:func:`mehs.ssr.luminance.xyz_sum` at ``wavelengths``; pairs where either
+        is not positive are dropped), so the model predicts a spectral shape for
+        luminance restoration. ``ridge`` is relative to the mean diagonal of ``ΦᵀΦ``.
         """
         if not (np.isfinite(ridge) and ridge >= 0):
             # a negative ridge can make the normal equations singular or indefinite
             raise InputError(f"ridge must be finite and >= 0, got {ridge}")
+        if target not in cls.TARGETS:
+            raise InputError(f"regression target must be one of {cls.TARGETS}, got {target!r}")
         rgb = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
         spectra = np.asarray(spectra, dtype=np.float64)
         spectra = spectra.reshape(-1, spectra.shape[-1])
@@ -285,15 +319,26 @@ class RegressionModel(SSRModel):
             raise InputError(f"{rgb.shape[0]} RGB samples for {spectra.shape[0]} spectra")
         s = np.maximum(rgb, 0).sum(1)
         ok = np.isfinite(s) & (s > 0) & np.all(np.isfinite(spectra), axis=1)
+        if target == "shape":
+            if spectra.shape[1] != np.asarray(wavelengths).size:
+                raise InputError(f"spectra have {spectra.shape[1]} bands but "
+                                 f"{np.asarray(wavelengths).size} wavelengths were given")
+            from mehs.ssr.luminance import xyz_sum
+
+            t = xyz_sum(np.where(ok[:, None], spectra, 0.0), wavelengths)
+            ok &= np.isfinite(t) & (t > 0)
+        else:
+            t = s
         if np.count_nonzero(ok) < 50:
             raise InputError(f"only {np.count_nonzero(ok)} usable training pixels (need ≥ 50)")
         x = rgb[ok] / s[ok, None]
-        y = spectra[ok] / s[ok, None]
+        y = spectra[ok] / t[ok, None]
         phi = root_polynomial_features(x, degree)
         ata = phi.T @ phi
         lam = ridge * np.trace(ata) / ata.shape[0]
         matrix = np.linalg.solve(ata + lam * np.eye(ata.shape[0]), phi.T @ y)
-        meta = {"n_samples": int(np.count_nonzero(ok)), "ridge": ridge, **(info or {})}
+        meta = {"n_samples": int(np.count_nonzero(ok)), "ridge": ridge, **(info or {}),
+                "target": target}
         return cls(matrix, degree=degree, wavelengths=wavelengths, info=meta)
 
     def save(self, path: str | Path) -> Path:
@@ -364,6 +409,7 @@ def check_model_path(path: str | Path, fmt: str) -> Path:
 def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int = 200_000,
                             input: str = "hdr", ridge: float = 1e-6, seed: int = 0,
                             preprocessing: Preprocessing | None = None,
+                            target: str | None = None,
                             progress: bool = False) -> RegressionModel:
     """Fit :class:`RegressionModel` on pixels sampled from paired scenes.
 
@@ -379,7 +425,15 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
         Pre-processing applied to each training image before sampling (e.g.
         ``Preprocessing()``: Reinhard at key 0.18); recorded in the model, so
         the evaluation scores it only with that pre-processing.
+    target
+        ``"shape"`` or ``"spectra"`` (see :meth:`RegressionModel.fit`); default
+        ``"shape"`` with pre-processing (tone-mapped RGB does not determine
+        absolute spectra: the per-image key removes the exposure), else ``"spectra"``.
     """
+    target = target or ("shape" if preprocessing is not None else "spectra")
+    if target not in RegressionModel.TARGETS:  # before minutes of sampling
+        raise InputError(f"regression target must be one of {RegressionModel.TARGETS}, "
+                         f"got {target!r}")
     if int(n_samples) < 1:
         raise InputError(f"n_samples must be at least 1, got {n_samples}")
     if not (np.isfinite(ridge) and ridge >= 0):  # before minutes of sampling
@@ -416,7 +470,7 @@ def fit_regression_baseline(pairs: Iterable, *, degree: int = 2, n_samples: int 
     info = {"input": input, "seed": seed, "scenes": [p.id for p in pairs],
             "preprocessing": None if preprocessing is None else preprocessing.to_dict()}
     return RegressionModel.fit(np.concatenate(xs), np.concatenate(ys), degree=degree,
-                               wavelengths=wl, ridge=ridge, info=info)
+                               wavelengths=wl, ridge=ridge, info=info, target=target)
 
 
 def _regression_factory(path: str | Path | None = None, **_: Any) -> RegressionModel:
