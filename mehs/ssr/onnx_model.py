@@ -85,11 +85,19 @@ def onnx_session_options():
 
 
 class OnnxModel(SSRModel):
-    """An ONNX SSR model run with onnxruntime on the CPU (see module notes for layouts)."""
+    """An ONNX SSR model run with onnxruntime on the CPU (see module notes for layouts).
+
+    ``size_multiple``: the graph takes only heights and widths divisible by it (a
+    down-sampling network that does not pad itself); default: the graph's metadata
+    property ``mehs_size_multiple`` (written by :func:`mehs.ssr.net.export.export_onnx`),
+    else 1. Every run is then reflect-padded to the multiple and cropped back
+    (:mod:`mehs.ssr.tiling_pad`), tiles included.
+    """
 
     def __init__(self, path: str | Path, *, name: str | None = None,
                  wavelengths: np.ndarray | None = None, providers: list[str] | None = None,
-                 session_options=None, output: str | None = None):
+                 session_options=None, output: str | None = None,
+                 size_multiple: int | None = None):
         path = Path(path)
         if not path.is_file():
             raise InputError("no such ONNX model file", path)
@@ -155,6 +163,16 @@ class OnnxModel(SSRModel):
                 self.trained_for = TrainedFor.from_dict(json.loads(meta["mehs_trained_for"]))
             except (ValueError, InputError) as exc:
                 raise FormatError(f"metadata 'mehs_trained_for' is damaged ({exc})", path) from None
+        from mehs.ssr.tiling_pad import ONNX_SIZE_MULTIPLE_KEY, check_multiple
+
+        if size_multiple is None and meta.get(ONNX_SIZE_MULTIPLE_KEY, "").strip():
+            try:
+                size_multiple = check_multiple(meta[ONNX_SIZE_MULTIPLE_KEY].strip(),
+                                               f"metadata {ONNX_SIZE_MULTIPLE_KEY!r}")
+            except InputError as exc:
+                raise FormatError(exc.problem, path) from None
+        #: Heights and widths the graph takes are multiples of this (see the class notes).
+        self.size_multiple = 1 if size_multiple is None else check_multiple(size_multiple)
         if wavelengths is None:
             if "wavelengths" in meta:
                 try:
@@ -221,6 +239,15 @@ class OnnxModel(SSRModel):
                          "(public datasets: --hs-crop HxW)", self.path)
 
     def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
+        """The graph on the whole of ``rgb (H, W, 3)``, padded to its size multiple."""
+        from mehs.ssr.tiling_pad import call_padded, size_multiple
+
+        k = size_multiple(self)
+        if k > 1 and not any(self.fixed_size):
+            return call_padded(self._run_graph, rgb, k, self.name)
+        return self._run_graph(rgb)
+
+    def _run_graph(self, rgb: np.ndarray) -> np.ndarray:
         self._check_size(rgb.shape[:2])
         try:
             y = self.session.run(self._run_outputs, {self.input_name: self._graph_input(rgb),
@@ -232,8 +259,9 @@ class OnnxModel(SSRModel):
             h, w = rgb.shape[:2]
             raise InputError(f"{self.name}: onnxruntime cannot run the graph on a {h}×{w} "
                              f"image ({first_line(msg)}); a graph that needs sizes divisible "
-                             "by 8, 16 or 32 must pad inside itself (as MST++'s does)",
-                             self.path) from None
+                             "by 8, 16 or 32 must pad inside itself (as MST++'s does) or "
+                             "say so: size_multiple= (or the tiling option, or metadata "
+                             "'mehs_size_multiple')", self.path) from None
         return self._spectra(y, rgb.shape[:2])
 
     def release_memory(self) -> None:

@@ -37,6 +37,11 @@ hides the seams, and large tiles (as large as the memory budget allows) keep the
 statistics close. ONNX graphs get the same, rebuilt to take and report their
 poolings' means and probed once (:mod:`mehs.ssr.tiling_onnx`).
 
+Size multiples. A network that takes only sizes divisible by ``k`` (a model's
+``size_multiple``, or ``model.tiling["size_multiple"]``) gets every call, whole
+image, tile or probe, reflect-padded to the multiple and its output cropped back
+(:mod:`mehs.ssr.tiling_pad`); the tile grid becomes a multiple of ``k``.
+
 Shapes: ``rgb`` float32 ``(H, W, 3)``; the per-tile function maps ``(h, w, 3)``
 to ``(h, w, B)``; the result is float32 ``(H, W, B)`` (band-major in memory
 when the tiles' outputs are, as torch's are).
@@ -65,6 +70,7 @@ from mehs.ssr.allocator import trim_heap as _trim_heap
 from mehs.ssr.tiling_blend import (TilingPlan, _covered,  # noqa: F401 (public here)
                                    predict_tiled, tile_starts)
 from mehs.ssr.tiling_global import statistics_mode
+from mehs.ssr.tiling_pad import grid, padded, padded_torch_module, size_multiple
 from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,  # noqa: F401 (public here)
                                     PROBE_CHUNK_SHARE, _round_up, torch_align,
                                     torch_bytes_per_pixel, torch_memory_probe,
@@ -249,7 +255,9 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     default) and ``"image"`` call ``image_means(fn, rgb, plan, strict)``, which
     stitches the tiles with image-wide global-pooling means where the network allows
     (equal to whole-image inference; ``strict``: refuse a network that does not),
-    ``"tile"`` gives each tile its own. Missing ones come
+    ``"tile"`` gives each tile its own, and ``size_multiple`` (see
+    :mod:`mehs.ssr.tiling_pad`: ``fn`` must already pad to it; here the tile grid is
+    made a multiple of it). Missing ones come
     from ``probes[name]()``, each called at most once per model (cached in
     ``model._tiling_probe``) and only when needed: the memory probe (a number,
     or a dict as :func:`torch_memory_probe` returns) for images above
@@ -265,6 +273,8 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         raise InputError(f"tiling must be 'auto', 'off' or a dict of options, got {mode!r}")
     opts = dict(mode) if isinstance(mode, dict) else {}
     statistics = statistics_mode(opts)
+    opts.pop("size_multiple", None)
+    k = size_multiple(model)
     if mode == "auto" and rgb.shape[0] * rgb.shape[1] <= SMALL_IMAGE:
         return fn(rgb)
     t0 = time.perf_counter()
@@ -308,7 +318,8 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         record.update(plan=None, summary=plan_summary((h, w), TilingPlan(None, 0, 0, 1)),
                       probe_seconds=time.perf_counter() - t0)
         return fn(rgb)
-    align = get("align")
+    # tiles other than an axis's last must need no padding: on a grid of the multiple
+    align = grid(get("align"), k)
     margin = get("margin")
     wide = statistics != "tile" and image_means is not None
     if wide:
@@ -353,26 +364,32 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     """
     import torch
 
-    def run(x: np.ndarray) -> np.ndarray:
+    k = size_multiple(model)
+
+    def whole(x: np.ndarray) -> np.ndarray:
         t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None]).to(model.device)
         with torch.no_grad():
             return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
 
+    run = padded(whole, k, getattr(model, "name", "model"))
+    net = model.network
+    # the probes run the network on sizes of their own: padded to the multiple too
+    probed = padded_torch_module(net, k)
+
     def margin() -> int:
         with torch.enable_grad():
-            m = torch_receptive_radius(model.network, align=torch_align(model.network))
-        model.network.zero_grad(set_to_none=True)
+            m = torch_receptive_radius(probed, align=grid(torch_align(net), k))
+        net.zero_grad(set_to_none=True)
         return m
 
-    net = model.network
     cap = getattr(net, "max_tile_pixels", None)
 
     def memory() -> dict:
         if cap is None:
-            return torch_memory_probe(net)
+            return torch_memory_probe(probed)
         # memory super-linear in the tile (global attention): small probes, and the
         # network says how large a tile fits the budget; the per-pixel figure is raised
-        mem = torch_memory_probe(net, sizes=(32, 48))
+        mem = torch_memory_probe(probed, sizes=(32, 48))
         budget = env_max_bytes() or default_budget()
         mem["bytes_per_pixel"] = max(mem["bytes_per_pixel"], budget / cap(budget))
         mem["allocator"] = None          # the cap already is a resident-memory figure
@@ -382,8 +399,9 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
               "align": lambda: torch_align(net)}
-    if cap is None:
-        # measured once per architecture, not once per process (mehs's own networks)
+    if cap is None and k == 1:
+        # measured once per architecture, not once per process (mehs's own networks;
+        # one padded to a multiple measures its padded calls: not cached)
         from mehs.ssr.probe_cache import ProbeStore
 
         store = ProbeStore.for_network(net)
@@ -434,11 +452,12 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
     """An ONNX model's whole-image ``fn`` on ``rgb``, tiled when large.
 
     Memory per pixel is measured once: the growth of the process's resident
-    memory over a 256×256 probe run (onnxruntime's arena keeps its peak), with
-    a floor of 1 kB per pixel in case the arena was already grown by earlier calls.
+    memory over a 256×256 probe run (256 rounded up to the model's size multiple;
+    onnxruntime's arena keeps its peak), with a floor of 1 kB per pixel in case the
+    arena was already grown by earlier calls. ``fn`` pads to the size multiple itself.
     """
     def memory() -> dict:
-        n = 256
+        n = _round_up(256, size_multiple(model))
         _trim_heap()
         before = _rss()
         y = fn(np.zeros((n, n, 3), dtype=np.float32))

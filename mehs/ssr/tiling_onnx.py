@@ -263,9 +263,16 @@ class OnnxImageMeans:
     def run(self, rgb: np.ndarray, owned: np.ndarray, last: tuple[bool, bool],
             means: list[np.ndarray] | None, sums: list, counts: list,
             spectra: bool = True) -> np.ndarray | None:
-        """One tile: adds each pooling's owned sum and pixel count into ``sums``/``counts``."""
+        """One tile: adds each pooling's owned sum and pixel count into ``sums``/``counts``.
+
+        A graph with a size multiple gets the tile reflect-padded to it (the owned span's
+        open end then runs on into that padding, as the whole padded image's does).
+        """
+        from mehs.ssr.tiling_pad import pad_to_multiple, size_multiple
+
         m = self.model
-        feeds = {m.input_name: m._graph_input(rgb), **self.feeds(means, owned)}
+        x = pad_to_multiple(rgb, size_multiple(m))
+        feeds = {m.input_name: m._graph_input(x), **self.feeds(means, owned)}
         session = m.session if spectra or self.collect is None else self.collect
         if session is not m.session:
             names = {i.name for i in session.get_inputs()}
@@ -280,7 +287,7 @@ class OnnxImageMeans:
             n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])
             sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)
             counts[i] += n
-        return m._spectra(outs[0], tile) if spectra else None
+        return m._spectra(outs[0], x.shape[:2])[:tile[0], :tile[1]] if spectra else None
 
 
 _ARENA = []

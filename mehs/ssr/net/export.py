@@ -14,6 +14,11 @@
   dynamic N, H, W, output ``spectra`` ``(N, 31, H, W)``, metadata property
   ``wavelengths`` (comma-separated nm); ``mehs.ssr.models.load_model("x.onnx")``
   runs it with onnxruntime.
+
+A network that takes only heights and widths divisible by ``k`` (it down-samples and
+does not pad itself) says so with a ``size_multiple = k`` attribute: the models pad
+each call to the multiple and crop back (:mod:`mehs.ssr.tiling_pad`), and the ONNX
+export carries it as the metadata property ``mehs_size_multiple``.
 """
 
 from __future__ import annotations
@@ -100,13 +105,16 @@ class TorchSSRModel(SSRModel):
         :func:`checkpoint_trained_for`).
     arch
         The registered architecture name.
+    size_multiple
+        Heights and widths the network takes are multiples of this (default: the
+        network's ``size_multiple`` attribute, else 1); every call is padded to it.
     """
 
     applies_preprocessing = True
 
     def __init__(self, network, *, name: str | None = None, device: str = "cpu",
                  source: str | None = None, trained_for: TrainedFor | None = None,
-                 arch: str | None = None):
+                 arch: str | None = None, size_multiple: int | None = None):
         self.device = resolve_device(device)
         self.network = network.to(self.device).eval()
         cfg = getattr(network, "config", None)
@@ -116,6 +124,10 @@ class TorchSSRModel(SSRModel):
         self.trained_for = trained_for or checkpoint_trained_for(
             {"net_config": cfg.to_dict() if hasattr(cfg, "to_dict") else {}}, network)
         self.source = source
+        from mehs.ssr.tiling_pad import check_multiple
+
+        k = size_multiple if size_multiple is not None else getattr(network, "size_multiple", None)
+        self.size_multiple = 1 if k is None else check_multiple(k, f"{self.name}: size_multiple")
         self.description = (f"{self.arch}: {self.trained_for.label()}"
                             + (f", {Path(source).name}" if source else ""))
 
@@ -133,7 +145,8 @@ class TorchSSRModel(SSRModel):
         import copy
 
         return TorchSSRModel(copy.deepcopy(self.network), name=self.name, device=device,
-                             source=self.source, trained_for=self.trained_for, arch=self.arch)
+                             source=self.source, trained_for=self.trained_for, arch=self.arch,
+                             size_multiple=self.size_multiple)
 
     @torch.no_grad()
     def standard_spectrum(self, rgb: np.ndarray) -> np.ndarray:
@@ -141,15 +154,17 @@ class TorchSSRModel(SSRModel):
         rgb = np.asarray(rgb, dtype=np.float32)
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
-        if getattr(self.network, "receptive_radius", None) is not None:
+        from mehs.ssr.tiling_pad import size_multiple
+
+        if getattr(self.network, "receptive_radius", None) is not None and size_multiple(self) == 1:
             # a purely local network: exact overlapping tiles bound the memory (model zoo)
             from mehs.ssr.net.infer import predict_tiled
 
             x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
             y = predict_tiled(self.network, x, spectra=False)
             return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
-        # global operations (channel attention): the whole image, or tiles with a margin
-        # when it would not fit in memory (mehs.ssr.tiling)
+        # global operations (channel attention), or a size multiple to pad to: the whole
+        # image, or tiles with a margin when it would not fit in memory (mehs.ssr.tiling)
         from mehs.ssr.tiling import tiled_torch_call
 
         return np.asarray(tiled_torch_call(self, rgb), dtype=np.float32)
@@ -184,11 +199,13 @@ class TorchScriptModel(SSRModel):
     otherwise answer differently on every call), without autograd, on ``device``, in
     the dtype of its parameters. Bands: ``wavelengths=``, else the module's
     ``wavelengths`` attribute, else 400:700:10 when B = 31. It declares nothing: give it
-    ``trained_for`` to be scored only where it was trained.
+    ``trained_for`` to be scored only where it was trained. A module that takes only
+    sizes divisible by ``k`` (``size_multiple=``, else its ``size_multiple`` attribute)
+    gets each image reflect-padded to the multiple and its output cropped back.
     """
 
     def __init__(self, path: str | Path, *, name: str | None = None, device: str = "cpu",
-                 wavelengths=None):
+                 wavelengths=None, size_multiple: int | None = None):
         path = Path(path)
         self.device = resolve_device(device)
         try:
@@ -207,15 +224,25 @@ class TorchScriptModel(SSRModel):
         self._declared = None if wl is None else np.asarray(
             wl.cpu().numpy() if isinstance(wl, torch.Tensor) else wl, dtype=np.float64).reshape(-1)
         self.wavelengths = WAVELENGTHS_31 if self._declared is None else self._declared
+        from mehs.ssr.tiling_pad import check_multiple
+
+        k = size_multiple if size_multiple is not None else getattr(self.module, "size_multiple",
+                                                                    None)
+        self.size_multiple = 1 if k is None else check_multiple(k, f"{self.name}: size_multiple")
         self.description = f"TorchScript model {path.name} (NCHW)"
 
     def on_device(self, device: str) -> "TorchScriptModel":
         """The same module as a model on ``device`` (for timing on CUDA)."""
         return TorchScriptModel(self.path, name=self.name, device=device,
-                                wavelengths=self._declared)
+                                wavelengths=self._declared, size_multiple=self.size_multiple)
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        from mehs.ssr.tiling_pad import call_padded, size_multiple
+
+        return call_padded(self._predict_whole, rgb, size_multiple(self), self.name)
 
     @torch.no_grad()
-    def predict(self, rgb: np.ndarray) -> np.ndarray:
+    def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
         h, w = rgb.shape[:2]
         x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None])
         try:
@@ -297,13 +324,22 @@ class _ContractGraph(nn.Module):
         return self.network.spectra(rgb)
 
 
-def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 48)) -> Path:
+def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 48),
+                size_multiple: int | None = None) -> Path:
     """Export a network (or a checkpoint path, or a :class:`TorchSSRModel`) to ONNX, atomically.
 
     The TorchScript-based exporter is used (``dynamo=False``): it needs no
     package beyond torch and keeps H and W dynamic, including the padding to a
-    multiple of ``2**depth`` done inside the network.
+    multiple of ``2**depth`` done inside the network. A network that does not pad
+    itself declares ``size_multiple`` (argument, else the model's or network's
+    attribute): the trace example is rounded up to it and the graph carries it as
+    the metadata property ``mehs_size_multiple``, which :class:`~mehs.ssr.models.OnnxModel`
+    pads every run to.
     """
+    from mehs.ssr.tiling_pad import ONNX_SIZE_MULTIPLE_KEY, check_multiple
+
+    if size_multiple is None and not isinstance(model, (str, Path)):
+        size_multiple = getattr(model, "size_multiple", None)
     tf, tf_arch = None, None
     if isinstance(model, (str, Path)):
         model, state = load_checkpoint_network(model)
@@ -319,9 +355,12 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
     if not hasattr(model, "spectra"):
         raise InputError(f"cannot export {type(model).__name__}: not an SSR network")
     _require_onnx()
+    if size_multiple is None:
+        size_multiple = getattr(model, "size_multiple", None)
+    k = 1 if size_multiple is None else check_multiple(size_multiple, "size_multiple")
     net = model.to("cpu").eval()
     graph = _ContractGraph(net).eval()
-    example = torch.rand(1, 3, *example_size)
+    example = torch.rand(1, 3, *(-(-int(n) // k) * k for n in example_size))
     path = Path(path)
     with atomic_path(path) as tmp:
         with warnings.catch_warnings():
@@ -337,6 +376,7 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
             "mehs_luminance_restored": "true" if tf.output == "shape" else "false",
             "mehs_trained_for": json.dumps(tf.to_dict()),
             "mehs_version": __version__,
+            **({ONNX_SIZE_MULTIPLE_KEY: str(k)} if k > 1 else {}),
         })
     return path
 
