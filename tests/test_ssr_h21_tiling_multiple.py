@@ -138,3 +138,33 @@ def test_onnx_export_carries_the_multiple_and_tiles_equal_whole_image(net, rgb, 
     plain.tiling = "off"
     with pytest.raises(InputError, match="size_multiple"):
         plain(rgb)
+
+
+def test_sidecar_declares_the_multiple_of_a_foreign_graph(net, rgb, tmp_path):
+    """A graph from elsewhere carries no mehs metadata: its ``<file>.json`` says k."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    import json
+
+    import onnx
+
+    from mehs.errors import FormatError
+    from mehs.ssr.models import load_model
+    from mehs.ssr.net.export import TorchSSRModel, export_onnx
+
+    path = export_onnx(TorchSSRModel(net), tmp_path / "foreign.onnx", example_size=(64, 48))
+    g = onnx.load(str(path))
+    keep = [p for p in g.metadata_props if p.key != "mehs_size_multiple"]
+    del g.metadata_props[:]
+    g.metadata_props.extend(keep)
+    onnx.save(g, str(path))
+    assert load_model(str(path)).size_multiple == 1          # nothing says so: any size
+    side = tmp_path / "foreign.onnx.json"
+    side.write_text(json.dumps({"size_multiple": K}))
+    model = load_model(str(path))
+    assert model.size_multiple == K
+    model.tiling = "off"
+    _close(model(rgb), reference(net, rgb))
+    side.write_text(json.dumps({"size_multiple": 2.5}))
+    with pytest.raises(FormatError, match=r"foreign\.onnx\.json.*size_multiple"):
+        load_model(str(path))

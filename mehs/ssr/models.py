@@ -198,15 +198,17 @@ def load_model(spec: Any, **kwargs: Any) -> Any:
     return _as_model(entry.factory(**kwargs), entry.name)
 
 
-_SIDECAR_KEYS = {"trained_for", "wavelengths", "output"}
+_SIDECAR_KEYS = {"trained_for", "wavelengths", "output", "size_multiple"}
 
 
 def read_sidecar(model_path: str | Path) -> dict[str, Any]:
     """The declaration next to a foreign model file: ``<file>.json`` (e.g. ``mst.onnx.json``).
 
     ``{"trained_for": {...TrainedFor.to_dict()...}, "wavelengths": [400, 410, ...],
-    "output": "spectra"}``, all optional: what a graph from elsewhere cannot say itself
-    (``output``: which of an ONNX graph's outputs holds the spectra). ``{}`` when there is none.
+    "output": "spectra", "size_multiple": 8}``, all optional: what a graph from elsewhere
+    cannot say itself (``output``: which of an ONNX graph's outputs holds the spectra;
+    ``size_multiple``: the graph takes only heights and widths divisible by it, see
+    :mod:`mehs.ssr.tiling_pad`). ``{}`` when there is none.
     """
     path = Path(str(model_path) + SIDECAR_SUFFIX)
     if not path.is_file():
@@ -241,6 +243,13 @@ def read_sidecar(model_path: str | Path) -> dict[str, Any]:
             raise FormatError(f"model declaration: 'output' must be the name of the graph's "
                               f"output that holds the spectra, got {d['output']!r}", path)
         out["output"] = d["output"]
+    if d.get("size_multiple") is not None:
+        from mehs.ssr.tiling_pad import check_multiple
+
+        try:
+            out["size_multiple"] = check_multiple(d["size_multiple"], "'size_multiple'")
+        except InputError as exc:
+            raise FormatError(f"model declaration: {exc.problem}", path) from None
     return out
 
 
@@ -260,7 +269,15 @@ def _with_sidecar(path: str, make: Callable[..., Any], kwargs: dict[str, Any]) -
 
 
 def _declare(model: Any, side: dict[str, Any]) -> Any:
-    """``model`` with the sidecar's ``trained_for``; refused where the graph declares its own."""
+    """``model`` with the sidecar's ``trained_for`` and ``size_multiple``; refused where the
+    graph declares its own (a different multiple, or any ``trained_for``)."""
+    k = side.get("size_multiple")
+    if k is not None:
+        own = getattr(model, "size_multiple", 1) or 1
+        if own not in (1, k):
+            raise FormatError(f"model declaration: 'size_multiple' {k} contradicts the "
+                              f"model's own {own} (mehs metadata); remove it here", side["path"])
+        model.size_multiple = k
     tf = side.get("trained_for")
     if tf is None:
         return model
