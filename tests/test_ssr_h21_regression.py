@@ -119,3 +119,22 @@ def test_target_is_recorded_and_older_reinhard_files_stay_absolute(tmp_path):
         RegressionModel.fit(rgb, spectra, target="absolute")
     with pytest.raises(InputError, match="bands"):
         RegressionModel.fit(rgb, spectra, target="shape", wavelengths=WAVELENGTHS_31[:30])
+
+
+def test_cli_target_option(natural, tmp_path):
+    import subprocess
+    import sys
+
+    def fit(*extra):
+        out = tmp_path / f"m{len(extra)}.npz"
+        r = subprocess.run([sys.executable, "-m", "mehs", "train-baseline", str(natural), "--out",
+                            str(out), "--samples", "3000", "--preprocess", "on", *extra],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return RegressionModel.load(out), r.stdout
+
+    auto, text = fit()
+    assert auto.target == "shape" and "target shape" in text
+    absolute, text = fit("--target", "spectra")
+    assert absolute.target == "spectra" and "target spectra" in text
+    assert trained_for(absolute).output == "either" and trained_for(auto).output == "shape"

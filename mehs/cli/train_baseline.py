@@ -24,6 +24,12 @@ def configure(parser):
                         help="fit on Reinhard pre-processed RGB (recorded in the model: the "
                              "evaluation scores it only with that pre-processing) "
                              "(default: %(default)s)")
+    parser.add_argument("--target", choices=["auto", "shape", "spectra"], default="auto",
+                        help="what the fit predicts: 'shape' (the spectrum over its X+Y+Z, "
+                             "always luminance-restored; the paper's spectral similarity) or "
+                             "'spectra' (absolute); 'auto': shape with --preprocess on, where "
+                             "tone-mapped RGB cannot determine absolute spectra, else spectra "
+                             "(default: %(default)s)")
     from mehs.cli.evaluate import add_preprocessing_args
 
     add_preprocessing_args(parser, "with --preprocess on")
@@ -68,11 +74,12 @@ def run(args):
     spec = preprocessing_from_args(args) if args.preprocess == "on" else None
     model = fit_regression_baseline(pairs, degree=args.degree, n_samples=args.samples,
                                     input=args.input, ridge=args.ridge, seed=args.seed,
-                                    preprocessing=spec, progress=progress_bars())
+                                    preprocessing=spec, progress=progress_bars(),
+                                    target=None if args.target == "auto" else args.target)
     model.info.update({"dataset": str(root), "split": split})
     out = model.save(args.out)
     print(f"fitted root-polynomial regression (degree {model.degree}) on "
           f"{model.info['n_samples']} pixels of {len(pairs)} scenes "
           f"({split or 'all'}, {args.input.upper()}-RGB, "
-          f"{spec.label() if spec else 'no pre-processing'}) → {out}")
+          f"{spec.label() if spec else 'no pre-processing'}, target {model.target}) → {out}")
     return 0
