@@ -59,6 +59,7 @@ def test_stage_get_position_and_warnings_bytes():
 
 def test_stage_move_polls_until_idle_then_checks_position():
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 640\n", b"@01 1 OK BUSY -- 0\r\n"),
         (b"/1 1\n", b"@01 1 OK BUSY -- 0\r\n"),
         (b"/1 1\n", b"!01 1 IDLE --\r\n@01 1 OK IDLE -- 0\r\n"),  # an alert before the reply is skipped
@@ -84,6 +85,7 @@ def test_stage_checksums_both_ways():
 
 def test_stage_rejection_is_an_error_and_again_is_retried():
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 99999999\n", b"@01 1 RJ IDLE -- BADDATA\r\n"),
     ])
     with pytest.raises(StageRejected, match="BADDATA") as ei:
@@ -118,6 +120,7 @@ def test_stage_lost_move_reply_is_not_blindly_repeated():
     # The move was executed but its reply was lost: the driver re-reads the state,
     # finds the stage at the target and does NOT send the move again.
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 640\n", None),
         (b"/1 1\n", b"@01 1 OK IDLE -- 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE -- 640\r\n"),
@@ -131,6 +134,7 @@ def test_stage_lost_move_reply_is_not_blindly_repeated():
 
 def test_stage_lost_move_reissued_only_when_idle_elsewhere():
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 640\n", None),
         (b"/1 1\n", b"@01 1 OK IDLE -- 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE -- 0\r\n"),
@@ -143,6 +147,7 @@ def test_stage_lost_move_reissued_only_when_idle_elsewhere():
     port.assert_done()
     # a relative move is never re-issued
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move rel 64\n", None),
         (b"/1 1\n", b"@01 1 OK IDLE -- 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE -- 0\r\n"),
@@ -155,6 +160,7 @@ def test_stage_lost_move_reissued_only_when_idle_elsewhere():
 
 def test_stage_fault_flag_stops():
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 64\n", b"@01 1 OK BUSY -- 0\r\n"),
         (b"/1 1\n", b"@01 1 OK IDLE FS 0\r\n"),
         (b"/1 1 warnings\n", b"@01 1 OK IDLE FS 01 FS\r\n"),
@@ -351,6 +357,7 @@ def test_a_lost_home_is_repeated_until_the_reference_is_set():
     is not "homed" (it was taken for done). Home is safe to repeat, so it is sent again, and
     the stage counts as homed once ``WR`` is gone."""
     port = ExpectedPort([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE WR 01 WR\r\n"),  # read before the first motion
         (b"/1 1 home\n", None),                                  # lost: no reply
         (b"/1 1\n", b"@01 1 OK IDLE WR 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE WR 0\r\n"),
@@ -365,6 +372,7 @@ def test_a_lost_home_is_repeated_until_the_reference_is_set():
     port.assert_done()
     # a home that ends with WR still set is a fault, not success
     port = ExpectedPort([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE WR 01 WR\r\n"),  # read before the first motion
         (b"/1 1 home\n", b"@01 1 OK BUSY WR 0\r\n"),
         (b"/1 1\n", b"@01 1 OK IDLE WR 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE WR 0\r\n"),

@@ -68,6 +68,7 @@ def test_a_continued_reply_is_joined():
 
 def test_home_ends_wherever_limit_home_preset_puts_it():
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE WR 01 WR\r\n"),  # read before the first motion
         (b"/1 1 home\n", b"@01 1 OK BUSY WR 0\r\n"),
         (b"/1 1\n", b"@01 1 OK IDLE -- 0\r\n"),
         (b"/1 1 get pos\n", b"@01 1 OK IDLE -- 1000\r\n"),
@@ -81,6 +82,7 @@ def test_home_ends_wherever_limit_home_preset_puts_it():
 def test_a_masked_interruption_after_a_move_is_found():
     # WT (controller hot) outranks NI in the flag field: only `warnings` shows the NI
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move rel 64\n", b"@01 1 OK BUSY WT 0\r\n"),
         (b"/1 1\n", b"@01 1 OK IDLE WT 0\r\n"),
         (b"/1 1 warnings\n", b"@01 1 OK IDLE WT 02 WT NI\r\n"),
@@ -90,6 +92,7 @@ def test_a_masked_interruption_after_a_move_is_found():
     port.assert_done()
     # an informational warning alone does not stop the move; it is logged once
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 64\n", b"@01 1 OK BUSY WT 0\r\n"),
         (b"/1 1\n", b"@01 1 OK IDLE WT 0\r\n"),
         (b"/1 1 warnings\n", b"@01 1 OK IDLE WT 01 WT\r\n"),
@@ -103,6 +106,7 @@ def test_a_masked_interruption_after_a_move_is_found():
 @pytest.mark.parametrize("flag, meaning", [("WL", "limit sensor"), ("NC", "manual knob")])
 def test_limit_and_knob_flags_stop_a_move(flag, meaning):
     stage, port = stage_for([
+        (b"/1 1 warnings\n", b"@01 1 OK IDLE -- 00\r\n"),  # read before the first motion
         (b"/1 1 move abs 640\n", b"@01 1 OK BUSY -- 0\r\n"),
         (b"/1 1\n", f"@01 1 OK IDLE {flag} 0\r\n".encode()),
         (b"/1 1 warnings\n", f"@01 1 OK IDLE {flag} 01 {flag}\r\n".encode()),

@@ -36,8 +36,8 @@ from mehs.capture.scene import Scene
 from mehs.capture.sensor import SensorModel, exposure_seed_for
 from mehs.capture.simulate import (WHITE_TILE_LINES, motion_phase, white_tile_first_line,
                                    world_radiance_line)
-from mehs.capture.zaber import (WARNING_FLAGS, format_reply, lrc, speed_from_setting,
-                                speed_setting)
+from mehs.capture.zaber_protocol import (STALE_NOTICE_FLAGS, WARNING_FLAGS, format_reply,
+                                         format_warnings, lrc, speed_from_setting, speed_setting)
 from mehs.capture.simserver import DeviceServer, PtyServer
 from mehs.errors import InputError
 
@@ -238,15 +238,18 @@ _CMD_RE = re.compile(r"^/(?:(?P<dev>\d+)(?![^ :])(?: +(?P<axis>\d+)(?![^ :])"
 
 
 class SimStage:
-    """Zaber ASCII handler: one command line in, one reply (bytes) out, or ``None`` (ignored)."""
+    """Zaber ASCII handler: one command line in, one reply (bytes) out, or ``None`` (ignored).
+
+    ``comm_checksum`` is the device setting ``comm.checksum``: 1 puts a checksum on every
+    reply (``mehs sim-device --comm-checksum``), as ``/set comm.checksum 1`` does; at 0 (a
+    real device's default) a command's own checksum is checked but not echoed.
+    """
 
     device_address = 1
 
-    def __init__(self, world: SimWorld):
+    def __init__(self, world: SimWorld, *, comm_checksum: bool = False):
         self.w = world
-        # the device setting that puts a checksum on every reply, as on a real Zaber
-        # device (default 0): a command's own checksum is checked but not echoed
-        self.comm_checksum = 0
+        self.comm_checksum = 1 if comm_checksum else 0
 
     def handle(self, raw: bytes) -> tuple[bytes | None, str | None]:
         text = raw.decode("ascii", "replace").strip("\r\n")
@@ -290,7 +293,6 @@ class SimStage:
                 if head == "home":
                     if args:
                         return reply(False, "BADDATA"), fault
-                    w.flags.discard("NI")
                     w.start_move(0, stall=fault == "fault", homing=True)
                     return reply(True), fault
                 if len(args) != 1 or not re.fullmatch(r"-?\d+", args[0]):
@@ -300,7 +302,8 @@ class SimStage:
                 target = int(args[0]) + (w.position() if head == "move rel" else 0)
                 if not 0 <= target <= w.limit_max:
                     return reply(False, "BADDATA"), fault
-                w.flags.discard("NI")
+                # a new move leaves the notices as they are: NI, NC, WL stay latched until
+                # 'warnings clear', so a stale one is still reported after this move
                 w.start_move(target, stall=fault == "fault")
                 return reply(True), fault
             if head == "get pos" and not args:
@@ -324,10 +327,11 @@ class SimStage:
                 w.maxspeed = int(args[0])
                 return reply(True), None
             if head == "warnings" and args in ([], ["clear"]):
-                flags = w.warning_list()
-                data = f"{len(flags):02d}" + "".join(" " + f for f in flags)
+                data = format_warnings(w.warning_list())   # the flags before any clearing
                 if args:
-                    w.flags.clear()  # WR stays: it is cleared by homing only
+                    # the latched notices and the faults go (a fault is cleared only when
+                    # asked, as on a real stage); WR stays: homing alone clears it
+                    w.flags -= {f for f in w.flags if f in STALE_NOTICE_FLAGS or f.startswith("F")}
                 return reply(True, data), None
             if head == "stop" and not args:
                 w.stop()
@@ -419,15 +423,16 @@ class SimDevices:
     """The simulated stage and camera, served on loopback TCP (``transport="tcp"``) or ptys.
 
     Use as a context manager; :attr:`stage_url` and :attr:`camera_url` are what
-    the drivers open.
+    the drivers open. ``comm_checksum`` starts the stage with ``comm.checksum`` = 1 (its
+    replies carry checksums, for drivers run with ``checksum=True``).
     """
 
     def __init__(self, scene: Scene, sensor: SensorModel | None = None, *, faults: str | None = None,
                  pitch: int = 64, host: str = "127.0.0.1", port: int = 0, transport: str = "tcp",
-                 start_homed: bool = False, speed: float = 4e6):
+                 start_homed: bool = False, speed: float = 4e6, comm_checksum: bool = False):
         self.world = SimWorld(scene, sensor or SensorModel(), pitch=pitch, faults=faults,
                               start_homed=start_homed, speed=speed)
-        self.stage = SimStage(self.world)
+        self.stage = SimStage(self.world, comm_checksum=comm_checksum)
         self.camera = SimCamera(self.world)
         if transport == "tcp":
             self.servers = [DeviceServer(self.stage.handle, host=host, port=port, name="stage"),

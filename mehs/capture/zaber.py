@@ -1,30 +1,12 @@
-"""Zaber ASCII protocol: message format and a stage driver over any pyserial-like port.
+"""Zaber stage driver: one axis over any pyserial-like port, speaking the ASCII protocol.
 
-Command (host → device)::
-
-    /<device> <axis> [<msg id>] <command> [<args>][:<CC>]\\n
-
-Reply (device → host)::
-
-    @<DD> <A> [<ID>] <OK|RJ> <IDLE|BUSY> <flag> <data>[\\][:<CC>]\\r\\n
-
-``#`` lines are info messages, ``!`` lines alerts; a reply longer than a packet ends in
-``\\`` and goes on in ``#<DD> <A> [<ID>] cont <more>`` packets. ``CC`` is the LRC:
-the two's complement of the byte sum (mod 256) of everything between the leading
-marker and the ``:``, as two hex digits. A device checks a command's ``CC`` whenever one
-is sent but puts one on its own messages only with its setting ``comm.checksum`` = 1
-(default 0). The message id (0–99) is echoed in the reply.
-
-The flag field shows only the most urgent active flag (:data:`WARNING_FLAGS`): ``--``
-none, ``F*`` faults, ``W*`` warnings (``WR`` no reference: ``home`` first; ``WL`` limit
-sensor hit), ``N*`` notices (``NI`` move interrupted, ``NC`` manual knob); ``WT``
-(controller hot) thus hides ``NI``. ``RJ`` replies carry the reason (``BADDATA``,
-``BADCOMMAND``, ``BADAXIS``, ``AGAIN``, ``DEVICEONLY``, …) as data.
-
-Positions are microsteps. ``home`` sets the position to ``limit.home.preset`` (0 on most
-stages, not all). Microsteps → mm needs the product's microstep size, which the ASCII
-protocol does not report (Zaber's libraries look it up by peripheral id in their device
-database), so mehs keeps every stage quantity (``--pitch``, positions) in microsteps.
+The message grammar (formatting, checksums, reply/info parsing, flag tables) lives in
+:mod:`mehs.capture.zaber_protocol`; its public names are re-exported here, where the rest
+of mehs imports them from. Positions are microsteps. ``home`` sets the position to
+``limit.home.preset`` (0 on most stages, not all). Microsteps → mm needs the product's
+microstep size, which the ASCII protocol does not report (Zaber's libraries look it up by
+peripheral id in their device database), so mehs keeps every stage quantity (``--pitch``,
+positions) in microsteps.
 
 Reliability policy of :class:`ZaberStage`:
 
@@ -36,100 +18,44 @@ Reliability policy of :class:`ZaberStage`:
   warnings, and re-issues the absolute move only if the stage is idle away
   from the target. Relative moves are not re-issued at all; ``home`` (which
   Zaber lists as safe to repeat) is re-issued whenever the stage is idle.
+- Before a motion command, latched flags left from before it
+  (:data:`~mehs.capture.zaber_protocol.STALE_NOTICE_FLAGS`: ``NI`` from an earlier stop,
+  ``NC`` from the knob, ``WL``, the other ``N*`` notices) are cleared with ``warnings
+  clear`` and named in :attr:`ZaberStage.events`, so that a flag after the move is this
+  move's own. This costs a ``warnings`` round trip only when the last reply's flag field
+  showed a flag (or no reply was read yet); a step scan, whose polls show ``--``, pays
+  nothing. A fault (``F*``) set before a motion is never cleared: the motion is refused
+  with a :class:`StageFault` saying what to do. ``WR`` is left to ``home``.
 - Faults (``F*`` flags), ``NI``, ``WL``, ``NC``, ``WR`` after a move and rejections other
   than AGAIN raise :class:`~mehs.errors.DeviceError` at once.
 
 References
 ----------
 - Zaber Technologies, "ASCII Protocol Manual" (message format, reply flags,
-  warning flags, checksums, ``home``), https://www.zaber.com/protocol-manual
+  warning flags and ``warnings clear``, ``home``), https://www.zaber.com/protocol-manual
 - Zaber Motion Library, ``WarningFlags`` (flag names and priority order),
   https://github.com/zabertech/zaber-motion-lib-swift
-- zproto (Rust), ``ascii/parse`` (continuation packets, LRC test vector
-  ``"01 tools echo"`` → ``8F``), https://github.com/stphnt/zproto
 """
 
 from __future__ import annotations
 
-import re
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Callable
 
 from mehs.capture.transport import Channel, SerialDriver
+from mehs.capture.zaber_protocol import (  # noqa: F401  (re-exported: mehs imports them here)
+    MOTION_STOP_FLAGS, SPEED_UNITS_PER_MICROSTEP_S, STALE_NOTICE_FLAGS, WARNING_FLAGS,
+    ZaberProtocolError, ZaberReply, continuation_text, format_command, format_reply,
+    format_warnings, has_checksum, lrc, parse_info, parse_reply, parse_warnings,
+    speed_from_setting, speed_setting)
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
-#: Zaber's speed settings (``maxspeed``, ``move vel``) count in 1/1.6384 microsteps/s:
-#: a setting of 1.6384 is one microstep per second (Zaber, "A-Series speed conversion";
-#: the default maxspeed 153600 is 93750 microsteps/s).
-SPEED_UNITS_PER_MICROSTEP_S = 1.6384
-
-
-def speed_setting(microsteps_per_s: float) -> int:
-    """The ``set maxspeed`` value for a speed in microsteps/s (at least 1)."""
-    return max(1, int(round(float(microsteps_per_s) * SPEED_UNITS_PER_MICROSTEP_S)))
-
-
-def speed_from_setting(value: float) -> float:
-    """Microsteps/s of a ``maxspeed`` value."""
-    return float(value) / SPEED_UNITS_PER_MICROSTEP_S
-
-#: Warning flags, highest priority first (Zaber Motion Library ``WarningFlags``): the
-#: reply's flag field shows the first active one.
-WARNING_FLAGS = ("FF", "FN", "FZ", "FH", "FV", "FO", "FC", "FM", "FD", "FQ", "FI", "FA", "FR",
-                 "FS", "FB", "FP", "FE", "FT",
-                 "WL", "WV", "WT", "WS", "WM", "WP", "WR", "WH",
-                 "NC", "NI", "ND", "NR", "NT", "NU", "NJ", "NB")
-
-#: Besides the faults (``F*``), the flags after a finished move that mean the stage is not
-#: where it was sent. The others (``WT`` hot, ``WV`` supply, ``WH``/``WP`` calibration,
-#: ``NU``, …) are logged; the position check after an absolute move still applies.
-MOTION_STOP_FLAGS = {"NI": "the move was interrupted",
-                     "WL": "a limit sensor stopped the move (unexpected limit trigger)",
-                     "NC": "the axis was moved with the manual knob",
-                     "WR": "the axis has no reference position (home it)"}
-
-_REPLY_RE = re.compile(
-    r"^@(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{1,2}) )?(?P<reply>OK|RJ) "
-    r"(?P<status>IDLE|BUSY) (?P<flag>[-A-Z]{2}) (?P<data>.*?)(?::(?P<cc>[0-9A-F]{2}))?$")
-_INFO_RE = re.compile(r"^#(?P<dev>\d{2}) (?P<axis>\d+) (?:(?P<id>\d{1,2}) )?(?P<data>.*?)"
-                      r"(?::(?P<cc>[0-9A-F]{2}))?$")
-
-
-def lrc(body: bytes) -> int:
-    """Zaber checksum of ``body`` (the bytes between ``/``, ``@``, ``#`` or ``!`` and ``:``)."""
-    return (-sum(body)) & 0xFF
-
-
-def format_command(device: int, axis: int, command: str, *, checksum: bool = False,
-                   msg_id: int | None = None) -> bytes:
-    """Bytes of one command, e.g. ``format_command(1, 1, "move abs 1000") == b"/1 1 move abs 1000\\n"``."""
-    parts = [str(int(device)), str(int(axis))]
-    if msg_id is not None:
-        parts.append(f"{int(msg_id) % 100:02d}")
-    if command:
-        parts.append(command)
-    body = " ".join(parts).encode("ascii")
-    if checksum:
-        body += b":" + f"{lrc(body):02X}".encode("ascii")
-    return b"/" + body + b"\n"
-
-
-def format_reply(device: int, axis: int, ok: bool, busy: bool, flag: str, data: str, *,
-                 checksum: bool = False, msg_id: int | None = None) -> bytes:
-    """Bytes of one reply (used by the simulator and by tests)."""
-    parts = [f"{int(device):02d}", str(int(axis))]
-    if msg_id is not None:
-        parts.append(f"{int(msg_id) % 100:02d}")
-    parts += ["OK" if ok else "RJ", "BUSY" if busy else "IDLE", flag, data]
-    body = " ".join(parts).encode("ascii")
-    if checksum:
-        body += b":" + f"{lrc(body):02X}".encode("ascii")
-    return b"@" + body + b"\r\n"
-
-
-class ZaberProtocolError(DeviceError):
-    """A reply that does not follow the protocol (garbled, wrong device, bad checksum)."""
+__all__ = ["MOTION_STOP_FLAGS", "SPEED_UNITS_PER_MICROSTEP_S", "STALE_NOTICE_FLAGS",
+           "WARNING_FLAGS", "StageFault", "StageRejected", "ZaberProtocolError", "ZaberReply",
+           "ZaberStage", "continuation_text", "format_command", "format_reply",
+           "format_warnings", "has_checksum", "lrc", "parse_info", "parse_reply",
+           "parse_warnings", "speed_from_setting", "speed_setting"]
 
 
 class StageRejected(DeviceError):
@@ -142,65 +68,6 @@ class StageRejected(DeviceError):
 
 class StageFault(DeviceError):
     """The stage reports a fault flag (``F*``) or stopped away from its target."""
-
-
-@dataclass(frozen=True)
-class ZaberReply:
-    """A parsed ``@`` reply."""
-
-    device: int
-    axis: int
-    msg_id: int | None
-    ok: bool
-    busy: bool
-    flag: str
-    data: str
-
-    @property
-    def status(self) -> str:
-        return "BUSY" if self.busy else "IDLE"
-
-
-def _verify_checksum(text: str, cc: str | None) -> None:
-    if cc is not None:
-        body = text[1:text.rindex(":")].encode("ascii")
-        if lrc(body) != int(cc, 16):
-            raise ZaberProtocolError(f"checksum mismatch in {text!r}")
-
-
-def _match(line: bytes | str, pattern: re.Pattern, what: str, verify_checksum: bool):
-    """``pattern``'s match of one message line (terminator optional), its checksum checked."""
-    text = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
-    text = text.rstrip("\r\n")
-    m = pattern.match(text)
-    if not m:
-        raise ZaberProtocolError(f"garbled {what} {text!r}")
-    if verify_checksum:
-        _verify_checksum(text, m["cc"])
-    return m
-
-
-def parse_reply(line: bytes | str, *, verify_checksum: bool = True) -> ZaberReply:
-    """Parse one ``@`` reply line (terminator optional).
-
-    The message id may be one or two digits (Zaber's own parsers take any number);
-    a reply continued in ``cont`` packets keeps its trailing ``\\`` in :attr:`data`.
-
-    Raises
-    ------
-    ZaberProtocolError
-        On anything that is not a well-formed reply (or a bad checksum).
-    """
-    m = _match(line, _REPLY_RE, "reply", verify_checksum)
-    return ZaberReply(device=int(m["dev"]), axis=int(m["axis"]),
-                      msg_id=None if m["id"] is None else int(m["id"]), ok=m["reply"] == "OK",
-                      busy=m["status"] == "BUSY", flag=m["flag"], data=m["data"])
-
-
-def parse_info(line: bytes | str, *, verify_checksum: bool = True) -> tuple[int, int, int | None, str]:
-    """``(device, axis, msg id, data)`` of one ``#`` info line; raises ZaberProtocolError."""
-    m = _match(line, _INFO_RE, "info message", verify_checksum)
-    return int(m["dev"]), int(m["axis"]), None if m["id"] is None else int(m["id"]), m["data"]
 
 
 class ZaberStage(SerialDriver):
@@ -253,6 +120,8 @@ class ZaberStage(SerialDriver):
         self.events: list[str] = []   # recoveries, for the capture log
         self.home_position: int | None = None
         self._logged_flags: list[str] = []
+        # the last `warnings` reply and its flags: a motion right after it needs no re-read
+        self._warnings_read: tuple[ZaberReply, list[str]] | None = None
 
     # ------------------------------------------------------------ low level
     def _read_reply(self, expect_id: int | None = None) -> ZaberReply:
@@ -293,7 +162,7 @@ class ZaberStage(SerialDriver):
                                  self.name)
 
     def _require_checksum(self, text: str) -> None:
-        if self.checksum and not re.search(r":[0-9A-F]{2}$", text):
+        if self.checksum and not has_checksum(text):
             # a Zaber device checks a command's checksum when one is sent, but adds one
             # to its replies only with its comm.checksum setting at 1 (default 0)
             raise ZaberProtocolError(
@@ -318,13 +187,12 @@ class ZaberStage(SerialDriver):
                 dev, axis, mid, data = parse_info(text)
             except ZaberProtocolError as exc:
                 raise ZaberProtocolError(exc.problem, self.name) from None
-            m = re.fullmatch(r"cont(?: +(.*))?", data)
-            if (m is None or (dev, axis) != (reply.device, reply.axis)
+            more = continuation_text(data)
+            if (more is None or (dev, axis) != (reply.device, reply.axis)
                     or mid not in (None, reply.msg_id)):
                 self.info.append(text)
                 continue
             self._require_checksum(text)
-            more = (m[1] or "").strip()
             if more.endswith("\\"):
                 parts.append(more[:-1].rstrip())
                 continue
@@ -387,11 +255,14 @@ class ZaberStage(SerialDriver):
 
     def warnings(self) -> list[str]:
         """Active warning/fault/notice flags (``warnings`` command)."""
-        return _parse_warnings(self.query("warnings").data, self.name)
+        r = self.query("warnings")
+        flags = parse_warnings(r.data, self.name)
+        self._warnings_read = (r, flags)
+        return flags
 
     def clear_warnings(self) -> list[str]:
-        """Clear the clearable flags; returns the flags that were active."""
-        return _parse_warnings(self.query("warnings clear").data, self.name)
+        """Clear the clearable flags (faults included); returns the flags that were active."""
+        return parse_warnings(self.query("warnings clear").data, self.name)
 
     def is_homed(self) -> bool:
         return "WR" not in self.warnings()
@@ -457,7 +328,43 @@ class ZaberStage(SerialDriver):
                 raise StageFault(f"stage stopped at {pos} instead of {target} (flag {r.flag})", self.name)
         return r
 
+    def _clear_stale_notices(self, command: str) -> None:
+        """Before ``command`` (a motion): clear the latched flags left from before it, naming
+        them in :attr:`events`; refuse on a fault, which is never cleared here.
+
+        The flag field shows a flag whenever any is set, so a last reply showing ``--``
+        needs no ``warnings`` read (the step scan's case); the full list is read otherwise,
+        as ``WR`` or ``WT`` outrank the notices there.
+        """
+        r = self.last_reply
+        if r is not None and r.flag == "--":
+            return
+        if self._warnings_read is not None and self._warnings_read[0] is r:
+            flags = self._warnings_read[1]          # just read (e.g. at the session start)
+        else:
+            flags = self.warnings()
+        where = f"'/{self.device} {self.axis} warnings clear'"
+        faults = [f for f in flags if f.startswith("F")]
+        if faults:
+            raise StageFault(f"stage fault {' '.join(faults)} is set: {command!r} was not sent. "
+                             "Check the mechanics (stall, obstruction, supply, cable), then clear "
+                             f"it with {where} or Zaber Launcher (mehs never clears a fault "
+                             f"itself); warnings {flags}", self.name)
+        if not any(f in STALE_NOTICE_FLAGS for f in flags):
+            return
+        before = self.clear_warnings()
+        cleared = [f for f in before if f in STALE_NOTICE_FLAGS or f.startswith("F")]
+        faults = [f for f in before if f.startswith("F")]
+        if faults:  # raised between the two reads and cleared with the notices: say so
+            raise StageFault(f"stage fault {' '.join(faults)} appeared just before {command!r} "
+                             f"and was cleared with the stale notices by {where}; the move "
+                             f"was not sent: check the mechanics before going on", self.name)
+        self.events.append(f"stage: cleared stale flags {' '.join(cleared)} before {command!r} "
+                           "(set before this move: an earlier stop, the manual knob or another "
+                           "program; Zaber 'warnings clear')")
+
     def _motion(self, command: str, target: int | None, wait: bool, *, home: bool = False) -> None:
+        self._clear_stale_notices(command)
         issues = 0
         while True:
             try:
@@ -517,17 +424,3 @@ class ZaberStage(SerialDriver):
 
     def stop(self) -> None:
         self._send_once("stop")
-
-
-def _parse_warnings(data: str, name: str) -> list[str]:
-    parts = data.split()
-    if not parts:
-        raise ZaberProtocolError("empty warnings reply", name)
-    try:
-        n = int(parts[0])
-    except ValueError:
-        raise ZaberProtocolError(f"bad warnings reply {data!r}", name) from None
-    flags = parts[1:]
-    if n != len(flags):
-        raise ZaberProtocolError(f"warnings reply counts {n} flags but lists {len(flags)}", name)
-    return flags

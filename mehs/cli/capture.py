@@ -48,7 +48,10 @@ def configure(parser):
                              "default 16)")
     parser.add_argument("--white-line", type=int, default=None,
                         help="scan line where the white tile starts (default lines+4)")
-    parser.add_argument("--checksum", action="store_true", help="use Zaber message checksums")
+    parser.add_argument("--checksum", action="store_true",
+                        help="use Zaber message checksums (the stage must have comm.checksum = 1: "
+                             "'/set comm.checksum 1' once; with --simulate the simulated stage "
+                             "is set so)")
     parser.add_argument("--no-message-ids", action="store_true",
                         help="send Zaber commands without message ids (a device that does not "
                              "echo them); with ids a late reply is recognised and dropped")
@@ -94,7 +97,9 @@ def run(args):
     if args.simulate:
         from mehs.cli.sim_device import build_devices
 
-        dev = build_devices(args, genicam=args.genicam).start()
+        # the simulated stage is set up as a real one used with --checksum must be
+        # ('/set comm.checksum 1'), so that its replies carry checksums too
+        dev = build_devices(args, genicam=args.genicam, comm_checksum=args.checksum).start()
         stage_url, camera_url = dev.stage_url, dev.camera_url
         lines = args.lines or dev.scene_lines
     else:

@@ -53,7 +53,13 @@ def check_scene_kind(kind: str) -> None:
         raise InputError(f"unknown --scene {kind!r}; use one of {', '.join(kinds)}")
 
 
-def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool = False):
+def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool = False,
+                  comm_checksum: bool | None = None):
+    """The simulated devices ``args`` describe (not started).
+
+    ``comm_checksum`` starts the stage with its setting ``comm.checksum`` at 1, so that its
+    replies carry checksums (default: ``args.comm_checksum``, ``--comm-checksum``).
+    """
     from mehs.capture.scene import make_scene
     from mehs.capture.sensor import SensorModel
     from mehs.capture.simdevice import SimDevices
@@ -71,13 +77,18 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool 
         scene = make_scene(args.scene, lines=lines, samples=samples, source_ratio=args.source_ratio,
                            motion=args.motion, seed=args.seed)
     sensor = SensorModel(seed=args.seed, response=args.response)
+    if comm_checksum is None:
+        comm_checksum = bool(getattr(args, "comm_checksum", False))
     if genicam:
         from mehs.capture.genicam_sim import SimGenicamDevices
 
-        return SimGenicamDevices(scene, sensor, faults=args.faults, port=port,
-                                 pixel_format=getattr(args, "pixel_format", None) or "Mono12",
-                                 shutter=not getattr(args, "no_shutter", False))
-    return SimDevices(scene, sensor, faults=args.faults, port=port, transport=transport)
+        dev = SimGenicamDevices(scene, sensor, faults=args.faults, port=port,
+                                pixel_format=getattr(args, "pixel_format", None) or "Mono12",
+                                shutter=not getattr(args, "no_shutter", False))
+        dev.stage.comm_checksum = 1 if comm_checksum else 0   # the same SimStage, on TCP
+        return dev
+    return SimDevices(scene, sensor, faults=args.faults, port=port, transport=transport,
+                      comm_checksum=comm_checksum)
 
 
 def configure(parser):
@@ -92,6 +103,11 @@ def configure(parser):
                         help="--genicam: pixel format the camera starts in (default Mono12)")
     parser.add_argument("--no-shutter", action="store_true",
                         help="--genicam: a camera without a shutter feature (darks need --dark-prompt)")
+    parser.add_argument("--comm-checksum", action="store_true",
+                        help="the stage starts with its setting comm.checksum at 1 and puts a "
+                             "checksum on every reply, as a real Zaber stage after "
+                             "'/set comm.checksum 1' (for mehs capture --checksum; default: "
+                             "replies without checksums, as a new stage)")
     add_scene_arguments(parser)
 
 
