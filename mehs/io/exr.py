@@ -48,6 +48,17 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: Header attribute recording the written channel order.
 ORDER_ATTR = "mehsChannelOrder"
 
+#: Smallest positive half float (subnormal), 2^-24 ≈ 6.0e-8; 2^-14 is the smallest normal.
+HALF_TINY = 2.0 ** -24
+
+#: Fraction of the non-zero values a half-float write may flush to 0 before it warns: a few
+#: noise samples next to 0 (a fused cube keeps its signed estimates) are no loss, a region is.
+HALF_UNDERFLOW_WARN_FRACTION = 1e-4
+
+
+class HalfFloatUnderflowWarning(UserWarning):
+    """A half-float EXR write stored a region of non-zero values as 0 (below 2^-25)."""
+
 #: SI prefixes of Fichet 2021's channel quantities, as powers of ten (``u``/``µ``: micro).
 _SI_EXP = {"Y": 24, "Z": 21, "E": 18, "P": 15, "T": 12, "G": 9, "M": 6, "k": 3, "h": 2,
            "da": 1, "": 0, "d": -1, "c": -2, "m": -3, "u": -6, "\u00b5": -6, "\u03bc": -6,
@@ -130,6 +141,12 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     InputError
         Non-finite values, values beyond the half-float range when ``half``,
         a wrong shape or channel list.
+
+    Warns
+    -----
+    HalfFloatUnderflowWarning
+        ``half`` and more than 1e-4 of the non-zero values below 2^-25 (stored as 0;
+        counted in the header either way, see :func:`_half_underflow`).
     """
     import OpenEXR
 
@@ -174,6 +191,8 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
                            "type": OpenEXR.scanlineimage}
     if header:
         hdr.update(header)
+    if half:
+        hdr.update(_half_underflow(img, pixels, channels, path))
     hdr[ORDER_ATTR] = list(channels)
     with atomic_path(path) as tmp:
         try:
@@ -181,6 +200,45 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
         except (RuntimeError, ValueError, TypeError) as exc:
             raise FormatError(f"OpenEXR could not write the image ({exc})", path) from None
     return path
+
+
+def _half_underflow(img: np.ndarray, pixels: dict[str, np.ndarray], channels: list[str],
+                    path: Path) -> dict[str, int]:
+    """Header attributes (and a warning) for the values a half-float write loses at the low end.
+
+    Policy: binary16 has nothing between 0 and 2^-24 but rounding, so a non-zero value below
+    2^-25 is stored as 0 and one below 2^-14 as a subnormal (fewer than 11 significant bits).
+    Both are counted into the header (``mehsHalfFlushedToZero``, ``mehsHalfSubnormal``, only
+    when non-zero); when more than :data:`HALF_UNDERFLOW_WARN_FRACTION` of the non-zero values
+    become 0, a :class:`HalfFloatUnderflowWarning` names the file, so a picture whose dim part
+    vanished is never silent. Callers that control the range store ``value × 2^k``
+    (:func:`mehs.dataset.cube_figures.half_float_scale`) so that this does not happen.
+    """
+    import warnings
+
+    flushed = subnormal = nonzero = 0
+    largest = 0.0
+    for i, c in enumerate(channels):
+        src, half = img[:, :, i], pixels[c]
+        nz = src != 0
+        lost = nz & (half == 0)
+        flushed += int(lost.sum())
+        nonzero += int(nz.sum())
+        subnormal += int(((half != 0) & (np.abs(half) < np.float16(2.0 ** -14))).sum())
+        if lost.any():
+            largest = max(largest, float(np.abs(src[lost]).max()))
+    out = {}
+    if flushed:
+        out["mehsHalfFlushedToZero"] = flushed
+        if flushed > HALF_UNDERFLOW_WARN_FRACTION * nonzero:
+            warnings.warn(HalfFloatUnderflowWarning(
+                f"{path}: {flushed} non-zero values ({100.0 * flushed / nonzero:.3g} % of them, "
+                f"up to {largest:.3g}) lie below the half-float range (smallest value "
+                f"{HALF_TINY:.3g}) and are stored as 0; scale the image up (×2^k) or write "
+                f"32-bit float"), stacklevel=3)
+    if subnormal:
+        out["mehsHalfSubnormal"] = subnormal
+    return out
 
 
 def write_exr_rgb(path: str | Path, rgb: np.ndarray, *, half: bool = True,
