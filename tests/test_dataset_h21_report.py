@@ -140,3 +140,30 @@ def test_rerun_after_a_kill_during_a_two_rename_swap(dataset, reported, when):
     report.write_dataset_report(dataset, page)
     assert _leftovers(page.parent) == []
     assert (files / "overview.png").is_file()
+
+
+@pytest.mark.parametrize("exchange", [True, False], ids=["exchange", "two-renames"])
+def test_previous_folder_that_cannot_be_removed_does_not_undo_the_swap(tmp_path, monkeypatch,
+                                                                       exchange):
+    """The new folder is in place; failing to delete the old one is a warning, so that the
+    caller goes on (the report's page is written beside its new images)."""
+    from mehs.errors import MehsError
+
+    if not exchange:
+        monkeypatch.setattr(dirswap, "_exchange", lambda a, b: False)
+    real = dirswap.remove_path
+
+    def stubborn(path, what="leftover"):
+        if what == "previous folder":
+            raise MehsError("cannot remove the previous folder (Permission denied)", path)
+        return real(path, what)
+
+    monkeypatch.setattr(dirswap, "remove_path", stubborn)
+    dest, new = tmp_path / "f", tmp_path / "f.part"
+    dest.mkdir()
+    (dest / "old.png").write_bytes(b"old")
+    new.mkdir()
+    (new / "new.png").write_bytes(b"new")
+    with pytest.warns(RuntimeWarning, match="new folder is in place"):
+        dirswap.replace_folder(new, dest)
+    assert sorted(p.name for p in dest.iterdir()) == ["new.png"]

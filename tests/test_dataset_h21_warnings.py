@@ -97,7 +97,8 @@ def test_capture_is_per_thread_and_restores_the_warning_state():
                     a_warned.set()
                     b_done.wait(timeout=60)      # b leaves first: a must keep capturing
                     warnings.warn(RuntimeWarning("late"))
-                    warnings.warn("old API", DeprecationWarning)  # ignored, as by default
+                    # not the scene's: shown as the filters say (here: always), not kept
+                    warnings.warn("old API", DeprecationWarning)
                 else:
                     a_warned.wait(timeout=60)
                     warnings.warn(f"from {name}", UserWarning)
@@ -122,7 +123,7 @@ def test_capture_is_per_thread_and_restores_the_warning_state():
     assert [describe(w) for w in logs["a"]] == ["UserWarning: from a (×2)",
                                                 "RuntimeWarning: late"]
     assert [describe(w) for w in logs["b"]] == ["UserWarning: from b"]
-    assert [str(w.message) for w in outside] == ["after"]
+    assert [str(w.message) for w in outside] == ["old API", "after"]
 
 
 def test_describe_keeps_long_and_odd_records_on_one_line():
@@ -133,3 +134,45 @@ def test_describe_keeps_long_and_odd_records_on_one_line():
         for i in range(30):
             warnings.warn(f"w{i}", UserWarning)
     assert len(log) == 21 and "10 more distinct warning(s), raised 10 time(s)" in log[-1]["message"]
+
+
+def test_capture_keeps_the_users_filters_first():
+    """-W error::RuntimeWarning still raises inside a capture; an explicit ignore still ignores."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        warnings.filterwarnings("ignore", message="noise", category=UserWarning)
+        with captured_warnings() as log:
+            warnings.warn("noise", UserWarning)
+            with pytest.raises(RuntimeWarning):
+                warnings.warn("overflow", RuntimeWarning)
+            warnings.warn("kept", UserWarning)
+        assert [w["message"] for w in log] == ["kept"]
+
+
+def test_another_threads_catch_warnings_does_not_leave_the_capture_installed():
+    """A library's catch_warnings entered during a capture and left after it must not keep
+    the dispatcher and the 'always' filter for the rest of the process."""
+    with warnings.catch_warnings():
+        warnings.resetwarnings()
+        warnings.simplefilter("default")
+        filters, show = list(warnings.filters), warnings.showwarning
+        entered, left = threading.Event(), threading.Event()
+
+        def library():
+            with warnings.catch_warnings():
+                entered.set()
+                left.wait(timeout=60)
+
+        with captured_warnings():
+            t = threading.Thread(target=library)
+            t.start()
+            entered.wait(timeout=60)
+        left.set()
+        t.join(timeout=60)
+        # the library's exit restored what it saw (the capture's state): the dispatcher
+        # left behind forwards to Python's display, so warnings are still shown, once
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.warn("once", UserWarning)
+        assert [str(w.message) for w in seen] == ["once"]
+        assert warnings.filters[:len(filters)] == filters    # the user's filters first
+        del show

@@ -13,14 +13,15 @@ Thread-safe: Dask runs scenes in threads of one process, and
 :class:`warnings.catch_warnings` is process-global (each thread's exit would restore
 the state another thread's entry saw). Here the first capture in a process installs
 one dispatcher that hands each warning to the list of the thread that raised it (and
-to Python's display when that thread captures nothing) and the last one out removes it.
-Warnings of threads a scene itself starts are shown, not captured.
+to the display it replaced when that thread captures nothing) and the last one out
+removes it, with the one filter entry it appended, only if they are still in place.
+The user's own filters (``-W``, ``PYTHONWARNINGS``) keep precedence. Warnings of
+threads a scene itself starts are shown, not captured.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import threading
 import warnings
 from typing import Any, Iterator
@@ -34,12 +35,16 @@ _QUIET = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, Resource
 _LOCK = threading.Lock()
 _LOCAL = threading.local()
 _active = 0
-_outer: Any = None
+_forward: Any = None       # the display in place when the first capture began
+_added: Any = None         # the "always" filter entry the first capture appended, if it did
+_ALWAYS = ("always", None, Warning, None, 0)
 
 
-def _dispatch(forward, message, category, filename, lineno, file=None, line=None):
+def _dispatch(message, category, filename, lineno, file=None, line=None):
     log = getattr(_LOCAL, "log", None)
-    if log is None:
+    forward = _forward or warnings._showwarning_orig  # type: ignore[attr-defined]
+    if log is None or issubclass(category, _QUIET):
+        # not a capturing thread, or a library deprecation (not the scene's): shown as before
         return forward(message, category, filename, lineno, file, line)
     name = category.__name__ if category.__module__ == "builtins" else (
         f"{category.__module__}.{category.__qualname__}")
@@ -50,6 +55,13 @@ def _dispatch(forward, message, category, filename, lineno, file=None, line=None
             return None
     log.append({"category": name, "message": text, "count": 1})
     return None
+
+
+def _filters_changed() -> None:
+    # the per-module "already shown" registries are keyed on the filters' version
+    bump = getattr(warnings, "_filters_mutated", None)
+    if bump is not None:
+        bump()
 
 
 @contextlib.contextmanager
@@ -63,23 +75,29 @@ def captured_warnings() -> Iterator[list[dict[str, Any]]]:
         bare), "message": str, "count": times raised}``, distinct (category, message)
         pairs in the order first raised; complete once the block is left (at most
         :data:`MAX_KEPT` entries, a last ``"mehs.more"`` entry counting the rest).
-        Deprecation, import and resource warnings are ignored, as Python's default
-        filters do.
+        Deprecation, import and resource warnings are shown as before, not collected.
+
+    Notes
+    -----
+    The user's filters keep precedence (``-W error::RuntimeWarning`` still raises,
+    ``ignore`` still ignores): the "show every time" filter this needs, so that the
+    second scene a worker builds does not lose a warning Python's "default" action
+    shows once per code place, is appended after them. No process-wide
+    :class:`warnings.catch_warnings` is entered (another thread's own would restore
+    its state at the wrong moment): the last capture to leave removes just the
+    filter entry and display it added, if they are still in place.
     """
-    global _active, _outer
+    global _active, _forward, _added
     log: list[dict[str, Any]] = []
     with _LOCK:
         if _active == 0:
-            outer = warnings.catch_warnings()  # restores filters and display on the way out
-            outer.__enter__()
-            forward = warnings.showwarning
-            # every warning, every time: "default" shows one only once per code place and
-            # process, so the second scene a worker builds would lose it
-            warnings.simplefilter("always")
-            for cat in _QUIET:
-                warnings.simplefilter("ignore", cat)
-            warnings.showwarning = functools.partial(_dispatch, forward)
-            _outer = outer
+            _forward = warnings.showwarning
+            warnings.showwarning = _dispatch
+            _added = None
+            if _ALWAYS not in warnings.filters:
+                warnings.filters.append(_ALWAYS)
+                _added = _ALWAYS
+                _filters_changed()
         _active += 1
     previous = getattr(_LOCAL, "log", None)
     _LOCAL.log = log
@@ -90,8 +108,16 @@ def captured_warnings() -> Iterator[list[dict[str, Any]]]:
         with _LOCK:
             _active -= 1
             if _active == 0:
-                outer, _outer = _outer, None
-                outer.__exit__(None, None, None)
+                if warnings.showwarning is _dispatch:
+                    warnings.showwarning = _forward
+                if _added is not None:
+                    # the entry this module appended: the last one equal to it
+                    for i in range(len(warnings.filters) - 1, -1, -1):
+                        if warnings.filters[i] == _added:
+                            del warnings.filters[i]
+                            _filters_changed()
+                            break
+                _forward = _added = None
         if len(log) > MAX_KEPT:
             rest = sum(w["count"] for w in log[MAX_KEPT:])
             log[MAX_KEPT:] = [{"category": "mehs.more", "count": 1,

@@ -80,8 +80,8 @@ def replace_folder(new: str | Path, dest: str | Path) -> None:
     new, dest = Path(new), Path(dest)
     old = dest.with_name(dest.name + ".old")
     if dest.exists() and _exchange(new, dest):
-        remove_path(new, "previous folder")  # it now holds the previous contents
-        remove_path(old)  # a two-rename swap killed while it removed the previous folder
+        _discard(new)  # it now holds the previous contents
+        _discard(old)  # a two-rename swap killed while it removed the previous folder
         return
     remove_path(old)
     moved = False
@@ -94,4 +94,15 @@ def replace_folder(new: str | Path, dest: str | Path) -> None:
         if moved and not dest.exists():
             os.rename(old, dest)
         raise
-    remove_path(old, "previous folder")
+    _discard(old)
+
+
+def _discard(previous: Path) -> None:
+    """Remove the previous contents once the new folder is in place; a failure is a
+    warning, not an error: the swap is done, and what uses the new folder goes on."""
+    import warnings
+
+    try:
+        remove_path(previous, "previous folder")
+    except MehsError as exc:
+        warnings.warn(f"{exc}; the new folder is in place", RuntimeWarning, stacklevel=3)
