@@ -125,3 +125,28 @@ def test_continuous_scan_waits_for_frames_still_on_the_way():
         raw, info = scan_once(stage, cam, lines=SIZE, samples=SIZE, bands=204, pitch=64,
                               start_position=8 * 64, t_ms=1.0)
     assert info["missing_lines"] == 0 and info["lost_buffers"] == 0, info
+
+
+def test_a_stall_longer_than_the_buffer_keeps_its_newest_frames():
+    """The on-board buffer holds FRAME_BUFFER frames: after a longer stall the newest of
+    them are still sent (the oldest were overwritten), and the loss is reported."""
+    from mehs.capture.genicam_sim import FRAME_BUFFER, GenicamSimCamera
+
+    cam = GenicamSimCamera.__new__(GenicamSimCamera)
+    cam._next_tick, cam._tick_period, cam.buffer_overflows, cam.errors = None, 0, 0, []
+    regs = {0xF34: 10_000, 0x138: 10_000}
+    cam._read = regs.__getitem__
+
+    class FC:
+        def write_register(self, addr, v):
+            regs[addr] = v
+
+    p = 10_000_000
+    t0 = (time.time_ns() // p - 1000) * p          # in the past: the clock is behind now
+    assert cam._frame_clock(FC(), t0 + 123) == t0
+    assert cam._frame_clock(FC(), t0 + p + 5) == t0 + p
+    # the thread sleeps through 200 periods: frames t0+2p … t0+201p were exposed meanwhile
+    got = cam._frame_clock(FC(), t0 + 201 * p + 7)
+    assert got == t0 + (201 - FRAME_BUFFER + 1) * p          # the oldest kept frame
+    assert cam.buffer_overflows == 1 and "frames lost" in cam.errors[0]
+    assert regs[0x138] == 1000                                 # draining the buffer

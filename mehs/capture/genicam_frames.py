@@ -212,7 +212,10 @@ class FrameStream:
         jitter = 0.0
         if self._raw:
             lat = np.array([s - t for _l, t, s, _f in self._raw], dtype=np.float64)
-            jitter = float(lat.max() - lat.min()) / 1e9
+            # a robust spread: frames a camera sent from its buffer after a stall arrive
+            # late by up to the stall, which says nothing about the link's jitter
+            lo, hi = np.percentile(lat, [5.0, 95.0])
+            jitter = float(hi - lo) / 1e9
         return max(2 * period + (self.cam._t_ms or 0.0) / 1000.0 + 2 * jitter, FLUSH_QUIET_MIN_S)
 
     def poll(self, timeout_s: float = 0.0) -> list[Frame]:

@@ -330,8 +330,12 @@ class GenicamSimCamera:
         if nxt is None or self._tick_period != period_ns or nxt > tick:
             nxt = tick                            # a new acquisition or frame rate
         elif tick - nxt >= FRAME_BUFFER * period_ns:
-            self.buffer_overflows += 1            # the buffer was full: those frames are lost
-            nxt = tick
+            # the buffer was full: the oldest frames were overwritten, the newest
+            # FRAME_BUFFER are still sent (a gap in the timestamps, as on a real camera)
+            lost = (tick - nxt) // period_ns - (FRAME_BUFFER - 1)
+            self.buffer_overflows += 1
+            self.errors.append(f"frame buffer overflow: {lost} frames lost after a stall")
+            nxt = tick - (FRAME_BUFFER - 1) * period_ns
         self._next_tick, self._tick_period = nxt + period_ns, period_ns
         behind = self._next_tick <= time.time_ns()
         wake = CATCH_UP_US if behind else period_us

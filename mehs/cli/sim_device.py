@@ -138,9 +138,16 @@ def run(args):
         print(f"lines: {dev.scene_lines}")
         print("ready", flush=True)
         sys.stdout.flush()
+        cam = getattr(dev, "camera", None)
+        seen = 0
         try:
             while not stop.wait(0.5):
-                pass
+                # what went wrong inside the simulated camera (its fill callback cannot
+                # raise into Aravis): said on stderr as it happens
+                errs = getattr(cam, "errors", None) or []
+                for e in errs[seen:]:
+                    print(f"mehs sim-device: camera: {e}", file=sys.stderr, flush=True)
+                seen = len(errs)
         except KeyboardInterrupt:
             pass
     return 0
