@@ -77,9 +77,9 @@ def _expected_sigma(truth, times, dn_per_ms, n_dark):
 def _moved(scene, times, truth):
     """bool ``(lines, samples)``: pixels whose radiance differs between the exposures.
 
-    ``mehs capture --simulate --motion`` writes the radiance of the first exposure only (no
-    ``truth/moved_mask.png``): the scene is rebuilt as the simulated device built it and the
-    radiance compared at each exposure's motion phase.
+    ``mehs capture --simulate --motion`` writes the radiance of the first exposure and
+    ``truth/moved_mask.png``; the scene is also rebuilt as the simulated device built it and
+    the radiance compared at each exposure's motion phase, which the mask must agree with.
     """
     from mehs.capture.scene import make_scene
     from mehs.capture.simulate import motion_phase
@@ -93,6 +93,18 @@ def _moved(scene, times, truth):
     for t in times[1:]:
         moved |= np.any(sc.radiance_at(motion_phase(t)) != first, axis=2)
     return moved
+
+
+def _cli_moved_mask(root, scene):
+    import cv2
+
+    doc = json.loads((root / scene / "scene.json").read_text(encoding="utf-8"))
+    if not SCENES[scene]:
+        assert "truth_moved_mask" not in doc
+        return None
+    m = cv2.imread(str(root / scene / doc["truth_moved_mask"]), cv2.IMREAD_UNCHANGED)
+    assert m is not None and doc["moved_mask_pixels"] == int((m > 0).sum())
+    return m > 0
 
 
 def _samples(root, scene):
@@ -111,7 +123,12 @@ def _samples(root, scene):
     est = np.asarray(fused.data, dtype=np.float64)
     sig = _expected_sigma(tr, times, dn_per_ms, n_dark)
     ok = cv2.imread(str(root / f"fused_{scene}" / "mask.png"), cv2.IMREAD_UNCHANGED) == 0
-    ok &= ~_moved(scene, times, tr)   # the moving cloud: no single truth to compare with
+    moved = _moved(scene, times, tr)   # the moving cloud: no single truth to compare with
+    cli = _cli_moved_mask(root, scene)
+    if cli is not None:
+        # the CLI's mask: within the exact differences, and all but changes < 0.1 % of them
+        assert not np.any(cli & ~moved) and cli.sum() >= 0.9 * moved.sum() > 0
+    ok &= ~moved
     ok &= np.all(sig > 0, axis=2)
     return np.asarray(fused.wavelengths), est[ok], tr[ok], sig[ok]
 

@@ -225,18 +225,43 @@ def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
     write_truth(scene_dir, doc, sim.truth, sim.wavelengths, fwhm=sim.fwhm,
                 dn_per_ms=sim.truth_dn_per_ms, overwrite=overwrite)
     if sim.scene.moving:
-        import cv2
-
-        from mehs.io.atomic import atomic_path
-
-        moved = sim.scene.moved_mask(len(sim.times_ms))
-        with atomic_path(scene_dir / "truth" / "moved_mask.png", overwrite=overwrite) as tmp:
-            if not cv2.imwrite(str(tmp), (moved * 255).astype(np.uint8)):
-                raise InputError("could not write the moved-pixel mask", tmp)
-        doc["truth_moved_mask"] = "truth/moved_mask.png"
-        doc["moved_mask_pixels"] = int(moved.sum())
+        write_moved_mask(scene_dir, doc, sim.scene.moved_mask(len(sim.times_ms)),
+                         overwrite=overwrite)
     sf.write_scene_json(scene_dir, doc)
     return scene_dir
+
+
+def moved_between(scene, phases) -> np.ndarray:
+    """bool ``(lines, samples)``: pixels whose radiance at any of ``phases`` (motion phases,
+    :func:`motion_phase`) differs from that at ``phases[0]`` (relative 1e-3)."""
+    a = scene.radiance_at(phases[0])
+    ref = 1e-3 * np.maximum(np.abs(a).max(axis=2), 1e-6)
+    moved = np.zeros(a.shape[:2], dtype=bool)
+    for p in phases[1:]:
+        moved |= np.abs(scene.radiance_at(p) - a).max(axis=2) > ref
+    return moved
+
+
+def write_moved_mask(scene_dir: str | Path, doc: dict, moved: np.ndarray, *,
+                     overwrite: bool = False) -> Path:
+    """Write ``truth/moved_mask.png`` (uint8, 255 where ``moved``: the radiance differs
+    between the exposures of a moving scene) and record it in ``doc``
+    (``truth_moved_mask``, ``moved_mask_pixels``; rewritten atomically): the truth is the
+    first exposure's radiance, so a comparison must leave these pixels out."""
+    import cv2
+
+    from mehs.capture import scenefolder as sf
+    from mehs.io.atomic import atomic_path
+
+    scene_dir = Path(scene_dir)
+    path = scene_dir / "truth" / "moved_mask.png"
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        if not cv2.imwrite(str(tmp), (moved * 255).astype(np.uint8)):
+            raise InputError("could not write the moved-pixel mask", tmp)
+    doc["truth_moved_mask"] = "truth/moved_mask.png"
+    doc["moved_mask_pixels"] = int(moved.sum())
+    sf.write_scene_json(scene_dir, doc)
+    return path
 
 
 def write_truth(scene_dir: str | Path, doc: dict, radiance: np.ndarray, wavelengths, *, fwhm=None,

@@ -128,13 +128,18 @@ def run(args):
             log=lambda m: print(m, file=sys.stderr), resume_hint=_resume_hint(args))
         if args.simulate and doc["truth"] is None and all(
                 e["status"] == "complete" for e in doc["exposures"]):
-            from mehs.capture.simulate import motion_phase, write_truth
+            from mehs.capture.simulate import (motion_phase, moved_between, write_moved_mask,
+                                               write_truth)
 
             scene = dev.world.scene
             t0 = doc["exposures"][0]["integration_time_ms"]
             write_truth(args.out, doc, scene.radiance_at(motion_phase(t0) if scene.moving else 0),
                         scene.wavelengths, fwhm=scene.fwhm,
                         dn_per_ms=dev.world.sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
+            if scene.moving:
+                # the truth is the first exposure's radiance: say where the others differ
+                phases = [motion_phase(e["integration_time_ms"]) for e in doc["exposures"]]
+                write_moved_mask(args.out, doc, moved_between(scene, phases))
             if scene.info.get("certificate"):
                 # a simulated calibrated source comes with its certificate, as a real one does
                 from mehs.calibration.targets import sphere_certificate
