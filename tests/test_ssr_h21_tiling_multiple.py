@@ -168,3 +168,116 @@ def test_sidecar_declares_the_multiple_of_a_foreign_graph(net, rgb, tmp_path):
     side.write_text(json.dumps({"size_multiple": 2.5}))
     with pytest.raises(FormatError, match=r"foreign\.onnx\.json.*size_multiple"):
         load_model(str(path))
+
+
+class PooledBelow(NeedsMultiple):
+    """:class:`NeedsMultiple` with a channel attention (a global average pooling) on the
+    ×8 down-sampled features: a pooled map of ``h / 8`` cells per tile."""
+
+    def __init__(self):
+        super().__init__()
+        from mehs.ssr.net.layers import ChannelAttention
+
+        self.att = ChannelAttention(8, reduction=2)
+        g = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            for p in self.att.parameters():
+                p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+
+    def forward(self, x):
+        if not torch.jit.is_tracing() and (x.shape[-2] % K or x.shape[-1] % K):
+            raise ValueError(f"needs multiples of {K}, got {tuple(x.shape[-2:])}")
+        f = torch.relu(self.inp(x))
+        d = f
+        for conv in self.down:
+            d = torch.relu(conv(d))
+        return self.out(f + F.interpolate(self.att(d), scale_factor=K, mode="nearest"))
+
+
+#: heights whose last tile is not a multiple of 8 (138: a 42-row last tile padded to 48,
+#: whose 6-cell pooled map is 8 rows a cell, not ceil(42 / 6) = 7) and widths
+POOLED_SIZES = [(138, 115), (138, 120), (150, 115), (161, 120)]
+
+
+def _pooled_images():
+    rng = np.random.default_rng(5)
+    for h, w in POOLED_SIZES:
+        x = rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32)
+        x[:, : w // 3] *= 3.0                      # tiles' own means differ from the image's
+        yield x
+
+
+def test_torch_image_means_with_a_pooling_below_full_resolution():
+    from mehs.ssr.net.export import TorchSSRModel
+
+    net = PooledBelow().eval()
+    model = TorchSSRModel(net, name="pooled8")
+    for rgb in _pooled_images():
+        model.tiling = dict(TILING)
+        got = model(rgb)
+        last = model._tiling_last
+        assert last["statistics"] == "image" and last["summary"]["tiles"] >= 4, last
+        _close(got, reference(net, rgb))
+
+
+def test_onnx_image_means_with_a_pooling_below_full_resolution(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from mehs.ssr.models import load_model
+    from mehs.ssr.net.export import TorchSSRModel, export_onnx
+
+    net = PooledBelow().eval()
+    path = export_onnx(TorchSSRModel(net), tmp_path / "pooled8.onnx", example_size=(61, 45))
+    model = load_model(str(path))
+    assert model.size_multiple == K
+    for rgb in _pooled_images():
+        model.tiling = {**TILING, "align": 8}
+        got = model(rgb)
+        last = model._tiling_last
+        assert last["statistics"] == "image" and last["summary"]["tiles"] >= 4, last
+        _close(got, reference(net, rgb))
+    assert model._tiling_probe["image_means"] is True
+
+
+class BlockLocal(nn.Module):
+    """Each 8×8 block's spectra from that block alone (space-to-depth, a 1×1 convolution,
+    depth-to-space): needs multiples of 8, and tiles on the 8-grid need no margin at all,
+    so only the padding of an image's last tile can make them differ from the image."""
+
+    size_multiple = K
+    wavelengths = WAVELENGTHS_31
+
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(2)
+        self.conv = nn.Conv2d(3 * K * K, 31 * K * K, 1)
+        with torch.no_grad():
+            for p in self.parameters():
+                p.copy_(torch.randn(p.shape, generator=g) * 0.1)
+
+    def forward(self, x):
+        return F.pixel_shuffle(self.conv(F.pixel_unshuffle(x, K)), K)
+
+
+def test_last_tile_at_least_the_multiple_with_a_zero_margin():
+    """Margin and blend 0 (statistics 'tile'): tiles that do not overlap step by a whole
+    tile, so an image's last tile could be 1 row long and reflect-pad within itself
+    (73 rows in 24-row tiles: a 1-row last tile) instead of the image's own rows."""
+    from mehs.ssr.net.export import TorchSSRModel
+    from mehs.ssr.tiling import tile_starts
+
+    net = BlockLocal().eval()
+    model = TorchSSRModel(net, name="block8")
+    rng = np.random.default_rng(11)
+    for h, w in ((73, 37), (100, 52), (57, 81)):
+        rgb = rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32)
+        model.tiling = {"bytes_per_pixel": 1000.0, "fixed_bytes": 0.0,
+                        "max_bytes": 1000 * 24 * 24, "margin": 0, "blend": 0,
+                        "statistics": "tile", "align": 8}
+        got = model(rgb)
+        plan = model._tiling_last["plan"]
+        assert model._tiling_last["summary"]["tiles"] >= 3
+        for n, t in ((h, plan.tile), (w, plan.width)):
+            starts = tile_starts(n, t, plan.overlap, plan.align)
+            assert len(starts) == 1 or n - starts[-1] >= K, (n, plan)
+        _close(got, reference(net, rgb))

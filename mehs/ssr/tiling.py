@@ -84,6 +84,8 @@ AVAILABLE_SHARE = 0.5
 #: The least memory a budget gives a tile even when the process already holds
 #: more than :data:`DEFAULT_MAX_RSS` (the cap then cannot be kept; small tiles do).
 MIN_BUDGET = 256 << 20
+#: Pixels of the linear ramp that cross-fades neighbouring tiles, unless given.
+DEFAULT_BLEND = 16
 
 
 def available_memory() -> int:
@@ -128,10 +130,10 @@ def default_budget(max_rss: int | None = None) -> int:
     return int(min(max(cap - _rss(), min(MIN_BUDGET, cap)), share))
 
 
-def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int, blend: int = 16,
-               align: int = 8, max_bytes: int | None = None, fixed_bytes: float = 0.0,
-               out_bytes: float = 0.0, overhead: Callable[[float], float] | None = None
-               ) -> TilingPlan:
+def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
+               blend: int = DEFAULT_BLEND, align: int = 8, max_bytes: int | None = None,
+               fixed_bytes: float = 0.0, out_bytes: float = 0.0,
+               overhead: Callable[[float], float] | None = None) -> TilingPlan:
     """The tile shape that computes the fewest pixels within the memory budget.
 
     One call on ``n`` pixels is taken to need ``fixed_bytes + bytes_per_pixel × n``,
@@ -257,7 +259,8 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     (equal to whole-image inference; ``strict``: refuse a network that does not),
     ``"tile"`` gives each tile its own, and ``size_multiple`` (see
     :mod:`mehs.ssr.tiling_pad`: ``fn`` must already pad to it; here the tile grid is
-    made a multiple of it). Missing ones come
+    made a multiple of it, and a margin whose overlap ``2 margin + blend`` is under
+    ``k − 1`` is raised, so an axis's last tile is at least ``k`` long). Missing ones come
     from ``probes[name]()``, each called at most once per model (cached in
     ``model._tiling_probe``) and only when needed: the memory probe (a number,
     or a dict as :func:`torch_memory_probe` returns) for images above
@@ -321,6 +324,14 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     # tiles other than an axis's last must need no padding: on a grid of the multiple
     align = grid(get("align"), k)
     margin = get("margin")
+    blend = opts.get("blend", DEFAULT_BLEND)
+    if (k > 1 and isinstance(blend, (int, float)) and isinstance(margin, (int, float))
+            and margin >= 0 and blend >= 0 and 2 * margin + blend < k - 1):
+        # an axis's last tile is longer than the overlap (tile_starts): at least k long,
+        # its reflect padding is the image's own (tiles that do not overlap could leave
+        # a 1-pixel last tile, which np.pad would reflect within itself); the margin, not
+        # the blend, grows: more context leaves the output unchanged
+        margin = int(np.ceil((k - 1 - blend) / 2))
     wide = statistics != "tile" and image_means is not None
     if wide:
         # image-wide means split the overlaps on the grid at a margin from both tiles'
@@ -438,7 +449,8 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
         if not any(isinstance(m, ChannelAttention) for m in net.modules()):
             return predict_tiled(fn, rgb, plan)       # local: plain tiles are exact
         record["statistics"] = "image"
-        return predict_tiled_image_means(fn, rgb, plan, record=record)
+        return predict_tiled_image_means(fn, rgb, plan, record=record,
+                                         multiple=size_multiple(model))
     return stitch
 
 

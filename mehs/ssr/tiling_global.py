@@ -108,8 +108,8 @@ def warn_unsettled(change: float, max_runs: int) -> None:
 
 def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,
                               plan: TilingPlan, *, tol: float = IMAGE_MEANS_TOL,
-                              max_runs: int = MAX_RUNS, record: dict | None = None
-                              ) -> np.ndarray:
+                              max_runs: int = MAX_RUNS, record: dict | None = None,
+                              multiple: int = 1) -> np.ndarray:
     """:func:`mehs.ssr.tiling_blend.predict_tiled` with image-wide pooling means.
 
     ``fn`` must run a torch network whose global poolings go through
@@ -117,7 +117,8 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     ``(H, W, B)``. Warns when the means have not settled to ``tol`` after ``max_runs``
     runs (the last run's output is returned). ``record`` receives ``image_runs`` (runs
     over the tiles, the collecting one included) and ``image_means_change`` (the last
-    run's relative change of the means).
+    run's relative change of the means). ``multiple``: ``fn`` reflect-pads each tile to
+    multiples of it (:func:`mehs.ssr.tiling_pad.padded`), which the pooled maps then cover.
     """
     # torch only here: tiling.py imports this module for ONNX models too
     from mehs.ssr.net.pooling import ImageMeans, PoolingsCollected
@@ -129,7 +130,7 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         raise InputError(f"image-wide means need at least 2 runs over the tiles, got {max_runs}")
     h, w = rgb.shape[:2]
     rows, cols = owned_spans(h, plan.tile, plan), owned_spans(w, plan.width, plan)
-    means = ImageMeans()
+    means = ImageMeans(multiple)
 
     def enter(y0: int, y1: int, x0: int, x1: int, stop_early: bool = False) -> None:
         ry, rx = rows[y0], cols[x0]

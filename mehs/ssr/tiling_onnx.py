@@ -266,7 +266,8 @@ class OnnxImageMeans:
         """One tile: adds each pooling's owned sum and pixel count into ``sums``/``counts``.
 
         A graph with a size multiple gets the tile reflect-padded to it (the owned span's
-        open end then runs on into that padding, as the whole padded image's does).
+        open end then runs on into that padding, as the whole padded image's does); its
+        pooled maps' cells are sized on the padded tile.
         """
         from mehs.ssr.tiling_pad import pad_to_multiple, size_multiple
 
@@ -282,7 +283,9 @@ class OnnxImageMeans:
         extra = outs[1:] if spectra else outs
         for i in range(self.k):
             s, shape = np.asarray(extra[2 * i], np.float64), np.asarray(extra[2 * i + 1])
-            cells = [owned_cells(tile[a], int(shape[2 + a]), int(owned[2 * a]),
+            # the maps cover the padded tile (a 42-row last tile padded to 48 pools to
+            # 6 cells of 8 rows, not ceil(42 / 6) = 7): the padded length, as in the graph
+            cells = [owned_cells(x.shape[a], int(shape[2 + a]), int(owned[2 * a]),
                                   int(owned[2 * a + 1]), last[a], m.name) for a in (0, 1)]
             n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])
             sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)

@@ -10,8 +10,15 @@ right to the next multiple of ``k``, and its output cropped back to the input's 
 Tiles then agree with whole-image inference of the padded image (cropped): inner tiles
 are multiples of the tiling grid, which is made a multiple of ``k``, and need no
 padding; an image's last tile along an axis ends at the image's edge, so its reflected
-rows and columns are the image's own (as long as the tile is at least ``k`` pixels
-long, which a tile longer than its overlap is).
+rows and columns are the image's own as long as the tile is at least ``k`` pixels long
+(``np.pad`` reflects a shorter one within itself). An axis's last tile is longer than
+the tiles' overlap (``2 margin + blend``), and :func:`mehs.ssr.tiling.tiled_network_call`
+raises the margin where the overlap would be under ``k − 1`` (with the tiles on the grid
+only tiles that do not overlap at all, margin and blend 0, could leave a shorter one).
+
+Image-wide pooling means (:mod:`mehs.ssr.tiling_global`, :mod:`mehs.ssr.tiling_onnx`)
+size a last tile's pooled-map cells on its padded length: a 42-pixel tile padded to 48
+pools to 6 cells of 8 pixels.
 
 Where ``k`` comes from (:func:`size_multiple`): ``model.tiling["size_multiple"]`` (the
 user's option), else the model's ``size_multiple`` attribute, which torch networks

@@ -51,10 +51,13 @@ class ImageMeans:
     """Image-wide means of every :func:`pooled_mean` layer, assembled from tiles.
 
     Use :meth:`active` around the tiles' runs, :meth:`enter` before each tile, and
-    :meth:`finish` after each full run over the image.
+    :meth:`finish` after each full run over the image. ``multiple``: the network's calls
+    are reflect-padded to multiples of it (:mod:`mehs.ssr.tiling_pad`), so a tile's pooled
+    maps cover its length rounded up to it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, multiple: int = 1) -> None:
+        self._multiple = max(1, int(multiple))
         # keyed by (layer, its n-th call in one forward): a layer called twice pools twice
         self._sums: dict[tuple, torch.Tensor] = {}
         self._counts: dict[tuple, int] = {}
@@ -112,8 +115,11 @@ class ImageMeans:
         if x.dim() != 4 or x.shape[0] != 1:
             raise InputError(f"image-wide means need (1, C, h, w) features, got {tuple(x.shape)}")
         h, w = int(x.shape[2]), int(x.shape[3])
-        rows = owned_cells(y1 - y0, h, oy0 - y0, oy1 - y0, last_y)
-        cols = owned_cells(x1 - x0, w, ox0 - x0, ox1 - x0, last_x)
+        # the maps cover the padded tile: a 42-row last tile padded to 48 pools to 6 cells
+        # of 8 rows, which ceil(42 / 6) = 7 would misplace
+        k = self._multiple
+        rows = owned_cells(-(-(y1 - y0) // k) * k, h, oy0 - y0, oy1 - y0, last_y)
+        cols = owned_cells(-(-(x1 - x0) // k) * k, w, ox0 - x0, ox1 - x0, last_x)
         part = x[0, :, rows[0]:rows[1], cols[0]:cols[1]]
         # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64 on the
         # CPU (a float64 sum cast the whole feature map first: +90 MB at 1024×512; Apple's
