@@ -13,7 +13,8 @@ pseudo-HDR-RGB and LDR-RGB images (:func:`mehs.rgb.hdr_rgb`,
 an interrupted build leaves no half scene listed and re-running finishes it.
 Python warnings a worker raises are kept with its scene (``provenance.run.warnings``) and
 printed by the main process after the build, one line per warning naming the scene
-(:mod:`mehs.dataset.scene_warnings`).
+(:mod:`mehs.dataset.scene_warnings`); an interrupted build prints those of the scenes
+it committed on its way out.
 The worker's part is :mod:`mehs.dataset.scene_build`; this module is the main
 process's (scene list, lock, scheduling, commits, splits, manifest).
 
@@ -204,13 +205,40 @@ def build_from_hs(cubes: Iterable[str | Path], out: str | Path, *,
 def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fractions,
                rules, scheduler, progress, on_commit,
                radiometric: dict | None = None, verify=False) -> dict[str, Any]:
-    import json
-
     from mehs.io.atomic import make_output_dir
-    from mehs.rgb import WAVELENGTHS_31
 
     created = not dataset.exists()
     make_output_dir(dataset, inputs=[p for s in srcs for p in s.paths if s.kind != "hs"])
+    warned: list[dict] = []   # results with warnings, of scenes committed (or skipped)
+    try:
+        return _run_build_locked(srcs, dataset, params, response_sha, created, warned,
+                                 workers=workers,
+                                 force=force, fractions=fractions, rules=rules,
+                                 scheduler=scheduler, progress=progress, on_commit=on_commit,
+                                 radiometric=radiometric, verify=verify)
+    finally:
+        # an interrupted build (Ctrl-C, a failure that stops it) still shows the warnings
+        # of the scenes it committed; a complete one has printed them already (emptied)
+        _print_warnings(warned)
+
+
+def _print_warnings(warned: list[dict]) -> None:
+    """Print the scenes' warnings, by scene id (the same lines whatever the workers'
+    order), once: the list is emptied."""
+    for res in sorted(warned, key=lambda r: r["id"]):
+        for w in res["warnings"]:
+            print(f"mehs build: scene {res['id']}: {describe(w)}", file=sys.stderr)
+    warned.clear()
+
+
+def _run_build_locked(srcs, dataset: Path, params, response_sha, created: bool,
+                      warned: list[dict], *,
+                      workers, force, fractions, rules, scheduler, progress, on_commit,
+                      radiometric, verify) -> dict[str, Any]:
+    import json
+
+    from mehs.rgb import WAVELENGTHS_31
+
     scenes_dir = dataset / "scenes"
     with _drop_if_empty_on_error(dataset, created), _Lock(dataset):
         scenes_dir.mkdir(exist_ok=True)
@@ -267,17 +295,17 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
             if tid not in finished:  # stage messages can arrive after the result
                 stages[tid] = stage
                 show_stages()
-        failures, warned = [], []
+        failures = []
         try:
             for res in run_tasks(build_scene, tasks, workers=n_workers,
                                  scheduler=scheduler, on_stage=on_stage):
                 sid = res["id"]
-                if res.get("warnings"):
-                    warned.append(res)
                 finished.add(sid)
                 stages.pop(sid, None)
                 show_stages()
                 if res["outcome"] == "skipped":
+                    if res.get("warnings"):
+                        warned.append(res)
                     bar.update(1)
                     continue
                 entry = res["entry"]
@@ -287,6 +315,8 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
                                                           entry.get("error"))
                 entries[sid] = entry
                 commit()
+                if res.get("warnings"):   # committed: printed even if the build stops now
+                    warned.append(res)
                 if res["outcome"] == "failed":
                     failures.append(res)
                 if on_commit is not None:
@@ -305,10 +335,7 @@ def _run_build(srcs, dataset: Path, params, response_sha, *, workers, force, fra
         print(f"mehs build: {len(moved)} existing scene(s) changed split (the split cuts "
               f"follow the number of passing scenes): "
               + ", ".join(f"{sid} {a} → {b}" for sid, a, b in moved), file=sys.stderr)
-    # after the progress bar, by scene id: the same lines whatever the workers' order
-    for res in sorted(warned, key=lambda r: r["id"]):
-        for w in res["warnings"]:
-            print(f"mehs build: scene {res['id']}: {describe(w)}", file=sys.stderr)
+    _print_warnings(warned)   # after the progress bar, before the failures
     for res in failures:
         tb = res["entry"]["provenance"]["run"].get("traceback")
         print(f"mehs build: scene {res['id']} failed: {res['error']}", file=sys.stderr)

@@ -44,17 +44,18 @@ def write_dataset_report(dataset: str | Path, out_html: str | Path | None = None
 
     matplotlib.use("Agg", force=True)
     from mehs.io.atomic import write_text_atomic
-    from mehs.io.dirswap import remove_path, replace_folder
+    from mehs.io.dirswap import (make_temp_folder, remove_path, remove_stale_temp_folders,
+                                 replace_folder)
 
     dataset = Path(dataset)
     manifest = read_manifest(dataset)
     out_html = check_report_path(out_html) if out_html else dataset / "report.html"
     files_dir = out_html.parent / f"{out_html.stem}_files"
-    tmp_dir = files_dir.with_name(files_dir.name + ".part")
     # a killed run (SIGKILL, power loss) cannot clean up after itself: its unfinished
-    # folder, whatever it holds, is no output and goes before this run starts its own
-    remove_path(tmp_dir, "unfinished report folder of an interrupted run")
-    tmp_dir.mkdir(parents=True)
+    # folder is no output and goes; another run's that is still drawing is left alone
+    # (each run has its own, so two reports of one dataset at once both complete)
+    remove_stale_temp_folders(files_dir, "unfinished report folder")
+    tmp_dir = make_temp_folder(files_dir)
     try:
         page = _write_pictures_and_page(dataset, manifest, tmp_dir, files_dir.name)
         # the image folder first, then the page, so the page never points at missing

@@ -164,14 +164,19 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         ``"internal"`` otherwise, retried on the next run). Python warnings raised
         while building are not printed: they come back as ``"warnings"`` (also in
         ``entry["provenance"]["run"]["warnings"]``; see
-        :mod:`mehs.dataset.scene_warnings`), absent when there were none.
+        :mod:`mehs.dataset.scene_warnings`), absent when there were none; paths in
+        them name ``scenes/<id>``, where the commit puts the files.
     """
-    from mehs.dataset.scene_warnings import captured_warnings
+    from mehs.dataset.scene_warnings import captured_warnings, relocate_paths
     from mehs.dataset.threads import one_blas_thread
 
     with one_blas_thread(), captured_warnings() as caught:
         res = _build_scene(task)
     if caught:
+        # a warning names the file it concerns where it was written, scenes/.tmp-<id>/…;
+        # the commit renames that folder to scenes/<id>, where the user finds the file
+        sid = task.source.scene_id
+        relocate_paths(caught, f"{TMP_PREFIX}{sid}", sid)
         # shown by the main process, one line each (raw, from workers, they interleaved)
         res["warnings"] = caught
         if res["entry"] is not None:
@@ -462,6 +467,24 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
         write_png(tmp / "ldr_rgb.png", ldr)
         write_png(tmp / "mask.png", mask)
         write_png(tmp / "preview.png", preview)
+    quality.update(_half_underflow_counts([tmp / "hdr_rgb.exr"]))
+
+
+def _half_underflow_counts(paths: list[Path]) -> dict[str, int]:
+    """``{"half_flushed_to_zero", "half_subnormal"}``: the values the half-float EXRs
+    ``paths`` stored as 0 / as subnormals, summed, as the writer counted them into the
+    headers (``mehsHalfFlushedToZero``, ``mehsHalfSubnormal``, absent when 0;
+    :func:`mehs.io.exr.write_exr`). Recorded, never judged: a scene does not fail for it.
+    """
+    import OpenEXR
+
+    out = {"half_flushed_to_zero": 0, "half_subnormal": 0}
+    for path in paths:
+        # a file just written that cannot be read back is an internal error (retried)
+        header = OpenEXR.File(str(path), header_only=True).header()
+        out["half_flushed_to_zero"] += int(header.get("mehsHalfFlushedToZero", 0))
+        out["half_subnormal"] += int(header.get("mehsHalfSubnormal", 0))
+    return out
 
 
 def _scale_header(scale: float, bands: int) -> dict[str, Any]:

@@ -22,6 +22,7 @@ threads a scene itself starts are shown, not captured.
 from __future__ import annotations
 
 import contextlib
+import re
 import threading
 import warnings
 from typing import Any, Iterator
@@ -123,6 +124,28 @@ def captured_warnings() -> Iterator[list[dict[str, Any]]]:
             log[MAX_KEPT:] = [{"category": "mehs.more", "count": 1,
                                "message": f"{len(log) - MAX_KEPT} more distinct warning(s), "
                                           f"raised {rest} time(s), not kept"}]
+
+
+def relocate_paths(log: list[dict[str, Any]], tmp_name: str, final_name: str,
+                   parent: str = "scenes") -> list[dict[str, Any]]:
+    """Rewrite, in place, the path component ``<parent>/<tmp_name>`` of the messages to
+    ``<parent>/<final_name>``; return ``log``.
+
+    A warning raised while building names the scene's temporary folder
+    (``scenes/.tmp-<id>/hdr_rgb.exr``), which the commit renames to ``scenes/<id>``: kept
+    as raised, the path it names no longer exists. Only that exact folder name after a
+    ``parent`` component (``/`` or ``\\``) is rewritten: not ``.tmp-<id>0``, not the
+    name elsewhere in the text.
+    """
+    # followed by a separator, the end, or a character no file name continues with
+    # (a sentence's final dot is no part of the name)
+    pattern = re.compile(r"(?<![^/\\\s\"'(])(" + re.escape(parent) + r"[/\\])"
+                         + re.escape(tmp_name) + r"(?=[/\\]|$|[^\w.\-]|\.(?:\s|$))")
+    for w in log:
+        msg = w.get("message")
+        if isinstance(msg, str) and tmp_name in msg:
+            w["message"] = pattern.sub(lambda m: m.group(1) + final_name, msg)
+    return log
 
 
 def describe(w: dict[str, Any]) -> str:

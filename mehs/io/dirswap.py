@@ -8,6 +8,14 @@ instant is the destination missing. Elsewhere the previous folder is renamed
 aside and the new one renamed in — two steps, with the previous folder put back if
 the second one fails or is interrupted.
 
+Each writer has its own temporary folder (:func:`make_temp_folder`,
+``<dest>.part-<pid>-<host>-<random>``): two runs writing one destination at once
+(two ``mehs report`` of one dataset) each swap in a complete folder, the last one
+winning, and neither deletes the other's work in progress. What a killed writer left
+is removed by the next one (:func:`remove_stale_temp_folders`): a temporary whose
+process is gone from this host, or older than :data:`STALE_AFTER_S` (its pid reused,
+or another host's, which cannot be asked), and the ``<dest>.part`` of older versions.
+
 References
 ----------
 renameat2(2), Linux man-pages: ``RENAME_EXCHANGE``.
@@ -16,14 +24,102 @@ renameat2(2), Linux man-pages: ``RENAME_EXCHANGE``.
 from __future__ import annotations
 
 import os
+import re
+import secrets
 import shutil
 import sys
+import time
+import zlib
 from pathlib import Path
 
 from mehs.errors import MehsError
 
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
+
+#: a temporary folder older than this (seconds since its last change) is no live writer's
+STALE_AFTER_S = 86400.0
+
+
+def _host_tag() -> str:
+    """8 hex digits naming this host (a pid means something only on its own host)."""
+    return f"{zlib.crc32(os.uname().nodename.encode('utf-8')):08x}"
+
+
+def _temp_re(dest: Path) -> re.Pattern[str]:
+    return re.compile(re.escape(dest.name) + r"\.part-(\d+)-([0-9a-f]{8})-[0-9a-z_]+")
+
+
+def make_temp_folder(dest: str | Path) -> Path:
+    """Create and return this process's own new temporary folder beside ``dest``.
+
+    Named ``<dest name>.part-<pid>-<host>-<random>`` (``host``: 8 hex digits of this
+    host's name), so that :func:`remove_stale_temp_folders` can tell a live writer's
+    from a dead one's. Created with the usual permissions (umask), unlike
+    :func:`tempfile.mkdtemp`'s 0700: it becomes the output folder.
+    """
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(100):
+        tmp = dest.with_name(f"{dest.name}.part-{os.getpid()}-{_host_tag()}-"
+                             f"{secrets.token_hex(4)}")
+        try:
+            tmp.mkdir()
+        except FileExistsError:
+            continue
+        return tmp
+    raise MehsError("cannot create a temporary folder (100 names taken)", dest.parent)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True          # exists, another user's
+    return True
+
+
+def remove_stale_temp_folders(dest: str | Path, what: str = "unfinished folder",
+                              max_age_s: float = STALE_AFTER_S) -> list[Path]:
+    """Remove what killed writers left beside ``dest``; never a live writer's folder.
+
+    Removed: ``<dest>.part`` (the one fixed name of older versions, whatever it is) and
+    each ``<dest>.part-<pid>-<host>-<random>`` whose process no longer runs on this host,
+    or that was last changed more than ``max_age_s`` ago (another host's, whose pid cannot
+    be asked; a pid reused since). One that cannot be removed is a warning: it is not in
+    the way of a new writer's own folder. Returns the paths removed.
+    """
+    import warnings
+
+    dest = Path(dest)
+    pattern, host, now = _temp_re(dest), _host_tag(), time.time()
+    removed = []
+    try:
+        names = [p.name for p in dest.parent.iterdir()]
+    except FileNotFoundError:
+        return removed
+    for name in names:
+        path = dest.parent / name
+        m = pattern.fullmatch(name)
+        if name != f"{dest.name}.part" and m is None:
+            continue
+        if m is not None:
+            try:
+                age = now - path.lstat().st_mtime
+            except FileNotFoundError:
+                continue     # its writer swapped it in or removed it meanwhile
+            pid = int(m.group(1))
+            if age <= max_age_s and (m.group(2) != host or _alive(pid)):
+                continue     # a live writer's, or another host's that may be
+        try:
+            remove_path(path, f"{what} of an interrupted run")
+        except MehsError as exc:
+            warnings.warn(str(exc), RuntimeWarning, stacklevel=2)
+            continue
+        removed.append(path)
+    return removed
 
 
 def remove_path(path: str | Path, what: str = "leftover") -> None:
