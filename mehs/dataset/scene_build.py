@@ -467,24 +467,11 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
         write_png(tmp / "ldr_rgb.png", ldr)
         write_png(tmp / "mask.png", mask)
         write_png(tmp / "preview.png", preview)
-    quality.update(_half_underflow_counts([tmp / "hdr_rgb.exr"]))
+    from mehs.io.exr import half_underflow_counts
 
-
-def _half_underflow_counts(paths: list[Path]) -> dict[str, int]:
-    """``{"half_flushed_to_zero", "half_subnormal"}``: the values the half-float EXRs
-    ``paths`` stored as 0 / as subnormals, summed, as the writer counted them into the
-    headers (``mehsHalfFlushedToZero``, ``mehsHalfSubnormal``, absent when 0;
-    :func:`mehs.io.exr.write_exr`). Recorded, never judged: a scene does not fail for it.
-    """
-    import OpenEXR
-
-    out = {"half_flushed_to_zero": 0, "half_subnormal": 0}
-    for path in paths:
-        # a file just written that cannot be read back is an internal error (retried)
-        header = OpenEXR.File(str(path), header_only=True).header()
-        out["half_flushed_to_zero"] += int(header.get("mehsHalfFlushedToZero", 0))
-        out["half_subnormal"] += int(header.get("mehsHalfSubnormal", 0))
-    return out
+    # recorded, never judged: a scene does not fail for it; a file just written that
+    # cannot be read back is an internal error (retried)
+    quality.update(half_underflow_counts([tmp / "hdr_rgb.exr"]))
 
 
 def _scale_header(scale: float, bands: int) -> dict[str, Any]:

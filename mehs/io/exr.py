@@ -241,6 +241,20 @@ def _half_underflow(img: np.ndarray, pixels: dict[str, np.ndarray], channels: li
     return out
 
 
+def half_underflow_counts(paths) -> dict[str, int]:
+    """``{"half_flushed_to_zero", "half_subnormal"}``: the values the half-float EXRs
+    ``paths`` stored as 0 / as subnormals, summed, as :func:`write_exr` counted them into
+    their headers (``mehsHalfFlushedToZero``, ``mehsHalfSubnormal``, absent when 0)."""
+    import OpenEXR
+
+    out = {"half_flushed_to_zero": 0, "half_subnormal": 0}
+    for path in paths:
+        header = OpenEXR.File(str(path), header_only=True).header()
+        out["half_flushed_to_zero"] += int(header.get("mehsHalfFlushedToZero", 0))
+        out["half_subnormal"] += int(header.get("mehsHalfSubnormal", 0))
+    return out
+
+
 def write_exr_rgb(path: str | Path, rgb: np.ndarray, *, half: bool = True,
                   header: dict[str, Any] | None = None) -> Path:
     """Write a linear RGB image ``(H, W, 3)`` as channels R, G, B (half float by default)."""
