@@ -11,12 +11,12 @@ the scene's result, the build records them in the scene's manifest entry
 
 Thread-safe: Dask runs scenes in threads of one process, and
 :class:`warnings.catch_warnings` is process-global (each thread's exit would restore
-the state another thread's entry saw). Here the first capture in a process installs
-one dispatcher that hands each warning to the list of the thread that raised it (and
-to the display it replaced when that thread captures nothing) and the last one out
-removes it, with the one filter entry it appended, only if they are still in place.
-The user's own filters (``-W``, ``PYTHONWARNINGS``) keep precedence. Warnings of
-threads a scene itself starts are shown, not captured.
+the state another thread's entry saw). The capture rides on the dispatcher of
+:mod:`mehs.threadwarn`, which hands each warning to the list of the thread that raised
+it; scene code ignores or raises warnings for its own thread only
+(:func:`mehs.threadwarn.local_filter`). The user's own filters (``-W``,
+``PYTHONWARNINGS``) keep precedence. Warnings of threads a scene itself starts are
+shown, not captured.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import re
 import threading
-import warnings
 from typing import Any, Iterator
 
 #: distinct warnings kept per scene; the rest are counted
@@ -33,36 +32,23 @@ MAX_KEPT = 20
 # ignored by Python's default filters (PEP 565): library deprecations are not the scene's
 _QUIET = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
 
-_LOCK = threading.Lock()
 _LOCAL = threading.local()
-_active = 0
-_forward: Any = None       # the display in place when the first capture began
-_added: Any = None         # the "always" filter entry the first capture appended, if it did
-_ALWAYS = ("always", None, Warning, None, 0)
 
 
-def _dispatch(message, category, filename, lineno, file=None, line=None):
+def _collect(message, category) -> bool:
+    """The capturing thread's sink: True when the warning was kept."""
     log = getattr(_LOCAL, "log", None)
-    forward = _forward or warnings._showwarning_orig  # type: ignore[attr-defined]
     if log is None or issubclass(category, _QUIET):
-        # not a capturing thread, or a library deprecation (not the scene's): shown as before
-        return forward(message, category, filename, lineno, file, line)
+        return False       # a library deprecation (not the scene's): shown as before
     name = category.__name__ if category.__module__ == "builtins" else (
         f"{category.__module__}.{category.__qualname__}")
     text = str(message)
     for w in log:
         if w["category"] == name and w["message"] == text:
             w["count"] += 1
-            return None
+            return True
     log.append({"category": name, "message": text, "count": 1})
-    return None
-
-
-def _filters_changed() -> None:
-    # the per-module "already shown" registries are keyed on the filters' version
-    bump = getattr(warnings, "_filters_mutated", None)
-    if bump is not None:
-        bump()
+    return True
 
 
 @contextlib.contextmanager
@@ -80,45 +66,21 @@ def captured_warnings() -> Iterator[list[dict[str, Any]]]:
 
     Notes
     -----
-    The user's filters keep precedence (``-W error::RuntimeWarning`` still raises,
-    ``ignore`` still ignores): the "show every time" filter this needs, so that the
-    second scene a worker builds does not lose a warning Python's "default" action
-    shows once per code place, is appended after them. No process-wide
-    :class:`warnings.catch_warnings` is entered (another thread's own would restore
-    its state at the wrong moment): the last capture to leave removes just the
-    filter entry and display it added, if they are still in place.
+    Built on :mod:`mehs.threadwarn`: the user's filters keep precedence (``-W
+    error::RuntimeWarning`` still raises, ``ignore`` still ignores), no process-wide
+    :class:`warnings.catch_warnings` is entered, and scene code that must ignore or
+    raise a warning does so for its own thread (:func:`mehs.threadwarn.local_filter`).
     """
-    global _active, _forward, _added
+    from mehs.threadwarn import hooked
+
     log: list[dict[str, Any]] = []
-    with _LOCK:
-        if _active == 0:
-            _forward = warnings.showwarning
-            warnings.showwarning = _dispatch
-            _added = None
-            if _ALWAYS not in warnings.filters:
-                warnings.filters.append(_ALWAYS)
-                _added = _ALWAYS
-                _filters_changed()
-        _active += 1
     previous = getattr(_LOCAL, "log", None)
     _LOCAL.log = log
     try:
-        yield log
+        with hooked(_collect):
+            yield log
     finally:
         _LOCAL.log = previous
-        with _LOCK:
-            _active -= 1
-            if _active == 0:
-                if warnings.showwarning is _dispatch:
-                    warnings.showwarning = _forward
-                if _added is not None:
-                    # the entry this module appended: the last one equal to it
-                    for i in range(len(warnings.filters) - 1, -1, -1):
-                        if warnings.filters[i] == _added:
-                            del warnings.filters[i]
-                            _filters_changed()
-                            break
-                _forward = _added = None
         if len(log) > MAX_KEPT:
             rest = sum(w["count"] for w in log[MAX_KEPT:])
             log[MAX_KEPT:] = [{"category": "mehs.more", "count": 1,

@@ -231,13 +231,11 @@ def load_bracket(path_or_paths: str | Path | Sequence[str | Path], *, verify: st
         Naming the folder: fewer than 2 exposures, times not positive or not
         distinct, shapes or wavelengths that differ, a file that fails verification.
     """
-    import warnings
-
     from mehs.io.plausibility import ByteOrderWarning
+    from mehs.threadwarn import local_filter
 
     # a mislabelled byte order would be fused into a plausible-looking wrong cube
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", ByteOrderWarning)
+    with local_filter("error", ByteOrderWarning):   # this thread only (threaded builds)
         try:
             return _load_bracket(path_or_paths, verify=verify, bit_depth=bit_depth,
                                  allow_partial=allow_partial, defer_verify=defer_verify)

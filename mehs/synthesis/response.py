@@ -35,7 +35,7 @@ References
 
 from __future__ import annotations
 
-import warnings
+from mehs.threadwarn import local_filter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -498,8 +498,8 @@ def _solve_direct(Z: np.ndarray, wz: np.ndarray, lt: np.ndarray, wsm: np.ndarray
     b = np.bincount(Z.ravel(), weights=(w2 * (lt - m[:, None])).ravel(), minlength=L)
     keep = np.arange(L) != mid
     S = S.tocsr()[keep][:, keep].tocsc()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    # (a singular system shows as non-finite values, checked below; this thread only)
+    with local_filter("ignore"):
         x = spla.spsolve(S, b[keep])
     g = np.zeros(L)
     g[keep] = x

@@ -51,7 +51,7 @@ and which does not depend on the free scale; a linear sensor's ``f`` costs nothi
 
 from __future__ import annotations
 
-import warnings
+from mehs.threadwarn import local_filter
 
 import numpy as np
 
@@ -232,8 +232,9 @@ def _solve_channel(Z, D, t, level_w, fp, slope, smoothness, sp, spla, shape_prio
     A = A.tocsc()
     Ak = A[keep][:, keep]
     b = -np.asarray(A[keep][:, [z1]].todense()).ravel()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    # (a singular system shows as non-finite values, checked below; this thread only:
+    # scenes are built as threads, and catch_warnings is process-wide)
+    with local_filter("ignore"):
         x = spla.spsolve(Ak.tocsc(), b, permc_spec=PERMC)
     f = np.zeros(L)
     f[keep] = x
