@@ -103,6 +103,13 @@ def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed
             phase = motion_phase(t0) if scene.moving else 0
             write_truth(folder, doc, scene.radiance_at(phase), scene.wavelengths, fwhm=scene.fwhm,
                         dn_per_ms=sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
+            if scene.moving:
+                # the truth is the first exposure's radiance: where later ones differ
+                # there is no single truth to compare with
+                from mehs.capture.simulate import moved_between, write_moved_mask
+
+                phases = [motion_phase(e["integration_time_ms"]) for e in doc["exposures"]]
+                write_moved_mask(folder, doc, moved_between(scene, phases))
     return doc
 
 

@@ -158,3 +158,39 @@ def test_coarse_lamp_certificate_is_interpolated_as_a_smooth_source():
     w = np.exp(-0.5 * o * o)
     ref = np.array([(planck(c + sig * o) * w).sum() / w.sum() for c in centres])
     assert np.abs(got / ref - 1).max() < 0.002
+
+
+def test_truth_accuracy_leaves_out_the_pixels_a_moving_scene_changed(tmp_path):
+    # a moving scene's truth is its first exposure; where later exposures differ there is
+    # no single truth, and the CLI / demo write truth/moved_mask.png to say where
+    import cv2
+
+    from mehs.calibration.accuracy import dataset_truth_accuracy
+    from mehs.capture.scene import SPECIM_IQ_FWHM, SPECIM_IQ_WAVELENGTHS
+    from mehs.cube import SpectralCube
+    from mehs.dataset.scene_build import to_31_bands
+    from mehs.io.envi_write import write_envi
+
+    wl = SPECIM_IQ_WAVELENGTHS
+    data = np.full((4, 5, wl.size), 2.0, np.float32)
+    truth = SpectralCube(data, wl, fwhm=SPECIM_IQ_FWHM, units="W sr-1 m-2 nm-1")
+    cap = tmp_path / "cap"
+    write_envi(cap / "truth" / "radiance.hdr", truth)
+    built = to_31_bands(truth)
+    hs = np.array(built.data)
+    hs[:, :3] *= 3.0                                   # the cloud moved over three columns
+    ds = tmp_path / "ds"
+    write_envi(ds / "s" / "hs.hdr", SpectralCube(hs, built.wavelengths, units=built.units))
+    (ds / "manifest.json").write_text(json.dumps({
+        "format": "mehs-dataset/1", "radiance_unit": "W sr-1 m-2 nm-1", "splits": {},
+        "scenes": [{"id": "s", "files": {"hs": "s/hs.hdr"}, "sha256": {},
+                    "quality": {"radiance_scale": 1.0}, "provenance": {"params": {}}}]}))
+    (cap / "scene.json").write_text(json.dumps({"truth": "truth/radiance.hdr"}))
+    assert dataset_truth_accuracy(ds, {"s": cap})["s"]["rel_error_median"] > 0.1
+    moved = np.zeros((4, 5), np.uint8)
+    moved[:, :3] = 255
+    cv2.imwrite(str(cap / "truth" / "moved_mask.png"), moved)
+    (cap / "scene.json").write_text(json.dumps({"truth": "truth/radiance.hdr",
+                                                "truth_moved_mask": "truth/moved_mask.png"}))
+    acc = dataset_truth_accuracy(ds, {"s": cap})["s"]
+    assert acc["rel_error_p95"] < 1e-5 and acc["pixels"] == 8
