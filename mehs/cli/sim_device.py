@@ -144,10 +144,10 @@ def run(args):
             while not stop.wait(0.5):
                 # what went wrong inside the simulated camera (its fill callback cannot
                 # raise into Aravis): said on stderr as it happens
-                errs = getattr(cam, "errors", None) or []
-                for e in errs[seen:]:
+                new = list((getattr(cam, "errors", None) or [])[seen:])
+                seen += len(new)   # (the camera's thread may append while this prints)
+                for e in new:
                     print(f"mehs sim-device: camera: {e}", file=sys.stderr, flush=True)
-                seen = len(errs)
         except KeyboardInterrupt:
             pass
     return 0

@@ -42,8 +42,16 @@ STALE_AFTER_S = 86400.0
 
 
 def _host_tag() -> str:
-    """8 hex digits naming this host (a pid means something only on its own host)."""
-    return f"{zlib.crc32(os.uname().nodename.encode('utf-8')):08x}"
+    """8 hex digits naming this host and PID namespace (a pid means something only there:
+    containers sharing the host's name have their own pids)."""
+    import platform
+
+    ident = platform.node()
+    try:
+        ident += f"/{os.stat('/proc/self/ns/pid').st_ino}"
+    except OSError:
+        pass         # no /proc (macOS, Windows): the host name alone
+    return f"{zlib.crc32(ident.encode('utf-8')):08x}"
 
 
 def _temp_re(dest: Path) -> re.Pattern[str]:
@@ -72,6 +80,8 @@ def make_temp_folder(dest: str | Path) -> Path:
 
 
 def _alive(pid: int) -> bool:
+    if os.name == "nt":
+        return True          # os.kill(pid, 0) would end it there: the age decides instead
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
