@@ -35,7 +35,6 @@ References
 
 from __future__ import annotations
 
-from mehs.threadwarn import local_filter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -43,6 +42,7 @@ from typing import Any, Callable
 import numpy as np
 
 from mehs.errors import FormatError, InputError
+from mehs.threadwarn import local_filter
 
 FORMAT = "mehs-response/1"
 

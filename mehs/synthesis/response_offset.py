@@ -51,11 +51,10 @@ and which does not depend on the free scale; a linear sensor's ``f`` costs nothi
 
 from __future__ import annotations
 
-from mehs.threadwarn import local_filter
-
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.threadwarn import local_filter
 
 #: Makes λ = 100 (the curves' default) a prior of the right strength in the linear domain,
 #: scanned over 1e3…1e5 on simulated 12-bit brackets (gamma, linear, s-curve sensors,
