@@ -106,10 +106,10 @@ def _capture(spec: DemoScene, folder: Path, scene, sensor, *, resume: bool, seed
             if scene.moving:
                 # the truth is the first exposure's radiance: where later ones differ
                 # there is no single truth to compare with
-                from mehs.capture.simulate import moved_between, write_moved_mask
+                from mehs.capture.simulate import write_moved_mask
 
                 phases = [motion_phase(e["integration_time_ms"]) for e in doc["exposures"]]
-                write_moved_mask(folder, doc, moved_between(scene, phases))
+                write_moved_mask(folder, doc, scene.moved_between(phases))
     return doc
 
 

@@ -418,16 +418,17 @@ class SimGenicamDevices:
     """Simulated Zaber stage (TCP) + simulated GigE Vision HS camera sharing one world.
 
     Use as a context manager; :attr:`stage_url` and :attr:`camera_url` are what
-    ``mehs capture --stage … --camera …`` opens.
+    ``mehs capture --stage … --camera …`` opens. ``comm_checksum`` starts the stage with
+    ``comm.checksum`` = 1 (checksums on its replies), as :class:`~mehs.capture.simdevice.SimDevices`.
     """
 
     def __init__(self, scene: Scene, sensor: SensorModel | None = None, *, faults: str | None = None,
                  pitch: int = 64, host: str = "127.0.0.1", port: int = 0, start_homed: bool = False,
-                 speed: float = 4e6, **camera_options):
+                 speed: float = 4e6, comm_checksum: bool = False, **camera_options):
         gv, rest = split_faults(faults)
         self.world = SimWorld(scene, sensor or SensorModel(), pitch=pitch, faults=rest,
                               start_homed=start_homed, speed=speed)
-        self.stage = SimStage(self.world)
+        self.stage = SimStage(self.world, comm_checksum=comm_checksum)
         self.server = DeviceServer(self.stage.handle, host=host, port=port, name="stage")
         self._serving = False
         try:

@@ -263,20 +263,26 @@ class Scene:
 
     def motion_mask(self, exposure_index: float, *, rtol: float = 1e-3) -> np.ndarray:
         """bool ``(lines, samples)``: pixels whose radiance at ``exposure_index`` differs from exposure 0."""
-        lines, samples = self.radiance.shape[:2]
-        if not self.moving:
-            return np.zeros((lines, samples), dtype=bool)
-        a = self.radiance_at(0)
-        b = self.radiance_at(exposure_index)
-        diff = np.abs(b - a).max(axis=2)
-        return diff > rtol * np.maximum(np.abs(a).max(axis=2), 1e-6)
+        return self.moved_between([0, exposure_index], rtol=rtol)
 
     def moved_mask(self, n_exposures: int = 3) -> np.ndarray:
         """bool ``(lines, samples)``: pixels that change between any of exposures ``0..n_exposures-1``."""
-        m = self.motion_mask(0)
-        for k in range(1, n_exposures):
-            m |= self.motion_mask(k)
-        return m
+        return self.moved_between(range(n_exposures))
+
+    def moved_between(self, phases, *, rtol: float = 1e-3) -> np.ndarray:
+        """bool ``(lines, samples)``: pixels whose radiance at any of ``phases`` (exposure
+        indices, e.g. :func:`~mehs.capture.simulate.motion_phase` of each exposure's time)
+        differs from that at ``phases[0]`` by more than ``rtol`` of its largest band."""
+        lines, samples = self.radiance.shape[:2]
+        moved = np.zeros((lines, samples), dtype=bool)
+        phases = list(phases)
+        if not self.moving or len(phases) < 2:
+            return moved
+        a = self.radiance_at(phases[0])
+        ref = rtol * np.maximum(np.abs(a).max(axis=2), 1e-6)
+        for p in phases[1:]:
+            moved |= np.abs(self.radiance_at(p) - a).max(axis=2) > ref
+        return moved
 
 
 def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], scale: float) -> np.ndarray:

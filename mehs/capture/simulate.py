@@ -231,17 +231,6 @@ def write_simulated_scene(sim: SimulatedBracket, scene_dir: str | Path, *,
     return scene_dir
 
 
-def moved_between(scene, phases) -> np.ndarray:
-    """bool ``(lines, samples)``: pixels whose radiance at any of ``phases`` (motion phases,
-    :func:`motion_phase`) differs from that at ``phases[0]`` (relative 1e-3)."""
-    a = scene.radiance_at(phases[0])
-    ref = 1e-3 * np.maximum(np.abs(a).max(axis=2), 1e-6)
-    moved = np.zeros(a.shape[:2], dtype=bool)
-    for p in phases[1:]:
-        moved |= np.abs(scene.radiance_at(p) - a).max(axis=2) > ref
-    return moved
-
-
 def write_moved_mask(scene_dir: str | Path, doc: dict, moved: np.ndarray, *,
                      overwrite: bool = False) -> Path:
     """Write ``truth/moved_mask.png`` (uint8, 255 where ``moved``: the radiance differs

@@ -108,6 +108,13 @@ def has_checksum(text: str) -> bool:
     return _CHECKSUM_TAIL_RE.search(text) is not None
 
 
+def _message(marker: bytes, parts: list[str], checksum: bool, end: bytes) -> bytes:
+    body = " ".join(parts).encode("ascii")
+    if checksum:
+        body += b":" + f"{lrc(body):02X}".encode("ascii")
+    return marker + body + end
+
+
 def format_command(device: int, axis: int, command: str, *, checksum: bool = False,
                    msg_id: int | None = None) -> bytes:
     """Bytes of one command, e.g. ``format_command(1, 1, "move abs 1000") == b"/1 1 move abs 1000\\n"``."""
@@ -116,10 +123,7 @@ def format_command(device: int, axis: int, command: str, *, checksum: bool = Fal
         parts.append(f"{int(msg_id) % 100:02d}")
     if command:
         parts.append(command)
-    body = " ".join(parts).encode("ascii")
-    if checksum:
-        body += b":" + f"{lrc(body):02X}".encode("ascii")
-    return b"/" + body + b"\n"
+    return _message(b"/", parts, checksum, b"\n")
 
 
 def format_reply(device: int, axis: int, ok: bool, busy: bool, flag: str, data: str, *,
@@ -129,10 +133,7 @@ def format_reply(device: int, axis: int, ok: bool, busy: bool, flag: str, data: 
     if msg_id is not None:
         parts.append(f"{int(msg_id) % 100:02d}")
     parts += ["OK" if ok else "RJ", "BUSY" if busy else "IDLE", flag, data]
-    body = " ".join(parts).encode("ascii")
-    if checksum:
-        body += b":" + f"{lrc(body):02X}".encode("ascii")
-    return b"@" + body + b"\r\n"
+    return _message(b"@", parts, checksum, b"\r\n")
 
 
 @dataclass(frozen=True)

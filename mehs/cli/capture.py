@@ -128,8 +128,7 @@ def run(args):
             log=lambda m: print(m, file=sys.stderr), resume_hint=_resume_hint(args))
         if args.simulate and doc["truth"] is None and all(
                 e["status"] == "complete" for e in doc["exposures"]):
-            from mehs.capture.simulate import (motion_phase, moved_between, write_moved_mask,
-                                               write_truth)
+            from mehs.capture.simulate import motion_phase, write_moved_mask, write_truth
 
             scene = dev.world.scene
             t0 = doc["exposures"][0]["integration_time_ms"]
@@ -139,7 +138,7 @@ def run(args):
             if scene.moving:
                 # the truth is the first exposure's radiance: say where the others differ
                 phases = [motion_phase(e["integration_time_ms"]) for e in doc["exposures"]]
-                write_moved_mask(args.out, doc, moved_between(scene, phases))
+                write_moved_mask(args.out, doc, scene.moved_between(phases))
             if scene.info.get("certificate"):
                 # a simulated calibrated source comes with its certificate, as a real one does
                 from mehs.calibration.targets import sphere_certificate

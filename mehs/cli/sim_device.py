@@ -84,8 +84,8 @@ def build_devices(args, *, port: int = 0, transport: str = "tcp", genicam: bool 
 
         dev = SimGenicamDevices(scene, sensor, faults=args.faults, port=port,
                                 pixel_format=getattr(args, "pixel_format", None) or "Mono12",
-                                shutter=not getattr(args, "no_shutter", False))
-        dev.stage.comm_checksum = 1 if comm_checksum else 0   # the same SimStage, on TCP
+                                shutter=not getattr(args, "no_shutter", False),
+                                comm_checksum=comm_checksum)
         return dev
     return SimDevices(scene, sensor, faults=args.faults, port=port, transport=transport,
                       comm_checksum=comm_checksum)
