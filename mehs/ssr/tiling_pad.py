@@ -51,6 +51,15 @@ def check_multiple(value: Any, what: str = "size multiple") -> int:
     return k
 
 
+def declared_multiple(given: Any, *owners: Any, what: str = "size_multiple") -> int:
+    """``given`` if not None, else the first ``size_multiple`` attribute of ``owners`` that
+    is set, else 1; checked by :func:`check_multiple` (``what`` names it in the error)."""
+    for v in (given, *(getattr(o, "size_multiple", None) for o in owners)):
+        if v is not None:
+            return check_multiple(v, what)
+    return 1
+
+
 def size_multiple(model: Any) -> int:
     """The multiple ``model``'s inputs must have: ``model.tiling["size_multiple"]``, else
     ``model.size_multiple``, else 1."""

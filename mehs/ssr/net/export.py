@@ -124,10 +124,10 @@ class TorchSSRModel(SSRModel):
         self.trained_for = trained_for or checkpoint_trained_for(
             {"net_config": cfg.to_dict() if hasattr(cfg, "to_dict") else {}}, network)
         self.source = source
-        from mehs.ssr.tiling_pad import check_multiple
+        from mehs.ssr.tiling_pad import declared_multiple
 
-        k = size_multiple if size_multiple is not None else getattr(network, "size_multiple", None)
-        self.size_multiple = 1 if k is None else check_multiple(k, f"{self.name}: size_multiple")
+        self.size_multiple = declared_multiple(size_multiple, network,
+                                               what=f"{self.name}: size_multiple")
         self.description = (f"{self.arch}: {self.trained_for.label()}"
                             + (f", {Path(source).name}" if source else ""))
 
@@ -224,11 +224,10 @@ class TorchScriptModel(SSRModel):
         self._declared = None if wl is None else np.asarray(
             wl.cpu().numpy() if isinstance(wl, torch.Tensor) else wl, dtype=np.float64).reshape(-1)
         self.wavelengths = WAVELENGTHS_31 if self._declared is None else self._declared
-        from mehs.ssr.tiling_pad import check_multiple
+        from mehs.ssr.tiling_pad import declared_multiple
 
-        k = size_multiple if size_multiple is not None else getattr(self.module, "size_multiple",
-                                                                    None)
-        self.size_multiple = 1 if k is None else check_multiple(k, f"{self.name}: size_multiple")
+        self.size_multiple = declared_multiple(size_multiple, self.module,
+                                               what=f"{self.name}: size_multiple")
         self.description = f"TorchScript model {path.name} (NCHW)"
 
     def on_device(self, device: str) -> "TorchScriptModel":
@@ -336,10 +335,9 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
     the metadata property ``mehs_size_multiple``, which :class:`~mehs.ssr.models.OnnxModel`
     pads every run to.
     """
-    from mehs.ssr.tiling_pad import ONNX_SIZE_MULTIPLE_KEY, check_multiple
+    from mehs.ssr.tiling_pad import ONNX_SIZE_MULTIPLE_KEY, declared_multiple
 
-    if size_multiple is None and not isinstance(model, (str, Path)):
-        size_multiple = getattr(model, "size_multiple", None)
+    wrapper = None if isinstance(model, (str, Path)) else model   # its own multiple first
     tf, tf_arch = None, None
     if isinstance(model, (str, Path)):
         model, state = load_checkpoint_network(model)
@@ -355,9 +353,7 @@ def export_onnx(model, path: str | Path, *, opset: int = 17, example_size=(64, 4
     if not hasattr(model, "spectra"):
         raise InputError(f"cannot export {type(model).__name__}: not an SSR network")
     _require_onnx()
-    if size_multiple is None:
-        size_multiple = getattr(model, "size_multiple", None)
-    k = 1 if size_multiple is None else check_multiple(size_multiple, "size_multiple")
+    k = declared_multiple(size_multiple, wrapper, model)
     net = model.to("cpu").eval()
     graph = _ContractGraph(net).eval()
     example = torch.rand(1, 3, *(-(-int(n) // k) * k for n in example_size))
