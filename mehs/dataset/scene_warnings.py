@@ -22,8 +22,8 @@ shown, not captured.
 from __future__ import annotations
 
 import contextlib
+import functools
 import re
-import threading
 from typing import Any, Iterator
 
 #: distinct warnings kept per scene; the rest are counted
@@ -32,13 +32,9 @@ MAX_KEPT = 20
 # ignored by Python's default filters (PEP 565): library deprecations are not the scene's
 _QUIET = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
 
-_LOCAL = threading.local()
-
-
-def _collect(message, category) -> bool:
-    """The capturing thread's sink: True when the warning was kept."""
-    log = getattr(_LOCAL, "log", None)
-    if log is None or issubclass(category, _QUIET):
+def _keep(log: list[dict[str, Any]], message, category) -> bool:
+    """Add a warning to ``log``; True when kept (the sink of :func:`mehs.threadwarn.hooked`)."""
+    if issubclass(category, _QUIET):
         return False       # a library deprecation (not the scene's): shown as before
     name = category.__name__ if category.__module__ == "builtins" else (
         f"{category.__module__}.{category.__qualname__}")
@@ -74,13 +70,11 @@ def captured_warnings() -> Iterator[list[dict[str, Any]]]:
     from mehs.threadwarn import hooked
 
     log: list[dict[str, Any]] = []
-    previous = getattr(_LOCAL, "log", None)
-    _LOCAL.log = log
     try:
-        with hooked(_collect):
+        # the sink is this thread's (threadwarn keeps it per thread, nested blocks included)
+        with hooked(functools.partial(_keep, log)):
             yield log
     finally:
-        _LOCAL.log = previous
         if len(log) > MAX_KEPT:
             rest = sum(w["count"] for w in log[MAX_KEPT:])
             log[MAX_KEPT:] = [{"category": "mehs.more", "count": 1,
