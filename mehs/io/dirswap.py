@@ -5,8 +5,10 @@ name beside its destination and put in place only when complete. On Linux the
 two names are exchanged in one step (``renameat2(RENAME_EXCHANGE)``, Linux ≥ 3.15,
 glibc ≥ 2.28, on file systems that support it: ext4, xfs, btrfs, tmpfs): at no
 instant is the destination missing. Elsewhere the previous folder is renamed
-aside and the new one renamed in — two steps, with the previous folder put back if
-the second one fails or is interrupted.
+aside (under the writer's own temporary name) and the new one renamed in — two steps,
+with the previous folder put back if the second one fails or is interrupted; when
+another writer's folder took the destination between the two steps, it is moved aside
+in turn and the swap retried, so concurrent writers each complete there too.
 
 Each writer has its own temporary folder (:func:`make_temp_folder`,
 ``<dest>.part-<pid>-<host>-<random>``): two runs writing one destination at once
@@ -23,6 +25,7 @@ renameat2(2), Linux man-pages: ``RENAME_EXCHANGE``.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import secrets
@@ -179,28 +182,62 @@ def replace_folder(new: str | Path, dest: str | Path) -> None:
     new
         The finished folder, on the same file system as ``dest`` (beside it).
     dest
-        Where it goes. A ``<dest>.old`` beside it is used on systems without an atomic
-        exchange (and removed); an interrupted swap there leaves either the previous
-        folder at ``dest`` or, between the two renames, puts it back.
+        Where it goes. On systems without an atomic exchange the previous folder is
+        renamed aside under a name of :func:`make_temp_folder`'s pattern (so that what a
+        killed swap left is removed like any dead writer's temporary) and removed once
+        ``new`` is in place; an interrupted swap puts it back.
     """
     new, dest = Path(new), Path(dest)
-    old = dest.with_name(dest.name + ".old")
+    legacy = dest.with_name(dest.name + ".old")   # the one fixed aside name of older versions
     if dest.exists() and _exchange(new, dest):
         _discard(new)  # it now holds the previous contents
-        _discard(old)  # a two-rename swap killed while it removed the previous folder
+        if legacy.exists() or legacy.is_symlink():
+            _discard(legacy)  # an older version's two-rename swap, killed mid-way
         return
-    remove_path(old)
-    moved = False
-    try:
-        if dest.exists() or dest.is_symlink():
-            os.rename(dest, old)
-            moved = True
-        os.rename(new, dest)
-    except BaseException:
-        if moved and not dest.exists():
-            os.rename(old, dest)
-        raise
-    _discard(old)
+    remove_path(legacy)
+    for attempt in range(_SWAP_TRIES):
+        aside = _aside_name(dest)
+        moved = False
+        try:
+            try:
+                os.rename(dest, aside)
+                moved = True
+            except FileNotFoundError:
+                pass           # no previous folder (or another writer moved it meanwhile)
+            try:
+                os.rename(new, dest)
+            except OSError as exc:
+                # another writer's folder took ``dest`` between the two renames (POSIX:
+                # ENOTEMPTY / EEXIST, Windows: FileExistsError): it is the previous folder
+                # now; ours goes in on the next try, the last writer winning as on Linux
+                if not (dest.exists() and attempt + 1 < _SWAP_TRIES
+                        and (isinstance(exc, FileExistsError)
+                             or exc.errno in (errno.ENOTEMPTY, errno.EEXIST))):
+                    raise
+                if moved:
+                    _discard(aside)
+                continue
+        except BaseException:
+            if moved and not dest.exists():
+                os.rename(aside, dest)
+            raise
+        if moved:
+            _discard(aside)
+        return
+
+
+#: how often the two-rename swap is retried when other writers keep taking the destination
+_SWAP_TRIES = 8
+
+
+def _aside_name(dest: Path) -> Path:
+    """A name, unused now, for the previous folder during a two-rename swap: this
+    process's temporary pattern (:func:`make_temp_folder`), without creating it."""
+    while True:
+        aside = dest.with_name(f"{dest.name}.part-{os.getpid()}-{_host_tag()}-"
+                               f"{secrets.token_hex(4)}")
+        if not (aside.exists() or aside.is_symlink()):
+            return aside
 
 
 def _discard(previous: Path) -> None:
