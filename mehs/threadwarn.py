@@ -12,12 +12,17 @@ dispatcher — a single-threaded command — :func:`local_filter` is a plain
 ``catch_warnings``. The user's filters (``-W``, ``PYTHONWARNINGS``) keep precedence:
 the one "always" entry the dispatcher needs (so the "default" action's once-per-place
 memory does not hide a warning from the sink) is appended after them, and removed with
-the dispatcher, if still in place, when the last holder leaves.
+the dispatcher, if still in place, when the last holder leaves. A warning that reaches
+the display only through that entry — another thread's, or one no sink keeps — is shown
+as Python's default action would show it: once per place (``"default"``), per module
+(``"module"``) or at all (``"once"``), as the filters the entry stands behind say; so a
+merge's worker threads do not print one line per chunk while a build runs.
 """
 
 from __future__ import annotations
 
 import contextlib
+import sys
 import threading
 import warnings
 from typing import Any, Callable, Iterator
@@ -28,6 +33,8 @@ _active = 0
 _forward: Any = None       # the display in place when the dispatcher was installed
 _added: Any = None         # the "always" filter entry appended, if it was
 _ALWAYS = ("always", None, Warning, None, 0)
+_shown: set[tuple] = set()      # warnings shown once by the rule the "always" entry hides
+_MODULES: dict[str, str] = {}   # file → module name
 
 
 def _rules() -> list[tuple[str, tuple[type, ...]]]:
@@ -47,8 +54,52 @@ def _dispatch(message, category, filename, lineno, file=None, line=None):
     sink: Callable | None = getattr(_LOCAL, "sink", None)
     if sink is not None and sink(message, category):
         return None
+    if _added is not None and not _first_time(message, category, filename, lineno):
+        return None
     forward = _forward if _forward is not None else warnings._showwarning_orig  # type: ignore[attr-defined]
     return forward(message, category, filename, lineno, file, line)
+
+
+def _module_name(filename: str) -> str:
+    """The module a warning's file is (what the filters' module patterns match)."""
+    name = _MODULES.get(filename)
+    if name is None:
+        for m in list(sys.modules.values()):
+            if getattr(m, "__file__", None) == filename:
+                name = m.__name__
+                break
+        else:   # as warnings.warn_explicit does without a module
+            name = filename[:-3] if filename.endswith(".py") else filename
+        _MODULES[filename] = name
+    return name
+
+
+def _first_time(message, category, filename, lineno) -> bool:
+    """Whether a warning the display gets is to be shown: always, unless only the appended
+    "always" entry let it through and the action it stands in for shows it once."""
+    text = str(message)
+    module = _module_name(filename)
+    action = warnings.defaultaction
+    for entry in warnings.filters:
+        if entry is _added:
+            break
+        act, msg, cat, mod, ln = entry
+        if ((msg is None or msg.match(text)) and issubclass(category, cat)
+                and (mod is None or mod.match(module)) and (ln == 0 or lineno == ln)):
+            return True        # the user's (or Python's) own entry decided
+    if action == "once":
+        key: tuple = (text, category)
+    elif action == "module":
+        key = (text, category, module)
+    elif action == "default":
+        key = (text, category, module, lineno)
+    else:
+        return True
+    with _LOCK:
+        if key in _shown:
+            return False
+        _shown.add(key)
+    return True
 
 
 def _filters_changed() -> None:
@@ -98,6 +149,7 @@ def hooked(sink: Callable[[Any, type], bool] | None = None) -> Iterator[None]:
                             _filters_changed()
                             break
                 _forward = _added = None
+                _shown.clear()   # Python's own registries take over again
 
 
 @contextlib.contextmanager
