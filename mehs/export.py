@@ -12,7 +12,9 @@ Per-wavelength sequence (:func:`export_per_wavelength`)
     ``<out>/<prefix>_wavelengths.txt`` lists one line per file:
     ``<index> <wavelength_nm> <file name>`` after a ``#`` header line, and
     ``<out>/<prefix>_wavelengths.json`` holds the same as JSON together with
-    the units and FWHMs.
+    the units and FWHMs. Rows are the cube's lines and columns its samples (native
+    ENVI orientation, as in every mehs image; a renderer's lat-long map has the zenith
+    in row 0). The set is written all-or-nothing (:func:`export_per_wavelength`).
 
 Single spectral file (:func:`export_spectral_exr`)
     One multi-channel EXR in the Fichet et al. 2021 layout
@@ -27,14 +29,15 @@ References
 
 from __future__ import annotations
 
+import contextlib
 import re
 from pathlib import Path
 
 import numpy as np
 
 from mehs.cube import SpectralCube
-from mehs.errors import FormatError, InputError
-from mehs.io.atomic import write_json_atomic, write_text_atomic
+from mehs.errors import FormatError, InputError, MehsError
+from mehs.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 from mehs.io.exr import write_exr_gray, write_exr_spectral
 
 _PREFIX_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -77,7 +80,7 @@ def valid_prefix(prefix: str) -> str:
 
 def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: str = "band",
                           half: bool = False) -> list[Path]:
-    """Write one grayscale EXR per band plus the wavelength list files.
+    """Write one grayscale EXR per band plus the wavelength list files, as one set.
 
     Parameters
     ----------
@@ -86,7 +89,8 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     out_dir
         Folder to write into (created if needed). ``<prefix>_<digits>.exr`` files of
         an earlier export there that this one does not write are removed once it is
-        written.
+        written; such a file that ``mehs export`` did not write (no ``bandIndex`` /
+        ``wavelength`` header) is refused before anything is written.
     prefix
         File-name prefix (letters, digits, ``_.-``).
     half
@@ -96,6 +100,15 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     -------
     list[Path]
         The ``bands`` EXR paths in wavelength order.
+
+    Notes
+    -----
+    All-or-nothing: every band is first written to a hidden temporary file; only when
+    all are written are the earlier listing files removed, the bands renamed into
+    place and the listings written, the JSON listing last. An exception while writing
+    (a full disk, a failing band) leaves the folder as it was — an earlier export there
+    stays whole — instead of a partial sequence, or new bands mixed with an earlier
+    export's bands under that export's complete-looking listing.
     """
     cube = _check_cube(cube, half=half)
     valid_prefix(prefix)
@@ -106,18 +119,33 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     wl = cube.wavelengths
     width = max(3, len(str(wl.size - 1)))
     names = [f"{prefix}_{i:0{width}d}.exr" for i in range(wl.size)]
+    stale = _stale_bands(out, prefix, names)   # refuses foreign files before any write
     all_wl = [float(w) for w in wl]
-    paths = []
-    for i, name in enumerate(names):
-        plane = np.asarray(cube.data[:, :, i], dtype=np.float32)
-        paths.append(write_exr_gray(out / name, plane, half=half, header={
-            "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
-            "mehsUnits": str(cube.units), **_scale_header(cube)}))
-    _remove_stale_bands(out, prefix, names)
+    listings = [out / f"{prefix}_wavelengths.txt", out / f"{prefix}_wavelengths.json"]
+    paths = [out / n for n in names]
+    with contextlib.ExitStack() as staged:
+        for i, path in enumerate(paths):
+            tmp = staged.enter_context(atomic_path(path))   # renamed onto path on exit
+            plane = np.asarray(cube.data[:, :, i], dtype=np.float32)
+            try:
+                write_exr_gray(tmp, plane, half=half, header={
+                    "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
+                    "mehsUnits": str(cube.units), **_scale_header(cube)})
+            except MehsError as exc:
+                # name the band, not its hidden temporary file (gone when this is read)
+                if exc.path is not None and Path(exc.path) == tmp:
+                    raise type(exc)(exc.problem, path) from None
+                raise
+        # every band is written: the earlier listing goes first, so that an interruption
+        # while the bands are renamed leaves no listing that vouches for a mixed set
+        for f in listings:
+            f.unlink(missing_ok=True)
+    for f in stale:
+        f.unlink(missing_ok=True)
     lines = ["# index wavelength_nm file"] + [f"{i} {repr(float(w))} {n}"
                                               for i, (w, n) in enumerate(zip(wl, names))]
-    write_text_atomic(out / f"{prefix}_wavelengths.txt", "\n".join(lines) + "\n")
-    write_json_atomic(out / f"{prefix}_wavelengths.json", {
+    write_text_atomic(listings[0], "\n".join(lines) + "\n")
+    write_json_atomic(listings[1], {
         "format": "mehs-per-wavelength-exr/1",
         "pattern": f"{prefix}_%0{width}d.exr",
         "units": str(cube.units),
@@ -129,14 +157,65 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
     return paths
 
 
-def _remove_stale_bands(out: Path, prefix: str, names: list[str]) -> None:
-    # an earlier export of more bands (or another padding) into this folder would leave
-    # files a glob or %03d loader takes for this export's, at other wavelengths
+def _band_pattern(prefix: str) -> re.Pattern:
+    return re.compile(rf"{re.escape(prefix)}_\d+\.exr")
+
+
+def _is_exported_band(path: Path) -> bool:
+    """Whether ``path`` is a band file a per-wavelength export wrote (its header has the
+    ``bandIndex`` and ``wavelength`` attributes that :func:`export_per_wavelength` sets)."""
+    import OpenEXR
+
+    try:
+        header = OpenEXR.File(str(path), header_only=True).header()
+    except Exception:   # not an EXR, or a damaged one: not ours either way
+        return False
+    return "bandIndex" in header and "wavelength" in header
+
+
+def _stale_bands(out: Path, prefix: str, names: list[str]) -> list[Path]:
+    """Band files of an earlier export in ``out`` that an export writing ``names`` leaves
+    behind (to be removed once it is written).
+
+    An earlier export of more bands (or another padding) would leave files a glob or
+    ``%03d`` loader takes for this export's, at other wavelengths; removing them is only
+    right for files an export wrote, so a matching file of another origin
+    (``band_2024.exr`` from elsewhere) is refused here, before any write, naming it.
+    """
     keep = set(names)
-    pat = re.compile(rf"{re.escape(prefix)}_\d+\.exr")
-    for f in out.iterdir():
-        if f.name not in keep and pat.fullmatch(f.name) and f.is_file():
-            f.unlink()
+    pat = _band_pattern(prefix)
+    stale = sorted(f for f in out.iterdir()
+                   if f.name not in keep and pat.fullmatch(f.name) and f.is_file())
+    foreign = [f for f in stale if not _is_exported_band(f)]
+    if foreign:
+        more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
+        raise InputError(f"a file named like a band of this export{more} was not written by "
+                         f"mehs export; loaders of the {prefix}_NNN.exr sequence would take it "
+                         "for a band — move it, or choose another --prefix or folder",
+                         foreign[0])
+    return stale
+
+
+def remove_per_wavelength_export(out_dir: str | Path, prefix: str = "band") -> list[Path]:
+    """Remove an earlier per-wavelength export of ``prefix`` from ``out_dir``: its listing
+    files and the ``<prefix>_<digits>.exr`` bands an export wrote (other files are kept).
+
+    Returns
+    -------
+    list[Path]
+        The removed files.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        return []
+    pat = _band_pattern(valid_prefix(prefix))
+    gone = [out / f"{prefix}_wavelengths.json", out / f"{prefix}_wavelengths.txt"]
+    gone = [f for f in gone if f.is_file()]
+    gone += sorted(f for f in out.iterdir()
+                   if pat.fullmatch(f.name) and f.is_file() and _is_exported_band(f))
+    for f in gone:      # the JSON listing first: no listing outlives the set it lists
+        f.unlink(missing_ok=True)
+    return gone
 
 
 def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:

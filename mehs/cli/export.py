@@ -24,16 +24,16 @@ def configure(parser) -> None:
                              "e.g. 400:700:10 (default: keep the cube's bands)")
     parser.add_argument("--half", action="store_true", help="store half floats")
     parser.add_argument("--force", action="store_true",
-                        help="replace the EXR files of an earlier export in --out (refused "
-                             "without it)")
+                        help="replace an earlier export of this --prefix in --out (refused "
+                             "without it): its files are replaced once the new export is "
+                             "written, and those of the format not written this time removed; "
+                             "other files are kept")
 
 
 def run(args) -> int:
     from mehs.errors import InputError
-    from mehs.export import export_per_wavelength, export_spectral_exr
-    from mehs.io import load_cube
-
     from mehs.export import valid_prefix
+    from mehs.io import load_cube
 
     out = Path(args.out)
     valid_prefix(args.prefix)
@@ -55,16 +55,52 @@ def run(args) -> int:
         _warn_half_precision(cube)
     from mehs.io.lock import OutputLock
 
-    written = []
     with OutputLock(out, what="mehs export"):   # creates --out; a second run is refused
-        if args.format in ("per-wavelength", "both"):
-            written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
-        if args.format in ("spectral", "both"):
-            written.append(export_spectral_exr(cube, out / f"{args.prefix}.exr",
-                                               half=args.half))
+        written = _write(cube, out, args)
     wl = cube.wavelengths
     print(f"{out}: {len(written)} EXR file(s), {cube.bands} bands {wl[0]:g}..{wl[-1]:g} nm")
     return 0
+
+
+def _write(cube, out: Path, args) -> list[Path]:
+    """Write the export as one set: all of it, or (on an exception) nothing changed.
+
+    The spectral EXR is written to a hidden temporary file first and renamed into place
+    only after the per-wavelength set (itself all-or-nothing,
+    :func:`mehs.export.export_per_wavelength`) is in place, so a failure in either leaves
+    an earlier export whole instead of a new ``<prefix>.exr`` beside an earlier cube's
+    bands, or the reverse. Once written, the earlier export's files of the format not
+    written this time (``--force``; they are of another cube) are removed.
+    """
+    import contextlib
+
+    from mehs.errors import MehsError
+    from mehs.export import (export_per_wavelength, export_spectral_exr,
+                             remove_per_wavelength_export)
+    from mehs.io.atomic import atomic_path
+
+    spectral = args.format in ("spectral", "both")
+    per_wl = args.format in ("per-wavelength", "both")
+    single = out / f"{args.prefix}.exr"
+    written: list[Path] = []
+    with contextlib.ExitStack() as staged:
+        if spectral:
+            tmp = staged.enter_context(atomic_path(single))   # renamed onto it on exit
+            try:
+                export_spectral_exr(cube, tmp, half=args.half)
+            except MehsError as exc:
+                if exc.path is not None and Path(exc.path) == tmp:
+                    raise type(exc)(exc.problem, single) from None
+                raise
+        if per_wl:
+            written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
+    if spectral:
+        written.append(single)
+    else:
+        single.unlink(missing_ok=True)
+    if not per_wl:
+        remove_per_wavelength_export(out, args.prefix)
+    return written
 
 
 #: Share of the non-zero samples below half's smallest normal above which --half warns.
