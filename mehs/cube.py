@@ -130,7 +130,13 @@ class SpectralCube:
             warnings.warn(
                 f"{src or 'cube'}: wavelengths are not sorted; bands reordered "
                 "together with the data", UnsortedWavelengthsWarning, stacklevel=3)
-            self.data = np.ascontiguousarray(np.asarray(self.data)[:, :, order])
+            if np.array_equal(order, np.arange(nb - 1, -1, -1)):
+                # descending (a common spectrometer order): a reversed view, not a copy —
+                # a memory-mapped scan stays on disk (a 5000-line FX10 exposure is 2.3 GB;
+                # the copy read each exposure of a bracket whole into memory)
+                self.data = self.data[:, :, ::-1]
+            else:
+                self.data = np.ascontiguousarray(np.asarray(self.data)[:, :, order])
             self.wavelengths = self.wavelengths[order]
             if self.fwhm is not None:
                 self.fwhm = self.fwhm[order]

@@ -139,6 +139,9 @@ class MergeResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+#: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
+COPY_CHUNK_BYTES = 16 << 20
+
 _CODES = {"debevec": 0, "robertson": 1, "poisson": 2, "inverse-variance": 3}
 
 
@@ -414,6 +417,16 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     # release the GIL)
     from mehs.synthesis._ranges import run_ranges
 
+    # A chunk that must be copied (a layout other than BIL, a reversed band axis, another
+    # byte order, mixed dtypes) is copied whole, P exposures at once on every thread:
+    # 128 lines of an FX10 (1024 samples × 224 bands) are 176 MB a chunk. Bounded by bytes,
+    # the copies stay a few tens of MB whatever the sensor's width (BIL inputs are read in
+    # place, and keep chunk_lines).
+    in_place = same_dtype and not swap and all(
+        v[:1].flags.c_contiguous for v in views) and not is_float
+    if not in_place:
+        row = ns * nb * P * max(4 if not same_dtype else arrays[0].dtype.itemsize, 1)
+        chunk_lines = max(1, min(chunk_lines, COPY_CHUNK_BYTES // max(1, row)))
     run_ranges(nl, work, max_step=chunk_lines, name="mehs-merge")
     radiance = out.transpose(0, 2, 1)
     mask = np.zeros((nl, ns), dtype=np.uint8)

@@ -197,13 +197,20 @@ def _matrices(src_wl, dst_wl, method, src_fwhm, dst_fwhm, exclude):
     sums = w.sum(axis=1)
     empty = np.flatnonzero(sums <= 0)
     if empty.size:
-        names = ", ".join(f"{dst[i]:g} nm" for i in empty[:6])
         # A header in µm read as nm puts the whole sensor below 3 nm.
         hint = (" — are the wavelengths in micrometres? mehs expects nm"
                 if src_c[-1] < 30.0 <= dst.max() else "")
+        span = f"the source bands span {src_c[0]:g}..{src_c[-1]:g} nm"
+        if empty.size == dst.size:
+            # e.g. an FX17 (900–1700 nm) resampled to 400–700 nm: no band in common at all
+            raise InputError(
+                f"no source band covers {dst[0]:g}–{dst[-1]:g} nm: the {dst.size} target "
+                f"band(s) have no source coverage ({span}, method {method!r}){hint}")
+        names = ", ".join(f"{dst[i]:g} nm" for i in empty[:6])
+        more = f" … ({empty.size} of {dst.size})" if empty.size > 6 else ""
         raise InputError(
-            f"target band(s) {names} have no source coverage (source bands span "
-            f"{src_c[0]:g}..{src_c[-1]:g} nm, method {method!r}){hint}")
+            f"target band(s) {names}{more} have no source coverage ({span}, "
+            f"method {method!r}){hint}")
     partial = np.flatnonzero(coverage < 0.5)
     if partial.size and method != "linear":
         warnings.warn(
