@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from mehs.cube import SpectralCube
-from mehs.errors import FormatError, InputError, MehsError
+from mehs.errors import FormatError, InputError
 from mehs.io.atomic import atomic_path, write_json_atomic, write_text_atomic
 from mehs.io.exr import write_exr_gray, write_exr_spectral
 
@@ -127,15 +127,10 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         for i, path in enumerate(paths):
             tmp = staged.enter_context(atomic_path(path))   # renamed onto path on exit
             plane = np.asarray(cube.data[:, :, i], dtype=np.float32)
-            try:
-                write_exr_gray(tmp, plane, half=half, header={
-                    "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
-                    "mehsUnits": str(cube.units), **_scale_header(cube)})
-            except MehsError as exc:
-                # name the band, not its hidden temporary file (gone when this is read)
-                if exc.path is not None and Path(exc.path) == tmp:
-                    raise type(exc)(exc.problem, path) from None
-                raise
+            # errors and warnings name the band, not its hidden temporary file
+            write_exr_gray(tmp, plane, half=half, name=path, header={
+                "wavelength": float(wl[i]), "bandIndex": int(i), "wavelengths": all_wl,
+                "mehsUnits": str(cube.units), **_scale_header(cube)})
         # every band is written: the earlier listing goes first, so that an interruption
         # while the bands are renamed leaves no listing that vouches for a mixed set
         for f in listings:
@@ -218,10 +213,12 @@ def remove_per_wavelength_export(out_dir: str | Path, prefix: str = "band") -> l
     return gone
 
 
-def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False) -> Path:
-    """Write the cube as one multi-channel spectral EXR (Fichet 2021 layout)."""
+def export_spectral_exr(cube: SpectralCube, path: str | Path, *, half: bool = False,
+                        name: str | Path | None = None) -> Path:
+    """Write the cube as one multi-channel spectral EXR (Fichet 2021 layout); ``name``: the
+    file errors and warnings name when ``path`` is a temporary one."""
     return write_exr_spectral(path, _check_cube(cube, half=half), half=half,
-                              header=_scale_header(cube))
+                              header=_scale_header(cube), name=name)
 
 
 def radiance_scale(cube: SpectralCube) -> float | None:

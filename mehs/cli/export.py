@@ -74,7 +74,6 @@ def _write(cube, out: Path, args) -> list[Path]:
     """
     import contextlib
 
-    from mehs.errors import MehsError
     from mehs.export import (export_per_wavelength, export_spectral_exr,
                              remove_per_wavelength_export)
     from mehs.io.atomic import atomic_path
@@ -86,12 +85,7 @@ def _write(cube, out: Path, args) -> list[Path]:
     with contextlib.ExitStack() as staged:
         if spectral:
             tmp = staged.enter_context(atomic_path(single))   # renamed onto it on exit
-            try:
-                export_spectral_exr(cube, tmp, half=args.half)
-            except MehsError as exc:
-                if exc.path is not None and Path(exc.path) == tmp:
-                    raise type(exc)(exc.problem, single) from None
-                raise
+            export_spectral_exr(cube, tmp, half=args.half, name=single)
         if per_wl:
             written += export_per_wavelength(cube, out, prefix=args.prefix, half=args.half)
     if spectral:

@@ -114,7 +114,8 @@ class ExrImage:
 # --------------------------------------------------------------------------- writing
 
 def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | None = None, *,
-              half: bool = False, header: dict[str, Any] | None = None) -> Path:
+              half: bool = False, header: dict[str, Any] | None = None,
+              name: str | Path | None = None) -> Path:
     """Write an image with any number of channels as a single-part scan-line EXR.
 
     Parameters
@@ -130,6 +131,9 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
         Store 16-bit half floats instead of 32-bit floats.
     header
         Extra header attributes (str, float, int, list of float/str, …).
+    name
+        The file to name in errors and warnings, when ``path`` is a caller's temporary
+        file that is renamed onto it later (default: ``path``).
 
     Returns
     -------
@@ -151,40 +155,41 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     import OpenEXR
 
     path = Path(path)
+    where = Path(name) if name is not None else path
     img = np.asarray(image)
     if img.ndim == 2:
         img = img[:, :, None]
     if img.ndim != 3 or img.shape[0] == 0 or img.shape[1] == 0 or img.shape[2] == 0:
         raise InputError(f"an EXR image must be (H, W) or (H, W, C), got shape {np.shape(image)}",
-                         path)
+                         where)
     if not np.issubdtype(img.dtype, np.number) or np.iscomplexobj(img):
-        raise InputError(f"cannot store dtype {img.dtype} in an EXR", path)
+        raise InputError(f"cannot store dtype {img.dtype} in an EXR", where)
     n = img.shape[2]
     if channels is None:
         defaults = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}
         if n not in defaults:
-            raise InputError(f"{n} channels need explicit channel names", path)
+            raise InputError(f"{n} channels need explicit channel names", where)
         channels = defaults[n]
     channels = [str(c) for c in channels]
     if len(channels) != n:
-        raise InputError(f"{len(channels)} channel names for {n} channels", path)
+        raise InputError(f"{len(channels)} channel names for {n} channels", where)
     if len(set(channels)) != n or any(not c for c in channels):
-        raise InputError(f"channel names must be unique and non-empty: {channels}", path)
+        raise InputError(f"channel names must be unique and non-empty: {channels}", where)
 
     dtype = np.float16 if half else np.float32
     finite = np.isfinite(img) if img.dtype.kind == "f" else None
     if finite is not None and not finite.all():
         bad = int((~finite).sum())
-        raise InputError(f"refusing to write {bad} NaN/Inf values to an EXR", path)
+        raise InputError(f"refusing to write {bad} NaN/Inf values to an EXR", where)
     # a finite float64 beyond float32's range would become Inf in the conversion below
     peak = float(np.abs(img).max()) if img.size else 0.0
     if half and peak > HALF_MAX:
         raise InputError(
             f"value {peak:.6g} exceeds the half-float range (±{HALF_MAX:g}); "
-            "write 32-bit float or rescale", path)
+            "write 32-bit float or rescale", where)
     if peak > FLOAT32_MAX:
         raise InputError(f"value {peak:.6g} exceeds the 32-bit float range "
-                         f"(±{FLOAT32_MAX:.6g}); rescale", path)
+                         f"(±{FLOAT32_MAX:.6g}); rescale", where)
 
     pixels = {c: np.ascontiguousarray(img[:, :, i], dtype=dtype) for i, c in enumerate(channels)}
     hdr: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION,
@@ -192,13 +197,13 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     if header:
         hdr.update(header)
     if half:
-        hdr.update(_half_underflow(img, pixels, channels, path))
+        hdr.update(_half_underflow(img, pixels, channels, where))
     hdr[ORDER_ATTR] = list(channels)
     with atomic_path(path) as tmp:
         try:
             OpenEXR.File(hdr, pixels).write(str(tmp))
         except (RuntimeError, ValueError, TypeError) as exc:
-            raise FormatError(f"OpenEXR could not write the image ({exc})", path) from None
+            raise FormatError(f"OpenEXR could not write the image ({exc})", where) from None
     return path
 
 
@@ -265,14 +270,15 @@ def write_exr_rgb(path: str | Path, rgb: np.ndarray, *, half: bool = True,
 
 
 def write_exr_gray(path: str | Path, img: np.ndarray, *, half: bool = False,
-                   header: dict[str, Any] | None = None) -> Path:
+                   header: dict[str, Any] | None = None, name: str | Path | None = None) -> Path:
     """Write a single-channel image ``(H, W)`` as channel ``Y`` (32-bit float by default)."""
     img = np.asarray(img)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim != 2:
-        raise InputError(f"a grayscale image must be (H, W), got shape {img.shape}", path)
-    return write_exr(path, img, ["Y"], half=half, header=header)
+        raise InputError(f"a grayscale image must be (H, W), got shape {img.shape}",
+                         name or path)
+    return write_exr(path, img, ["Y"], half=half, header=header, name=name)
 
 
 # --------------------------------------------------------------------------- reading

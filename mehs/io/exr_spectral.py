@@ -69,7 +69,8 @@ def wavelength_channel_name(wavelength_nm: float, component: str = "S0") -> str:
 
 
 def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float] | None = None, *,
-                       half: bool = False, header: dict[str, Any] | None = None) -> Path:
+                       half: bool = False, header: dict[str, Any] | None = None,
+                       name: str | Path | None = None) -> Path:
     """Write a spectral image as one EXR channel per band (Fichet 2021 layout).
 
     Parameters
@@ -81,6 +82,9 @@ def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float]
         Band centres in nm, ``(B,)``; overrides the cube's when given.
     half
         Store half floats (values beyond ±65504 raise).
+    name
+        The file to name in errors and warnings when ``path`` is a temporary one
+        (:func:`mehs.io.exr.write_exr`).
 
     Channels are ``S0.<λ>nm`` (``T.<λ>nm`` when the cube's units say
     reflectance); see the module docstring for the header attributes
@@ -90,6 +94,7 @@ def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float]
     from mehs.cube import SpectralCube, validate_wavelengths
 
     path = Path(path)
+    where = Path(name) if name is not None else path
     units = "relative radiance"
     fwhm = scale = None
     if isinstance(cube, SpectralCube):
@@ -103,11 +108,11 @@ def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float]
     else:
         data = np.asarray(cube)
         if wavelengths is None:
-            raise InputError("wavelengths are required to write an array as a spectral EXR", path)
+            raise InputError("wavelengths are required to write an array as a spectral EXR", where)
         wl = wavelengths
     if data.ndim != 3:
-        raise InputError(f"a spectral image must be (H, W, B), got shape {data.shape}", path)
-    wl = validate_wavelengths(wl, data.shape[2], path)
+        raise InputError(f"a spectral image must be (H, W, B), got shape {data.shape}", where)
+    wl = validate_wavelengths(wl, data.shape[2], where)
     component = "T" if "reflect" in str(units).lower() or "transmit" in str(units).lower() else "S0"
     names = [wavelength_channel_name(w, component) for w in wl]
     hdr: dict[str, Any] = {
@@ -129,7 +134,7 @@ def write_exr_spectral(path: str | Path, cube: Any, wavelengths: Sequence[float]
         # the attribute is absent): say so only when it is true, i.e. calibrated absolute
         # radiance as stored; relative radiance, or radiance × 2^-k, carry no emissiveUnits
         hdr["emissiveUnits"] = EMISSIVE_UNITS
-    return write_exr(path, data, names, half=half, header=hdr)
+    return write_exr(path, data, names, half=half, header=hdr, name=name)
 
 
 def _spectral_groups(channels: Sequence[str]) -> dict[str, list[tuple[int, float]]]:
