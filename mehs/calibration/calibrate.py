@@ -39,13 +39,13 @@ References
 from __future__ import annotations
 
 import datetime as _dt
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mehs.calibration.measure import region_rows as _region_rows
 from mehs.calibration.spectra import Spectrum, band_average
 from mehs.errors import FormatError, InputError
 
@@ -53,6 +53,9 @@ FORMAT = "mehs-calibration/1"
 UNIT_ABSOLUTE = "W sr-1 m-2 nm-1"
 UNIT_RELATIVE = "relative radiance"
 UNIT_UNCALIBRATED = "DN/ms (uncalibrated)"
+#: fields every calibration file must hold (what :meth:`Calibration.to_dict` writes)
+_REQUIRED = ("unit", "method", "camera", "response", "wavelengths", "responsivity_shape",
+             "responsivity", "uncertainty")
 
 
 @dataclass
@@ -127,6 +130,12 @@ class Calibration:
         if self.uncertainty.shape != r.shape:
             raise InputError(f"uncertainty shape {self.uncertainty.shape} != responsivity "
                              f"shape {r.shape}{where}")
+        u = self.uncertainty
+        bad = ~np.isfinite(u) | (u < 0)
+        if bad.any():
+            b = np.flatnonzero(bad.any(axis=0))
+            raise InputError(f"uncertainty is NaN, infinite or negative in {b.size} band(s), "
+                             f"first {self.wavelengths[self.bands[b[0]]]:.2f} nm{where}")
         if self.unit not in (UNIT_ABSOLUTE, UNIT_RELATIVE):
             raise InputError(f"unknown calibration unit {self.unit!r}{where}")
 
@@ -151,6 +160,12 @@ class Calibration:
         if self.responsivity.shape[0] not in (1, int(samples)):
             raise InputError(f"{me} has {self.responsivity.shape[0]} spatial columns, the data "
                              f"{samples} (another binning or sensor width?)", source)
+        ms = self.camera.get("samples")
+        if ms is not None and int(ms) != int(samples):
+            # one responsivity per band fits any width, but a binned or cropped sensor
+            # sums other pixels into a DN: the reference's width is the camera's
+            raise InputError(f"{me} was made on {ms} spatial columns, the data have {samples} "
+                             "(another binning or sensor window?)", source)
         mine = self.camera.get("id")
         if mine and camera_id and str(mine) != str(camera_id):
             raise InputError(f"{me} is for camera {mine!r}, the data are from {camera_id!r}", source)
@@ -245,6 +260,14 @@ class Calibration:
 
         path = Path(path)
         d = read_json_document(path, FORMAT, "calibration")
+        missing = [k for k in _REQUIRED if k not in d]
+        if missing:
+            raise FormatError(f"calibration file lacks {', '.join(missing)} (edited by hand? "
+                              "make it again with mehs calibrate)", path)
+        if not isinstance(d["camera"], dict) or d["camera"].get("samples") is None:
+            # without its camera a calibration would be applied to any camera, width, binning
+            raise FormatError("calibration file's camera has no 'samples' (edited by hand? "
+                              "make it again with mehs calibrate)", path)
         try:
             shape = tuple(int(v) for v in d["responsivity_shape"])
             r = np.asarray(d["responsivity"], dtype=np.float64).reshape(shape)
@@ -252,8 +275,8 @@ class Calibration:
             params = dict(d.get("parameters") or {})
             params["file_sha256"] = sha256_file(path)
             return cls(r, u, d["wavelengths"], str(d["unit"]), str(d["method"]),
-                       fwhm=d.get("fwhm"), camera=d.get("camera") or {},
-                       response=d.get("response") or {}, sources=d.get("sources") or [],
+                       fwhm=d.get("fwhm"), camera=d["camera"],
+                       response=d["response"] or {}, sources=d.get("sources") or [],
                        created=str(d.get("created", "")), parameters=params, path=path,
                        bands=d.get("bands"))
         except (KeyError, TypeError, ValueError) as exc:
@@ -273,101 +296,43 @@ def bracket_camera_id(bracket) -> str | None:
     return None
 
 
-# ------------------------------------------------------------- measurement
-def _white_dn_per_ms(bracket, response, saturation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(samples, bands) DN/ms of the white-reference line and its relative uncertainty."""
-    from mehs.synthesis.fuse import _dark_mode, _lineariser
-
-    if any(w is None for w in bracket.white):
-        raise InputError("the capture has no white reference line in every exposure; use "
-                         "--region frame (a reference filling the view)", bracket.source)
-    L = 1 << bracket.bit_depth
-    lin = _lineariser(response, _dark_mode(response), bracket.bit_depth,
-                      [d is not None for d in bracket.darks])
-    est, use = [], []
-    for j, (w, d, t) in enumerate(zip(bracket.white, bracket.darks, bracket.times_ms)):
-        w = np.asarray(w, dtype=np.float64)
-        dk = np.zeros_like(w) if d is None else np.asarray(d, dtype=np.float64)
-        y = np.asarray(lin(w, dk, j), dtype=np.float64)
-        est.append(y / t)
-        # enough signal to matter, far enough from saturation for the mean of lines
-        use.append((w < np.minimum(saturation, 0.98 * (L - 1))[None, :]) & ((w - dk) > 50))
-    est, use = np.stack(est), np.stack(use)
-    if not use.any(axis=0).all():
-        s, b = np.argwhere(~use.any(axis=0))[0]
-        raise InputError(f"the white reference is saturated or too dark in every exposure at "
-                         f"column {s}, {bracket.wavelengths[b]:.2f} nm", bracket.source)
-    # the longest usable exposure has the best SNR
-    last = (use.shape[0] - 1) - np.argmax(use[::-1], axis=0)
-    best = np.take_along_axis(est, last[None], axis=0)[0]
-    n = use.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(use, est, 0).sum(0) / np.maximum(n, 1)
-        var = np.where(use, (est - mean) ** 2, 0).sum(0) / np.maximum(n - 1, 1)
-        rel = np.sqrt(var / np.maximum(n, 1)) / np.abs(best)
-    fill = np.median(rel[n >= 2]) if np.any(n >= 2) else 0.01
-    rel = np.where(n >= 2, rel, fill)
-    return best, rel
-
-
-def _region_rows(region: Any, bracket) -> np.ndarray | None:
-    """Scan lines of ``region`` (``"frame"``, ``"lines:A-B"``), or None for ``"white"``.
-
-    Checked before any work: a misspelt region (``"Frame"``, ``"whites"``) once
-    failed with an IndexError deep in the calibration, and any ``"<word>:A-B"``
-    (``"frame:0-9"``) was silently taken for ``"lines:A-B"``.
-    """
-    nl = bracket.shape[0]
-    if region == "white":
-        return None
-    if region == "frame":
-        return np.arange(nl)
-    m = re.fullmatch(r"lines:\s*(\d+)\s*-\s*(\d+)\s*", region) if isinstance(region, str) else None
-    if m is None:
-        raise InputError(f"region must be 'white', 'frame' or 'lines:A-B' (0-based, inclusive), "
-                         f"got {region!r}")
-    a, b = int(m.group(1)), int(m.group(2))
-    if not (0 <= a <= b < nl):
-        raise InputError(f"region lines {a}-{b} outside the capture's 0-{nl - 1}", bracket.source)
-    return np.arange(a, b + 1)
-
-
-def _frame_dn_per_ms(bracket, response, rows: np.ndarray,
-                     saturation) -> tuple[np.ndarray, np.ndarray]:
-    """DN/ms of the scan lines ``rows`` (from :func:`_region_rows`) of the fused frame."""
-    from mehs.synthesis.fuse import fuse_bracket
-
-    res = fuse_bracket(bracket, response=response, ghosts="off", saturation=saturation,
-                       check_response=False)
-    x = np.asarray(res.radiance.data, dtype=np.float64)[rows]
-    ok = (res.mask[rows] == 0)[..., None] & np.isfinite(x) & (x > 0)
-    n = ok.sum(axis=0)
-    if np.any(n < 1):
-        s, b = np.argwhere(n < 1)[0]
-        raise InputError(f"no usable reference line at column {s}, "
-                         f"{bracket.wavelengths[b]:.2f} nm (saturated in every exposure?)",
-                         bracket.source)
-    mean = np.where(ok, x, 0).sum(0) / n
-    var = np.where(ok, (x - mean) ** 2, 0).sum(0) / np.maximum(n - 1, 1)
-    rel = np.sqrt(var / n) / mean
-    return mean, rel
-
-
-def _reference_bands(bracket, spectrum: Spectrum, what: str, partial: bool) -> np.ndarray:
+def _reference_bands(bracket, spectrum: Spectrum, what: str, partial: bool,
+                     smooth: bool = False) -> np.ndarray:
     fw = bracket.exposures[0].fwhm
-    return band_average(spectrum, bracket.wavelengths, fw, what=what, partial=partial)
+    return band_average(spectrum, bracket.wavelengths, fw, what=what, partial=partial,
+                        smooth=smooth)
 
 
 def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, method: str,
                region: str, response: Any, per_column: bool, sources: list[dict],
-               camera_id: str | None, saturation: float | np.ndarray | None) -> Calibration:
+               camera_id: str | None, saturation: float | np.ndarray | None,
+               columns: str | None = None, extra: dict | None = None) -> Calibration:
+    from mehs.calibration import measure
     from mehs.synthesis.response import ResponseCurve
 
     rows = _region_rows(region, bracket)   # a bad region is refused before any work
+    cols = measure.parse_columns(columns, bracket.shape[1], bracket.source)
+    if cols is not None and per_column:
+        raise InputError("--columns picks the columns a reference fills for one responsivity "
+                         "per band: it needs --no-flat-field (a per-column flat field needs "
+                         "every column)")
     nb = bracket.shape[2]
     L = 1 << bracket.bit_depth
     sat = np.broadcast_to(np.asarray(0.98 * (L - 1) if saturation is None else saturation,
                                      dtype=np.float64), (nb,))
+    # the calibrated bands first: bands the reference spectra do not cover (--partial) need
+    # no signal in the capture (an LED-lit panel is dark in the NIR)
+    keep = np.flatnonzero(np.isfinite(l_ref))
+    if keep.size == 0:
+        raise InputError("the reference spectrum covers none of the camera's bands")
+    if np.any(np.diff(keep) != 1):
+        raise InputError("the reference spectrum leaves a gap inside the camera's bands")
+    l_ref, ref_unc = l_ref[keep], ref_unc[keep]
+    zero = l_ref <= 0
+    if zero.any():
+        k = int(np.flatnonzero(zero)[0])
+        raise InputError(f"the reference radiance is zero at {bracket.wavelengths[keep[k]]:.2f} nm "
+                         f"({int(zero.sum())} band(s)): it cannot calibrate those bands")
     if isinstance(response, ResponseCurve):
         curve, resp_info = response, {"method": response.method, "sha256": None}
     elif response in (None, "linear"):
@@ -379,35 +344,32 @@ def _calibrate(bracket, l_ref: np.ndarray, ref_unc: np.ndarray, *, unit: str, me
         resp_info = {"method": curve.method, "path": str(response), "sha256": sha256_file(response)}
     resp_info["g_sha256"] = curve.fingerprint()
     if rows is None:
-        dn, rel = _white_dn_per_ms(bracket, curve, sat)
+        dn, rel = measure.white_dn_per_ms(bracket, curve, sat, keep)
     else:
-        dn, rel = _frame_dn_per_ms(bracket, curve, rows, sat)
+        dn, rel = measure.frame_dn_per_ms(bracket, curve, rows, sat, keep)
+    params: dict[str, Any] = {"region": region, "per_column": per_column}
+    if cols is not None:
+        dn, rel = dn[cols[0]:cols[1] + 1], rel[cols[0]:cols[1] + 1]
+        params["columns"] = [cols[0], cols[1]]
+    prof = measure.check_columns_filled(dn, bracket.source)
+    # the flat field's range: vignetting and PRNU, and any non-uniformity of the reference
+    # across the slit, which a flat field cannot tell from them
+    params["column_profile"] = [float(np.min(prof)), float(np.max(prof))]
     if not per_column:
-        rel = np.sqrt(np.mean(rel ** 2, axis=0) / dn.shape[0])[None]
-        dn = dn.mean(axis=0, keepdims=True)
-    keep = np.flatnonzero(np.isfinite(l_ref))
-    if keep.size == 0:
-        raise InputError("the reference spectrum covers none of the camera's bands")
-    if np.any(np.diff(keep) != 1):
-        raise InputError("the reference spectrum leaves a gap inside the camera's bands")
-    dn, rel, l_ref, ref_unc = dn[:, keep], rel[:, keep], l_ref[keep], ref_unc[keep]
-    zero = l_ref <= 0
-    if zero.any():
-        k = int(np.flatnonzero(zero)[0])
-        raise InputError(f"the reference radiance is zero at {bracket.wavelengths[keep[k]]:.2f} nm "
-                         f"({int(zero.sum())} band(s)): it cannot calibrate those bands")
+        dn, rel, spread = measure.reduce_columns(dn, rel)
+        params["column_spread_median"] = float(np.median(spread))
     resp = dn / l_ref[None, :]
     unc = np.sqrt(rel ** 2 + ref_unc[None, :] ** 2)
     e0 = bracket.exposures[0]
     cam = {"id": camera_id or bracket_camera_id(bracket), "binning": e0.binning,
            "samples": int(bracket.shape[1]), "bit_depth": int(bracket.bit_depth)}
+    params.update({"times_ms": bracket.times_ms.tolist(),
+                   "reference_band_values": l_ref.tolist(), **(extra or {})})
     return Calibration(resp, unc, bracket.wavelengths, unit, method, fwhm=e0.fwhm, camera=cam,
                        bands=keep,
                        response=resp_info, sources=sources,
                        created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                       parameters={"region": region, "per_column": per_column,
-                                   "times_ms": bracket.times_ms.tolist(),
-                                   "reference_band_values": l_ref.tolist()})
+                       parameters=params)
 
 
 def _capture_sources(bracket) -> list[dict]:
@@ -432,16 +394,27 @@ def _spec_source(role: str, spec: Spectrum) -> dict:
     return {"role": role, "path": spec.source, "sha256": sha256_file(p) if p.is_file() else None}
 
 
+def _band_uncertainty(bracket, spec: Spectrum) -> np.ndarray:
+    """A spectrum's relative uncertainty column at the band centres (zeros without one)."""
+    if spec.uncertainty is None:
+        return np.zeros(bracket.wavelengths.size)
+    return np.interp(bracket.wavelengths, spec.wavelengths, spec.uncertainty)
+
+
 def calibrate_panel_relative(bracket, panel: Spectrum, illuminant: Spectrum, *,
                              region: str = "white", response: Any = None, per_column: bool = True,
                              camera_id: str | None = None, partial: bool = False,
-                             saturation: float | np.ndarray | None = None) -> Calibration:
+                             saturation: float | np.ndarray | None = None,
+                             columns: str | None = None) -> Calibration:
     """Relative calibration from a diffuse panel ``ρ(λ)`` under an illuminant of relative SPD ``S(λ)``.
 
     ``L_ref = ρ·S/π`` per band (band-averaged over the camera's spectral
     response), with ``S`` scaled to a mean of 1 over 400–700 nm (the absolute
-    level is unknown, so calibrated data are in :data:`UNIT_RELATIVE`). ``partial``:
-    calibrate the bands the spectra cover (a contiguous range) instead of refusing.
+    level is unknown, so calibrated data are in :data:`UNIT_RELATIVE`: the true
+    radiance times one unknown constant). ``partial``: calibrate the bands the
+    spectra cover (a contiguous range) instead of refusing. ``columns`` (``"A-B"``,
+    with ``per_column=False``): the columns a panel narrower than the view fills.
+    The uncertainty columns of both files are added in quadrature.
     """
     rho = _reference_bands(bracket, panel, "panel reflectance", partial)
     s = _reference_bands(bracket, illuminant, "illuminant SPD", partial)
@@ -451,30 +424,43 @@ def calibrate_panel_relative(bracket, panel: Spectrum, illuminant: Spectrum, *,
     if not norm > 0:
         raise InputError(f"illuminant ({illuminant.source}) has no power in 400-700 nm")
     l_ref = rho * (s / norm) / np.pi
-    unc = np.zeros_like(l_ref)
-    if panel.uncertainty is not None:
-        unc = np.interp(bracket.wavelengths, panel.wavelengths, panel.uncertainty)
+    unc = np.hypot(_band_uncertainty(bracket, panel), _band_uncertainty(bracket, illuminant))
     sources = _capture_sources(bracket) + [_spec_source("panel", panel),
                                            _spec_source("illuminant", illuminant)]
     return _calibrate(bracket, l_ref, unc, unit=UNIT_RELATIVE, method="panel-relative",
                       region=region, response=response, per_column=per_column, sources=sources,
-                      camera_id=camera_id, saturation=saturation)
+                      camera_id=camera_id, saturation=saturation, columns=columns,
+                      extra={"illuminant_norm_400_700": float(norm)})
 
 
 def calibrate_source_absolute(bracket, source: Spectrum, *, region: str = "frame",
                               response: Any = None, per_column: bool = True,
                               camera_id: str | None = None, partial: bool = False,
-                              saturation: float | np.ndarray | None = None) -> Calibration:
+                              saturation: float | np.ndarray | None = None,
+                              columns: str | None = None,
+                              source_unit: str | None = None) -> Calibration:
     """Absolute calibration from a source of known spectral radiance (W·sr⁻¹·m⁻²·nm⁻¹).
 
-    The certificate's relative uncertainty (third column) is propagated. ``partial``:
-    calibrate the bands the certificate covers instead of refusing.
+    The certificate's unit is ``source_unit``, else the one its header names
+    (W/(cm²·sr·nm), µW…, per µm: converted), else taken as W·sr⁻¹·m⁻²·nm⁻¹ — recorded
+    in ``parameters["source_unit"]`` (:mod:`mehs.calibration.units`); an irradiance is
+    refused. The certificate is a smooth source: between its points it is interpolated
+    as a spline of ``ln L`` unless it has lines (:func:`~mehs.calibration.spectra.band_average`).
+    Its relative uncertainty (third column) is propagated. ``partial``: calibrate the
+    bands the certificate covers instead of refusing. ``columns``: see
+    :func:`calibrate_panel_relative`.
     """
-    l_ref = _reference_bands(bracket, source, "source radiance", partial)
-    unc = np.zeros_like(l_ref)
-    if source.uncertainty is not None:
-        unc = np.interp(bracket.wavelengths, source.wavelengths, source.uncertainty)
+    from dataclasses import replace
+
+    from mehs.calibration.units import source_unit as _unit
+
+    su = _unit(source.header, source_unit, source.source)
+    if su["factor"] != 1.0:
+        source = replace(source, values=source.values * su["factor"])
+    l_ref = _reference_bands(bracket, source, "source radiance", partial, smooth=True)
+    unc = _band_uncertainty(bracket, source)
     sources = _capture_sources(bracket) + [_spec_source("source", source)]
     return _calibrate(bracket, l_ref, unc, unit=UNIT_ABSOLUTE, method="source-absolute",
                       region=region, response=response, per_column=per_column, sources=sources,
-                      camera_id=camera_id, saturation=saturation)
+                      camera_id=camera_id, saturation=saturation, columns=columns,
+                      extra={"source_unit": su})

@@ -14,6 +14,10 @@ def configure(parser):
     src.add_argument("--panel", metavar="REFLECTANCE",
                      help="diffuse panel reflectance (CSV or ENVI; a number for a flat panel): "
                           "relative radiance, needs --illuminant")
+    parser.add_argument("--source-unit", metavar="UNIT", default=None,
+                        help="unit of the --source values when its header does not name it, or "
+                             "names it wrongly: e.g. 'uW cm-2 sr-1 nm-1', 'W/(m2 sr um)' "
+                             "(default: the header's, else W sr-1 m-2 nm-1, stated)")
     parser.add_argument("--illuminant", metavar="SPD",
                         help="the panel's illuminant: a colour-science name (D65, A, HP1, ...) "
                              "or a CSV/ENVI relative SPD")
@@ -28,6 +32,10 @@ def configure(parser):
                         help="camera id to record (default: the one in scene.json)")
     parser.add_argument("--no-flat-field", action="store_true",
                         help="one responsivity per band (mean over columns) instead of per column")
+    parser.add_argument("--columns", metavar="A-B", default=None,
+                        help="with --no-flat-field: the columns (0-based, inclusive) a reference "
+                             "narrower than the view fills; a reference leaving columns unlit "
+                             "is refused otherwise")
     parser.add_argument("--partial", action="store_true",
                         help="calibrate only the contiguous bands the reference spectra cover "
                              "(e.g. a colour-science illuminant ends at 780 nm); calibrated "
@@ -55,15 +63,18 @@ def run(args) -> int:
         raise InputError("--panel needs --illuminant (the SPD lighting the panel)")
     if args.source and args.illuminant:
         raise InputError("--illuminant goes with --panel, not --source")
+    if args.source_unit and not args.source:
+        raise InputError("--source-unit goes with --source")
     from mehs.cli.fuse import check_bracket_paths
 
     check_bracket_paths(args.capture)
     bracket = load_bracket(args.capture if len(args.capture) > 1 else args.capture[0])
     common = dict(response=args.response, per_column=not args.no_flat_field,
-                  camera_id=args.camera_id, partial=args.partial)
+                  camera_id=args.camera_id, partial=args.partial, columns=args.columns)
     if args.source:
         spec = load_spectrum(args.source, what="source radiance")
-        cal = calibrate_source_absolute(bracket, spec, region=args.region or "frame", **common)
+        cal = calibrate_source_absolute(bracket, spec, region=args.region or "frame",
+                                        source_unit=args.source_unit, **common)
     else:
         try:
             rho = float(args.panel)
@@ -76,6 +87,13 @@ def run(args) -> int:
         ill = load_spectrum(args.illuminant, what="illuminant SPD")
         cal = calibrate_panel_relative(bracket, panel, ill, region=args.region or "white", **common)
     cal.save(out)
+    su = cal.parameters.get("source_unit")
+    if su and su.get("from") == "assumed":
+        print(f"certificate unit not stated in {args.source}: taken as W sr-1 m-2 nm-1 "
+              "(--source-unit to give another)")
+    elif su:
+        print(f"certificate unit {su['unit']!r} ({su['from']}): values x {su['factor']:g} "
+              "to W sr-1 m-2 nm-1")
     r = cal.responsivity
     cw = cal.calibrated_wavelengths
     if not cal.complete:
@@ -84,4 +102,14 @@ def run(args) -> int:
     print(f"{out}: {cal.method}, unit {cal.unit}, {r.shape[1]} bands × {r.shape[0]} column(s), "
           f"responsivity {np.median(r):.4g} DN/ms per unit (median), uncertainty "
           f"{np.median(cal.uncertainty):.2%} (median), {np.percentile(cal.uncertainty, 95):.2%} (p95)")
+    lo, hi = cal.parameters["column_profile"]
+    cols = cal.parameters.get("columns")
+    where = f"columns {cols[0]}-{cols[1]}" if cols else "columns"
+    if cal.responsivity.shape[0] > 1:
+        print(f"flat field: {where} at {lo:.3f}-{hi:.3f} of the brightest columns (the reference "
+              "is taken as uniform across the slit: its own non-uniformity is in the flat field)")
+    else:
+        print(f"one responsivity per band from {where} at {lo:.3f}-{hi:.3f} of the brightest; "
+              f"their spread ({cal.parameters['column_spread_median']:.2%} median) is in the "
+              "uncertainty")
     return 0
