@@ -13,7 +13,7 @@ from mehs.cli import main
 from _simdevice import MEHS, start_sim_device, stop
 
 SIZE = 8
-SMALL = ["--lines", str(SIZE), "--times", "1", "--dark-lines", "2", "--white-lines", "2",
+SMALL = ["--lines", str(SIZE), "--times", "1,2", "--dark-lines", "2", "--white-lines", "2",
          "--no-progress", "--timeout", "5"]
 
 
@@ -26,7 +26,7 @@ def test_capture_with_checksums_against_sim_device_comm_checksum(tmp_path):
                            capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr
         doc = json.loads((out / "scene.json").read_text())
-        assert [e["status"] for e in doc["exposures"]] == ["complete"]
+        assert [e["status"] for e in doc["exposures"]] == ["complete"] * 2
         # and a capture without --checksum still works: the device checks a command's
         # checksum only when one is sent, and the driver takes replies with one
         r = subprocess.run(MEHS + ["capture", "--stage", urls["stage"], "--camera", urls["camera"],
@@ -54,7 +54,7 @@ def test_capture_simulate_with_checksums(tmp_path, capsys):
     assert main(["capture", "--simulate", "--size", str(SIZE), "--seed", "1", "--checksum",
                  "--out", str(out), *SMALL]) == 0
     doc = json.loads((out / "scene.json").read_text())
-    assert [e["status"] for e in doc["exposures"]] == ["complete"]
+    assert [e["status"] for e in doc["exposures"]] == ["complete"] * 2
 
 
 def test_sim_device_comm_checksum_sets_the_simulated_stage():

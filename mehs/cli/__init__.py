@@ -42,7 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mehs",
         description="High dynamic range hyperspectral capture, synthesis, datasets "
                     "and spectral super-resolution evaluation.")
-    parser.add_argument("--version", action="version", version=f"mehs {__version__}")
+    parser.add_argument("--version", action=_VersionAction,
+                        help="print the versions of mehs, Python and its main libraries, and "
+                             "which optional extras are installed, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module, help_ in COMMANDS:
         mod = importlib.import_module(f"mehs.cli.{module}")
@@ -52,9 +54,84 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: (extra, distributions it installs) in the order the README lists them.
+EXTRAS: list[tuple[str, tuple[str, ...]]] = [
+    ("test", ("pytest", "hypothesis")), ("onnx", ("onnxruntime", "onnx")),
+    ("dask", ("dask", "distributed")), ("torch", ("torch",)), ("render", ("mitsuba",)),
+    ("aravis", ("PyGObject",)), ("bench", ("colour-hdri", "psutil")),
+]
+
+#: Core dependencies whose versions a bug report needs.
+CORE = ("numpy", "scipy", "numba", "OpenEXR", "opencv-contrib-python-headless",
+        "colour-science", "spectral", "h5py", "matplotlib")
+
+
+def versions_text() -> str:
+    """mehs, Python and core library versions, and each extra: installed (its
+    versions) or the command that installs it. Reads package metadata only (no import
+    of torch or mitsuba), so it answers at once."""
+    import platform
+    from importlib import metadata
+
+    def version(dist: str) -> str | None:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return None
+
+    core = ", ".join(f"{d} {version(d) or 'MISSING'}" for d in CORE)
+    lines = [f"mehs {__version__}",
+             f"Python {platform.python_version()} ({sys.executable})",
+             f"core: {core}", "extras:"]
+    for extra, dists in EXTRAS:
+        got = [(d, version(d)) for d in dists]
+        if all(v for _, v in got):
+            lines.append(f"  {extra:7s} installed ({', '.join(f'{d} {v}' for d, v in got)})")
+        else:
+            # PyGObject builds against the system's GObject introspection (README)
+            first = "the Debian packages in the README, then " if extra == "aravis" else ""
+            lines.append(f'  {extra:7s} not installed: {first}python -m pip install -e ".[{extra}]"')
+    return "\n".join(lines)
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: :func:`versions_text`, computed only when asked for."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(versions_text())
+        parser.exit()
+
+
+#: Options whose value may start with '-' (``--times -1,5``): argparse would take the
+#: value for an option and say only "expected one argument"; joined as ``--times=-1,5``
+#: the command itself says what is wrong with it.
+_DASH_VALUE_OPTIONS = ("--times",)
+
+
+def _join_dash_values(argv: list[str]) -> list[str]:
+    import re
+
+    out: list[str] = []
+    it = iter(range(len(argv)))
+    for i in it:
+        a = argv[i]
+        if (a in _DASH_VALUE_OPTIONS and i + 1 < len(argv)
+                and re.fullmatch(r"-[0-9.][0-9.,eE+\-\s]*", argv[i + 1])):
+            out.append(f"{a}={argv[i + 1]}")
+            next(it, None)
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
+    args = parser.parse_args(_join_dash_values(argv))
     if not getattr(args, "_run", None):
         parser.print_help()
         return 1
@@ -133,6 +210,24 @@ def reuse_heap() -> bool:
     return set_thresholds(256 << 20, 512 << 20)
 
 
+def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` of the ``mehs`` command: ``mehs: warning: MESSAGE``.
+
+    mehs's own warnings (and plain ``UserWarning``, whose messages name their file) are
+    shown as their message; another library's keep their category's name, which says
+    where they come from. Set by :func:`console` only: tests and scripts calling
+    :func:`main` keep Python's own display and ``pytest.warns``.
+    """
+    name = getattr(category, "__name__", "Warning")
+    own = category is UserWarning or getattr(category, "__module__", "").startswith("mehs")
+    text = str(message) if own else f"{name}: {message}"
+    stream = file if file is not None else sys.stderr
+    try:
+        print(f"mehs: warning: {text}", file=stream)
+    except (OSError, ValueError):  # a closed or broken stderr: nothing to show it on
+        pass
+
+
 def console() -> None:
     """The ``mehs`` command (and ``python -m mehs``): :func:`main`, then a quick exit.
 
@@ -149,6 +244,10 @@ def console() -> None:
     small_pages()
     if sys.argv[1:2] == ["fuse"]:
         reuse_heap()
+    import warnings
+
+    # a warning is one line for the user, not a Python source location and its code line
+    warnings.showwarning = show_warning
     code = main()
     import gc
 

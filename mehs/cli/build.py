@@ -76,6 +76,11 @@ def run(args):
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers must be at least 1")
+    from mehs.cli._overwrite import check_writable, refuse_foreign_folder
+
+    # an existing dataset is resumed or extended; any other folder with files is not one
+    refuse_foreign_folder(args.out, DATASET_NAMES, force=args.force, what="a mehs dataset")
+    check_writable(args.out)
     min_dr = args.min_dr if args.min_dr is not None else (0.0 if args.from_hs else 4.0)
     rules = QualityRules(max_ghost_fraction=args.max_ghost,
                          max_saturated_fraction=args.max_saturated,
@@ -87,13 +92,17 @@ def run(args):
     common = dict(workers=args.workers, force=args.force, seed=args.seed, splits=args.splits,
                   rules=rules, resample=args.resample, fwhm=args.fwhm,
                   scheduler=args.scheduler, progress=progress_bars(args.quiet), verify=args.verify)
-    if args.from_hs:
-        manifest = build_from_hs(args.scenes, args.out, **common)
-    else:
-        manifest = build_dataset(args.scenes, args.out, response=args.response,
-                                 method=args.method, ghosts=args.ghosts,
-                                 calibration=args.calibration,
-                                 allow_partial=args.allow_partial, **common)
+    try:
+        if args.from_hs:
+            manifest = build_from_hs(args.scenes, args.out, **common)
+        else:
+            manifest = build_dataset(args.scenes, args.out, response=args.response,
+                                     method=args.method, ghosts=args.ghosts,
+                                     calibration=args.calibration,
+                                     allow_partial=args.allow_partial, **common)
+    except KeyboardInterrupt:
+        _say_interrupted(args.out)
+        raise
     scenes = manifest["scenes"]
     n_pass = sum(s["status"] == "pass" for s in scenes)
     print(f"{args.out}: {len(scenes)} scenes, {n_pass} pass, {len(scenes) - n_pass} fail; "
@@ -108,3 +117,29 @@ def run(args):
             print(f"  {s['id']}: fail: {'; '.join(s['reasons'])}")
     # scenes failing a quality rule are a normal outcome; scenes that could not be built are not
     return 1 if any("error" in s for s in scenes) else 0
+
+
+#: What a dataset folder holds (:mod:`mehs.dataset.build`, :mod:`mehs.dataset.report`).
+DATASET_NAMES = ("manifest.json", "index.csv", "scenes", "splits", "report.html",
+                 "report_files")
+
+
+def _say_interrupted(out) -> None:
+    """After Ctrl-C: which scenes the dataset holds now, and how to finish it.
+
+    The manifest lists only committed scenes (half-built ones stay in hidden
+    ``scenes/.tmp-*`` folders, removed by the next run), so an interrupted dataset looks
+    like a smaller complete one; say so, and that the same command finishes it.
+    """
+    import json
+    import sys
+    from pathlib import Path
+
+    try:
+        doc = json.loads((Path(out) / "manifest.json").read_text(encoding="utf-8"))
+        n = len(doc.get("scenes") or [])
+    except (OSError, ValueError, AttributeError):
+        n = 0
+    print(f"mehs build: interrupted: {out} holds {n} committed scene(s), not every scene asked "
+          "for; run the same command again to finish it (committed scenes are kept)",
+          file=sys.stderr)

@@ -86,10 +86,18 @@ def run(args):
             times = [float(v) for v in args.times.replace(" ", "").split(",") if v]
         except ValueError:
             raise InputError(f"--times must be comma-separated numbers, got {args.times!r}") from None
+        if len(times) < 2:
+            # fuse, build and calibrate all refuse a one-exposure scene: refuse it now,
+            # before the stage moves, not after a capture nothing can use
+            raise InputError(f"--times needs two or more integration times for a bracket, got "
+                             f"{args.times!r} (e.g. --times 5,20,80; or --auto)")
     if not args.resume:  # the id `mehs build` will use: refuse now what it would refuse later
         from mehs.dataset.scene_list import check_scene_id
 
         check_scene_id(args.scene_id or Path(args.out).resolve().name)
+    from mehs.cli._overwrite import check_writable
+
+    check_writable(args.out)  # before the devices start and the stage moves
     sim_options = _sim_options(args) if args.simulate else None
     if args.resume and args.simulate:
         _check_same_simulated_scene(args.out, sim_options)

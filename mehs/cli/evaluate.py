@@ -130,6 +130,33 @@ def _bands(text):
     return lo, hi
 
 
+#: What ``mehs evaluate --out DIR`` writes (:mod:`mehs.ssr.results_io`, the report).
+RESULT_NAMES = ("evaluation.json", "results.csv", "summary.csv", "tables.md", "tables.txt",
+                "figures", "report.html", "report_files")
+
+
+def _all_scenes_note(asked: str, scored: str | None, dataset, n_scenes) -> str | None:
+    """A note when ``--split auto`` found neither a test nor a val split and scored every
+    scene, the train split's included: a model fitted on them scores optimistically there,
+    and nothing else in the output says which scenes were scored."""
+    if asked != "auto" or scored is not None:
+        return None
+    import json
+    from pathlib import Path
+
+    try:
+        splits = json.loads((Path(dataset) / "manifest.json").read_text(encoding="utf-8"))["splits"]
+        n_train = len(splits.get("train") or [])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None  # a plain folder of pairs or a public set: no splits to speak of
+    if not n_train:
+        return None
+    return (f"the dataset has no test or val split, so every scene was scored ({n_scenes}), "
+            f"the {n_train} of its train split included: a model fitted on them scores "
+            "optimistically there; build the dataset with a test split to score held-out "
+            "scenes")
+
+
 def run(args):
     from mehs.errors import InputError
     from mehs.ssr.evaluate import evaluate
@@ -152,9 +179,11 @@ def run(args):
     apply_source_arguments(args, args.dataset)
     from pathlib import Path
 
-    from mehs.cli._overwrite import refuse_existing
+    from mehs.cli._overwrite import check_writable, refuse_existing, refuse_foreign_folder
 
+    refuse_foreign_folder(args.out, RESULT_NAMES, force=args.force, what="mehs evaluate's results")
     refuse_existing([Path(args.out) / "evaluation.json"], args.force)
+    check_writable(args.out)
     if args.verify:
         from mehs.ssr.data import load_pairs
 
@@ -184,6 +213,10 @@ def run(args):
               f"(--score-unresolved scores them)")
     for note in res.config.get("notes", []):
         print(f"note: {note}")
+    fallback = _all_scenes_note(args.split, res.config.get("split"), args.dataset,
+                                res.config.get("n_scenes"))
+    if fallback:
+        print(f"note: {fallback}")
     for s in res.skipped:
         print(f"skipped {s['scene']} ({s['input']}): {s['reason']}")
     print(f"results: {res.out}")

@@ -16,8 +16,10 @@ SATURATION_12BIT = 4095
 
 
 def configure(parser) -> None:
-    parser.add_argument("path", metavar="PATH",
-                        help="ENVI .hdr (or its data file), Specim IQ capture folder, or .exr")
+    parser.add_argument("path", metavar="PATH", nargs="?", default=None,
+                        help="ENVI .hdr (or its data file), Specim IQ capture folder, or .exr; "
+                             "without PATH: the versions of mehs, Python and its libraries, "
+                             "and which extras are installed (for a bug report)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--lines", type=int, default=64, metavar="N",
                         help="sample at most N evenly spaced lines for the value "
@@ -32,6 +34,12 @@ def configure(parser) -> None:
 
 def run(args) -> int:
     import warnings
+
+    if args.path is None:
+        from mehs.cli import versions_text
+
+        print(versions_text())
+        return 0
 
     from mehs.io.plausibility import ByteOrderWarning
 

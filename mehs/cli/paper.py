@@ -69,6 +69,16 @@ def run(args):
         if not sep or not run_name or not path:
             raise InputError(f"--checkpoint must be RUN=PATH, got {item!r}")
         ckpts[run_name.strip()] = path.strip()
+    from mehs.cli._overwrite import check_writable, refuse_foreign_folder
+
+    # re-running resumes a paper folder; a folder holding other files is not one
+    refuse_foreign_folder(args.out, PAPER_NAMES, force=None, what="a mehs paper run")
+    check_writable(args.out)
+    no_networks = _no_networks_note()
+    if no_networks:
+        import sys
+
+        print(f"mehs paper: {no_networks}", file=sys.stderr)
     md = run_paper(args.dataset, args.out, real=args.real, quick=args.quick, preset=args.preset,
                    epochs=args.epochs, device=args.device,
                    baselines=[b for b in args.baselines.split(",") if b.strip()],
@@ -77,4 +87,27 @@ def run(args):
                    seed=args.seed, progress=progress_bars(args.no_progress))
     print(md.read_text(encoding="utf-8"))
     print(f"written: {md} and {md.with_suffix('.html')}")
+    if no_networks:
+        print(f"note: {no_networks}")
     return 0
+
+
+#: What ``mehs paper --out DIR`` writes (:mod:`mehs.ssr.paper`).
+PAPER_NAMES = ("state.json", "paper.md", "paper.html", "runs", "eval_main", "eval_real",
+               "figures")
+
+
+def _no_networks_note() -> str | None:
+    """Why the tables will hold the fixed baselines only, or None when networks are
+    registered: without the torch extra no SSR network is (mehs.ssr.registry), and the
+    run would otherwise end with empty network rows and no word why."""
+    from mehs.ssr.registry import list_architectures
+
+    if list_architectures():
+        return None
+    import importlib.util
+
+    why = ("PyTorch is not installed" if importlib.util.find_spec("torch") is None
+           else "PyTorch is installed but no network module could be loaded")
+    return (f"no SSR network to train ({why}): the tables hold the fixed baselines only; "
+            'install the torch extra with python -m pip install -e ".[torch]"')

@@ -45,12 +45,14 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         from mehs.errors import InputError
         raise InputError("--out exists and is not a folder", out)
-    from mehs.cli._overwrite import refuse_existing
+    from mehs.cli._overwrite import check_writable, refuse_existing, refuse_foreign_folder
     from mehs.io.atomic import refuse_inside_raw_capture
 
+    own = ("hdr_rgb.exr", "ldr_rgb.png", "preview.png", "rgb.json")
     refuse_inside_raw_capture(out)
-    refuse_existing([out / n for n in ("hdr_rgb.exr", "ldr_rgb.png", "preview.png", "rgb.json")],
-                    args.force)
+    refuse_foreign_folder(out, own, force=args.force, what="mehs rgb's images")
+    refuse_existing([out / n for n in own], args.force)
+    check_writable(out)
     cube = load_cube(args.hs)
     resampled = False
     if not args.no_resample and not (cube.bands == WAVELENGTHS_31.size

@@ -47,6 +47,11 @@ def run(args):
     from mehs.ssr.data import load_pairs
 
     check_model_path(args.out, RegressionModel.FORMAT)  # before the fit, not after
+    from mehs.cli._overwrite import check_writable
+    from mehs.io.atomic import refuse_inside_raw_capture
+
+    refuse_inside_raw_capture(args.out)  # a model file beside a raw cube changes the capture
+    check_writable(args.out)
     from mehs.cli._sources import apply_source_arguments
 
     root = Path(args.dataset)
