@@ -161,7 +161,8 @@ def build_scene(task: SceneTask) -> dict[str, Any]:
         ``entry`` is the manifest entry (status judged later by the main
         process) and, for failures, ``"error"`` and ``"error_kind"``
         (``"input"`` for a :class:`MehsError`, deterministic and not retried;
-        ``"internal"`` otherwise, retried on the next run). Python warnings raised
+        ``"internal"`` otherwise, retried on the next run: an ``OSError`` with its file
+        and reason, any other exception with its traceback). Python warnings raised
         while building are not printed: they come back as ``"warnings"`` (also in
         ``entry["provenance"]["run"]["warnings"]``; see
         :mod:`mehs.dataset.scene_warnings`), absent when there were none; paths in
@@ -213,6 +214,14 @@ def _build_scene(task: SceneTask) -> dict[str, Any]:
         outcome, error, kind = "built", None, None
     except MehsError as exc:
         outcome, error, kind = "failed", str(exc), "input"
+        out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
+    except OSError as exc:
+        # a file the system would not read or write (permissions, a full disk, a file
+        # removed meanwhile): the user's to fix, so a message naming the file, no
+        # traceback; retried on the next run, as what failed lies outside the inputs' bytes
+        what = exc.strerror or str(exc)
+        error = f"{exc.filename}: {what}" if exc.filename else f"{type(exc).__name__}: {what}"
+        outcome, kind = "failed", "internal"
         out_files, out_sha, quality, extra_prov = {}, {}, {}, {}
     except Exception as exc:  # noqa: BLE001 - recorded, reported and retried next run
         outcome, error, kind = "failed", f"{type(exc).__name__}: {exc}", "internal"
