@@ -8,8 +8,8 @@ number of scenes. Workers report their current stage through
 Process workers are started with the ``spawn`` method (safe with threads,
 numba and OpenEXR; the same on every OS), so the task function and its
 argument must be importable/picklable. Workers die with the process that
-started them (:mod:`mehs.dataset.lifetime`), and an interrupted run kills
-them instead of waiting for their scenes. Each worker's BLAS/OpenMP/numba thread
+started them (:mod:`mehs.dataset.lifetime`), ignore Ctrl-C (the parent takes it), and
+an interrupted run kills them instead of waiting for their scenes. Each worker's BLAS/OpenMP/numba thread
 count is set to ``cpu_count // workers`` (unless already set in the
 environment) to avoid oversubscribing the cores.
 """
@@ -70,6 +70,30 @@ def _thread_limits(workers: int):
                 os.environ[v] = old
 
 
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Workers started inside the block ignore SIGINT for their whole life.
+
+    Ctrl-C reaches every process of the terminal's group: a worker still starting up then
+    printed its own ``KeyboardInterrupt`` traceback (``spawn_main``) over the build's
+    message. An ignored signal stays ignored across ``exec`` and Python leaves it so, so
+    only the parent is interrupted and kills its workers (``_run_processes``). A Ctrl-C
+    landing during the few milliseconds of a worker's start is lost; the next one works.
+    Only the main thread may set signal handlers; elsewhere nothing changes.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def run_tasks(fn: Callable[[Any], Any], tasks: Iterable[tuple[str, Any]], *,
               workers: int = 1, scheduler: Any = None,
               on_stage: Callable[[str, str], None] | None = None) -> Iterator[Any]:
@@ -125,7 +149,7 @@ def _run_processes(fn, tasks, workers, on_stage):
                 on_stage(tid, stage)
 
     todo = list(reversed(tasks))
-    with _thread_limits(workers):
+    with _thread_limits(workers), _sigint_ignored():
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                                    initializer=_init_worker, initargs=(q, os.getpid()))
     finished = False
@@ -136,7 +160,7 @@ def _run_processes(fn, tasks, workers, on_stage):
                 tid, arg = todo.pop()
                 if on_stage is not None:
                     on_stage(tid, "queued")
-                with _thread_limits(workers):
+                with _thread_limits(workers), _sigint_ignored():   # submit starts workers
                     pending.add(pool.submit(fn, arg))
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             drain()
