@@ -55,6 +55,11 @@ def run(args) -> int:
     from mehs.synthesis.bracket import load_bracket
 
     out = Path(args.out)
+    from mehs.cli._overwrite import check_writable
+    from mehs.io.atomic import refuse_inside_raw_capture
+
+    refuse_inside_raw_capture(out)   # a calibration file beside a raw cube changes the capture
+    check_writable(out)
     if out.exists() and not args.force:
         raise InputError("exists; use --force to replace it", out)
     if out.exists() and out.is_dir():
