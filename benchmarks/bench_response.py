@@ -24,7 +24,11 @@ solve only), on colorchecker, lamp and natural scenes and on dark brackets (ligh
 ×10⁻³): recovery time and the merged radiance's bias across brightness deciles (ptp)
 against the truth, beside the true curve's.
 
-Run: ``python benchmarks/bench_response.py [--quick]``.
+With ``--smoothness 100,300,1000`` the offset table is repeated for each λ (shared curves, the
+default offset solve), scored against the true curve's merge — the grid the default λ
+(:data:`mehs.synthesis.response.DEFAULT_SMOOTHNESS`) was chosen on.
+
+Run: ``python benchmarks/bench_response.py [--quick] [--smoothness L1,L2,...]``.
 """
 
 from __future__ import annotations
@@ -201,6 +205,75 @@ def offset_solves(quick: bool) -> None:
                   f"{true:6.1f} {row[0]:8.2f} {row[1]:6.1f} {row[2]:8.2f} {row[3]:6.1f}")
 
 
+def smoothness_grid(quick: bool, lams: list[float]) -> None:
+    """Shared curves (default offset solve) at each λ: the merged radiance against the true
+    curve's merge of the same bracket — median |ratio − 1| and the ptp of its brightness-decile
+    medians (samples with >= 20 DN of true signal in the longest exposure), in %."""
+    from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket
+    from mehs.cube import SpectralCube
+    from mehs.synthesis.bracket import Bracket
+    from mehs.synthesis.fuse import fuse_bracket
+    from mehs.synthesis.fuse_response import recover_response
+    from mehs.synthesis.response import ResponseCurve
+
+    size, step = (48, 4) if quick else (64, 1)
+    wl = SPECIM_IQ_WAVELENGTHS[::step]
+    print(f"\nsmoothness λ: {size}×{size}×{wl.size} bands, shared curve; median |rel| % / "
+          "decile ptp % against the true curve's merge")
+    print(f"{'scene':14s} {'sensor':9s} {'bracket':12s} " + " ".join(f"{'λ=%g' % v:>12s}" for v in lams))
+    gl = tuple(0.04 * 4.0 ** k for k in range(5))
+    cases = [("colorchecker", 1.0, "gamma", 0.8, (1.0, 4.0, 16.0)),
+             ("colorchecker", 1.0, "gamma", 0.8, gl),
+             ("colorchecker", 1.0, "gamma", 0.8, (0.1, 0.8, 6.4)),
+             ("colorchecker", 1.0, "s-curve", 0.8, (1.0, 4.0, 16.0)),
+             ("lamp", 1.0, "gamma", 0.5, (1.0, 4.0, 16.0)),
+             ("lamp", 1.0, "s-curve", 0.8, (1.0, 4.0, 16.0)),
+             ("natural", 1.0, "gamma", 0.8, (1.0, 4.0, 16.0)),
+             ("natural", 1.0, "s-curve", 0.8, (1.0, 4.0, 16.0)),
+             ("lamp", 1.0, "gamma", 0.8, tuple(0.05 * 4.0 ** k for k in range(7))),
+             ("natural", 1e-3, "gamma", 0.8, (1.0, 4.0, 16.0)),
+             ("lamp", 1e-3, "gamma", 0.8, (1.0, 4.0, 16.0))]
+    z = np.arange(4096, dtype=np.float64)
+    for kind, scale, resp, gamma, times in cases:
+        sensor = SensorModel(response=resp, gamma=gamma, seed=3)
+        sim = simulate_bracket(_scene(kind, size, wl, scale), sensor, list(times))
+        br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
+                     [None] * len(times), sim.times_ms, wl, bit_depth=12)
+        truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
+
+        def merged(curve):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = fuse_bracket(br, response=curve, ghosts="off", check_response=False)
+            return np.asarray(res.radiance.data, np.float64), res.mask == 0
+
+        ref, rok = merged(ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)),
+                                        12, parameters={"levels": "raw"}))
+        cells = []
+        for lam in lams:
+            rad, ok = merged(recover_response(br, smoothness=lam, shared=True))
+            use = ((ok & rok)[..., None] & (rad > 0) & (ref > 0)
+                   & (truth * float(max(times)) >= 20.0))
+            q = np.log(rad[use] / ref[use])
+            q -= np.median(q)
+            tv = truth[use]
+            qs = np.quantile(tv, np.linspace(0, 1, 11))
+            dec = np.expm1([np.median(q[(tv >= a) & (tv <= b)]) for a, b in zip(qs[:-1], qs[1:])])
+            cells.append(f"{100 * np.median(np.abs(np.expm1(q))):5.2f} / {100 * np.ptp(dec):4.1f}")
+        name = kind if scale == 1.0 else f"{kind} x{scale:g}"
+        sen = resp if resp != "gamma" else f"gamma {gamma:g}"
+        print(f"{name:14s} {sen:9s} {len(times)} × ×{times[1] / times[0]:<6g} " + " ".join(f"{c:>12s}" for c in cells))
+
+
 if __name__ == "__main__":
-    main()
-    offset_solves("--quick" in sys.argv)
+    if "--smoothness" in sys.argv:
+        ap = argparse.ArgumentParser()
+        ap.add_argument("--quick", action="store_true")
+        ap.add_argument("--smoothness", required=True, help="comma-separated λ values")
+        a = ap.parse_args()
+        smoothness_grid(a.quick, [float(v) for v in a.smoothness.split(",")])
+    else:
+        main()
+        offset_solves("--quick" in sys.argv)

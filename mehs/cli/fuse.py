@@ -14,6 +14,7 @@ def configure(parser):
                         help="auto | linear | debevec | path of a saved curve (response.json); auto "
                              "(default): linear when the exposure ratios prove the sensor "
                              "linear, else a checked Debevec curve")
+    # mehs.synthesis.response.DEFAULT_SMOOTHNESS (not imported: the CLI starts without numpy)
     parser.add_argument("--lambda", dest="smoothness", type=float, default=100.0,
                         help="Debevec smoothness λ (bit-depth independent; default 100)")
     parser.add_argument("--samples", type=int, default=None,

@@ -24,7 +24,7 @@ from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, Noise
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
-from mehs.synthesis.response import ResponseCurve
+from mehs.synthesis.response import DEFAULT_SMOOTHNESS, ResponseCurve
 
 @dataclass
 class FusionResult:
@@ -129,7 +129,8 @@ def _after_file_check(fuse):
 
 @_after_file_check
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
-                 ghosts: str = "detect", smoothness: float = 100.0, samples: int | None = None,
+                 ghosts: str = "detect", smoothness: float = DEFAULT_SMOOTHNESS,
+                 samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,
                  noise: NoiseModel | tuple[float, float] | str | None = "auto",
                  saturation: float | np.ndarray | None = None,

@@ -19,8 +19,9 @@ from mehs.errors import InputError
 from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import warm_merge_kernel
-from mehs.synthesis.response import (ResponseCurve, recover_response_Debevec1997,
-                                     sample_pixels, to_levels, weighting_table)
+from mehs.synthesis.response import (DEFAULT_SMOOTHNESS, ResponseCurve,
+                                     recover_response_Debevec1997, sample_pixels, to_levels,
+                                     weighting_table)
 from mehs.synthesis.response_offset import match_constant as _match_constant
 
 #: "auto" uses the linear curve while consecutive exposures agree with it within this
@@ -160,7 +161,8 @@ OFFSET_ITERATIONS_SHARED = 60
 OFFSET_RELAXATION = 1.5
 
 
-def recover_response(bracket: Bracket, *, smoothness: float = 100.0, samples: int | None = None,
+def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS,
+                     samples: int | None = None,
                      seed: int = 0, shared: bool = False, levels: str = "raw",
                      saturation: np.ndarray | None = None,
                      weighting: str = "hat", offset: str = "auto",
