@@ -104,9 +104,34 @@ def read_scene_json(scene_dir: str | Path) -> dict[str, Any]:
     for e in doc["exposures"]:
         if not isinstance(e, dict) or e.get("status") not in ("complete", "incomplete"):
             raise FormatError(f"bad exposure record {e!r}", p)
-        if not isinstance(e.get("folder"), str):
-            raise FormatError(f"exposure record {e.get('index')!r} has no 'folder' path", p)
+        check_exposure_record(e, p)
     return doc
+
+
+def check_exposure_record(e: dict[str, Any], p: Path) -> None:
+    """Refuse an exposure record of ``scene.json`` (at ``p``) that would read the wrong data.
+
+    Its ``folder`` must stay inside the scene (a hand-edited ``../other`` would be
+    fused with the hashes of this scene's files); a recorded integration time must be
+    a positive number (it scales every radiance); ``files`` must map paths to digests.
+    """
+    rel = e.get("folder")
+    which = f"exposure record {e.get('index')!r}"
+    if not isinstance(rel, str) or not rel.strip():
+        raise FormatError(f"{which} has no 'folder' path", p)
+    parts = Path(rel).parts
+    if Path(rel).is_absolute() or ".." in parts or (parts and ":" in parts[0]):
+        raise FormatError(f"{which}: folder {rel!r} is outside the scene folder", p)
+    if "integration_time_ms" in e and e["integration_time_ms"] is not None:
+        t = e["integration_time_ms"]
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (np.isfinite(t) and t > 0):
+            raise FormatError(f"{which}: integration_time_ms {t!r} is not a positive number "
+                              "of milliseconds", p)
+    files = e.get("files")
+    if files is not None and not (isinstance(files, dict) and all(
+            isinstance(k, str) and isinstance(v, str) for k, v in files.items())):
+        raise FormatError(f"{which}: 'files' must map file paths to SHA-256 digests, got "
+                          f"{type(files).__name__}", p)
 
 
 def hash_folder(scene_dir: Path, folder: Path) -> dict[str, str]:

@@ -55,7 +55,8 @@ import numpy as np
 from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
 from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, MAX_MICROMETRES, UNIT_SCALE,
-                               envi_dtypes, format_acquisition_date, parse_acquisition_date)
+                               envi_dtypes, format_acquisition_date, parse_acquisition_date,
+                               units_mismatch)
 from mehs.io.envi_text import read_header_pairs
 from mehs.io.envi_write import write_envi  # the writer, part of this module's interface
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
@@ -229,7 +230,7 @@ def read_envi_header(path: str | Path) -> EnviHeader:
         ``header offset + lines·samples·bands·itemsize``.
     """
     hp = find_header_file(path)
-    h = read_header_pairs(hp)
+    h = read_header_pairs(hp, MANAGED_KEYS)
     if "spectral library" in str(h.get("file type", "")).lower():
         # spectra as lines, wavelengths along samples, one band: no cube, and its data
         # file (.sli) is no cube data file — say so instead of a missing-file error
@@ -366,6 +367,9 @@ def _cube_fields(hdr: EnviHeader) -> dict[str, Any]:
         wl = validate_wavelengths(wl * scale, nb, hp)
     except InputError as exc:
         raise FormatError(f"'wavelength': {exc.problem}", hp) from None
+    why = units_mismatch(wl, scale, unit, h.get("wavelength units", ""))
+    if why:
+        raise FormatError(why, hp)
     kw: dict[str, Any] = {"wavelengths": wl}
     if "fwhm" in h:
         fw = _float_list(h["fwhm"], "fwhm", nb, hp) * scale
@@ -476,7 +480,7 @@ def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
         data = np.array(data, order="C")
     if sf is not None:
         kw["units"] = "reflectance"
-    if "data units" in h:
+    if str(h.get("data units", "")).strip():      # an empty value states nothing
         kw["units"] = str(h["data units"]).strip()
     elif sf is None:
         kw["units"] = "DN" if data.dtype.kind in "iu" else "unknown"

@@ -38,6 +38,25 @@ UNIT_SCALE = {"nanometers": 1.0, "nanometer": 1.0, "nanometres": 1.0, "nanometre
 MAX_MICROMETRES = 100.0
 
 
+def units_mismatch(wl_nm: np.ndarray, scale: float, unit: str, said: str) -> str | None:
+    """Why band centres ``wl_nm`` (converted by ``scale`` from the header's ``unit``,
+    written ``said``) cannot be what the header meant, or None.
+
+    No imaging spectrometer records beyond 100 µm (far infrared) or below 100 nm
+    (X-rays): 400–1000 labelled "Micrometers" are nanometres, 0.4–1.0 labelled
+    "Nanometers" micrometres — the data are fine, the units line is wrong.
+    """
+    if np.any(wl_nm > MAX_MICROMETRES * 1e3):
+        return (f"band centres up to {wl_nm.max() / 1e3:g} µm: the wavelength units {said!r} "
+                f"do not fit values {wl_nm.min() / scale:g}–{wl_nm.max() / scale:g} "
+                "(nanometres?); correct the 'wavelength units' line")
+    if unit in UNIT_SCALE and np.all(wl_nm < 100.0):
+        return (f"band centres {wl_nm.min():g}–{wl_nm.max():g} nm are X-rays: the wavelength "
+                f"units {said!r} do not fit values {wl_nm.min() / scale:g}–"
+                f"{wl_nm.max() / scale:g} (micrometres?); correct the 'wavelength units' line")
+    return None
+
+
 def envi_dtypes() -> dict[str, np.dtype]:
     """ENVI ``data type`` codes → numpy dtypes (SPy's table)."""
     from spectral.io.envi import envi_to_dtype

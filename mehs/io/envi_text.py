@@ -10,7 +10,7 @@ a checked :class:`~mehs.io.envi.EnviHeader`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 from mehs.errors import FormatError, InputError
 
@@ -30,13 +30,19 @@ def decode_header(raw: bytes) -> str:
         return raw[3:].decode("utf-8", errors="replace")
     if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
         return raw.decode("utf-16", errors="replace")
+    if len(raw) >= 4 and raw[0] and not raw[1] and raw[2] and not raw[3]:
+        # UTF-16 without its byte-order mark ("ENVI" as E\0N\0…): little-endian
+        return raw.decode("utf-16-le", errors="replace")
+    if len(raw) >= 4 and not raw[0] and raw[1] and not raw[2] and raw[3]:
+        return raw.decode("utf-16-be", errors="replace")
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
         return raw.decode("cp1252", errors="replace")
 
 
-def parse_header_text(text: str) -> dict[str, Any] | None:
+def parse_header_text(text: str, conflicts: dict[str, list[Any]] | None = None
+                      ) -> dict[str, Any] | None:
     """``key = value`` / ``key = {…}`` pairs of an ENVI header text (``None``: not ENVI).
 
     The same reading as SPy's ``read_envi_header`` (keys lower-cased, ``;``
@@ -44,6 +50,11 @@ def parse_header_text(text: str) -> dict[str, Any] | None:
     plus what real headers need: any line ending (CR LF from Specim
     Lumo/IQ software), a brace block closed on its own line or followed by
     stray text, and a trailing comma before ``}`` (no empty last item).
+
+    A key given twice keeps its last value (SPy's rule). When ``conflicts`` is a
+    dict, every key given twice *with different values* is recorded there as
+    ``{key: [value, value, …]}`` (in file order), so that a caller can refuse a
+    hand-edited header whose ``samples`` or ``wavelength`` is ambiguous.
     """
     lines = text.splitlines()
     if not lines or not lines[0].strip().startswith("ENVI"):
@@ -58,7 +69,7 @@ def parse_header_text(text: str) -> dict[str, Any] | None:
         key, _, val = line.partition("=")
         key, val = key.strip().lower(), val.strip()
         if not val.startswith("{"):
-            out[key] = val
+            _put(out, key, val, conflicts)
             continue
         parts = [val]
         depth = val.count("{") - val.count("}")
@@ -81,26 +92,52 @@ def parse_header_text(text: str) -> dict[str, Any] | None:
                 break
         inner = block[1:-1]
         if key == "description":
-            out[key] = inner.strip()
+            _put(out, key, inner.strip(), conflicts)
             continue
         items = [v.strip() for v in inner.split(",")]
         if len(items) > 1 and items[-1] == "":
             items.pop()  # "{a, b,}": a trailing comma, not an empty last value
-        out[key] = items
+        _put(out, key, items, conflicts)
     return out
 
 
-def read_header_pairs(hp: Path) -> dict[str, Any]:
-    """The key/value pairs of the ENVI header file ``hp`` (named errors for unreadable or non-ENVI)."""
+def _put(out: dict[str, Any], key: str, val: Any, conflicts: dict[str, list[Any]] | None) -> None:
+    if conflicts is not None and key in out and out[key] != val:
+        conflicts.setdefault(key, [out[key]]).append(val)
+    out[key] = val
+
+
+def read_header_pairs(hp: Path, strict_keys: Collection[str] = ()) -> dict[str, Any]:
+    """The key/value pairs of the ENVI header file ``hp`` (named errors for unreadable or non-ENVI).
+
+    A key of ``strict_keys`` given twice with different values is a
+    :class:`FormatError`: which one the writer meant cannot be told (a line
+    appended in a text editor, two headers pasted together), and taking the last
+    would read the data with another shape or other band centres without a word.
+    """
     try:
         raw = hp.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read header ({exc.strerror})", hp) from None
+    if not raw.strip(b" \t\r\n\x00"):
+        raise FormatError("header file is empty (an interrupted copy or a full disk?)", hp)
+    conflicts: dict[str, list[Any]] = {}
     try:
-        h = parse_header_text(decode_header(raw))
+        h = parse_header_text(decode_header(raw), conflicts)
     except HeaderSyntaxError:
         raise FormatError("ENVI header cannot be parsed (unbalanced '{…}' or "
-                          "binary content)", hp) from None
+                          "binary content; a truncated copy?)", hp) from None
     if h is None:
         raise FormatError("not an ENVI header (first line is not 'ENVI')", hp)
+    bad = [k for k in conflicts if k in strict_keys]
+    if bad:
+        k = bad[0]
+        vals = " and ".join(_short(v) for v in conflicts[k])
+        raise FormatError(f"header key '{k}' is given {len(conflicts[k])} times with different "
+                          f"values ({vals}); remove the wrong line", hp)
     return h
+
+
+def _short(val: Any) -> str:
+    text = "{" + ", ".join(val) + "}" if isinstance(val, list) else str(val)
+    return repr(text if len(text) <= 40 else text[:37] + "…")

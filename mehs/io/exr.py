@@ -397,8 +397,17 @@ def read_exr(path: str | Path, *, check_finite: bool = True) -> ExrImage:
     return ExrImage(data=data, channels=names, header=header, path=path)
 
 
-# the spectral layout lives in its own module (size); its names stay importable from here
-from mehs.io.exr_spectral import (ABSOLUTE_RADIANCE, EMISSIVE_UNITS,  # noqa: E402,F401
-                                  checked_spectral_channels, read_exr_spectral,
-                                  spectral_channels, wavelength_channel_name,
-                                  write_exr_spectral)
+# the spectral layout lives in its own module (size); its names stay importable from
+# here, looked up on first use (PEP 562): importing them at the end of this module made
+# ``import mehs.io.exr_spectral`` fail with a circular ImportError in a fresh process
+_SPECTRAL_NAMES = frozenset({"ABSOLUTE_RADIANCE", "EMISSIVE_UNITS", "checked_spectral_channels",
+                             "read_exr_spectral", "spectral_channels",
+                             "wavelength_channel_name", "write_exr_spectral"})
+
+
+def __getattr__(name: str):
+    if name in _SPECTRAL_NAMES:
+        from mehs.io import exr_spectral
+
+        return getattr(exr_spectral, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,7 +9,9 @@ compare the values as labelled with the same bytes swapped:
 * **smoothness**: spectra are smooth along the bands, byte-swapped ones are not.
   The median absolute difference between neighbouring bands, relative to the
   median absolute deviation, is much larger as labelled than swapped;
-* floats: as labelled mostly non-finite or absurd magnitudes, swapped sane.
+* floats: as labelled mostly non-finite or absurd magnitudes, swapped sane; or
+  as labelled magnitudes spread over tens of decades (a swapped float's exponent is
+  a mantissa byte), swapped within a few.
 
 Data too dark to tell (values below 256 swap into multiples of 256 with the
 same relative roughness) never trigger a test.
@@ -29,6 +31,11 @@ MIN_BANDS = 8
 ROUGHNESS_RATIO = 3.0
 #: … and be at least this rough (noise-like).
 MIN_ROUGHNESS = 0.2
+#: Floats: the middle half of the magnitudes spanning more decades than this as
+#: labelled (byte-swapped floats: ~38) while fewer than
+#: :data:`SPREAD_PLAUSIBLE_DECADES` once swapped (a cube's radiances, reflectances, DN)
+SPREAD_SWAPPED_DECADES = 20.0
+SPREAD_PLAUSIBLE_DECADES = 8.0
 
 
 class ByteOrderWarning(UserWarning):
@@ -73,6 +80,17 @@ def _absurd_floats(x: np.ndarray) -> float:
     return float(bad.mean())
 
 
+def _decade_spread(x: np.ndarray) -> float:
+    """Interquartile range of ``log10 |x|`` over the finite non-zero values (0 if too few)."""
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        a = np.abs(x.astype(np.float64)).ravel()
+        a = a[np.isfinite(a) & (a > 0)]
+        if a.size < MIN_VALUES // 4:
+            return 0.0
+        q1, q3 = np.percentile(np.log10(a), [25.0, 75.0])
+    return float(q3 - q1)
+
+
 def byte_order_suspicion(data: np.ndarray) -> str | None:
     """Why ``data`` (lines, samples, bands) looks byte-swapped, or None if it does not.
 
@@ -90,6 +108,13 @@ def byte_order_suspicion(data: np.ndarray) -> str | None:
         if fv > 0.5 and fs < 0.01:
             return (f"{fv:.0%} of the values are non-finite or beyond 1e±20, none once "
                     "byte-swapped")
+        # Swapped, the exponent comes from a mantissa byte: magnitudes spread evenly over
+        # 2^±127, so only ~48 % fall beyond 1e±20 and the test above misses them. Their
+        # spread does not: the middle half spans ~38 decades, a real cube's a few.
+        dv, ds = _decade_spread(v), _decade_spread(s)
+        if dv > SPREAD_SWAPPED_DECADES and ds < SPREAD_PLAUSIBLE_DECADES:
+            return (f"the middle half of the magnitudes spans {dv:.0f} decades, "
+                    f"{ds:.0f} once byte-swapped")
         return None
     if data_dt.itemsize == 2:
         hi_v, hi_s = float((v > 4095).mean()), float((s > 4095).mean())

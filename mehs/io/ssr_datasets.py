@@ -173,9 +173,14 @@ def _mat_cube(path: Path, cube_key: str) -> tuple[np.ndarray, np.ndarray, dict]:
     if cube_key == "cube":
         try:
             nf = read_mat_variables(path, ("norm_factor",))["norm_factor"]
-            info["norm_factor"] = float(np.asarray(nf).reshape(-1)[0])
         except FormatError:
-            pass  # optional in ARAD-1K
+            nf = None  # optional in ARAD-1K
+        if nf is not None:
+            try:
+                info["norm_factor"] = float(np.asarray(nf, dtype=np.float64).reshape(-1)[0])
+            except (TypeError, ValueError, IndexError):
+                raise FormatError(f"'norm_factor' must be a number, got {np.asarray(nf).dtype} "
+                                  f"{np.asarray(nf).shape}", path) from None
     return cube, bands, info
 
 
@@ -205,6 +210,11 @@ def read_cave(folder: str | Path) -> tuple[np.ndarray, np.ndarray, dict]:
         if img is None:
             raise FormatError("not a readable PNG (truncated?)", p)
         if img.ndim == 3:  # a few CAVE PNGs are stored with identical colour channels
+            if img.shape[2] not in (3, 4) or np.any(img[..., 1:3] != img[..., :1]):
+                # a colour picture (an RGB render, a mislabelled file) is no band image:
+                # one channel of it would be scored as the band without a word
+                raise FormatError(f"band PNG has {img.shape[2]} colour channels that differ; "
+                                  "a CAVE band is one grey plane", p)
             img = img[..., 0]
         if depth is None:
             depth = img.dtype
@@ -332,6 +342,13 @@ def apply_options(cube: np.ndarray, bands: np.ndarray, opts: SourceOptions,
     if keep.size == 0:
         raise InputError(f"no band in 400–700 nm (the file has {bands.min():g}–{bands.max():g} nm)",
                          path)
+    if not np.all(np.isfinite(bands[keep])):
+        raise FormatError("the band list holds NaN or inf", path)
+    # files that list their bands from red to blue: ascending order, the data with them
+    keep = keep[np.argsort(bands[keep], kind="stable")]
+    if np.any(np.diff(bands[keep]) == 0):
+        raise FormatError(f"the band list repeats {bands[keep][np.diff(bands[keep]) == 0][0]:g} nm",
+                          path)
     rows, cols = (slice(None), slice(None)) if opts.crop is None else \
         central_crop(cube.shape[:2], opts.crop, path)
     out = np.asarray(cube[rows, cols][..., keep], dtype=np.float32)

@@ -358,8 +358,11 @@ def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
     from mehs.io.envi import read_envi
     from mehs.io.specim import read_specim_folder
 
+    from mehs.capture.scenefolder import check_exposure_record
+
     exps, darks, times, caps = [], [], [], []
     for e in recs:
+        check_exposure_record(e, root / "scene.json")
         folder = root / str(e.get("folder", ""))
         cap = read_specim_folder(folder, preview=False)
         t = e.get("integration_time_ms") or cap.raw.integration_time_ms
@@ -367,6 +370,11 @@ def _open_scene(root: Path, doc: dict[str, Any], recs: list[dict[str, Any]],
             t = float(t)
         except (TypeError, ValueError):
             raise FormatError(f"exposure has no usable integration time ({t!r})", folder) from None
+        th = cap.raw.integration_time_ms
+        if th is not None and not _same_time(th, t):
+            # which one is right cannot be told, and the time scales every radiance
+            raise FormatError(f"scene.json records {t:g} ms for this exposure, its header "
+                              f"'tint' {th:g} ms; correct the wrong one", folder)
         exps.append(cap.raw)
         darks.append(_dark_line(cap, folder))
         caps.append((cap, folder))
