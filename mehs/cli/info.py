@@ -177,17 +177,19 @@ def _describe_envi(path: Path, max_lines: int, saturation: float | None) -> dict
     db = kw.get("default_bands")
     info["default_bands"] = None if db is None else [
         {"band": b + 1, "nm": float(wl[b])} for b in db]
-    sf = hdr.fields.get("reflectance scale factor")
+    from mehs.io.envi_keys import reflectance_scale
+
+    sf = reflectance_scale(hdr.fields, hdr.header_path)   # "abc" or 0: named, as read_envi does
     if sf is not None:
-        info["reflectance_scale_factor"] = float(str(sf))
+        info["reflectance_scale_factor"] = sf
     from mehs.io.plausibility import byte_order_message, byte_order_suspicion
 
     why = byte_order_suspicion(hdr.open_memmap())
     info["byte_order_warning"] = None if why is None else byte_order_message(why, hdr.byte_order)
     idx, sampled = _sample_lines(hdr.lines, max_lines)
     sample = np.asarray(hdr.open_memmap()[idx])
-    if sf is not None and float(str(sf)) not in (0.0, 1.0):
-        sample = sample.astype(np.float32) / np.float32(float(str(sf)))
+    if sf is not None and sf != 1.0:
+        sample = sample.astype(np.float32) / np.float32(sf)
     integer = sample.dtype.kind in "iu"
     stats = _value_stats(sample, integer=integer, saturation=saturation)
     stats["sampled"] = bool(sampled)

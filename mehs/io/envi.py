@@ -56,7 +56,7 @@ from mehs.cube import SpectralCube, validate_wavelengths
 from mehs.errors import FormatError, InputError
 from mehs.io.envi_keys import (INTERLEAVES, MANAGED_KEYS, MAX_MICROMETRES, UNIT_SCALE,
                                envi_dtypes, format_acquisition_date, parse_acquisition_date,
-                               units_mismatch)
+                               reflectance_scale, units_mismatch)
 from mehs.io.envi_text import read_header_pairs
 from mehs.io.envi_write import write_envi  # the writer, part of this module's interface
 from mehs.io.plausibility import ByteOrderWarning, byte_order_message, byte_order_suspicion
@@ -461,15 +461,7 @@ def read_envi(path: str | Path, *, memmap: bool = True) -> SpectralCube:
     if why:
         warnings.warn(f"{hp}: {byte_order_message(why, hdr.byte_order)}", ByteOrderWarning,
                       stacklevel=2)
-    sf = None
-    if "reflectance scale factor" in h:
-        try:
-            sf = float(str(h["reflectance scale factor"]).strip())
-        except ValueError:
-            sf = float("nan")
-        if not (np.isfinite(sf) and sf != 0):
-            raise FormatError(f"reflectance scale factor {h['reflectance scale factor']!r} "
-                              "must be a non-zero number", hp)
+    sf = reflectance_scale(h, hp)
     if sf is not None and sf != 1.0:
         out = np.empty(hdr.shape, np.float32)
         np.divide(data, np.float32(sf), out=out, casting="unsafe")

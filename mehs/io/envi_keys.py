@@ -140,3 +140,21 @@ def format_acquisition_date(iso: str) -> str:
         if dt.utcoffset() is not None:
             out += dt.isoformat()[-6:]  # "+HH:MM"; Specim has none, mehs keeps it
     return out
+
+
+def reflectance_scale(fields: dict, hp) -> float | None:
+    """The header's ``reflectance scale factor`` (None when absent); a value that is not a
+    finite non-zero number is a :class:`~mehs.errors.FormatError` naming ``hp``: dividing
+    by it would give Inf or NaN reflectances, or ``abc`` no number at all."""
+    from mehs.errors import FormatError
+
+    if "reflectance scale factor" not in fields:
+        return None
+    raw = fields["reflectance scale factor"]
+    try:
+        sf = float(str(raw).strip())
+    except ValueError:
+        sf = float("nan")
+    if not (np.isfinite(sf) and sf != 0):
+        raise FormatError(f"reflectance scale factor {raw!r} must be a non-zero number", hp)
+    return sf
