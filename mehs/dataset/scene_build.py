@@ -23,6 +23,7 @@ from typing import Any
 from mehs import __version__
 from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import report_stage
+from mehs.dataset.portable import portable_provenance, portable_summary
 from mehs.dataset.scene_list import SceneSource
 from mehs.errors import InputError, MehsError
 from mehs.io.atomic import sha256_file
@@ -229,12 +230,13 @@ def _build_scene(task: SceneTask) -> dict[str, Any]:
         run["traceback"] = traceback.format_exc()
     run["finished"] = _now()
     run["seconds"] = round(time.perf_counter() - t_all, 3)
+    inputs, params = portable_provenance(task.source.paths, asdict(task.params), run)
     entry = {
         "id": sid, "status": "fail" if error else "pass", "reasons": [],
         "files": out_files, "sha256": out_sha, "quality": quality,
         "key": key if kind != "internal" else None,
-        "provenance": {"kind": task.source.kind, "inputs": list(task.source.paths),
-                       "input_sha256": hashes, "params": asdict(task.params),
+        "provenance": {"kind": task.source.kind, "inputs": inputs,
+                       "input_sha256": hashes, "params": params,
                        "response_sha256": task.response_sha256,
                        "software_version": __version__, "run": run, **extra_prov},
     }
@@ -331,7 +333,7 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     cube = result.radiance
     with _timed(run, "write"):
         result.response.save(tmp / "response.json")
-        write_json_atomic(tmp / "fusion.json", _jsonable(summary))
+        write_json_atomic(tmp / "fusion.json", _jsonable(portable_summary(summary)))
     del result
     from mehs.dataset.noisefloor import model_for_fused
 
