@@ -45,6 +45,7 @@ def test_paper_quick_writes_five_tables_and_resumes(tmp_path, capsys):
     rows4 = {r[0]: r[1:] for r in _table(md, "Table 4.")}
     rows5 = {r[0]: r[1:] for r in _table(md, "Table 5.")}
     assert set(rows2) == set(rows4) == set(rows5) == set(archs) | {"smits"}
+    assert "### Table 2. DATASET (test split)" in md   # make_paired_set has a test split
     num = re.compile(r"^\**\d+\.\d+\**$")
     for rows in (rows2, rows4):
         # every method in its trained setting: networks in both columns, Smits only without
