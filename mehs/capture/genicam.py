@@ -10,7 +10,9 @@ auto-exposure, references, resume and provenance work unchanged, plus
 :meth:`GenicamCamera.stream` for constant-velocity scans
 (:mod:`mehs.capture.scan`).
 
-Features used (GenICam SFNC): ``ExposureTime`` (µs), ``AcquisitionFrameRate``,
+Features used (GenICam SFNC): ``ExposureTime`` (µs), ``AcquisitionFrameRate`` (or the SFNC 1.x
+spellings ``ExposureTimeAbs`` / ``AcquisitionFrameRateAbs`` many cameras keep:
+:mod:`~mehs.capture.genicam_features`),
 ``AcquisitionMode``, ``TriggerSelector``/``TriggerMode``/``TriggerSource``/
 ``TriggerSoftware``, ``AcquisitionStart``/``AcquisitionStop``,
 ``BinningVertical``, ``PixelFormat``, ``PixelDynamicRangeMax``,
@@ -50,6 +52,7 @@ import numpy as np
 
 from mehs.capture import pixfmt
 from mehs.capture.aravis import SCHEMES, import_aravis
+from mehs.capture.genicam_features import EXPOSURE_TIME, FRAME_RATE, FeatureAccess, gerror
 from mehs.capture.genicam_frames import Frame, FrameStream, TriggerLedger
 from mehs.capture.spectral_cal import polynomial_wavelengths
 from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputError
@@ -58,7 +61,7 @@ from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputErr
 __all__ = ["Frame", "FrameStream", "GenicamCamera"]   # Frame, FrameStream: re-exported
 
 
-class GenicamCamera:
+class GenicamCamera(FeatureAccess):
     """Line-scan hyperspectral camera on Aravis (GigE Vision / USB3 Vision).
 
     Parameters
@@ -114,7 +117,7 @@ class GenicamCamera:
         try:
             self.cam = self.Aravis.Camera.new(self.device_id)
         except Exception as exc:  # GLib.Error: no such device / not reachable
-            raise DeviceError(f"cannot open GenICam camera {self.device_id!r} ({_gerror(exc)}); "
+            raise DeviceError(f"cannot open GenICam camera {self.device_id!r} ({gerror(exc)}); "
                               "'mehs capture --list-cameras' lists the cameras Aravis finds",
                               self._name) from None
         self.dev = self.cam.get_device()
@@ -144,36 +147,6 @@ class GenicamCamera:
 
     def _on_control_lost(self, *_a) -> None:
         self._control_lost = True
-
-    def _gi(self, what: str, fn: Callable[[], Any]) -> Any:
-        """Run an Aravis call; GLib errors become DeviceError / DeviceDisconnected."""
-        if self._control_lost:
-            raise DeviceDisconnected(f"camera control channel lost (unplugged?) before {what}", self.name)
-        try:
-            return fn()
-        except Exception as exc:
-            if not isinstance(exc, self.GLib.Error):
-                raise
-            if self._control_lost or "timeout" in _gerror(exc).lower():
-                self._control_lost = True
-                raise DeviceDisconnected(f"camera stopped answering on {what} ({_gerror(exc)}): "
-                                         "unplugged or powered off?", self.name) from None
-            raise DeviceError(f"{what}: {_gerror(exc)}", self.name) from None
-
-    def _has(self, feature: str) -> bool:
-        return bool(self._gi(f"feature {feature}", lambda: self.dev.is_feature_available(feature)))
-
-    def _int(self, f: str) -> int:
-        return int(self._gi(f"reading {f}", lambda: self.dev.get_integer_feature_value(f)))
-
-    def _float(self, f: str) -> float:
-        return float(self._gi(f"reading {f}", lambda: self.dev.get_float_feature_value(f)))
-
-    def _str(self, f: str) -> str:
-        return str(self._gi(f"reading {f}", lambda: self.dev.get_string_feature_value(f)))
-
-    def _set_str(self, f: str, v: str) -> None:
-        self._gi(f"setting {f}={v}", lambda: self.dev.set_string_feature_value(f, v))
 
     def _configure(self) -> None:
         entries = self.dev.dup_available_enumeration_feature_values_as_strings
@@ -260,14 +233,13 @@ class GenicamCamera:
         return bits
 
     def set_integration_time(self, ms: float) -> float:
-        """Set ``ExposureTime``; returns the time the camera uses (ms)."""
-        us = float(ms) * 1000.0
-        self._gi("setting ExposureTime", lambda: self.dev.set_float_feature_value("ExposureTime", us))
+        """Set ``ExposureTime`` (or ``ExposureTimeAbs``); returns the time the camera uses (ms)."""
+        self._set_num(self._feature(EXPOSURE_TIME, "exposure time"), float(ms) * 1000.0)
         self._t_ms = self.integration_time()
         return self._t_ms
 
     def integration_time(self) -> float:
-        return round(self._float("ExposureTime") / 1000.0, 6)
+        return round(self._num(self._feature(EXPOSURE_TIME, "exposure time")) / 1000.0, 6)
 
     def has_shutter(self) -> bool:
         return self._has(self.shutter_feature)
@@ -292,12 +264,18 @@ class GenicamCamera:
         return self._float("DeviceTemperature") if self._has("DeviceTemperature") else None
 
     def frame_rate(self) -> float:
-        return self._float("AcquisitionFrameRate")
+        return self._num(self._feature(FRAME_RATE, "frame rate"))
+
+    def set_frame_rate(self, hz: float) -> float:
+        """Set ``AcquisitionFrameRate`` (or ``…Abs``, enabling it where SFNC says so); the rate used."""
+        if self._has("AcquisitionFrameRateEnable"):   # SFNC: the rate applies only when enabled
+            self._gi("AcquisitionFrameRateEnable",
+                     lambda: self.dev.set_boolean_feature_value("AcquisitionFrameRateEnable", True))
+        self._set_num(self._feature(FRAME_RATE, "frame rate"), float(hz))
+        return self.frame_rate()
 
     def max_frame_rate(self) -> float:
-        lo, hi = self._gi("AcquisitionFrameRate bounds",
-                          lambda: self.dev.get_float_feature_bounds("AcquisitionFrameRate"))
-        return float(hi)
+        return self._num_bounds(self._feature(FRAME_RATE, "frame rate"))[1]
 
     # ------------------------------------------------------------ acquisition
     def _stop(self, flush_s: float | None = None) -> None:
@@ -356,6 +334,7 @@ class GenicamCamera:
         if self._has("TriggerSelector"):
             self._set_str("TriggerSelector", "FrameStart")
         if mode == "trigger":
+            self._check_trigger_features()
             self._set_str("TriggerMode", "On")
             self._set_str("TriggerSource", "Software")
         else:
@@ -497,7 +476,3 @@ class GenicamCamera:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-
-def _gerror(exc: BaseException) -> str:
-    return getattr(exc, "message", None) or str(exc)

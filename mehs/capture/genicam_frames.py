@@ -183,12 +183,7 @@ class FrameStream:
     def __enter__(self) -> "FrameStream":
         c = self.cam
         c._stop()
-        if c._has("AcquisitionFrameRateEnable"):   # SFNC: the rate applies only when enabled
-            c._gi("AcquisitionFrameRateEnable",
-                  lambda: c.dev.set_boolean_feature_value("AcquisitionFrameRateEnable", True))
-        c._gi("setting AcquisitionFrameRate",
-              lambda: c.dev.set_float_feature_value("AcquisitionFrameRate", self.requested))
-        self.rate = c.frame_rate()
+        self.rate = c.set_frame_rate(self.requested)
         c._start("free")
         return self
 
