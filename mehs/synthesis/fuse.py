@@ -19,8 +19,8 @@ import numpy as np
 from mehs.cube import SpectralCube
 from mehs.errors import InputError
 from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MERGE_METHODS, NoiseModel,
-                                  merge_bracket, warm_merge_kernel)
+from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
+                                  NoiseModel, merge_bracket, warm_merge_kernel)
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -38,8 +38,9 @@ class FusionResult:
     confidence
         float32 ``(lines, samples)``: expected SNR of the merged value, mean over bands.
     mask
-        uint8 ``(lines, samples)``: bit 1 saturated in every exposure (some band),
-        bit 2 ghost, bit 4 no usable signal.
+        uint8 ``(lines, samples)``: bit 1 saturated in every exposure (some band) — or,
+        de-ghosted, in the reference exposure (a lower bound) — bit 2 ghost, bit 4 no
+        usable signal.
     response
         The curve used.
     summary
@@ -277,6 +278,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_score = None
     ghost_fraction = None      # not tested (ghosts="off"): unknown, not zero
     ref_used = None
+    ref_bound = None           # ghosts="deghost": pixels left at the reference's lower bound
     gres = None
     if ghost_statistic:
         from mehs.synthesis.ghost import deghost_from_reference, detect_ghosts
@@ -294,11 +296,15 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         if ghosts == "deghost" and gres.mask.any():
             lin = _lineariser(curve, mr.info["dark_mode"], bracket.bit_depth,
                               [d is not None for d in bracket.darks])
+            ref_bound = np.zeros(mask.shape, dtype=bool)
             ref_used = deghost_from_reference(
                 radiance, gres.mask, [e.data for e in bracket.exposures], bracket.darks,
                 bracket.times_ms, linearise=lin, saturation=sat, floor=mr.info["noise"]["floor"],
                 calibration=np.broadcast_to(np.asarray(cal, dtype=np.float64), (nb,)),
-                reference=reference, clip_negative=clip_negative)
+                reference=reference, clip_negative=clip_negative, lower_bound=ref_bound)
+            # saturated in the reference: a lower bound of what it saw (a shorter exposure
+            # saw another instant), flagged like a band saturated in every exposure
+            mask[ref_bound] |= MASK_SATURATED
         timings["ghosts_s"] = time.perf_counter() - t2
 
     e0 = bracket.exposures[0]
@@ -323,6 +329,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                                   "mehs exposure times ms": [float(t) for t in bracket.times_ms]})
     summary = _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noise,
                        calibration, ref_used, auto_info)
+    summary["ghost_reference_saturated_fraction"] = (
+        None if ghosts != "deghost" or gres is None
+        else 0.0 if ref_bound is None else float(ref_bound.mean()))
     summary["units"] = units
     summary["saturation_detected"] = sat_found
     summary["negative_fraction"] = _negative_fraction(radiance)
