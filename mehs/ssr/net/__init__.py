@@ -28,9 +28,15 @@ from __future__ import annotations
 try:
     import torch  # noqa: F401
 except ImportError as exc:  # pragma: no cover - depends on the environment
-    raise ImportError(
-        "mehs.ssr.net needs PyTorch: install the extra with "
-        "`pip install \"mehs[torch]\"` (torch==2.13.0)") from exc
+    _NEEDS = ("mehs.ssr.net needs PyTorch: install the extra with "
+              "`pip install \"mehs[torch]\"` (torch==2.13.0)")
+    import sys
+
+    if sys.argv[:1] == ["-m"]:
+        # `python -m mehs.ssr.net` (argv[0] is "-m" while its package is imported): one
+        # line for the user, not runpy's traceback
+        raise SystemExit(f"{_NEEDS}") from None
+    raise ImportError(_NEEDS) from exc
 
 from mehs.ssr.net.base import LEARNING_MODES, NetConfig, SSRNetwork  # noqa: E402
 from mehs.ssr.net.basis import (BASIS_FUNCTIONS, MexicanHatBranch, SigmoidBasisBranch,  # noqa: E402
