@@ -120,7 +120,8 @@ def read_header_pairs(hp: Path, strict_keys: Collection[str] = ()) -> dict[str, 
     except OSError as exc:
         raise InputError(f"cannot read header ({exc.strerror})", hp) from None
     if not raw.strip(b" \t\r\n\x00"):
-        raise FormatError("header file is empty (an interrupted copy or a full disk?)", hp)
+        raise FormatError("not an ENVI header: the file is empty (an interrupted copy or a full "
+                          "disk?)", hp)
     conflicts: dict[str, list[Any]] = {}
     try:
         h = parse_header_text(decode_header(raw), conflicts)
