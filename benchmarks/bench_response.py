@@ -24,9 +24,10 @@ solve only), on colorchecker, lamp and natural scenes and on dark brackets (ligh
 ×10⁻³): recovery time and the merged radiance's bias across brightness deciles (ptp)
 against the truth, beside the true curve's.
 
-With ``--smoothness 100,300,1000`` the offset table is repeated for each λ (shared curves, the
-default offset solve), scored against the true curve's merge — the grid the default λ
-(:data:`mehs.synthesis.response.DEFAULT_SMOOTHNESS`) was chosen on.
+With ``--smoothness 100,300,1000,auto`` the offset table is repeated for each λ (shared curves,
+the default offset solve; ``auto``: λ chosen from the data, as when none is given), scored
+against the true curve's merge — the grid the default λ
+(:data:`mehs.synthesis.response.DEFAULT_SMOOTHNESS`) and its choice were measured on.
 
 Run: ``python benchmarks/bench_response.py [--quick] [--smoothness L1,L2,...]``.
 """
@@ -222,7 +223,8 @@ def smoothness_grid(quick: bool, lams: list[float]) -> None:
     wl = SPECIM_IQ_WAVELENGTHS[::step]
     print(f"\nsmoothness λ: {size}×{size}×{wl.size} bands, shared curve; median |rel| % / "
           "decile ptp % against the true curve's merge")
-    print(f"{'scene':14s} {'sensor':9s} {'bracket':12s} " + " ".join(f"{'λ=%g' % v:>12s}" for v in lams))
+    heads = ["λ=auto" if v is None else f"λ={v:g}" for v in lams]
+    print(f"{'scene':14s} {'sensor':9s} {'bracket':12s} " + " ".join(f"{h:>12s}" for h in heads))
     gl = tuple(0.04 * 4.0 ** k for k in range(5))
     cases = [("colorchecker", 1.0, "gamma", 0.8, (1.0, 4.0, 16.0)),
              ("colorchecker", 1.0, "gamma", 0.8, gl),
@@ -234,7 +236,9 @@ def smoothness_grid(quick: bool, lams: list[float]) -> None:
              ("natural", 1.0, "s-curve", 0.8, (1.0, 4.0, 16.0)),
              ("lamp", 1.0, "gamma", 0.8, tuple(0.05 * 4.0 ** k for k in range(7))),
              ("natural", 1e-3, "gamma", 0.8, (1.0, 4.0, 16.0)),
-             ("lamp", 1e-3, "gamma", 0.8, (1.0, 4.0, 16.0))]
+             ("lamp", 1e-3, "gamma", 0.8, (1.0, 4.0, 16.0)),
+             # an expansive sensor: black level ~5 raw levels above 0 (response_select)
+             ("natural", 1.0, "gamma", 1.4, tuple(0.05 * 4.0 ** k for k in range(6)))]
     z = np.arange(4096, dtype=np.float64)
     for kind, scale, resp, gamma, times in cases:
         sensor = SensorModel(response=resp, gamma=gamma, seed=3)
@@ -271,9 +275,11 @@ if __name__ == "__main__":
     if "--smoothness" in sys.argv:
         ap = argparse.ArgumentParser()
         ap.add_argument("--quick", action="store_true")
-        ap.add_argument("--smoothness", required=True, help="comma-separated λ values")
+        ap.add_argument("--smoothness", required=True,
+                        help="comma-separated λ values; 'auto': chosen from the data")
         a = ap.parse_args()
-        smoothness_grid(a.quick, [float(v) for v in a.smoothness.split(",")])
+        smoothness_grid(a.quick, [None if v == "auto" else float(v)
+                                  for v in a.smoothness.split(",")])
     else:
         main()
         offset_solves("--quick" in sys.argv)

@@ -50,7 +50,10 @@ def test_check_flags_a_curve_whose_exposures_disagree(tmp_path):
     folder = write_simulated_scene(sim, tmp_path / "s", overwrite=True)
     with warnings.catch_warnings(record=True) as got:
         warnings.simplefilter("always")
-        res = fuse_bracket(load_bracket(folder), response="debevec")
+        # λ = 100 pinned: chosen from the data (None) this bracket takes λ = 1000, whose curve
+        # is 0.24 % from the true curve's merge (λ = 100: 0.69 %; decile ptp 2.1 vs 3.0 %)
+        # and passes the check (exposures 1.1 % apart)
+        res = fuse_bracket(load_bracket(folder), response="debevec", smoothness=100.0)
     chk = res.summary["response"]["check"]
     assert chk["median"] < chk["threshold"]            # the old criterion alone passed it
     assert chk["exposure_consistency"] > 0.03 and not chk["determined"], chk

@@ -14,9 +14,12 @@ def configure(parser):
                         help="auto | linear | debevec | path of a saved curve (response.json); auto "
                              "(default): linear when the exposure ratios prove the sensor "
                              "linear, else a checked Debevec curve")
-    # mehs.synthesis.response.DEFAULT_SMOOTHNESS (not imported: the CLI starts without numpy)
-    parser.add_argument("--lambda", dest="smoothness", type=float, default=100.0,
-                        help="Debevec smoothness λ (bit-depth independent; default 100)")
+    # None: mehs.synthesis.response's DEFAULT_SMOOTHNESS or SMOOTHNESS_CANDIDATES (not
+    # imported: the CLI starts without numpy)
+    parser.add_argument("--lambda", dest="smoothness", type=float, default=None,
+                        help="Debevec smoothness λ (bit-depth independent; default: 100, or "
+                             "for a shared curve of a bright bracket one of 100, 300, 1000 "
+                             "chosen by its fit to held-out pixels)")
     parser.add_argument("--samples", type=int, default=None,
                         help="pixels sampled per curve (default 2·levels/(exposures−1))")
     parser.add_argument("--per-band", action="store_true",

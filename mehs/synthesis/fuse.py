@@ -24,7 +24,7 @@ from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERG
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
-from mehs.synthesis.response import DEFAULT_SMOOTHNESS, ResponseCurve
+from mehs.synthesis.response import ResponseCurve
 
 @dataclass
 class FusionResult:
@@ -130,7 +130,7 @@ def _after_file_check(fuse):
 
 @_after_file_check
 def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "auto",
-                 ghosts: str = "detect", smoothness: float = DEFAULT_SMOOTHNESS,
+                 ghosts: str = "detect", smoothness: float | None = None,
                  samples: int | None = None,
                  seed: int = 0, shared_response: bool = True,
                  noise: NoiseModel | tuple[float, float] | str | None = "auto",
@@ -191,7 +191,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         raise InputError(f"ghosts must be 'detect', 'deghost' or 'off', got {ghosts!r}")
     # these are used only on some paths (response recovery, ghosts found); checked
     # here so a bad value is an error on every run, not a silently ignored option
-    if not (np.isfinite(smoothness) and smoothness > 0):
+    # None: chosen from the data (fuse_response.recover_response)
+    if smoothness is not None and not (np.isfinite(smoothness) and smoothness > 0):
         # levels no sample weights are tied to the curve by the smoothness term alone
         raise InputError(f"smoothness (lambda) must be finite and > 0, got {smoothness}")
     if samples is not None and int(samples) < 1:

@@ -19,10 +19,11 @@ from mehs.errors import InputError
 from mehs.synthesis._numba_start import skip_scipy_linalg_import
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import warm_merge_kernel
-from mehs.synthesis.response import (DEFAULT_SMOOTHNESS, ResponseCurve,
+from mehs.synthesis.response import (DEFAULT_SMOOTHNESS, SMOOTHNESS_CANDIDATES,
+                                     SMOOTHNESS_ROUNDS, ResponseCurve,
                                      recover_response_Debevec1997, sample_pixels, to_levels,
                                      weighting_table)
-from mehs.synthesis.response_offset import match_constant as _match_constant
+from mehs.synthesis.response_solves import _offset_direct, _offset_rounds
 
 #: "auto" uses the linear curve while consecutive exposures agree with it within this
 #: relative error at every well-exposed signal level
@@ -44,11 +45,17 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
     # the solve that made a shared curve (offset="auto" kept one of two) is what is checked,
     # at one solve per re-recovery instead of two
     offset = curve.parameters.get("offset") if curve.shared else None
+    # a λ chosen from the data continued the default λ's rounds: re-recovered the same way
+    # (fresh rounds at that λ reach another curve, 1.6 % away on a lamp bracket, 3 × ×4,
+    # which the check read as the curve's uncertainty)
+    choice = curve.parameters.get("smoothness_choice") if offset == "rounds" else None
+    warm = DEFAULT_SMOOTHNESS if choice and choice.get("chosen") != DEFAULT_SMOOTHNESS else None
 
     def again(*, smoothness: float, pool):
         return recover_response(bracket, smoothness=smoothness, samples=samples, seed=seed,
                                 shared=shared, levels="raw", saturation=saturation, pool=pool,
-                                offset=offset if offset in ("direct", "rounds") else "auto")
+                                offset=offset if offset in ("direct", "rounds") else "auto",
+                                warm_from=warm)
 
     from mehs.synthesis.merge import merge_bracket
 
@@ -148,26 +155,14 @@ def _candidate_levels(bracket: Bracket, n_candidates: int, seed: int, saturation
     return out, darks
 
 
-#: Rounds of the black-level offset iterations of :func:`recover_response`. The fixed point
-#: is right but reached sublinearly: on a gamma-0.8 sensor (5 exposures ×4) the radiance
-#: error across brightness deciles spanned 13 % after 12 plain rounds, 3.6 % after 60
-#: over-relaxed ones (1.7 % after 300 plain). A shared curve's round costs ~7 ms; a
-#: per-band curve's ~200× that, so per-band curves take the direct solve only: after the
-#: 12 rounds they could afford their radiance ran −15…+2 % of the truth across brightness
-#: deciles (gamma sensor, 5 exposures ×4), −38…+8 % on a linear sensor, and the darkest
-#: decile of a natural scene (s-curve, 3 × ×4) +67 % (the true curve −14 %, direct −18 %).
-OFFSET_ITERATIONS_SHARED = 60
-#: over-relaxation of those rounds: ×1.5 halves the rounds needed and stays stable (×3 diverged)
-OFFSET_RELAXATION = 1.5
-
-
-def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS,
+def recover_response(bracket: Bracket, *, smoothness: float | None = None,
                      samples: int | None = None,
                      seed: int = 0, shared: bool = False, levels: str = "raw",
                      saturation: np.ndarray | None = None,
                      weighting: str = "hat", offset: str = "auto",
                      offset_iterations: int | None = None,
-                     pool: np.ndarray | None = None) -> ResponseCurve:
+                     pool: np.ndarray | None = None,
+                     warm_from: float | None = None) -> ResponseCurve:
     """Debevec–Malik curve(s) of a bracket, sampled stratified from its exposures.
 
     ``levels="raw"`` fits the curve to raw DN (the black level then passes
@@ -186,7 +181,7 @@ def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS
       (:func:`mehs.synthesis.response_offset.solve_offset_response`, the plain
       Debevec–Malik curve as pilot of its noise weights);
     - ``"rounds"`` (shared curves only): ``offset_iterations`` rounds (None:
-      :data:`OFFSET_ITERATIONS_SHARED`) re-solve with
+      :data:`~mehs.synthesis.response_solves.OFFSET_ITERATIONS_SHARED`) re-solve with
       per-sample effective times ``ln(Δt_j + B_ij/E_i)`` — ``B_ij = exp(g(dark_ij))``,
       ``E_i`` the pixel's current estimate — whose fixed point is the same model;
     - ``"auto"`` (default): direct for per-band curves; for a shared curve the rounds, but
@@ -204,8 +199,19 @@ def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS
     A constant added to ``f`` is not fixed by the data (it cancels in
     ``f(raw) − f(dark)``, so the merge does not see it); it is set so that the curve
     follows the plain Debevec–Malik curve over the well-exposed levels
-    (:func:`_match_constant`).
+    (:func:`mehs.synthesis.response_offset.match_constant`).
+
+    ``smoothness``: λ as given, or None (default): :data:`DEFAULT_SMOOTHNESS`, except for a
+    shared curve of a bright bracket that keeps the rounds under ``offset="auto"``, whose λ
+    is chosen from :data:`SMOOTHNESS_CANDIDATES` by the held-out offset misfit
+    (:func:`mehs.synthesis.response_select.pick_smoothness`); the curve's ``smoothness`` is
+    the λ used, its ``parameters["smoothness_choice"]`` the candidates' scores.
+    ``warm_from`` (shared curves, ``offset="rounds"``): the rounds converge at that λ and
+    continue :data:`SMOOTHNESS_ROUNDS` rounds at ``smoothness`` — how a chosen λ's curve is
+    made, so that the check (:func:`check_recovered_response`) re-recovers it alike.
     """
+    choose = smoothness is None
+    smoothness = DEFAULT_SMOOTHNESS if choose else smoothness
     L = 1 << bracket.bit_depth
     P = len(bracket.exposures)
     nb = bracket.shape[2]
@@ -220,7 +226,7 @@ def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS
         raise InputError(f"unknown offset solve {offset!r}; use 'auto', 'direct' or 'rounds'")
     if offset == "rounds" and not shared:
         # the rounds a per-band curve can afford stop far from their fixed point
-        # (OFFSET_ITERATIONS_SHARED's notes): refused rather than silently biased
+        # (response_solves.OFFSET_ITERATIONS_SHARED's notes): refused rather than silently biased
         raise InputError("offset='rounds' is for shared curves only; a per-band curve "
                          "takes the direct solve (offset='auto' or 'direct')", bracket.source)
     if not shared and npix < n:
@@ -232,7 +238,8 @@ def recover_response(bracket: Bracket, *, smoothness: float = DEFAULT_SMOOTHNESS
     opts = {"smoothness": smoothness, "seed": seed, "levels": levels, "weighting": weighting,
             "offset": offset, "offset_iterations": offset_iterations}
     if shared:
-        return _recover_from(bracket, cand, cdark, True, n_per, **opts)[0]
+        return _recover_from(bracket, cand, cdark, True, n_per, choose_smoothness=choose,
+                             warm_from=warm_from, **opts)[0]
     # the reference (the bands' shape where their data are thin): the direct shared curve
     # (its darkest decile nearer the truth than 60 rounds', 5 exposures ×4: −4.7 vs −7.3 % per
     # band), but on a dark bracket the one auto keeps: the direct one put dark gamma brackets'
@@ -263,14 +270,18 @@ def _shared_per_band(n: int, nb: int) -> int:
 def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared: bool,
                   n: int, *, smoothness: float, seed: int, levels: str, weighting,
                   offset: str, offset_iterations: int | None,
-                  reference: ResponseCurve | None = None):
+                  reference: ResponseCurve | None = None, choose_smoothness: bool = False,
+                  warm_from: float | None = None):
     """The curve of :func:`recover_response` from candidate levels ``cand`` and raw darks
     ``cdark`` (P, M, bands); returns ``(curve, Z, D, f)``: the samples it was solved from,
     (n, P, C) levels and their raw darks, and the linear-domain table (C, L) of the
-    dark-offset model before :func:`_match_constant` set its constant (D and f None
+    dark-offset model before :func:`~mehs.synthesis.response_offset.match_constant` set its
+    constant (D and f None
     without that model). ``reference``: a shared curve that a per-band direct solve takes
     as its pilot and its smoothness's shape (``shape_prior`` of
-    :func:`~mehs.synthesis.response_offset.solve_offset_response`)."""
+    :func:`~mehs.synthesis.response_offset.solve_offset_response`). ``choose_smoothness``:
+    λ is chosen as :func:`recover_response` describes (``offset="auto"``, shared);
+    ``warm_from`` as there."""
     L = 1 << bracket.bit_depth
     lt = np.log(bracket.times_ms)
     params = {"levels": levels, "seed": seed, "times_ms": bracket.times_ms.tolist()}
@@ -298,69 +309,29 @@ def _recover_from(bracket: Bracket, cand: np.ndarray, cdark: np.ndarray, shared:
     if offset == "direct" or not shared:
         return _offset_direct(*solve, shared=shared, reference=reference)
     if offset == "rounds":
-        return _offset_rounds(*solve, weighting, params, offset_iterations)
+        if warm_from is None or warm_from == smoothness:
+            return _offset_rounds(*solve, weighting, params, offset_iterations)
+        state: dict = {}
+        _offset_rounds(*solve[:-1], warm_from, weighting, params, offset_iterations, state=state)
+        return _offset_rounds(*solve, weighting, params, SMOOTHNESS_ROUNDS, state=state,
+                              start=True)
     # "auto", shared: on a dark bracket the curve that fits pixels neither solve saw, else the
     # rounds (response_select: the rounds' prior suits a gamma sensor, the direct's a linear)
     from mehs.synthesis.response_select import auto_offset_solve
 
+    state: dict = {}     # the rounds' converged effective times, where stiffer λ start
+
+    def stiffer(lam: float):
+        return _offset_rounds(*solve[:-1], lam, weighting, params, SMOOTHNESS_ROUNDS,
+                              state=state, start=True)
+
     return auto_offset_solve(
         lambda: _offset_direct(*solve, shared=True, reference=None),
-        lambda: _offset_rounds(*solve, weighting, params, offset_iterations),
+        lambda: _offset_rounds(*solve, weighting, params, offset_iterations, state=state),
         cand, cdark, idx, n, seed, bracket.times_ms, bracket.bit_depth, wt,
-        bright="direct" if offset == "auto-reference" else "rounds")
-
-
-def _offset_direct(bracket, Z, D, plain, wt, zmin, smoothness, *, shared, reference):
-    """The dark-offset model by one linear solve (``offset="direct"``); returns
-    ``(curve, Z, D, f)`` as :func:`_recover_from`."""
-    from mehs.synthesis.response_offset import solve_offset_response
-
-    L = 1 << bracket.bit_depth
-    try:
-        # per band, the plain curve of a dark band is its prior's extrapolation: the
-        # shared curve is the better pilot, and the shape its data are too few to set
-        # (a dark band's prior towards a straight line put its darkest levels 30 % high)
-        pilot = (reference.table() if reference is not None
-                 else plain.table(None if plain.shared else Z.shape[2]))
-        f, stats = solve_offset_response(Z, D, bracket.times_ms, wt, pilot,
-                                         smoothness=smoothness, shared=shared,
-                                         shape_prior=reference is not None)
-    except InputError as exc:
-        raise exc.with_path(bracket.source) from None
-    # f is 1 a quarter of the range above the dark: scaled to DN-like values, as the
-    # floors of _match_constant expect
-    f = f * (L // 2)
-    return _match_constant(f, plain, zmin,
-                           {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
-
-
-def _offset_rounds(bracket, Z, D, plain, wt, zmin, smoothness, weighting, params,
-                   offset_iterations):
-    """The dark-offset model by fixed-point rounds (``offset="rounds"``, shared curves);
-    returns ``(curve, Z, D, f)`` as :func:`_recover_from`."""
-    L = 1 << bracket.bit_depth
-    curve = plain
-    if offset_iterations is None:
-        offset_iterations = OFFSET_ITERATIONS_SHARED
-    if offset_iterations <= 0:
-        return curve, Z, None, None
-    w = wt[Z]
-    t = bracket.times_ms[None, :, None]
-    lev = np.arange(L)
-    lt_cur = np.broadcast_to(np.log(t), Z.shape)
-    for _ in range(int(offset_iterations)):     # shared curves only (recover_response)
-        G = curve.table()[0]
-        B, gz = np.interp(D, lev, np.exp(G)), G[Z]
-        W = w.sum(axis=1)
-        lnE = np.where(W > 0, (w * (gz - lt_cur)).sum(axis=1) / np.where(W > 0, W, 1), 0.0)
-        # over-relaxed (OFFSET_RELAXATION): the plain step converges sublinearly
-        lt_cur = lt_cur + OFFSET_RELAXATION * (np.log(t + B / np.exp(lnE)[:, None, :]) - lt_cur)
-        curve = recover_response_Debevec1997(
-            Z, lt_cur, bit_depth=bracket.bit_depth, smoothness=smoothness,
-            weighting=weighting, shared=True, wavelengths=bracket.wavelengths,
-            parameters={**params, "offset_iterations": int(offset_iterations)})
-    f = np.exp(curve.table())
-    return _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"}), Z, D, f
+        bright="direct" if offset == "auto-reference" else "rounds",
+        stiffer=stiffer if choose_smoothness and offset == "auto" else None,
+        candidates=[v for v in SMOOTHNESS_CANDIDATES if v > smoothness])
 
 
 def sample_shared(cand: np.ndarray, n_per: int, seed: int,
@@ -428,7 +399,7 @@ def linearity_auto(bracket: Bracket, saturation: np.ndarray):
 
 
 def choose_response(bracket: Bracket, response: Any, *, method: str, saturation: np.ndarray,
-                    smoothness: float, samples: int | None, seed: int, shared: bool,
+                    smoothness: float | None, samples: int | None, seed: int, shared: bool,
                     check: bool) -> tuple[ResponseCurve, dict[str, Any], Any]:
     """The curve :func:`mehs.synthesis.fuse.fuse_bracket` merges with (its ``response``
     argument, see there); returns ``(curve, auto_info, probe)``: ``auto_info`` the
@@ -484,7 +455,8 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
                 # read once: the check's consistency test, then the noise model
                 probe = default_probe = probe_bracket(bracket, saturation)
             auto_info["check"] = check_recovered_response(
-                bracket, curve, smoothness=smoothness, samples=samples, seed=seed,
+                bracket, curve, smoothness=curve.smoothness if smoothness is None else smoothness,
+                samples=samples, seed=seed,
                 shared=shared, saturation=saturation, probe=default_probe)
         if (auto_info.get("linearity_conclusive") is False
                 and not auto_info["check"].get("determined", False)):

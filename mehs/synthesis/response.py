@@ -60,10 +60,26 @@ FORMAT = "mehs-response/1"
 #: brackets (longest exposure's p90 signal < L/16: ptp 1.5 / 6.4 / 13.5 %, lamp ×10⁻³,
 #: gamma). λ = 300 would take most of the gain on gamma sensors, but it broke 6 existing
 #: tests (dark shared/per-band brackets, the wide-bracket and too-little-data flags, a film
-#: bracket): the default stays 100 until those are understood (task E report, helper h22). The bench_synthesis accuracy scene
+#: bracket): the default stays 100, and a shared curve of a bright bracket chooses among
+#: :data:`SMOOTHNESS_CANDIDATES` from its data. The bench_synthesis accuracy scene
 #: at λ = 300: SAM 0.811°, rel 0.0113 (1000: 0.760°, 0.0103). The grid is
 #: ``benchmarks/bench_response.py --smoothness 100,300,1000``.
 DEFAULT_SMOOTHNESS = 100.0
+#: λ a shared curve of a bright bracket may take when none is given (``smoothness=None``,
+#: :func:`mehs.synthesis.fuse_response.recover_response`): the rounds converge at
+#: :data:`DEFAULT_SMOOTHNESS`, continue :data:`SMOOTHNESS_ROUNDS` rounds at each larger λ,
+#: and the largest λ whose held-out offset misfit stays within :data:`SMOOTHNESS_TOLERANCE`
+#: of the default's is kept (:func:`mehs.synthesis.response_select.pick_smoothness`).
+SMOOTHNESS_CANDIDATES = (100.0, 300.0, 1000.0)
+#: rounds run at each candidate λ from the default's fixed point (15: 8 left the stiffer
+#: curves' misfit in transit, +1.5…+2.8 % on gamma brackets where 15 gave +1.1…+1.7 %)
+SMOOTHNESS_ROUNDS = 15
+#: Relative rise of the held-out misfit over the default λ's that a stiffer λ may cost. On
+#: 48² brackets (51 bands) λ = 300 raised it by −0.5…+2.7 % where its radiance was closer to
+#: the true curve's merge (gamma 0.5/0.8 sensors, 3 × ×4 and 7 × ×4) and by +6.4…+17 %
+#: where it bent real curvature (s-curve knees, a linear sensor's ln z); dark brackets
+#: (+2.0 %, worse) keep the default (:func:`mehs.synthesis.response_select.is_dark`).
+SMOOTHNESS_TOLERANCE = 0.03
 
 
 # ------------------------------------------------------------------ weighting

@@ -41,24 +41,37 @@ from mehs.errors import InputError
 def auto_offset_solve(direct: Callable[[], tuple], rounds: Callable[[], tuple],
                       cand: np.ndarray, cdark: np.ndarray, used: np.ndarray, n: int,
                       seed: int, times: np.ndarray, bit_depth: int, level_w: np.ndarray,
-                      bright: str = "rounds"):
+                      bright: str = "rounds", stiffer: Callable[[float], tuple] | None = None,
+                      candidates: list[float] = ()):
     """``offset="auto"`` for a shared curve: on a dark bracket (:func:`is_dark`) both solves,
     keeping the one :func:`pick_solve` prefers on held-out pixels; else ``bright``'s solve
-    (the rounds; the direct one for the reference of per-band curves, as before).
+    (the rounds; the direct one for the reference of per-band curves, as before), but with
+    the rounds also the direct solve where the dark level lies near 0
+    (:data:`LOW_BLACK_FRACTION`), keeping the one :func:`pick_bright` prefers.
 
     ``direct``, ``rounds``: the two solves, each returning ``(curve, Z, D, f)``;
     ``cand``, ``cdark`` ``(P, M, C)`` the candidate levels and raw darks, ``used``
     ``(C, n_used)`` the candidates the solves sampled, ``n`` held-out pixels per channel.
+    ``stiffer(λ)``: the rounds continued at a larger λ (``candidates``), for a bright bracket
+    that keeps the rounds (:func:`pick_smoothness`); None: the λ given stays.
     Returns the kept solve's tuple, its curve's parameters extended by the figures.
     """
     dark, p90 = is_dark(cand, cdark, times, bit_depth)
-    info = {"offset_choice": "auto", "offset_signal_p90": p90}
-    if not dark:
-        out = (rounds if bright == "rounds" else direct)()
+    black = float(np.median(cdark))
+    info = {"offset_choice": "auto", "offset_signal_p90": p90, "offset_dark_level": black}
+    if not dark and bright != "rounds":
+        out = direct()
+        out[0].parameters.update(info)
+        return out
+    # a bright bracket: the direct solve too only where the rounds' prior may fail (its cost
+    # doubled a 512² recovery, 0.45 → 1.0 s)
+    both = dark or black < LOW_BLACK_FRACTION * (1 << bit_depth)
+    if not both and (stiffer is None or not candidates):
+        out = rounds()
         out[0].parameters.update(info)
         return out
     got, errors = {}, []
-    for name, run in (("direct", direct), ("rounds", rounds)):
+    for name, run in (("direct", direct), ("rounds", rounds)) if both else (("rounds", rounds),):
         try:
             got[name] = run()
         except InputError as exc:    # e.g. a singular direct system: the other may hold
@@ -66,10 +79,21 @@ def auto_offset_solve(direct: Callable[[], tuple], rounds: Callable[[], tuple],
     if not got:
         raise errors[0]
     Zh, Dh = held_out_samples(cand, cdark, used, n, seed + 1, bit_depth)
-    choice, stats = pick_solve({k: offset_misfit(r[0].table()[0], Zh, Dh, times, level_w)
-                                for k, r in got.items()})
-    got[choice][0].parameters.update({**info, "offset_misfit": stats})
-    return got[choice]
+    misfits = {k: offset_misfit(r[0].table()[0], Zh, Dh, times, level_w) for k, r in got.items()}
+    choice, stats = pick_solve(misfits) if dark else pick_bright(misfits)
+    out = got[choice]
+    if choice == "rounds" and not dark and stiffer is not None and candidates:
+        base = out[0].smoothness
+        runs = {base: out}
+        scores = {base: misfits["rounds"]}
+        for lam in candidates:
+            runs[lam] = stiffer(lam)
+            scores[lam] = offset_misfit(runs[lam][0].table()[0], Zh, Dh, times, level_w)
+        lam, choice_stats = pick_smoothness(scores, base)
+        out = runs[lam]
+        out[0].parameters["smoothness_choice"] = choice_stats
+    out[0].parameters.update({**info, "offset_misfit": stats})
+    return out
 
 
 def held_out_samples(cand: np.ndarray, cdark: np.ndarray, used: np.ndarray, n: int,
@@ -155,6 +179,56 @@ def is_dark(cand: np.ndarray, cdark: np.ndarray, times: np.ndarray, bit_depth: i
     j = int(np.argmax(times))
     p90 = float(np.percentile(cand[j].astype(np.float64) - cdark[j], 90))
     return p90 < DARK_SIGNAL_FRACTION * (1 << bit_depth), p90
+
+
+#: On a bright bracket the rounds are kept unless the direct solve's mean held-out misfit is
+#: below this fraction of theirs. An expansive sensor (gamma > 1) puts the black level a few
+#: raw levels above 0 (gamma 1.4: ~5 of 4096), where ``ln f`` bends as ``−1/(γz²)``: the
+#: rounds' log-domain smoothness straightens it (at 60 rounds and at 300 alike, stiffer λ
+#: worse) and their radiance ran 5–25 % off the true curve's merge across brightness deciles
+#: (natural scene, 6 × ×4: decile ptp 26 %, median 8 %; the direct solve 1.0 % / 0.35 %).
+#: The misfit tells them apart by far: direct/rounds 0.12–0.15 there, 0.90–1.03 on gamma-0.8,
+#: linear and s-curve brackets (48² px, 51 bands; colorchecker, lamp, natural), where the
+#: rounds stay (their s-curve radiance is the better one at ×8: 1.6 vs 5.4 % ptp).
+BRIGHT_DIRECT_RATIO = 0.5
+#: A bright bracket is solved both ways (and :func:`pick_bright` asked) only when its median
+#: raw dark level lies below this fraction of the levels (16 of 4096): where ``ln f`` bends
+#: most. The simulator's dark level: gamma 2 / 1.4 / 1.2 / 1.1 ~0 / 5 / 13 / 20; s-curve 22;
+#: linear 32; gamma 0.8 84 (black level 32 DN before the response).
+LOW_BLACK_FRACTION = 1.0 / 256.0
+
+
+def pick_bright(misfits: dict[str, np.ndarray]) -> tuple[str, dict]:
+    """The solve a bright bracket keeps (:data:`BRIGHT_DIRECT_RATIO`): ``"rounds"`` unless
+    the direct solve's mean held-out misfit is below that fraction of theirs; the one
+    solved when only one was. Returns the choice and each mean misfit (None: not
+    measurable), as :func:`pick_solve`."""
+    stats: dict = {name: (float(np.nanmean(r)) if np.isfinite(r).any() else None)
+                   for name, r in misfits.items()}
+    if set(misfits) != {"direct", "rounds"}:
+        return next(iter(misfits)), stats
+    d, r = stats["direct"], stats["rounds"]
+    keep = "direct" if d is not None and r is not None and d < BRIGHT_DIRECT_RATIO * r else "rounds"
+    return keep, stats
+
+
+def pick_smoothness(misfits: dict[float, np.ndarray], base: float) -> tuple[float, dict]:
+    """The largest λ whose mean held-out misfit is at most (1 +
+    :data:`~mehs.synthesis.response.SMOOTHNESS_TOLERANCE`) times the ``base`` λ's (the
+    default's, whose curve the others continue from); ``base`` when its misfit is not
+    measurable. Returns λ and figures for the curve's parameters: each candidate's mean
+    misfit relative to the base's (JSON keys: λ as text)."""
+    from mehs.synthesis.response import SMOOTHNESS_TOLERANCE
+
+    ok = {lam: r for lam, r in misfits.items() if np.isfinite(r).any()}
+    ref = float(np.nanmean(ok[base])) if base in ok else None
+    rel = {lam: (float(np.nanmean(r)) / ref - 1.0 if ref else None) for lam, r in ok.items()}
+    keep = base
+    if ref:
+        keep = max([lam for lam, v in rel.items() if v is not None
+                    and v <= SMOOTHNESS_TOLERANCE] + [base])
+    return keep, {"chosen": float(keep), "tolerance": SMOOTHNESS_TOLERANCE,
+                  "misfit_rise": {f"{lam:g}": rel.get(lam) for lam in misfits}}
 
 
 def pick_solve(misfits: dict[str, np.ndarray]) -> tuple[str, dict]:
