@@ -220,6 +220,14 @@ def remove_partial_writes(scene_dir: Path) -> list[str]:
     return gone
 
 
+def _lock_file(name: str) -> bool:
+    """Whether ``name`` is the output lock ``mehs capture`` holds on the scene folder (or
+    its temporary): it does not make the folder a capture's."""
+    from mehs.io.lock import LOCK_NAME
+
+    return name == LOCK_NAME or name.startswith(f"{LOCK_NAME}.")
+
+
 def _move_aside(path: Path) -> Path:
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
     dest = path.with_name(f".orphan-{path.name}-{stamp}")
@@ -301,7 +309,11 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
                              "(raw captures are never overwritten)", out)
         if out.exists() and not out.is_dir():
             raise InputError("output folder exists and is not a folder", out)
-        if out.exists() and any(out.iterdir()):
+        if out.is_dir():
+            # a capture killed while it wrote its first scene.json left only the temporary
+            for p in out.glob(f".{sf.SCENE_JSON}.*.part*"):
+                p.unlink(missing_ok=True)
+        if out.exists() and any(not _lock_file(p.name) for p in out.iterdir()):
             raise InputError("output folder exists and is not empty", out)
         if lines is None or int(lines) < 1:
             raise InputError(f"number of scan lines must be >= 1, got {lines}")

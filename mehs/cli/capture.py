@@ -98,6 +98,20 @@ def run(args):
     from mehs.cli._overwrite import check_writable
 
     check_writable(args.out)  # before the devices start and the stage moves
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError("output folder exists and is not a folder", args.out)
+    if not args.resume:
+        # refused before the lock below is taken: even its lock file would change a raw
+        # capture (a --resume finishes its own scene folder, lock and all)
+        from mehs.io.atomic import raw_capture_containing
+
+        cap = raw_capture_containing(args.out)
+        if cap is not None and cap == Path(args.out).resolve():
+            raise InputError("a scene was already captured here; use --resume to finish it "
+                             "(raw captures are never overwritten)", args.out)
+        if cap is not None:
+            raise InputError(f"output lies inside the raw capture {cap}; raw captures are never "
+                             "written into — choose an output outside it", args.out)
     sim_options = _sim_options(args) if args.simulate else None
     if args.resume and args.simulate:
         _check_same_simulated_scene(args.out, sim_options)
@@ -115,8 +129,14 @@ def run(args):
             raise InputError("give --stage and --camera ports (or --simulate)")
         stage_url, camera_url = args.stage, args.camera
         lines = args.lines or 512
-    stage = camera = None
+    stage = camera = lock = None
     try:
+        from mehs.io.lock import OutputLock
+
+        # two captures (or a capture and a --resume) into one scene folder would both pass
+        # the "no scene.json yet" check and write each other's exposures: the second is
+        # refused, naming the first; a killed capture's lock is taken over
+        lock = OutputLock(args.out, what="mehs capture").__enter__()
         stage = ZaberStage.open(stage_url, timeout=args.timeout, checksum=args.checksum,
                                 message_ids=not args.no_message_ids)
         camera = open_camera(camera_url, args)
@@ -134,20 +154,27 @@ def run(args):
             seed=args.seed if args.simulate else None, device_info=info,
             auto_options={"n": 5, "max_step": 4.0} if args.ladder else None,
             log=lambda m: print(m, file=sys.stderr), resume_hint=_resume_hint(args))
-        if args.simulate and doc["truth"] is None and all(
-                e["status"] == "complete" for e in doc["exposures"]):
+        if args.simulate and all(e["status"] == "complete" for e in doc["exposures"]):
+            # each piece of the truth is written unless scene.json records it, so that a
+            # --resume after a kill between two of them (or between a file and its record)
+            # finishes them; an unrecorded file is a killed run's and is replaced (the truth
+            # is the simulator's, not a capture)
             from mehs.capture.simulate import motion_phase, write_moved_mask, write_truth
 
             scene = dev.world.scene
             t0 = doc["exposures"][0]["integration_time_ms"]
-            write_truth(args.out, doc, scene.radiance_at(motion_phase(t0) if scene.moving else 0),
-                        scene.wavelengths, fwhm=scene.fwhm,
-                        dn_per_ms=dev.world.sensor.signal_scale(scene.wavelengths.size, scene.wavelengths))
-            if scene.moving:
+            if doc["truth"] is None:
+                write_truth(args.out, doc,
+                            scene.radiance_at(motion_phase(t0) if scene.moving else 0),
+                            scene.wavelengths, fwhm=scene.fwhm, overwrite=True,
+                            dn_per_ms=dev.world.sensor.signal_scale(scene.wavelengths.size,
+                                                                    scene.wavelengths))
+            if scene.moving and doc.get("truth_moved_mask") is None:
                 # the truth is the first exposure's radiance: say where the others differ
                 phases = [motion_phase(e["integration_time_ms"]) for e in doc["exposures"]]
-                write_moved_mask(args.out, doc, scene.moved_between(phases))
-            if scene.info.get("certificate"):
+                write_moved_mask(args.out, doc, scene.moved_between(phases), overwrite=True)
+            if scene.info.get("certificate") and not (
+                    Path(args.out) / scene.info["certificate"]).is_file():
                 # a simulated calibrated source comes with its certificate, as a real one does
                 from mehs.calibration.targets import sphere_certificate
 
@@ -159,6 +186,8 @@ def run(args):
                 d.close()
         if dev is not None:
             dev.close()
+        if lock is not None:
+            lock.__exit__(*sys.exc_info())
     done = [e for e in doc["exposures"] if e["status"] == "complete"]
     print(f"{args.out}: {len(done)} of {len(doc['plan']['times_ms'])} exposures complete "
           f"({', '.join(str(e['integration_time_ms']) for e in done)} ms)")

@@ -97,7 +97,10 @@ def run(args) -> int:
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
     from mehs.cli._overwrite import refuse_existing
 
-    refuse_existing([Path(args.out) / n for n in FUSION_FILES], args.force)
+    if (Path(args.out) / "summary.json").exists():
+        refuse_existing([Path(args.out) / n for n in FUSION_FILES], args.force)
+    # else: fusion files without the summary (written last) are an unfinished run's, killed
+    # while it wrote: this run replaces them, as the same command should finish the job
     cal = args.calibration
     if cal is not None:
         try:

@@ -51,7 +51,10 @@ def run(args) -> int:
     own = ("hdr_rgb.exr", "ldr_rgb.png", "preview.png", "rgb.json")
     refuse_inside_raw_capture(out)
     refuse_foreign_folder(out, own, force=args.force, what="mehs rgb's images")
-    refuse_existing([out / n for n in own], args.force)
+    if (out / "rgb.json").exists():
+        refuse_existing([out / n for n in own], args.force)
+    # else: images without rgb.json (written last) are a run's killed while it wrote: the
+    # same command replaces them
     check_writable(out)
     cube = load_cube(args.hs)
     resampled = False
@@ -70,6 +73,11 @@ def run(args) -> int:
     from mehs.io.lock import OutputLock
 
     with OutputLock(out, what="mehs rgb"):   # creates --out; a second run is refused
+        from mehs.io.atomic import unlink_durable
+
+        # rgb.json is the commit point: gone before the first image is replaced, so that a
+        # kill half-way never leaves it describing a mix of two runs' images
+        unlink_durable(out / "rgb.json")
         write_exr_rgb(out / "hdr_rgb.exr", stored, half=args.half, header=header)
         write_png(out / "ldr_rgb.png", ldr)
         write_png(out / "preview.png", preview)

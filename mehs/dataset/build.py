@@ -296,6 +296,8 @@ def _run_build_locked(srcs, dataset: Path, params, response_sha, created: bool,
                 stages[tid] = stage
                 show_stages()
         failures = []
+        # scenes the manifest on disk lists (their folders must not change while listed)
+        listed = {e["id"] for e in manifest["scenes"]}
         try:
             for res in run_tasks(build_scene, tasks, workers=n_workers,
                                  scheduler=scheduler, on_stage=on_stage):
@@ -309,6 +311,13 @@ def _run_build_locked(srcs, dataset: Path, params, response_sha, created: bool,
                     bar.update(1)
                     continue
                 entry = res["entry"]
+                if sid in listed:
+                    # the manifest on disk lists this scene's folder, which _place replaces
+                    # file by file: unlist it first, so that a kill in between leaves a
+                    # manifest without the scene, never one naming missing or other files
+                    entries.pop(sid, None)
+                    commit()
+                    listed.discard(sid)
                 _place(scenes_dir, sid, built=res["outcome"] == "built")
                 record_output_stat(dataset, entry)
                 entry["status"], entry["reasons"] = judge(entry["quality"], rules,

@@ -8,6 +8,7 @@ file that looks finished. Raw captures are never overwritten.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -79,7 +80,8 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
             # before the delayed data blocks, and after a power loss a new name then
             # holds a zero-length or truncated file that looks complete
             _fsync_file(tmp_path)
-        os.replace(tmp_path, path)
+        if overwrite or not _link_no_clobber(tmp_path, path):
+            os.replace(tmp_path, path)
         _fsync_dir(path.parent)
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
@@ -87,6 +89,29 @@ def atomic_path(path: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
         if isinstance(exc, OSError):
             _name_target(exc, path)
         raise
+
+
+def _link_no_clobber(tmp: Path, path: Path) -> bool:
+    """Give ``tmp`` the name ``path`` only if ``path`` does not exist, in one step.
+
+    The existence check before ``os.replace`` leaves a window in which another writer's
+    file (a raw capture) can appear and be replaced; ``link`` fails instead. Returns False
+    where hard links are not supported (FAT, some network shares): the caller renames,
+    after the check.
+    """
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise InputError("refusing to overwrite an existing file", path) from None
+    except OSError as exc:
+        if exc.errno in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP,
+                         errno.EOPNOTSUPP, errno.ENOSYS):
+            if path.exists():
+                raise InputError("refusing to overwrite an existing file", path) from None
+            return False
+        raise
+    tmp.unlink()
+    return True
 
 
 def _fsync_file(path: Path) -> None:
@@ -109,6 +134,22 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def unlink_durable(path: str | Path) -> bool:
+    """Remove ``path`` (if present) and make the removal durable; True if it was there.
+
+    For a commit point (a summary, a header) that must be gone before the files it
+    described are replaced: without the directory ``fsync`` a power loss could bring the
+    old commit point back beside new files.
+    """
+    path = Path(path)
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        return False
+    _fsync_dir(path.parent)
+    return True
 
 
 def _name_target(exc: OSError, path: Path) -> None:

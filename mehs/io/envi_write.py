@@ -125,7 +125,7 @@ def _check_cast(chunk: np.ndarray, dt: np.dtype) -> None:
                          f"({info.min}..{info.max})")
 
 
-def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
+def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str, hasher=None) -> None:
     file_dt = dt.newbyteorder("<")
     L, S, B = data.shape
     itemsize = max(dt.itemsize, data.dtype.itemsize)
@@ -153,6 +153,8 @@ def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
             chunk = np.rint(chunk)
         _check_cast(chunk, dt)
         chunk = chunk.astype(file_dt, order="C", copy=False)
+        if hasher is not None:
+            hasher.update(memoryview(chunk).cast("B"))   # the bytes as they go to the file
         chunk.tofile(fh)
         fh.flush()
         dropper.written(offset, chunk.nbytes)
@@ -162,7 +164,7 @@ def _write_data(fh, data: np.ndarray, dt: np.dtype, interleave: str) -> None:
 
 def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
                interleave: str = "bil", data_ext: str = ".raw", overwrite: bool = True,
-               extra_header: dict | None = None) -> Path:
+               extra_header: dict | None = None, sha256: dict | None = None) -> Path:
     """Write ``cube`` as an ENVI header + data file, atomically; return the header path.
 
     The data file (``<stem><data_ext>``) is written chunk by chunk to a
@@ -194,6 +196,10 @@ def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
         ``samples`` are refused). ``reflectance scale factor`` from a read cube is
         *not* written back (its data are already scaled); pass it here only
         with data that are scaled accordingly.
+    sha256
+        A dict to receive ``{file name: hex SHA-256}`` of the header and the data file,
+        the data hashed as it is written (no second read of a cube the writer has just
+        dropped from the page cache: 0.7 s for a 512² float32 cube).
 
     Writes ``wavelength``, ``fwhm``, ``wavelength units = Nanometers``,
     ``tint`` (ms), ``acquisition date`` (Specim form), ``default bands``
@@ -240,8 +246,13 @@ def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
 
     try:
         with atomic_path(dp, overwrite=overwrite) as tmp:
+            hasher = None
+            if sha256 is not None:
+                import hashlib
+
+                hasher = hashlib.sha256()
             with open(tmp, "wb") as fh:
-                _write_data(fh, cube.data, dt, inter)
+                _write_data(fh, cube.data, dt, inter, hasher)
                 fh.flush()
                 os.fsync(fh.fileno())
             if hp.exists():
@@ -254,4 +265,10 @@ def write_envi(hdr_path: str | Path, cube: SpectralCube, *, dtype: Any = None,
         write_envi_header(str(tmp), header)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+            if sha256 is not None:
+                import hashlib
+
+                sha256[hp.name] = hashlib.sha256(fh.read()).hexdigest()
+    if hasher is not None:
+        sha256[dp.name] = hasher.hexdigest()
     return hp

@@ -224,7 +224,12 @@ def _write_result_files(res, out: Path, dataset: str | None) -> None:
            "split": res.config.get("split"), "config": res.config, "models": res.models,
            "rows": res.rows, "summary": res.summary, "timing": res.timing,
            "figures": res.figures, "skipped": res.skipped}
-    write_json_atomic(out / "evaluation.json", doc)
+    from mehs.io.atomic import unlink_durable
+
+    # evaluation.json is the commit point (the overwrite check and the report read it):
+    # gone before the first file is replaced, written last, so that a run killed half-way
+    # leaves no evaluation.json beside another run's tables, and is finished by a re-run
+    unlink_durable(out / "evaluation.json")
     write_index_csv(out / "results.csv", res.rows)
     write_index_csv(out / "summary.csv",
                     [{k: v for k, v in s.items() if k != "band_mrae"} for s in res.summary])
@@ -236,6 +241,7 @@ def _write_result_files(res, out: Path, dataset: str | None) -> None:
     write_text_atomic(out / "tables.md", md)
     write_text_atomic(out / "tables.txt", res.tables("text", metrics=METRIC_NAMES) + "\n" +
                       "\n".join(render_block(*b, "text") for b in extra))
+    write_json_atomic(out / "evaluation.json", doc)
 
 
 def load_results(results_dir: str | Path) -> dict[str, Any]:
