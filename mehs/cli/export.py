@@ -45,7 +45,10 @@ def run(args) -> int:
     refuse_inside_raw_capture(out)
 
     if out.is_dir():
-        refuse_existing(sorted(out.glob(f"{args.prefix}_*.exr")) + [out / f"{args.prefix}.exr"],
+        # an export is there once complete: its listing (written last) or its spectral file
+        # (renamed in whole); band files without a listing are a killed run's, which the
+        # same command replaces without --force (foreign band-like files are still refused)
+        refuse_existing([out / f"{args.prefix}_wavelengths.json", out / f"{args.prefix}.exr"],
                         args.force)
     cube = load_cube(args.hs)
     if args.bands:
