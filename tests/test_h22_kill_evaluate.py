@@ -58,3 +58,24 @@ def test_an_evaluation_killed_writing_its_tables_is_finished_by_the_same_command
     assert not (out / "evaluation.json").exists()      # the tables are not all there
     assert main(args) == 0
     assert (out / "evaluation.json").is_file() and (out / "tables.txt").is_file()
+
+
+def test_a_forced_evaluation_killed_writing_its_figures_leaves_no_commit_point(dataset, tmp_path,
+                                                                        monkeypatch):
+    # --force over a finished evaluation, killed while its figures are written: the earlier
+    # evaluation.json must not stay to list this run's half-written figures folder
+    import mehs.ssr.results_io as results_io
+
+    out = tmp_path / "ev"
+    args = ["evaluate", str(dataset), "--models", "smits", "--out", str(out)]
+    assert main(args) == 0 and (out / "evaluation.json").is_file()
+
+    def dying(*a, **kw):
+        raise Killed
+
+    monkeypatch.setattr(results_io, "write_npz", dying)   # the first figure file of the run
+    with pytest.raises(Killed):
+        main(args + ["--force"])
+    monkeypatch.undo()
+    assert not (out / "evaluation.json").exists()
+    assert main(args) == 0                              # finished without --force

@@ -380,8 +380,14 @@ def evaluate(dataset: str | Path | PairSet, models: Iterable | str, *,
     res = EvaluationResult(rows=rows, summary=summary, config=config, models=model_info,
                            timing=tim, skipped=skipped, figures=fig_ids)
     if out is not None:
+        from mehs.io.atomic import unlink_durable
         from mehs.ssr.results_io import write_npz, write_results
 
+        # evaluation.json is the folder's commit point (written last by write_results): gone
+        # before this run's first file replaces an earlier run's figure, so that a kill now
+        # leaves no evaluation.json listing figures it did not make (killed while scoring,
+        # the earlier results stay whole)
+        unlink_durable(Path(out) / "evaluation.json")
         for path, fig in fig_pending:
             write_npz(path, fig)
         res.out = write_results(res, out, dataset=str(all_pairs.root))
