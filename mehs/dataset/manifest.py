@@ -68,14 +68,26 @@ def read_manifest(dataset: str | Path) -> dict[str, Any]:
         raise FormatError("manifest has no 'scenes' list", path)
     # a hand-edited or damaged entry must fail here, by name, not as a
     # TypeError/KeyError in whichever command reads it next
+    from mehs.dataset.scene_list import SCENE_ID_RE
+
     for i, s in enumerate(manifest["scenes"]):
         if not isinstance(s, dict) or not isinstance(s.get("id"), str) or not s["id"]:
             raise FormatError(f"scene entry #{i + 1} is not an object with an 'id'", path)
+        if not SCENE_ID_RE.match(s["id"]):
+            # ids name folders that builds replace and remove: '../x' would reach outside
+            raise FormatError(f"scene entry #{i + 1}: id {s['id']!r} is not a folder name "
+                              "(letters, digits, '.', '_', '-'; not starting with '.' or '-')",
+                              path)
         for key in ("files", "sha256"):  # without them nothing of the scene can be verified
             if not isinstance(s.get(key), dict):
                 what = "is missing" if key not in s else "must be an object"
                 raise FormatError(f"scene {s['id']!r}: '{key}' {what} (damaged entry; "
                                   "rebuild the scene with 'mehs build ... --force')", path)
+        for name, rel in s["files"].items():
+            parts = Path(rel).parts if isinstance(rel, str) else ()
+            if not parts or Path(rel).is_absolute() or ".." in parts:
+                raise FormatError(f"scene {s['id']!r}: file {name!r} = {rel!r} is not a path "
+                                  "inside the dataset (damaged or hand-edited entry)", path)
     splits = manifest.get("splits", {})
     if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
         raise FormatError("'splits' must map split names to lists of scene ids", path)

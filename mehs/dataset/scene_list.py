@@ -27,7 +27,8 @@ from pathlib import Path
 from mehs.errors import InputError
 
 SCENE_LIST_COLUMNS = ("scene_id", "folder_short", "folder_mid", "folder_long")
-_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+#: what a scene id may be: a folder name of its own (manifest ids are checked against it too)
+SCENE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class SceneSource:
 
 def check_scene_id(scene_id: str, source: str | Path | None = None) -> str:
     """Return ``scene_id`` if it is usable as a folder name, else raise InputError."""
-    if not isinstance(scene_id, str) or not _ID_RE.match(scene_id):
+    if not isinstance(scene_id, str) or not SCENE_ID_RE.match(scene_id):
         raise InputError(
             f"scene id {scene_id!r} is not usable as a folder name "
             "(letters, digits, '.', '_', '-'; not starting with '.' or '-')", source)
