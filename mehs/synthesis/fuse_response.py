@@ -96,6 +96,10 @@ def check_recovered_response(bracket: Bracket, curve: ResponseCurve, *, smoothne
         from mehs.synthesis.response_check import ADVICE
 
         out["advice"] = ADVICE
+    from mehs.synthesis.response_check import coverage_verdict
+
+    coverage_verdict(out, subset, bracket.darks, saturation,
+                     curve.parameters.get("covered_top_level"))
     return out
 
 
@@ -257,6 +261,10 @@ def recover_response(bracket: Bracket, *, smoothness: float | None = None,
     # the linear-domain table before its constant was chosen (offset model), else g
     g, stats = tie_bands_to_reference(curve.table(nb) if f is None else f, ref.g, Z,
                                       None if f is None else D, weighting_table(weighting, L))
+    # each band above the levels its own pairs tie: a power law, not the prior's line
+    from mehs.synthesis.response_extend import covered_top, extend_power_law
+
+    g = extend_power_law(g, covered_top(Z, weighting_table(weighting, L), per_channel=True))
     return ResponseCurve(g, curve.bit_depth, method=curve.method, smoothness=curve.smoothness,
                          weighting=curve.weighting, wavelengths=curve.wavelengths,
                          parameters={**curve.parameters, **stats})
@@ -436,8 +444,19 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
             if dev < LINEARITY_TOLERANCE and not inconclusive:
                 curve = ResponseCurve.linear(bracket.bit_depth)
         except InputError as exc:
-            # too little signal to tell: the linear curve is the safe choice
-            auto_info = {"linearity_check": f"skipped ({exc.problem})"}
+            # too little signal to tell (no well-exposed level seen by two exposures): the
+            # linear curve, flagged. It used to be taken silently (a gamma-0.8 sensor's
+            # 2-exposure bracket then ran −37…+21 % across brightness deciles, unflagged).
+            # A curve recovered from such data is no better vouched for: the self-check
+            # compares halves of the same starved samples, and on a linear sensor's dark
+            # bracket (0.02/0.16/1.28 ms, window scene) a "determined" curve ran +8…−3 %
+            # while the linear curve was right.
+            auto_info = {"linearity_check": f"skipped ({exc.problem})",
+                         "linearity_conclusive": False, "linearity_unknown": exc.problem,
+                         "assumed_linear": f"{exc.problem}; no curve is vouched for by it",
+                         "check": {"determined": False, "median": None, "p95": None,
+                                   "reason": "the exposures share no well-exposed signal "
+                                             "level"}}
             curve = ResponseCurve.linear(bracket.bit_depth)
     if curve is None:
         skip_scipy_linalg_import()     # before the first kernel
@@ -446,9 +465,18 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
         warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms,
                           method=method, darks=bracket.darks,
                           bit_depth=bracket.bit_depth, saturation=saturation, linear=False)
-        curve = recover_response(bracket, smoothness=smoothness, samples=samples,
-                                 seed=seed, shared=shared, levels="raw", saturation=saturation)
-        if check or auto_info.get("linearity_conclusive") is False:
+        try:
+            curve = recover_response(bracket, smoothness=smoothness, samples=samples,
+                                     seed=seed, shared=shared, levels="raw",
+                                     saturation=saturation)
+        except InputError as exc:
+            if auto_info.get("linearity_conclusive") is not False:
+                raise
+            # neither a linearity test nor a curve: the linear curve, flagged below
+            curve = None
+            auto_info["check"] = {"determined": False, "median": None, "p95": None,
+                                  "reason": f"no curve recoverable ({exc.problem})"}
+        if curve is not None and (check or auto_info.get("linearity_conclusive") is False):
             if probe is None:
                 from mehs.synthesis.noise import probe_bracket
 
@@ -463,7 +491,9 @@ def choose_response(bracket: Bracket, response: Any, *, method: str, saturation:
             # neither test can tell: a linear sensor is the likelier (and the
             # smoother) guess, but the scene is flagged, never silently trusted
             curve = ResponseCurve.linear(bracket.bit_depth)
-            auto_info["assumed_linear"] = ("linearity test inconclusive (resolution "
-                                           f"{auto_info['linearity_resolution']:.1%}) and "
-                                           "the recovered curve undetermined")
+            test = (auto_info["linearity_unknown"]
+                    if "linearity_unknown" in auto_info else
+                    "linearity test inconclusive (resolution "
+                    f"{auto_info['linearity_resolution']:.1%})")
+            auto_info["assumed_linear"] = f"{test} and the recovered curve undetermined"
     return curve, auto_info, probe

@@ -50,6 +50,15 @@ from mehs.synthesis.response import ResponseCurve
 #: median relative uncertainty of the linearised signal above which the curve is "undetermined"
 UNDETERMINED_MEDIAN = 0.02
 
+#: Largest fraction of a bracket's usable (pixel, band) samples that may be read above the
+#: levels its pairs of exposures tie (by :data:`~mehs.synthesis.response_extend.
+#: EXTRAPOLATION_MARGIN`), where the curve is extrapolated, before the curve is undetermined
+#: (:func:`coverage_verdict`). The simulator's brackets (48², 204 bands; window, lamp and
+#: colorchecker scenes; gamma 0.5/0.8; 2, 3, 5 exposures ×4 from 0.05 and 0.5 ms): 0 on
+#: every bracket whose pairs reach saturation, 0.9–1.2 % on the window brackets whose
+#: shortest exposure alone sees the window (6 % of the pixels).
+READ_BEYOND_TOLERANCE = 0.001
+
 ADVICE = ("capture a response ladder once (mehs capture --ladder: >= 5 exposures x2-x4 of a "
           "static target), fuse it with --response debevec, and reuse its response.json "
           "with --response")
@@ -115,6 +124,41 @@ def response_uncertainty(recover: Callable[..., ResponseCurve],
         "samples_compared": int(ok.sum()),
     }
     if not out["determined"]:
+        out["advice"] = ADVICE
+    return out
+
+
+def coverage_verdict(out: dict, raw: list, darks: list, saturation: np.ndarray,
+                     covered_top_level: int | None) -> dict:
+    """Add to a check's result ``out`` how much of the bracket is read above the levels its
+    pairs tie (:func:`mehs.synthesis.response_extend.read_beyond_coverage` on ``raw``, the
+    exposures' raw levels (lines, samples, bands), with their ``darks``) and, above
+    :data:`READ_BEYOND_TOLERANCE`, call the curve undetermined with a reason and advice.
+
+    The split halves and λ vs 10·λ cannot see this: they compare merges of well-exposed
+    pixels, and every curve they recover continues above the pairs the same way. On the
+    simulator's window scene (gamma 0.8, 2 exposures 0.5/2 ms) the window, seen unsaturated
+    by the shortest exposure only (levels 1540–4013, pairs up to 470), read 17× too bright
+    relative to the chart through the straight continuation, and the check passed it
+    (median 0.9 %). ``covered_top_level`` None (a curve from elsewhere): nothing is added.
+    Returns ``out``."""
+    if covered_top_level is None:
+        return out
+    from mehs.synthesis.response_extend import EXTRAPOLATION_MARGIN, read_beyond_coverage
+
+    cov = read_beyond_coverage(raw, darks, saturation, int(covered_top_level))
+    out.update(cov)
+    out["read_beyond_tolerance"] = READ_BEYOND_TOLERANCE
+    frac = cov["read_beyond_coverage"]
+    if out.get("determined") and frac > READ_BEYOND_TOLERANCE:
+        out["determined"] = False
+        out["reason"] = (
+            f"{frac:.2%} of the usable samples ({cov['read_beyond_pixels']:.1%} of the pixels) "
+            f"are read at levels up to {cov['read_max_level']:.0f} that no pair of exposures "
+            f"ties (pairs reach level {cov['covered_top_level']}; above "
+            f"{EXTRAPOLATION_MARGIN:g}x that the curve is extrapolated, not measured); add "
+            "an exposure shorter than the shortest so that the brightest parts are seen "
+            "unsaturated by two exposures")
         out["advice"] = ADVICE
     return out
 

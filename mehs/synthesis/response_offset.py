@@ -331,7 +331,8 @@ def tie_bands_to_reference(tables: np.ndarray, ref_g: np.ndarray, Z: np.ndarray,
     return g, {"bands_from_reference": int((~ok).sum())}
 
 
-def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict):
+def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict,
+                   zmax: int | None = None):
     """The curve ``g = ln(f − c)`` of a linear-domain table ``f`` (C, L) whose additive
     constant is free, with ``c`` chosen so that ``g`` follows ``plain``.
 
@@ -342,6 +343,14 @@ def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict):
     below ``zmin`` (the lowest level seen) and kept from falling above it — so that
     ``exp g`` is that continuation everywhere and the merge's ``f(Z) − f(D)`` never
     meets a floor. The result has the gauge ``g(Z_mid) = ln Z_mid``.
+
+    ``zmax``: the highest level a pair of exposures ties
+    (:func:`mehs.synthesis.response_extend.covered_top`; None: every level). The constant
+    is fitted on the levels up to it only — above it both curves are extrapolations — and
+    the result is continued above it as a power law
+    (:func:`~mehs.synthesis.response_extend.extend_power_law`). A bracket whose pairs stop
+    at level 470 (a dark chart, a window seen by one exposure) had its constant fitted on
+    L/8…0.9·L, all extrapolated.
 
     (The constraint used to be ``0.98·min f`` from ``zmin`` up, which is the bound
     ``plain`` always pushed ``c`` to: ``f − c`` was 2 % of ``f(zmin)`` there — and
@@ -366,7 +375,10 @@ def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict):
     rise = (f[:, mid] - f[:, zmin]) / (mid - zmin)
     slope = np.maximum((f[:, zmin + k] - f[:, zmin]) / k, 1e-3 * np.maximum(rise, 1e-300))
     f[:, :zmin] = f[:, zmin:zmin + 1] - slope[:, None] * (zmin - lev[:zmin])
-    zs = np.arange(L // 8, int(0.9 * L), 16)
+    top = int(0.9 * L) if zmax is None else min(int(0.9 * L), int(zmax))
+    zs = np.arange(L // 8, top, 16)
+    if zs.size < 8:     # pairs end below L/8: the covered upper half
+        zs = np.unique(np.linspace(max(zmin, top // 2), max(top, zmin + 1), 32).astype(np.intp))
     # one level's rise of headroom at level 0: exp g never reaches 0 on the table
     cmax = f[:, 0] - slope
     cmin = np.minimum(-0.5 * f[:, L // 2], cmax - (f[:, L // 2] - f[:, 0]))
@@ -378,6 +390,10 @@ def match_constant(f: np.ndarray, plain, zmin: int, parameters: dict):
     best = c[np.arange(c.shape[0]), np.argmin(err, axis=1)]
     f2 = np.maximum(f - best[:, None], 1e-12 * np.maximum(f[:, -1] - best, 1e-300)[:, None])
     g2 = np.log(f2)
+    if zmax is not None:
+        from mehs.synthesis.response_extend import extend_power_law
+
+        g2 = extend_power_law(g2, int(zmax))
     g2 += np.log(L // 2) - g2[:, L // 2:L // 2 + 1]
     params = dict(parameters)
     params["offset_constant"] = best.tolist() if best.size > 1 else float(best[0])

@@ -11,6 +11,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.synthesis.response import recover_response_Debevec1997
+from mehs.synthesis.response_extend import covered_top
 from mehs.synthesis.response_offset import match_constant as _match_constant
 
 #: Rounds of the black-level offset iterations of :func:`recover_response`. The fixed point
@@ -46,8 +47,8 @@ def _offset_direct(bracket, Z, D, plain, wt, zmin, smoothness, *, shared, refere
     # f is 1 a quarter of the range above the dark: scaled to DN-like values, as the
     # floors of _match_constant expect
     f = f * (L // 2)
-    return _match_constant(f, plain, zmin,
-                           {**plain.parameters, **stats, "offset": "direct"}), Z, D, f
+    return _match_constant(f, plain, zmin, {**plain.parameters, **stats, "offset": "direct"},
+                           zmax=covered_top(Z, wt)), Z, D, f
 
 
 def _offset_rounds(bracket, Z, D, plain, wt, zmin, smoothness, weighting, params,
@@ -84,6 +85,7 @@ def _offset_rounds(bracket, Z, D, plain, wt, zmin, smoothness, weighting, params
     if state is not None and not start:
         state.update(curve=curve, lt=lt_cur)
     f = np.exp(curve.table())
-    out = _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"})
+    out = _match_constant(f, plain, zmin, {**curve.parameters, "offset": "rounds"},
+                          zmax=covered_top(Z, wt))
     out.smoothness = float(smoothness)    # the rounds' λ (plain's is the default's)
     return out, Z, D, f
