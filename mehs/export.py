@@ -90,7 +90,8 @@ def export_per_wavelength(cube: SpectralCube, out_dir: str | Path, *, prefix: st
         Folder to write into (created if needed). ``<prefix>_<digits>.exr`` files of
         an earlier export there that this one does not write are removed once it is
         written; such a file that ``mehs export`` did not write (no ``bandIndex`` /
-        ``wavelength`` header) is refused before anything is written.
+        ``wavelength`` header), or one of this export's names, is refused before anything
+        is written.
     prefix
         File-name prefix (letters, digits, ``_.-``).
     half
@@ -175,13 +176,16 @@ def _stale_bands(out: Path, prefix: str, names: list[str]) -> list[Path]:
     An earlier export of more bands (or another padding) would leave files a glob or
     ``%03d`` loader takes for this export's, at other wavelengths; removing them is only
     right for files an export wrote, so a matching file of another origin
-    (``band_2024.exr`` from elsewhere) is refused here, before any write, naming it.
+    (``band_2024.exr`` from elsewhere) is refused here, before any write, naming it — as
+    is one this export would replace (``band_000.exr`` from elsewhere).
     """
     keep = set(names)
     pat = _band_pattern(prefix)
-    stale = sorted(f for f in out.iterdir()
-                   if f.name not in keep and pat.fullmatch(f.name) and f.is_file())
-    foreign = [f for f in stale if not _is_exported_band(f)]
+    found = sorted(f for f in out.iterdir() if pat.fullmatch(f.name) and f.is_file())
+    stale = [f for f in found if f.name not in keep]
+    # one this export would replace is checked too: it is no earlier export's (whose
+    # listing the CLI's overwrite check finds) unless an export wrote it (a killed run's)
+    foreign = [f for f in found if not _is_exported_band(f)]
     if foreign:
         more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
         raise InputError(f"a file named like a band of this export{more} was not written by "

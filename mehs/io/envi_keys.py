@@ -50,7 +50,11 @@ def units_mismatch(wl_nm: np.ndarray, scale: float, unit: str, said: str) -> str
         return (f"band centres up to {wl_nm.max() / 1e3:g} µm: the wavelength units {said!r} "
                 f"do not fit values {wl_nm.min() / scale:g}–{wl_nm.max() / scale:g} "
                 "(nanometres?); correct the 'wavelength units' line")
-    if unit in UNIT_SCALE and np.all(wl_nm < 100.0):
+    raw = wl_nm / scale
+    whole = np.all(np.abs(raw - np.round(raw)) <= 1e-9 * np.maximum(np.abs(raw), 1.0))
+    if unit in UNIT_SCALE and np.all(wl_nm < 100.0) and not whole:
+        # whole numbers are band indices (the reader's rule for unknown units, and what
+        # mehs writes back, labelled Nanometers, from a header in 'Index' units): kept
         return (f"band centres {wl_nm.min():g}–{wl_nm.max():g} nm are X-rays: the wavelength "
                 f"units {said!r} do not fit values {wl_nm.min() / scale:g}–"
                 f"{wl_nm.max() / scale:g} (micrometres?); correct the 'wavelength units' line")

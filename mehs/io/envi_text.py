@@ -102,9 +102,24 @@ def parse_header_text(text: str, conflicts: dict[str, list[Any]] | None = None
 
 
 def _put(out: dict[str, Any], key: str, val: Any, conflicts: dict[str, list[Any]] | None) -> None:
-    if conflicts is not None and key in out and out[key] != val:
+    if conflicts is not None and key in out and _meaning(out[key]) != _meaning(val):
         conflicts.setdefault(key, [out[key]]).append(val)
     out[key] = val
+
+
+def _meaning(val: Any) -> tuple:
+    """What a value says, not how it is spelled: ``bil`` and ``BIL``, ``500`` and ``500.00``
+    are one value (ENVI reads keywords and numbers so), so repeating a key with them is
+    no conflict."""
+    items = val if isinstance(val, list) else [val]
+    out = []
+    for item in items:
+        text = str(item).strip()
+        try:
+            out.append(float(text))
+        except ValueError:
+            out.append(text.casefold())
+    return tuple(out)
 
 
 def read_header_pairs(hp: Path, strict_keys: Collection[str] = ()) -> dict[str, Any]:
