@@ -87,8 +87,23 @@ def _rows_from_text(path: Path) -> list[list[float]]:
     return rows
 
 
+def _number_row(s: str) -> bool:
+    """Whether a line is a row of numbers (any of the separators :func:`_rows_from_text` takes)."""
+    parts = [p for p in re.split(r"[,;\s]+", s.strip()) if p]
+    try:
+        [float(p) for p in parts]
+    except ValueError:
+        return False
+    return bool(parts)
+
+
 def _header_text(path: Path) -> str:
-    """The lines before a table's first row of numbers, and every ``#`` comment."""
+    """The lines before a table's first row of numbers, and every ``#`` comment.
+
+    A line is data only when it is numbers (as :func:`_rows_from_text` reads it): a title
+    starting with a digit ("1000 W QTH lamp", "2021-03-04 …") is header, and the unit line
+    after it is not lost (taken as SI, a W/(cm²·sr·nm) table read 10⁴× too small).
+    """
     out, data = [], False
     for ln in path.read_text(encoding="utf-8-sig", errors="replace").splitlines():
         body, _, comment = ln.partition("#")
@@ -96,7 +111,7 @@ def _header_text(path: Path) -> str:
         if comment.strip():
             out.append(comment.strip())
         if s and not data:
-            if s[0].isdigit() or s[0] in "+-.,":
+            if _number_row(s):
                 data = True
             else:
                 out.append(s)
