@@ -40,3 +40,12 @@ def test_manifest_entries_outside_the_dataset_are_refused(dataset, field, value)
 
 def test_a_built_manifest_reads(dataset):
     assert read_manifest(dataset)["scenes"][0]["id"] == "c"
+
+
+def test_a_scene_id_with_a_trailing_newline_is_refused():
+    from mehs.dataset.scene_list import check_scene_id
+    from mehs.errors import InputError
+
+    with pytest.raises(InputError, match="folder name"):
+        check_scene_id("s1\n")
+    assert check_scene_id("s1.v2_a-b") == "s1.v2_a-b"

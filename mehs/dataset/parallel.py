@@ -91,7 +91,9 @@ def _sigint_ignored():
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        # None: a handler not installed from Python (an embedding application's); it
+        # cannot be put back from here, and the default is the closest
+        signal.signal(signal.SIGINT, old if old is not None else signal.SIG_DFL)
 
 
 def run_tasks(fn: Callable[[Any], Any], tasks: Iterable[tuple[str, Any]], *,

@@ -28,7 +28,7 @@ from mehs.errors import InputError
 
 SCENE_LIST_COLUMNS = ("scene_id", "folder_short", "folder_mid", "folder_long")
 #: what a scene id may be: a folder name of its own (manifest ids are checked against it too)
-SCENE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+SCENE_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*\Z")   # \Z: no trailing newline
 
 
 @dataclass(frozen=True)
