@@ -84,8 +84,9 @@ def read_manifest(dataset: str | Path) -> dict[str, Any]:
                 raise FormatError(f"scene {s['id']!r}: '{key}' {what} (damaged entry; "
                                   "rebuild the scene with 'mehs build ... --force')", path)
         for name, rel in s["files"].items():
-            parts = Path(rel).parts if isinstance(rel, str) else ()
-            if not parts or Path(rel).is_absolute() or ".." in parts:
+            # a path that leaves the dataset; a missing or non-path entry is a damaged scene,
+            # which the build names and rebuilds (scene_build), not a hostile manifest
+            if isinstance(rel, str) and rel and (Path(rel).is_absolute() or ".." in Path(rel).parts):
                 raise FormatError(f"scene {s['id']!r}: file {name!r} = {rel!r} is not a path "
                                   "inside the dataset (damaged or hand-edited entry)", path)
     splits = manifest.get("splits", {})
