@@ -62,16 +62,24 @@ def _delimiter(data_lines: list[str]) -> str:
         return "," if ("," in sample or ";" in sample) else " "
 
 
-def _rows_from_text(path: Path) -> list[list[float]]:
-    """Rows of numbers of a text table; any lines before the first row of numbers are a header."""
+def _rows_from_text(path: Path) -> tuple[list[list[float]], str]:
+    """Rows of numbers of a text table, and its header text.
+
+    Any lines before the first row of numbers are the header (a title, column names, a
+    certificate's unit line — also a title that starts with a digit, "1000 W QTH lamp"),
+    and every ``#`` comment belongs to it too; returned joined by newlines (a
+    certificate's unit is read from it, :mod:`mehs.calibration.units`).
+    """
     text = path.read_text(encoding="utf-8-sig", errors="strict")
-    body = [(n, ln.split("#", 1)[0].strip()) for n, ln in enumerate(text.splitlines(), 1)]
-    body = [(n, s) for n, s in body if s]
+    lines = [ln.partition("#") for ln in text.splitlines()]
+    comments = [c.strip() for _, _, c in lines if c.strip()]
+    body = [(n, b.strip()) for n, (b, _, _) in enumerate(lines, 1) if b.strip()]
     # the separator is sniffed on the data lines only: a certificate's title and column
     # names ("Wavelength (nm); Radiance (W/(m2 sr nm))") mislead the sniffer
     data_lines = [s for _, s in body if s[0].isdigit() or s[0] in "+-.,"][:20]
     delim = _delimiter(data_lines)
     rows: list[list[float]] = []
+    header: list[str] = []
     for n, s in body:
         parts = [p.strip() for p in (s.split(delim) if delim != " " else s.split())]
         parts = [p for p in parts if p]
@@ -83,39 +91,8 @@ def _rows_from_text(path: Path) -> list[list[float]]:
             if rows:
                 raise FormatError(f"line {n} is not numbers: {s!r} (columns separated by "
                                   f"{'blanks' if delim == ' ' else repr(delim)})", path) from None
-            # a header line (title, column names, certificate number) before the data
-    return rows
-
-
-def _number_row(s: str) -> bool:
-    """Whether a line is a row of numbers (any of the separators :func:`_rows_from_text` takes)."""
-    parts = [p for p in re.split(r"[,;\s]+", s.strip()) if p]
-    try:
-        [float(p) for p in parts]
-    except ValueError:
-        return False
-    return bool(parts)
-
-
-def _header_text(path: Path) -> str:
-    """The lines before a table's first row of numbers, and every ``#`` comment.
-
-    A line is data only when it is numbers (as :func:`_rows_from_text` reads it): a title
-    starting with a digit ("1000 W QTH lamp", "2021-03-04 …") is header, and the unit line
-    after it is not lost (taken as SI, a W/(cm²·sr·nm) table read 10⁴× too small).
-    """
-    out, data = [], False
-    for ln in path.read_text(encoding="utf-8-sig", errors="replace").splitlines():
-        body, _, comment = ln.partition("#")
-        s = body.strip()
-        if comment.strip():
-            out.append(comment.strip())
-        if s and not data:
-            if _number_row(s):
-                data = True
-            else:
-                out.append(s)
-    return "\n".join(out)
+            header.append(s)   # a header line (title, column names, certificate number)
+    return rows, "\n".join(header + comments)
 
 
 def _read_library(hdr: Path, given: Path, what: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -197,7 +174,7 @@ def load_spectrum(spec: str | Path, *, what: str = "spectrum") -> Spectrum:
         header = ""
     else:
         try:
-            rows = _rows_from_text(p)
+            rows, header = _rows_from_text(p)
         except UnicodeDecodeError:
             raise FormatError(f"{what} file is not text (CSV expected)", p) from None
         if len(rows) < 2:
@@ -209,7 +186,6 @@ def load_spectrum(spec: str | Path, *, what: str = "spectrum") -> Spectrum:
         a = np.asarray(rows, dtype=np.float64)
         wl, vals = a[:, 0], a[:, 1]
         unc = a[:, 2] if a.shape[1] >= 3 else None
-        header = _header_text(p)
     if not (np.all(np.isfinite(wl)) and np.all(np.isfinite(vals))):
         raise FormatError(f"{what} holds NaN or inf", p)
     order = np.argsort(wl, kind="stable")
