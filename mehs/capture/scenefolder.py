@@ -219,3 +219,24 @@ def write_exposure(scene_dir: str | Path, k: int, t_ms: float, raw: np.ndarray,
     rec["status"] = "complete"
     rec["files"] = hash_folder(scene_dir, folder)
     return rec
+
+
+def refuse_new_capture_into(out: str | Path) -> None:
+    """Raise :class:`InputError` when a new capture may not start in ``out``: a file there,
+    a scene captured already (``--resume`` finishes it), or a folder inside a raw capture.
+
+    ``mehs capture`` asks before it takes the folder's lock (even a lock file would change
+    a raw capture); :func:`mehs.capture.session.capture_scene` asks again for library callers.
+    """
+    from mehs.io.atomic import raw_capture_containing
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output folder exists and is not a folder", out)
+    cap = raw_capture_containing(out)
+    if cap is not None and cap == out.resolve():
+        raise InputError("a scene was already captured here; use --resume to finish it "
+                         "(raw captures are never overwritten)", out)
+    if cap is not None:
+        raise InputError(f"output lies inside the raw capture {cap}; raw captures are never "
+                         "written into — choose an output outside it", out)

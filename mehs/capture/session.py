@@ -304,11 +304,7 @@ def capture_scene(stage, camera, out_dir: str | Path, *, times_ms: Sequence[floa
         scan = plan.get("scan", "step")
         scan_options = plan.get("scan_options") or {}
     else:
-        if (out / sf.SCENE_JSON).exists():
-            raise InputError("a scene was already captured here; use --resume to finish it "
-                             "(raw captures are never overwritten)", out)
-        if out.exists() and not out.is_dir():
-            raise InputError("output folder exists and is not a folder", out)
+        sf.refuse_new_capture_into(out)
         if out.is_dir():
             # a capture killed while it wrote its first scene.json left only the temporary
             for p in out.glob(f".{sf.SCENE_JSON}.*.part*"):

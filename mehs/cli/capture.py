@@ -101,17 +101,11 @@ def run(args):
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("output folder exists and is not a folder", args.out)
     if not args.resume:
-        # refused before the lock below is taken: even its lock file would change a raw
-        # capture (a --resume finishes its own scene folder, lock and all)
-        from mehs.io.atomic import raw_capture_containing
+        # before the lock below is taken: even its lock file would change a raw capture
+        # (a --resume finishes its own scene folder, lock and all)
+        from mehs.capture.scenefolder import refuse_new_capture_into
 
-        cap = raw_capture_containing(args.out)
-        if cap is not None and cap == Path(args.out).resolve():
-            raise InputError("a scene was already captured here; use --resume to finish it "
-                             "(raw captures are never overwritten)", args.out)
-        if cap is not None:
-            raise InputError(f"output lies inside the raw capture {cap}; raw captures are never "
-                             "written into — choose an output outside it", args.out)
+        refuse_new_capture_into(args.out)
     sim_options = _sim_options(args) if args.simulate else None
     if args.resume and args.simulate:
         _check_same_simulated_scene(args.out, sim_options)
