@@ -198,13 +198,19 @@ BRIGHT_DIRECT_RATIO = 0.5
 LOW_BLACK_FRACTION = 1.0 / 256.0
 
 
+def mean_misfits(misfits: dict) -> dict:
+    """Each candidate's mean held-out misfit (None where no held-out pixel is usable): the
+    figure :func:`pick_solve`, :func:`pick_bright` and :func:`pick_smoothness` compare."""
+    return {k: (float(np.nanmean(r)) if np.isfinite(r).any() else None)
+            for k, r in misfits.items()}
+
+
 def pick_bright(misfits: dict[str, np.ndarray]) -> tuple[str, dict]:
     """The solve a bright bracket keeps (:data:`BRIGHT_DIRECT_RATIO`): ``"rounds"`` unless
     the direct solve's mean held-out misfit is below that fraction of theirs; the one
     solved when only one was. Returns the choice and each mean misfit (None: not
     measurable), as :func:`pick_solve`."""
-    stats: dict = {name: (float(np.nanmean(r)) if np.isfinite(r).any() else None)
-                   for name, r in misfits.items()}
+    stats: dict = mean_misfits(misfits)
     if set(misfits) != {"direct", "rounds"}:
         return next(iter(misfits)), stats
     d, r = stats["direct"], stats["rounds"]
@@ -220,9 +226,9 @@ def pick_smoothness(misfits: dict[float, np.ndarray], base: float) -> tuple[floa
     misfit relative to the base's (JSON keys: λ as text)."""
     from mehs.synthesis.response import SMOOTHNESS_TOLERANCE
 
-    ok = {lam: r for lam, r in misfits.items() if np.isfinite(r).any()}
-    ref = float(np.nanmean(ok[base])) if base in ok else None
-    rel = {lam: (float(np.nanmean(r)) / ref - 1.0 if ref else None) for lam, r in ok.items()}
+    means = {lam: m for lam, m in mean_misfits(misfits).items() if m is not None}
+    ref = means.get(base)
+    rel = {lam: (m / ref - 1.0 if ref else None) for lam, m in means.items()}
     keep = base
     if ref:
         keep = max([lam for lam, v in rel.items() if v is not None
@@ -236,10 +242,7 @@ def pick_solve(misfits: dict[str, np.ndarray]) -> tuple[str, dict]:
     differences), else ``"rounds"`` (also when no held-out pixel is usable); the one solved
     when only one was. Returns the choice and figures for the curve's parameters: each mean
     misfit (None if not measurable) and the paired difference's z-score."""
-    stats: dict = {name: None for name in misfits}
-    for name, r in misfits.items():
-        if np.isfinite(r).any():
-            stats[name] = float(np.nanmean(r))
+    stats: dict = mean_misfits(misfits)
     if set(misfits) != {"direct", "rounds"}:
         return next(iter(misfits)), stats
     d = misfits["direct"] - misfits["rounds"]
