@@ -162,6 +162,32 @@ def signal_decile_excess(sim, br, sensor, curve, min_dn: float = 20.0) -> np.nda
                      for m in ((t >= lo) & (t <= hi) for lo, hi in zip(qs[:-1], qs[1:]))])
 
 
+def log_ratio_to_true_curve(br, sim, sensor, curve, min_dn: float = 20.0):
+    """``(q, tv)``: per sample, ``ln`` of ``curve``'s merge over the merge of the same bracket
+    with the sensor's true curve (same noise, so the ratio is the curve's own error), and
+    the sample's true radiance; over samples unmasked in both merges, positive in both, with
+    ``≥ min_dn`` DN of true signal in the longest exposure."""
+    import warnings
+
+    from mehs.synthesis.fuse import fuse_bracket
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got, ref = (fuse_bracket(br, response=c, ghosts="off", check_response=False)
+                    for c in (curve, true_curve(sensor)))
+    rad, rr = (np.asarray(r.radiance.data, np.float64) for r in (got, ref))
+    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
+    ok = (((got.mask == 0) & (ref.mask == 0))[..., None] & (rad > 0) & (rr > 0)
+          & (truth * float(sim.times_ms.max()) >= min_dn))
+    return np.log(rad[ok] / rr[ok]), truth[ok]
+
+
+def decile_medians(q, tv) -> np.ndarray:
+    """``(10,)``: the median of ``q`` in each decile of ``tv`` (both ends included)."""
+    qs = np.quantile(tv, np.linspace(0, 1, 11))
+    return np.array([np.median(q[(tv >= a) & (tv <= b)]) for a, b in zip(qs[:-1], qs[1:])])
+
+
 #: the dataset's 31 bands (400-700 nm, 10 nm)
 _WL31 = np.arange(400.0, 701.0, 10.0)
 

@@ -10,51 +10,30 @@ now solved both ways, and the direct solve, which fits held-out pixels ~8× bett
 data with its true response curve.
 """
 
-import warnings
-
 import numpy as np
+from _checks import bracket_of, decile_medians, log_ratio_to_true_curve
 
 from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
 from mehs.scenes.natural import make_natural_scene
-from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.fuse import fuse_bracket
 from mehs.synthesis.fuse_response import recover_response
-from mehs.synthesis.response import ResponseCurve
 
 
 def _bracket(sensor, times, size=40):
     wl = SPECIM_IQ_WAVELENGTHS[::8]
     scene = make_natural_scene(size, size, wl, seed=1)
     sim = simulate_bracket(scene, sensor, list(times))
-    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, wl, bit_depth=12)
-    return br, sim
+    return bracket_of(sim, wl), sim
 
 
 def _error(br, sim, sensor, curve):
     """Median |ratio − 1| and the decile medians of the ratio (one scale out) of ``curve``'s
     merge against the true curve's, over samples with >= 20 DN of true signal at the longest
     exposure."""
-    z = np.arange(4096, dtype=np.float64)
-    true = ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
-                         parameters={"levels": "raw"})
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        got, ref = (fuse_bracket(br, response=c, ghosts="off", check_response=False)
-                    for c in (curve, true))
-    rad, rr = (np.asarray(r.radiance.data, np.float64) for r in (got, ref))
-    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
-    ok = (((got.mask == 0) & (ref.mask == 0))[..., None] & (rad > 0) & (rr > 0)
-          & (truth * float(sim.times_ms.max()) >= 20.0))
-    q = np.log(rad[ok] / rr[ok])
+    q, tv = log_ratio_to_true_curve(br, sim, sensor, curve)
     q -= np.median(q)
-    tv = truth[ok]
-    qs = np.quantile(tv, np.linspace(0, 1, 11))
-    dec = np.expm1([np.median(q[(tv >= a) & (tv <= b)]) for a, b in zip(qs[:-1], qs[1:])])
-    return float(np.median(np.abs(np.expm1(q)))), dec
+    return float(np.median(np.abs(np.expm1(q)))), np.expm1(decile_medians(q, tv))
 
 
 def test_expansive_sensor_shared_curve_follows_the_true_curve():

@@ -2,18 +2,13 @@
 not object, never worse than the default λ = 100 against the simulator's true curve; a λ
 given explicitly is used as is."""
 
-import warnings
-
 import numpy as np
+from _checks import bracket_of, decile_medians, log_ratio_to_true_curve
 
 from mehs.capture.scene import SPECIM_IQ_WAVELENGTHS, make_scene
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
-from mehs.synthesis.bracket import Bracket
-from mehs.synthesis.fuse import fuse_bracket
 from mehs.synthesis.fuse_response import recover_response
-from mehs.synthesis.response import ResponseCurve
 
 
 def _bracket(sensor, times, scale=1.0, size=40):
@@ -22,28 +17,12 @@ def _bracket(sensor, times, scale=1.0, size=40):
     # a dark bracket: the longest exposure barely leaves the dark level
     scene.radiance = (scene.radiance * np.float32(scale)).astype(np.float32)
     sim = simulate_bracket(scene, sensor, list(times), seed=3)
-    br = Bracket([SpectralCube(e, wl) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, wl, bit_depth=12)
-    return br, sim
+    return bracket_of(sim, wl), sim
 
 
 def _ptp(br, sim, sensor, curve):
     """ptp of the brightness-decile medians of ``curve``'s merge over the true curve's."""
-    z = np.arange(4096, dtype=np.float64)
-    true = ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
-                         parameters={"levels": "raw"})
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        got, ref = (fuse_bracket(br, response=c, ghosts="off", check_response=False)
-                    for c in (curve, true))
-    rad, rr = (np.asarray(r.radiance.data, np.float64) for r in (got, ref))
-    truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
-    ok = (((got.mask == 0) & (ref.mask == 0))[..., None] & (rad > 0) & (rr > 0)
-          & (truth * float(sim.times_ms.max()) >= 20.0))
-    q = np.log(rad[ok] / rr[ok])
-    tv = truth[ok]
-    qs = np.quantile(tv, np.linspace(0, 1, 11))
-    return float(np.ptp([np.median(q[(tv >= a) & (tv <= b)]) for a, b in zip(qs[:-1], qs[1:])]))
+    return float(np.ptp(decile_medians(*log_ratio_to_true_curve(br, sim, sensor, curve))))
 
 
 def test_s_curve_knee_and_dark_bracket_keep_the_default():

@@ -16,22 +16,18 @@ same data with its true response curve (same noise, so their ratio is the curve'
 import warnings
 
 import numpy as np
+from _checks import bracket_of, true_curve
 
 from mehs.capture.scene import make_scene
 from mehs.capture.sensor import SensorModel
 from mehs.capture.simulate import simulate_bracket
-from mehs.cube import SpectralCube
-from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.fuse import fuse_bracket
-from mehs.synthesis.response import ResponseCurve
 
 
 def _bracket(kind, sensor, times, size, **scene_kw):
     scene = make_scene(kind, lines=size, samples=size, seed=1, **scene_kw)
     sim = simulate_bracket(scene, sensor, list(times), seed=3)
-    br = Bracket([SpectralCube(e, scene.wavelengths) for e in sim.exposures], list(sim.darks),
-                 [None] * len(times), sim.times_ms, scene.wavelengths, bit_depth=12)
-    return br, sim
+    return bracket_of(sim, scene.wavelengths), sim
 
 
 def _fuse(br, response):
@@ -45,11 +41,7 @@ def _curve_error(br, sim, sensor):
     |ratio − 1| and the ratio's median per brightness decile of the truth (one global scale
     out), over samples with >= 20 DN of true signal in the longest exposure; and the median
     SAM (°) of both merges against the true radiance."""
-    z = np.arange(4096, dtype=np.float64)
-    # a curve of raw levels (the merge subtracts the linearised dark), as recovered ones are
-    true_curve = ResponseCurve(np.log(np.maximum(sensor.inverse_response_dn(z), 1e-3)), 12,
-                               parameters={"levels": "raw"})
-    got, ref = _fuse(br, "debevec"), _fuse(br, true_curve)
+    got, ref = _fuse(br, "debevec"), _fuse(br, true_curve(sensor))
     assert not got.response.is_linear
     truth = np.asarray(sim.truth, np.float64) * sim.truth_dn_per_ms
     rad, rr = (np.asarray(r.radiance.data, np.float64) for r in (got, ref))
