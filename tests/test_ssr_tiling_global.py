@@ -141,18 +141,23 @@ def test_networks_without_poolings_or_with_other_global_operations():
 
 
 def test_collecting_run_stops_at_the_last_pooling():
-    # only the first tile of the collecting run goes through the basis branches after the
-    # last attention layer; the final run's tiles all do
+    # no tile of the collecting run goes through the basis branches after the last
+    # attention layer (a forward on a small crop shows where that is); the final run's
+    # tiles all do
     net = _attentive_net(seed=2)
     done = []
-    net.register_forward_hook(lambda *a: done.append(1))   # completed forwards only
+    net.register_forward_hook(lambda mod, inp, out: done.append(inp[0].shape[-2] * inp[0].shape[-1]))
     rgb = _rgb(64, 300, seed=6)
     # (margin and grid given: no probe runs a forward of its own)
     _, m = _run(net, rgb, bytes_per_pixel=1.0, max_bytes=64 * 128, statistics="image",
                 margin=16, align=8)
     n, runs = m._tiling_last["summary"]["tiles"], m._tiling_last["image_runs"]
     assert n >= 3 and runs >= 2 and m._tiling_last["image_means_change"] <= 1e-5
+    plan = m._tiling_last["plan"]
+    tile_px = min(plan.tile, 64) * min(plan.width, 300)
+    # one completed forward on the crop, far smaller than a tile, then the final runs'
     assert len(done) == 1 + n * (runs - 1)
+    assert done[0] <= tile_px // 4 and min(done[1:]) > tile_px // 2
 
 
 class _SharedAttention(torch.nn.Module):

@@ -9,9 +9,9 @@ network whose only global operations are average poolings through
 
 1. a collecting run over the tiles, each with its own means, sums every pooling
    layer's features over the part of the image each tile owns
-   (:class:`mehs.ssr.net.pooling.ImageMeans`): image-wide means. After the first
-   tile it stops each forward at the last pooling (the paper network's basis
-   branches after it are 45 % of a forward);
+   (:class:`mehs.ssr.net.pooling.ImageMeans`): image-wide means. It stops each
+   forward at the last pooling, learnt from a forward on a small crop (the paper
+   network's basis branches after it are 45 % of a forward);
 2. the tiles run again with those means and collect again; the output of a run is
    returned once the means it was given and the means it measured agree to
    ``tol`` (relative to each layer's largest mean), else one more run.
@@ -138,6 +138,9 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
 
     change = float("inf")
     with means.active():
+        # a crop of a few pooling cells shows where a forward's last pooling is
+        s = max(plan.align, multiple) * 4
+        means.learn_last(lambda: fn(np.ascontiguousarray(rgb[:min(h, s), :min(w, s)])))
         for y0, y1, x0, x1 in tile_windows(rows, cols, plan, h, w):   # outputs not kept
             enter(y0, y1, x0, x1, stop_early=True)
             try:
