@@ -92,16 +92,24 @@ class _BasisBranch(nn.Module):
         lam = torch.as_tensor(normalise_wavelengths(wavelengths), dtype=torch.float32)
         self.register_buffer("lam", lam.view(1, -1, 1, 1), persistent=False)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N, C, H, W)`` features → ``(N, L, H, W)``; into ``out`` (that shape) if given."""
         n, _, h, w = x.shape
         if (self.chunk_pixels <= 0 or (torch.is_grad_enabled() and x.requires_grad)
                 or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
             # training: autograd keeps every strip's temporaries anyway, strips only add work
-            return self._evaluate(x)
+            y = self._evaluate(x)
+            return y if out is None else out.copy_(y)
         rows = max(1, self.chunk_pixels // max(1, n * w))
-        if rows >= h:
+        if rows >= h and out is None:
             return self._evaluate(x)
-        return torch.cat([self._evaluate(c) for c in x.split(rows, dim=2)], dim=2)
+        # each strip lands in the output: no list of strips and their concatenation
+        # (two image-sized copies of the branch) held at once
+        if out is None:
+            out = x.new_empty(n, self.lam.shape[1], h, w)
+        for r in range(0, h, rows):
+            out[:, :, r:r + rows] = self._evaluate(x[:, :, r:r + rows])
+        return out
 
     def _evaluate(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover
         raise NotImplementedError

@@ -45,15 +45,35 @@ class ChannelAttention(nn.Module):
             nn.init.zeros_(self.excite.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.weights(x)
+
+    def weights(self, x: torch.Tensor) -> torch.Tensor:
+        """The per-channel factors ``(N, C, 1, 1)`` the block multiplies ``x`` by."""
         # (the image-wide mean when tiles run under mehs.ssr.net.pooling.ImageMeans)
         s = pooled_mean(self, x)
-        s = torch.sigmoid(self.excite(F.relu(self.squeeze(s))))
-        return x * s
+        return torch.sigmoid(self.excite(F.relu(self.squeeze(s))))
+
+
+#: Pixels per row strip in which inference runs a dense layer's or a transition's
+#: per-pixel work (their ``chunk_pixels``; 0: whole maps). A strip's normalised input
+#: and oneDNN's reordered copy of it stay in cache instead of costing two image-sized
+#: temporaries, which set the peak memory of a large image (issue 16).
+STRIP_PIXELS = 65536
+
+
+def _strip_rows(chunk_pixels: int, x: torch.Tensor, multiple: int = 1) -> int:
+    """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more: no strips."""
+    n, _, h, w = x.shape
+    if chunk_pixels <= 0:
+        return h
+    return max(multiple, chunk_pixels // max(1, n * w) // multiple * multiple)
 
 
 class DenseLayer(nn.Sequential):
     """BN → ReLU → 3×3 conv (``growth`` channels) → channel attention (``attention``,
     the paper's layer) or dropout ``p = dropout`` (Jégou's original layer)."""
+
+    chunk_pixels: int = STRIP_PIXELS
 
     def __init__(self, in_channels: int, growth: int, reduction: int = 4, *,
                  attention: bool = True, dropout: float = 0.0):
@@ -64,6 +84,42 @@ class DenseLayer(nn.Sequential):
         if dropout > 0:
             layers.append(nn.Dropout(dropout))
         super().__init__(*layers)
+
+    def _strippable(self) -> bool:
+        bn, relu, conv = self[0], self[1], self[2]
+        return (not self.training and isinstance(bn, nn.BatchNorm2d)
+                and isinstance(relu, nn.ReLU) and type(conv) is nn.Conv2d
+                and conv.stride == (1, 1) and conv.dilation == (1, 1)
+                and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
+                and 2 * conv.padding[0] == conv.kernel_size[0] - 1
+                and all(isinstance(m, (ChannelAttention, nn.Dropout)) for m in list(self)[3:]))
+
+    def run_into(self, src: torch.Tensor, dst: torch.Tensor) -> None:
+        """Inference: this layer on ``src`` ``(N, c, H, W)``, written into ``dst`` ``(N, g, H, W)``.
+
+        BN → ReLU → conv run in row strips of about ``chunk_pixels`` pixels, each with
+        the convolution's rows of context on either side (zeros beyond the image, as
+        the convolution's own padding): the same sums per output pixel. The channel
+        attention then scales ``dst`` in place.
+        """
+        rows = _strip_rows(self.chunk_pixels, src)
+        h = src.shape[2]
+        if rows >= h or not self._strippable():
+            dst[...] = self(src)
+            return
+        bn, conv = self[0], self[2]
+        k = conv.padding[0]
+        for r0 in range(0, h, rows):
+            r1 = min(h, r0 + rows)
+            a, b = max(0, r0 - k), min(h, r1 + k)
+            # rows the conv pads beyond the strip's context are discarded, except at the
+            # image's edges, where they are the conv's own zero padding
+            y = conv(F.relu(bn(src[:, :, a:b]), inplace=True))
+            dst[:, :, r0:r1] = y[:, :, r0 - a:r1 - a]
+        for m in list(self)[3:]:
+            if isinstance(m, ChannelAttention):
+                dst.mul_(m.weights(dst))
+            # (dropout is the identity at inference)
 
 
 class DenseBlock(nn.Module):
@@ -108,9 +164,16 @@ class DenseBlock(nn.Module):
         """Run the layers on a :meth:`buffer`; the block's output (a view of it)."""
         c_in = c = buf.shape[1] - self.new_channels
         for layer in self.layers:
-            buf[:, c:c + self.growth] = layer(buf[:, :c])
+            layer.run_into(buf[:, :c], buf[:, c:c + self.growth])
             c += self.growth
-        return buf if self.keep_input else buf[:, c_in:]
+        # a view of the new channels would keep the whole buffer alive (its inputs: 5×
+        # the new channels in the small paper network) until the next block is built
+        return buf if self.keep_input else buf[:, c_in:].clone()
+
+    def empty_buffer(self, like: torch.Tensor, in_channels: int) -> torch.Tensor:
+        """An uninitialised :meth:`buffer` for ``in_channels`` input channels of ``like``'s size."""
+        n, _, h, w = like.shape
+        return like.new_empty(n, in_channels + self.new_channels, h, w)
 
 
 def training_graph() -> bool:
@@ -118,15 +181,58 @@ def training_graph() -> bool:
     return torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
 
 
+class MaxPool2x2(nn.MaxPool2d):
+    """``nn.MaxPool2d(2)``; at inference the maximum of the four strided quarter views.
+
+    CPU ``max_pool2d`` also computes int64 indices it then drops: 5× slower on a
+    full-resolution 32-channel map (75 vs 14 ms at 768×1024, 5 % of the small paper
+    network's forward). The maximum of the same four values is the same number (NaN
+    included); training, tracing and export keep the stock operator.
+    """
+
+    def __init__(self):
+        super().__init__(2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if training_graph() or x.dim() != 4:
+            return super().forward(x)
+        h, w = x.shape[-2] // 2 * 2, x.shape[-1] // 2 * 2     # floor, as max_pool2d
+        x = x[..., :h, :w]
+        out = torch.maximum(x[..., 0::2, 0::2], x[..., 1::2, 0::2])
+        torch.maximum(out, x[..., 0::2, 1::2], out=out)     # one output-sized tensor
+        return torch.maximum(out, x[..., 1::2, 1::2], out=out)
+
+
 class TransitionDown(nn.Sequential):
-    """BN → ReLU → 1×1 conv → (dropout) → 2×2 max-pool (halves H and W)."""
+    """BN → ReLU → 1×1 conv → (dropout) → 2×2 max-pool (halves H and W).
+
+    At inference every step is per pixel up to the pooling, so the transition runs
+    in strips of an even number of rows (``chunk_pixels`` pixels, see
+    :data:`STRIP_PIXELS`): the same numbers without its full-resolution temporaries.
+    """
+
+    chunk_pixels: int = STRIP_PIXELS
 
     def __init__(self, channels: int, dropout: float = 0.0):
         layers = [nn.BatchNorm2d(channels), nn.ReLU(inplace=True),
                   nn.Conv2d(channels, channels, kernel_size=1, bias=False)]
         if dropout > 0:
             layers.append(nn.Dropout(dropout))
-        super().__init__(*layers, nn.MaxPool2d(2))
+        super().__init__(*layers, MaxPool2x2())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        rows = _strip_rows(self.chunk_pixels, x, multiple=2)
+        conv = self[2]
+        if (rows >= x.shape[2] or training_graph() or self.training or x.dim() != 4
+                or type(conv) is not nn.Conv2d or conv.kernel_size != (1, 1)
+                or conv.padding != (0, 0)):
+            return super().forward(x)
+        n, _, h, w = x.shape
+        out = x.new_empty(n, conv.out_channels, h // 2, w // 2)
+        for r0 in range(0, h // 2 * 2, rows):
+            r1 = min(h // 2 * 2, r0 + rows)
+            out[:, :, r0 // 2:r1 // 2] = super().forward(x[:, :, r0:r1])
+        return out
 
 
 class FCDenseNet(nn.Module):
@@ -206,10 +312,16 @@ class FCDenseNet(nn.Module):
                 x = block(torch.cat([up(x), skip], dim=1))
             return x[..., :h, :w]
         for up, block in zip(self.trans_up, self.up_blocks):
-            # the up-sampled features and the skip go straight into the block's buffer
-            # and are released before its layers run (a concatenation, and a skip kept
-            # to the end, held ~200 B/px more at full resolution)
-            buf = block.buffer(up(x), skips.pop())
+            # the skip, then the up-sampled features, go straight into the block's buffer
+            # and each is released before the next is made (a concatenation, and a skip
+            # kept to the end, held ~200 B/px more at full resolution)
+            skip = skips.pop()
+            c_up, c_skip = up.out_channels, skip.shape[1]
+            buf = block.empty_buffer(skip, c_up + c_skip)
+            buf[:, c_up:c_up + c_skip] = skip
+            del skip
+            buf[:, :c_up] = up(x)
             del x
             x = block.fill(buf)
+            del buf                    # (x is a copy of its new channels, or all of it)
         return x[..., :h, :w]

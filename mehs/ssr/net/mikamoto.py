@@ -63,6 +63,9 @@ class TwoBranchFCDenseNet(SSRNetwork):
         "tiny": dict(FC_DENSENET_TINY, attention=False, dropout=0.2, n_basis=10),
     }
 
+    #: Pixels per row strip of the head at inference (0: the whole map at once).
+    chunk_pixels: int = 32768
+
     def __init__(self, config: NetConfig, **p):
         super().__init__(config)
         self.features = fcdensenet_from_params(p)
@@ -76,15 +79,21 @@ class TwoBranchFCDenseNet(SSRNetwork):
         f = self.features(x)
         if training_graph():
             return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
-        # inference: the branches fill one tensor and the features are released before
-        # the fusion (the image-sized peak of the head)
+        # inference: the head is per pixel, so it runs in row strips of about
+        # chunk_pixels pixels (the branches' own strips) straight into the output; only
+        # the features and the output are image-sized (the branches' outputs side by
+        # side and the fusion's were 62 more channels at the head's peak, issue 16)
         n, _, h, w = f.shape
         L = self.n_bands
-        both = f.new_empty(n, 2 * L, h, w)
-        both[:, :L] = self.sigmoid_branch(f)
-        both[:, L:] = self.hat_branch(f)
-        del f
-        return self.fusion(both)
+        out = f.new_empty(n, L, h, w)
+        rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
+        for r0 in range(0, h, rows):
+            part = f[:, :, r0:r0 + rows]
+            both = part.new_empty(n, 2 * L, part.shape[2], w)
+            self.sigmoid_branch(part, out=both[:, :L])
+            self.hat_branch(part, out=both[:, L:])
+            out[:, :, r0:r0 + rows] = self.fusion(both)
+        return out
 
 
 class MikamotoTwoBranch(TwoBranchFCDenseNet):

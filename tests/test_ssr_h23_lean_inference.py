@@ -1,0 +1,146 @@
+"""Lean SSR network inference (issue 16): row strips, a cheap max-pool, and collecting runs
+that never run the head. Each must give the numbers of the plain training graph."""
+
+import numpy as np
+import pytest
+from _checks import contrast_rgb
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+import torch.nn.functional as F  # noqa: E402
+
+from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
+from mehs.ssr.net.layers import MaxPool2x2  # noqa: E402
+
+
+def _chunked(net, pixels):
+    for m in net.modules():
+        if isinstance(getattr(m, "chunk_pixels", None), int):
+            m.chunk_pixels = pixels
+
+
+@pytest.mark.parametrize("arch", ["hdrssr", "mikamoto", "galliani"])
+@pytest.mark.parametrize("n", [1, 2])
+def test_row_strips_give_the_training_graphs_numbers(arch, n):
+    # strips of a few rows, so that every dense layer, transition and head runs in many
+    # of them, with the convolutions' context rows at both image edges and between strips
+    torch.manual_seed(3)
+    net = build_network(arch=arch, preset="tiny").eval()
+    rgb = torch.rand(n, 3, 45, 37) * 20
+    _chunked(net, 150)
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.clone().requires_grad_()).detach()
+    # same sums per pixel; only the head's 1×1 convolutions may round differently per shape
+    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+
+
+def _peak_live_bytes(net, x):
+    """Peak bytes of live tensor storages during ``net(x)`` (counted here, independently
+    of mehs's own memory probe)."""
+    import weakref
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_leaves
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.live = self.peak = 0
+            self.seen = set()
+
+        def _gone(self, key, n):
+            self.live -= n
+            self.seen.discard(key)
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            for t in tree_leaves(out):
+                if isinstance(t, torch.Tensor):
+                    s = t.untyped_storage()
+                    if id(s) not in self.seen:
+                        self.seen.add(id(s))
+                        self.live += s.nbytes()
+                        weakref.finalize(s, self._gone, id(s), s.nbytes())
+            self.peak = max(self.peak, self.live)
+            return out
+
+    with torch.no_grad(), Count() as c:
+        y = net(x)
+        del y
+    return c.peak
+
+
+def test_inference_holds_about_two_full_resolution_maps_not_five():
+    # the small paper network's widest full-resolution map is the last block's 64
+    # channels and its output has 31: the head and dense layers used to hold ~194
+    # channels' worth of full-resolution maps at once, the strips ~105
+    torch.manual_seed(0)
+    net = build_network(arch="hdrssr", preset="small").eval()
+    side = 512
+    _chunked(net, 4096)                # strips far smaller than the image, as on a large one
+    peak = _peak_live_bytes(net, torch.rand(1, 3, side, side))
+    per_pixel_channels = peak / (side * side * 4)
+    assert per_pixel_channels < 115, per_pixel_channels
+
+
+def test_max_pool_is_torchs_max_pool():
+    torch.manual_seed(0)
+    x = torch.randn(2, 5, 9, 12)
+    x[0, 0, 0, 0], x[1, 2, 3, 4], x[0, 3, 8, 11] = float("nan"), float("inf"), -float("inf")
+    pool = MaxPool2x2()
+    with torch.no_grad():
+        for t in (x, x[..., :7, :11], x[..., 1:, :]):       # odd sizes floor, views work
+            got, want = pool(t), F.max_pool2d(t, 2)
+            assert got.shape == want.shape
+            assert torch.equal(torch.isnan(got), torch.isnan(want))
+            assert torch.equal(got.nan_to_num(), want.nan_to_num())
+    y = pool(x.clone().requires_grad_())                   # autograd: the stock operator
+    assert y.requires_grad
+
+
+class _SizeDependent(torch.nn.Module):
+    """A second attention layer that only large inputs pass through: a small crop's
+    forward shows the first as the last pooling."""
+
+    def __init__(self):
+        super().__init__()
+        nn = torch.nn
+        self.a, self.b = nn.Conv2d(3, 8, 3, padding=1), nn.Conv2d(8, 8, 3, padding=1)
+        self.out = nn.Conv2d(8, 5, 3, padding=1)
+        self.ca1, self.ca2 = ChannelAttention(8, 2), ChannelAttention(8, 2)
+        with torch.no_grad():
+            for ca in (self.ca1, self.ca2):
+                ca.squeeze.weight.mul_(20.0)
+                ca.excite.weight.mul_(20.0)
+
+    def forward(self, x):
+        x = self.ca1(torch.relu(self.a(x)))
+        x = torch.relu(self.b(x))
+        if x.shape[-2] * x.shape[-1] > 40 * 40:
+            x = self.ca2(x)
+        return self.out(x)
+
+
+def test_a_crop_that_pools_differently_costs_a_run_not_the_result():
+    from types import SimpleNamespace
+
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(4)
+    net = _SizeDependent().eval()
+    rgb = contrast_rgb(48, 400, seed=2)
+
+    def run(**tiling):
+        model = SimpleNamespace(network=net, device="cpu", name="toy", tiling=tiling or "off")
+        return tiled_torch_call(model, rgb), model
+
+    whole, _ = run()
+    image, m = run(bytes_per_pixel=1.0, max_bytes=48 * 136, statistics="image",
+                   margin=8, align=8)
+    assert m._tiling_last["summary"]["tiles"] >= 3
+    # the collecting run stopped after ca1, so ca2's means came one run later
+    assert m._tiling_last["image_runs"] >= 3
+    assert m._tiling_last["image_means_change"] <= 1e-5
+    np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
