@@ -144,3 +144,35 @@ def test_a_crop_that_pools_differently_costs_a_run_not_the_result():
     assert m._tiling_last["image_runs"] >= 3
     assert m._tiling_last["image_means_change"] <= 1e-5
     np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+class _WideField(torch.nn.Module):
+    """Twenty 3×3 convolutions: a 20-pixel receptive radius, wider than a 32² probe."""
+
+    def __init__(self):
+        super().__init__()
+        self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=1) for _ in range(20))
+
+    def forward(self, x):
+        for c in self.convs:
+            x = torch.tanh(c(x))
+        return x
+
+
+def test_receptive_field_probe_grows_only_within_the_memory_budget():
+    # the full-size paper network's field is wider than 256 px: its autograd probes grew
+    # to 512² and held 9 GB under a 2 GB cap before they gave up
+    from mehs.ssr.tiling_probes import GLOBAL_MARGIN, torch_receptive_radius
+
+    torch.manual_seed(0)
+    net = _WideField()
+    sizes = []
+    net.register_forward_pre_hook(lambda mod, inp: sizes.append(inp[0].shape[-1]))
+    assert torch_receptive_radius(net, probe=32, max_probe=128) == 20
+    assert sizes == [32, 64]
+    sizes.clear()
+    assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20) == GLOBAL_MARGIN
+    assert sizes == [32]                   # the 64² probe would not have fitted 1 MiB
+    sizes.clear()
+    assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 30) == 20
+    assert sizes == [32, 64]

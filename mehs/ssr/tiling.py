@@ -388,8 +388,10 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     probed = padded_torch_module(net, k)
 
     def margin() -> int:
+        # the autograd probes keep within the memory a tile may have
+        budget = env_max_bytes() or default_budget()
         with torch.enable_grad():
-            m = torch_receptive_radius(probed, align=grid(torch_align(net), k))
+            m = torch_receptive_radius(probed, align=grid(torch_align(net), k), max_bytes=budget)
         net.zero_grad(set_to_none=True)
         return m
 

@@ -35,12 +35,12 @@ MEMORY_PROBES = (96, 128)
 PROBE_CHUNK_SHARE = 0.25
 
 
-def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
-    """Peak bytes of live tensors (plus convolution reorders) of one ``side²`` call; bands out.
+def _peak_mode(reorders: bool = True):
+    """A torch dispatch mode whose ``peak`` is the most bytes of live tensors it saw.
 
-    A dispatch mode sees every operator's outputs and counts each storage from
-    its creation to its release (the input included, parameters not). At each
-    convolution a copy of its input and output is added: oneDNN reorders both
+    It sees every operator's outputs and counts each storage from its creation to
+    its release (inputs made outside it and parameters not). With ``reorders``, at
+    each convolution a copy of its input and output is added: oneDNN reorders both
     into its blocked layout, outside torch's tensors.
     """
     import weakref
@@ -77,16 +77,24 @@ def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
                         self.live += s.nbytes()
                         weakref.finalize(s, self._release, id(s), s.nbytes())
             now = self.live
-            if func is conv:
+            if reorders and func is conv:
                 # the reorders copy the elements a call sees: a strip of a larger map
                 # (a view) costs its own size, not its storage's
                 now += args[0].numel() * args[0].element_size() + out.numel() * out.element_size()
             self.peak = max(self.peak, now)
             return out
 
+    return Peak()
+
+
+def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
+    """Peak bytes of live tensors (plus convolution reorders, :func:`_peak_mode`) of one
+    ``side²`` call, the input included; bytes per pixel of its output."""
+    import torch
+
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
-    with torch.no_grad(), Peak() as mode:
+    with torch.no_grad(), _peak_mode() as mode:
         y = network(torch.rand(1, 3, side, side, device=device))
         bands = int(y.shape[1]) * y.element_size()
         del y
@@ -196,8 +204,13 @@ def _global_pools_detached(network):
 GLOBAL_MARGIN = 64
 
 
+#: Resident bytes per counted byte assumed for a receptive-field probe (autograd
+#: keeps every layer's output; the C heap holds more than the tensors).
+RADIUS_PROBE_OVERHEAD = 1.5
+
+
 def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
-                           align: int = 1) -> int:
+                           align: int = 1, max_bytes: int | None = None) -> int:
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
 
     The gradient of an output pixel w.r.t. the input is non-zero exactly inside
@@ -217,6 +230,12 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     phase ``p`` reaches at most ``L − p`` left and ``R − p`` right, so a margin
     of ``round_up(L, align)`` covers a tile's leading edge and
     ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
+
+    ``max_bytes``: a larger probe runs only if the memory the last one held, scaled to
+    its size (× :data:`RADIUS_PROBE_OVERHEAD`), fits; else the field counts as wider
+    than the largest probe. Autograd keeps every layer's output, ~24× what the
+    inference holds: the full-size paper network's 512² probe held 9 GB and took 23 s
+    to find its field (~400 px) wider than the probe anyway.
     """
     import torch
 
@@ -226,8 +245,9 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     while True:
         x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
         c = probe // 2 // a * a
-        with _global_pools_detached(network):
+        with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
             network(x)[0, :, c:c + a, c:c + a].sum().backward()
+        held = mode.peak
         g = x.grad[0].abs().sum(0).cpu().numpy()
         ys, xs = np.nonzero(g > 0)
         if ys.size == 0:
@@ -239,6 +259,8 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
                 return max(reach_lo, reach_hi)
             return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
         if probe >= max_probe:
+            return GLOBAL_MARGIN
+        if max_bytes is not None and held * 4 * RADIUS_PROBE_OVERHEAD > max_bytes:
             return GLOBAL_MARGIN
         probe *= 2
 
