@@ -162,7 +162,7 @@ class _WideField(torch.nn.Module):
 def test_receptive_field_probe_grows_only_within_the_memory_budget():
     # the full-size paper network's field is wider than 256 px: its autograd probes grew
     # to 512² and held 9 GB under a 2 GB cap before they gave up
-    from mehs.ssr.tiling_probes import GLOBAL_MARGIN, torch_receptive_radius
+    from mehs.ssr.tiling_probes import FieldWiderThanBudget, torch_receptive_radius
 
     torch.manual_seed(0)
     net = _WideField()
@@ -171,8 +171,125 @@ def test_receptive_field_probe_grows_only_within_the_memory_budget():
     assert torch_receptive_radius(net, probe=32, max_probe=128) == 20
     assert sizes == [32, 64]
     sizes.clear()
-    assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20) == GLOBAL_MARGIN
+    with pytest.raises(FieldWiderThanBudget) as e:
+        torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20)
     assert sizes == [32]                   # the 64² probe would not have fitted 1 MiB
+    assert e.value.lower_bound == 16 and e.value.probe == 32    # not a global operation
     sizes.clear()
     assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 30) == 20
     assert sizes == [32, 64]
+
+
+# -- what the strips must not change (an independent review's findings) ----------------
+
+def test_strips_keep_forward_hooks_and_subclassed_attention():
+    from mehs.ssr.net.layers import DenseLayer
+
+    class Shifted(ChannelAttention):
+        def forward(self, x):
+            return x + super().forward(x)
+
+    torch.manual_seed(5)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    for m in list(net.modules()):
+        if isinstance(m, DenseLayer) and isinstance(m[-1], ChannelAttention):
+            old = m[-1]
+            m[-1] = Shifted(old.squeeze.in_channels, 4)
+            m[-1].load_state_dict(old.state_dict())
+    _chunked(net, 150)
+    rgb = torch.rand(1, 3, 40, 36) * 5
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.clone().requires_grad_()).detach()
+    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+    calls = []
+    layers = [m for m in net.modules() if isinstance(m, DenseLayer)]
+    for m in layers:
+        m.register_forward_hook(lambda *a: calls.append(1))
+    with torch.no_grad():
+        net(rgb)
+    assert len(calls) == len(layers)
+
+
+def test_batch_norm_without_running_statistics_is_not_split_into_strips():
+    torch.manual_seed(6)
+    net = build_network(arch="galliani", preset="tiny").eval()
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.track_running_stats = False      # normalises with the map's own statistics
+            m.running_mean = m.running_var = None
+    _chunked(net, 150)
+    rgb = torch.rand(1, 3, 40, 36) * 5
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.clone().requires_grad_()).detach()
+    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+
+
+class _WideAttention(torch.nn.Module):
+    """A 70-pixel receptive radius (70 3×3 convolutions) and one channel attention."""
+
+    def __init__(self):
+        super().__init__()
+        self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=1) for _ in range(70))
+        self.ca = ChannelAttention(3, 1)
+        self.out = torch.nn.Conv2d(3, 4, 1)
+
+    def forward(self, x):
+        for c in self.convs:
+            x = torch.tanh(c(x))
+        return self.out(self.ca(x))
+
+
+def test_a_field_wider_than_the_budget_allows_to_probe_is_not_a_global_operation():
+    # a 128² autograd probe fills; the budget forbids the 256² one: before, that answer
+    # was the global operations' margin, so image-wide means were refused (and cached)
+    from types import SimpleNamespace
+
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(8)
+    net = _WideAttention().eval()
+    rgb = contrast_rgb(40, 480, seed=3)
+    model = SimpleNamespace(network=net, device="cpu", name="wide",
+                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 320,
+                                        statistics="image", blend=8))
+    with pytest.warns(RuntimeWarning, match="receptive field is wider than a 128-pixel probe"):
+        tiled_torch_call(model, rgb)
+    assert model._tiling_probe["margin"] >= 64 and model._tiling_probe["margin_bound"]
+    assert model._tiling_last["statistics"] == "image"
+    assert model._tiling_last["summary"]["tiles"] >= 2
+
+
+class _MeansDependent(torch.nn.Module):
+    """A pooling before the last that runs only once image-wide means are handed out:
+    no collecting run sees it, so image-wide means cannot be assembled for it."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = torch.nn.Conv2d(3, 4, 3, padding=1)
+        self.ca_mid, self.ca_last = ChannelAttention(4, 2), ChannelAttention(4, 2)
+        self.out = torch.nn.Conv2d(4, 3, 1)
+
+    def forward(self, x):
+        from mehs.ssr.net import pooling
+
+        x = torch.relu(self.a(x))
+        ctx = pooling._ACTIVE.get()
+        if ctx is not None and ctx._means is not None:
+            x = self.ca_mid(x)
+        return self.out(self.ca_last(x))
+
+
+def test_a_pooling_missing_before_where_collecting_stopped_is_refused():
+    from types import SimpleNamespace
+
+    from mehs.errors import InputError
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(9)
+    model = SimpleNamespace(network=_MeansDependent().eval(), device="cpu", name="toy",
+                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 96,
+                                        statistics="image", margin=8, align=8))
+    with pytest.raises(InputError, match="did not see"):
+        tiled_torch_call(model, contrast_rgb(40, 300, seed=4))

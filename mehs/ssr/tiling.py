@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -389,7 +390,8 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
 
     def margin() -> int:
         # the autograd probes keep within the memory a tile may have
-        budget = env_max_bytes() or default_budget()
+        given = model.tiling.get("max_bytes") if isinstance(model.tiling, dict) else None
+        budget = given or env_max_bytes() or default_budget()
         with torch.enable_grad():
             m = torch_receptive_radius(probed, align=grid(torch_align(net), k), max_bytes=budget)
         net.zero_grad(set_to_none=True)
@@ -421,7 +423,30 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
+    probes["margin"] = _margin_or_bound(model, probes["margin"])
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
+
+
+def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
+    """``measure``, or the least radius the field can have where it is wider than any
+    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, not stored
+    in the probe cache (a larger budget measures it), and marked in
+    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
+    operation's :data:`GLOBAL_MARGIN`."""
+    from mehs.ssr.tiling_probes import FieldWiderThanBudget
+
+    def call() -> int:
+        try:
+            return measure()
+        except FieldWiderThanBudget as e:
+            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
+            warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
+                          f"than a {e.probe}-pixel probe, the largest the memory budget allows "
+                          f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
+                          "from whole-image inference near their seams (more memory, "
+                          "MEHS_TILE_MEMORY, measures the field)", RuntimeWarning, stacklevel=2)
+            return e.lower_bound
+    return call
 
 
 def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
@@ -440,8 +465,9 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
 
     def stitch(fn, rgb, plan, strict):
         record = model.__dict__.setdefault("_tiling_last", {})
-        margin = model.__dict__.get("_tiling_probe", {}).get("margin")
-        if getattr(net, "max_tile_pixels", None) is not None or margin == GLOBAL_MARGIN:
+        probe = model.__dict__.get("_tiling_probe", {})
+        is_global = probe.get("margin") == GLOBAL_MARGIN and not probe.get("margin_bound")
+        if getattr(net, "max_tile_pixels", None) is not None or is_global:
             if strict:
                 raise InputError(f"{getattr(model, 'name', type(net).__name__)}: its global "
                                  "operations are not average poolings, so tiles cannot "

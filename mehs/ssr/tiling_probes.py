@@ -209,6 +209,18 @@ GLOBAL_MARGIN = 64
 RADIUS_PROBE_OVERHEAD = 1.5
 
 
+class FieldWiderThanBudget(Exception):
+    """The receptive field filled the largest probe the memory budget allows.
+
+    Not a global operation, and not a property of the architecture (a larger budget
+    measures it): ``lower_bound`` is the least radius the field can have, on the grid.
+    """
+
+    def __init__(self, lower_bound: int, probe: int):
+        super().__init__(f"receptive field wider than a {probe}-pixel probe")
+        self.lower_bound, self.probe = int(lower_bound), int(probe)
+
+
 def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
                            align: int = 1, max_bytes: int | None = None) -> int:
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
@@ -232,10 +244,10 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
 
     ``max_bytes``: a larger probe runs only if the memory the last one held, scaled to
-    its size (× :data:`RADIUS_PROBE_OVERHEAD`), fits; else the field counts as wider
-    than the largest probe. Autograd keeps every layer's output, ~24× what the
-    inference holds: the full-size paper network's 512² probe held 9 GB and took 23 s
-    to find its field (~400 px) wider than the probe anyway.
+    its size (× :data:`RADIUS_PROBE_OVERHEAD`), fits; else :class:`FieldWiderThanBudget`
+    is raised. Autograd keeps every layer's output, ~24× what the inference holds: the
+    full-size paper network's 512² probe held 9 GB and took 23 s to find its field
+    (~400 px) wider than the probe anyway.
     """
     import torch
 
@@ -261,7 +273,8 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
         if probe >= max_probe:
             return GLOBAL_MARGIN
         if max_bytes is not None and held * 4 * RADIUS_PROBE_OVERHEAD > max_bytes:
-            return GLOBAL_MARGIN
+            # the field reaches past the probe's edge from a centre probe // 2 away
+            raise FieldWiderThanBudget(_round_up(probe // 2, a), probe)
         probe *= 2
 
 

@@ -61,6 +61,23 @@ class ChannelAttention(nn.Module):
 STRIP_PIXELS = 65536
 
 
+def _plain(module: nn.Module, *types: type) -> bool:
+    """Whether ``module`` is exactly one of ``types`` (not a subclass, whose forward may
+    differ) and neither it, its children nor the process carry forward hooks: the
+    strips call its parts' functions directly, past hooks and overridden forwards."""
+    from torch.nn.modules import module as _m
+
+    if type(module) not in types or _m._global_forward_hooks or _m._global_forward_pre_hooks:
+        return False
+    return not any(m._forward_hooks or m._forward_pre_hooks for m in module.modules())
+
+
+def _inference_bn(bn: nn.Module) -> bool:
+    """A BatchNorm that normalises with its running statistics (per pixel, so strips can)."""
+    return (_plain(bn, nn.BatchNorm2d) and not bn.training and bn.track_running_stats
+            and bn.running_mean is not None)
+
+
 def _strip_rows(chunk_pixels: int, x: torch.Tensor, multiple: int = 1) -> int:
     """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more: no strips."""
     n, _, h, w = x.shape
@@ -86,13 +103,14 @@ class DenseLayer(nn.Sequential):
         super().__init__(*layers)
 
     def _strippable(self) -> bool:
+        if not (_plain(self, DenseLayer) and not self.training):
+            return False
         bn, relu, conv = self[0], self[1], self[2]
-        return (not self.training and isinstance(bn, nn.BatchNorm2d)
-                and isinstance(relu, nn.ReLU) and type(conv) is nn.Conv2d
+        return (_inference_bn(bn) and type(relu) is nn.ReLU and type(conv) is nn.Conv2d
                 and conv.stride == (1, 1) and conv.dilation == (1, 1)
                 and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
                 and 2 * conv.padding[0] == conv.kernel_size[0] - 1
-                and all(isinstance(m, (ChannelAttention, nn.Dropout)) for m in list(self)[3:]))
+                and all(type(m) in (ChannelAttention, nn.Dropout) for m in list(self)[3:]))
 
     def run_into(self, src: torch.Tensor, dst: torch.Tensor) -> None:
         """Inference: this layer on ``src`` ``(N, c, H, W)``, written into ``dst`` ``(N, g, H, W)``.
@@ -220,12 +238,22 @@ class TransitionDown(nn.Sequential):
             layers.append(nn.Dropout(dropout))
         super().__init__(*layers, MaxPool2x2())
 
+    def _strippable(self) -> bool:
+        # (the hooks of its parts, as a whole, are checked by _plain on self)
+        if not (_plain(self, TransitionDown) and not self.training):
+            return False
+        bn, relu, conv = self[0], self[1], self[2]
+        return (_inference_bn(bn) and type(relu) is nn.ReLU and type(conv) is nn.Conv2d
+                and conv.kernel_size == (1, 1) and conv.stride == (1, 1)
+                and conv.padding == (0, 0) and type(self[-1]) is MaxPool2x2
+                and all(type(m) is nn.Dropout for m in list(self)[3:-1]))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if training_graph() or x.dim() != 4 or not self._strippable():
+            return super().forward(x)
         rows = _strip_rows(self.chunk_pixels, x, multiple=2)
         conv = self[2]
-        if (rows >= x.shape[2] or training_graph() or self.training or x.dim() != 4
-                or type(conv) is not nn.Conv2d or conv.kernel_size != (1, 1)
-                or conv.padding != (0, 0)):
+        if rows >= x.shape[2]:
             return super().forward(x)
         n, _, h, w = x.shape
         out = x.new_empty(n, conv.out_channels, h // 2, w // 2)

@@ -25,7 +25,7 @@ from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net.basis import MexicanHatBranch, SigmoidBasisBranch
-from mehs.ssr.net.layers import FCDenseNet, training_graph
+from mehs.ssr.net.layers import FCDenseNet, _plain, training_graph
 
 #: Jégou et al.'s FC-DenseNet56: 48 first filters, 5 levels of 4 layers, bottleneck 4,
 #: growth 12 (published: 1.5 M parameters with a 1×1 classifier).
@@ -87,6 +87,9 @@ class TwoBranchFCDenseNet(SSRNetwork):
         L = self.n_bands
         out = f.new_empty(n, L, h, w)
         rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
+        if not all(_plain(m, type(m)) for m in (self.sigmoid_branch, self.hat_branch,
+                                                self.fusion)):
+            rows = h                   # forward hooks see one call per forward, as before
         for r0 in range(0, h, rows):
             part = f[:, :, r0:r0 + rows]
             both = part.new_empty(n, 2 * L, part.shape[2], w)

@@ -73,6 +73,7 @@ class ImageMeans:
         self._partial = False
         self._stopped = False
         self._missing = False
+        self._past_last = False      # this forward has passed the learned last pooling
 
     @contextlib.contextmanager
     def active(self):
@@ -98,6 +99,7 @@ class ImageMeans:
         self._tile = (y, x, own_y, own_x, last_y, last_x)
         self._calls = {}
         self._stop = stop_early
+        self._past_last = False
 
     def learn_last(self, run) -> None:
         """Learn the last pooling of a forward from ``run()``, a forward on a small crop
@@ -122,6 +124,8 @@ class ImageMeans:
         k = self._calls.get(module, 0)
         self._calls[module] = k + 1
         key = self._previous = (module, k)
+        if key == self._last:
+            self._past_last = True
         if self._tile is not None:
             self._collect(key, x)
             if self._stop and key == self._last:
@@ -129,8 +133,11 @@ class ImageMeans:
                 raise PoolingsCollected
         if self._means is not None:
             m = self._means.get(key)
-            if m is None and self._partial:
-                self._missing = True        # see learn_last: this run collects it
+            if m is None and self._partial and self._past_last:
+                # after where the collecting run stopped (see learn_last): this run
+                # collects it; a pooling missing before that point ran in some tiles
+                # only, which image-wide means cannot serve
+                self._missing = True
                 return x.mean(dim=(2, 3), keepdim=True)
             if m is None:
                 raise InputError(f"a global pooling ({type(module).__name__}, call {k + 1}) "
