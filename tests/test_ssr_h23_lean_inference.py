@@ -293,3 +293,55 @@ def test_a_pooling_missing_before_where_collecting_stopped_is_refused():
                                         statistics="image", margin=8, align=8))
     with pytest.raises(InputError, match="did not see"):
         tiled_torch_call(model, contrast_rgb(40, 300, seed=4))
+
+
+def test_a_lower_bound_margin_is_probed_again_by_the_next_call():
+    from types import SimpleNamespace
+
+    from mehs.ssr.tiling import tiled_torch_call
+
+    torch.manual_seed(10)
+    net = _WideAttention().eval()
+    rgb = contrast_rgb(40, 480, seed=3)
+    model = SimpleNamespace(network=net, device="cpu", name="wide",
+                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 320,
+                                        statistics="image", blend=8))
+    with pytest.warns(RuntimeWarning, match="receptive field is wider"):
+        tiled_torch_call(model, rgb)
+    assert model._tiling_probe["margin_bound"]
+    # a budget that holds the 256² probe: measured now, and no longer a bound
+    model.tiling = dict(bytes_per_pixel=1.0, max_bytes=40 * 320, statistics="image", blend=8)
+    import mehs.ssr.tiling as tiling
+
+    real = tiling.torch_receptive_radius
+    seen = []
+
+    def roomy(*a, **k):
+        seen.append(k.get("max_bytes"))
+        k["max_bytes"] = 1 << 34
+        return real(*a, **k)
+
+    tiling.torch_receptive_radius = roomy
+    try:
+        tiled_torch_call(model, rgb)
+    finally:
+        tiling.torch_receptive_radius = real
+    assert seen and model._tiling_probe["margin"] == 72     # 70 px, on the 8-px grid
+    assert not model._tiling_probe.get("margin_bound")
+
+
+def test_hooks_that_replace_the_head_or_an_up_block_output_are_honoured():
+    from mehs.ssr.net.layers import DenseBlock
+
+    torch.manual_seed(11)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    _chunked(net, 150)
+    rgb = torch.rand(1, 3, 40, 36) * 5
+    net.sigmoid_branch.register_forward_hook(lambda m, i, y: y * 0.5)
+    up = net.features.up_blocks[-1]
+    assert isinstance(up, DenseBlock)
+    up.register_forward_hook(lambda m, i, y: y + 0.25)
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.clone().requires_grad_()).detach()
+    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))

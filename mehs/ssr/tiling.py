@@ -388,10 +388,16 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     # the probes run the network on sizes of their own: padded to the multiple too
     probed = padded_torch_module(net, k)
 
+    given = getattr(model, "tiling", None)
+    opts = given if isinstance(given, dict) else {}
+    cached = model.__dict__.get("_tiling_probe", {})
+    if cached.pop("margin_bound", False):
+        # a lower bound is this call's answer only: a later budget may measure the field
+        cached.pop("margin", None)
+
     def margin() -> int:
         # the autograd probes keep within the memory a tile may have
-        given = model.tiling.get("max_bytes") if isinstance(model.tiling, dict) else None
-        budget = given or env_max_bytes() or default_budget()
+        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
         with torch.enable_grad():
             m = torch_receptive_radius(probed, align=grid(torch_align(net), k), max_bytes=budget)
         net.zero_grad(set_to_none=True)
@@ -432,7 +438,8 @@ def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
     probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, not stored
     in the probe cache (a larger budget measures it), and marked in
     ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
-    operation's :data:`GLOBAL_MARGIN`."""
+    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call: the next probes again.
+    (A field that fills even the largest probe, 512 px, still counts as global.)"""
     from mehs.ssr.tiling_probes import FieldWiderThanBudget
 
     def call() -> int:
@@ -443,8 +450,9 @@ def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
             warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
                           f"than a {e.probe}-pixel probe, the largest the memory budget allows "
                           f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
-                          "from whole-image inference near their seams (more memory, "
-                          "MEHS_TILE_MEMORY, measures the field)", RuntimeWarning, stacklevel=2)
+                          "from whole-image inference near their seams (with more memory, "
+                          "MEHS_TILE_MEMORY, a larger probe measures fields up to 256 px)",
+                          RuntimeWarning, stacklevel=2)
             return e.lower_bound
     return call
 

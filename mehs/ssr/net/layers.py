@@ -340,6 +340,10 @@ class FCDenseNet(nn.Module):
                 x = block(torch.cat([up(x), skip], dim=1))
             return x[..., :h, :w]
         for up, block in zip(self.trans_up, self.up_blocks):
+            if not _plain(block, DenseBlock):
+                # a subclass or a forward hook sees (and may replace) the block's call
+                x = block(torch.cat([up(x), skips.pop()], dim=1))
+                continue
             # the skip, then the up-sampled features, go straight into the block's buffer
             # and each is released before the next is made (a concatenation, and a skip
             # kept to the end, held ~200 B/px more at full resolution)
