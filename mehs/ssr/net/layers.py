@@ -78,6 +78,18 @@ def _inference_bn(bn: nn.Module) -> bool:
             and bn.running_mean is not None)
 
 
+def _strippable_conv(seq: nn.Sequential, cls: type) -> nn.Conv2d | None:
+    """The convolution of ``seq`` (exactly a ``cls``: BN → ReLU → conv → ...) when its
+    BN → ReLU → conv may run in strips at inference (see :func:`_plain`,
+    :func:`_inference_bn`), else None; the caller checks the conv's shape."""
+    if not (_plain(seq, cls) and not seq.training):
+        return None
+    bn, relu, conv = seq[0], seq[1], seq[2]
+    if _inference_bn(bn) and type(relu) is nn.ReLU and type(conv) is nn.Conv2d:
+        return conv
+    return None
+
+
 def _strip_rows(chunk_pixels: int, x: torch.Tensor, multiple: int = 1) -> int:
     """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more: no strips."""
     n, _, h, w = x.shape
@@ -103,11 +115,8 @@ class DenseLayer(nn.Sequential):
         super().__init__(*layers)
 
     def _strippable(self) -> bool:
-        if not (_plain(self, DenseLayer) and not self.training):
-            return False
-        bn, relu, conv = self[0], self[1], self[2]
-        return (_inference_bn(bn) and type(relu) is nn.ReLU and type(conv) is nn.Conv2d
-                and conv.stride == (1, 1) and conv.dilation == (1, 1)
+        conv = _strippable_conv(self, DenseLayer)
+        return (conv is not None and conv.stride == (1, 1) and conv.dilation == (1, 1)
                 and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
                 and 2 * conv.padding[0] == conv.kernel_size[0] - 1
                 and all(type(m) in (ChannelAttention, nn.Dropout) for m in list(self)[3:]))
@@ -239,12 +248,8 @@ class TransitionDown(nn.Sequential):
         super().__init__(*layers, MaxPool2x2())
 
     def _strippable(self) -> bool:
-        # (the hooks of its parts, as a whole, are checked by _plain on self)
-        if not (_plain(self, TransitionDown) and not self.training):
-            return False
-        bn, relu, conv = self[0], self[1], self[2]
-        return (_inference_bn(bn) and type(relu) is nn.ReLU and type(conv) is nn.Conv2d
-                and conv.kernel_size == (1, 1) and conv.stride == (1, 1)
+        conv = _strippable_conv(self, TransitionDown)
+        return (conv is not None and conv.kernel_size == (1, 1) and conv.stride == (1, 1)
                 and conv.padding == (0, 0) and type(self[-1]) is MaxPool2x2
                 and all(type(m) is nn.Dropout for m in list(self)[3:-1]))
 

@@ -77,7 +77,11 @@ class TwoBranchFCDenseNet(SSRNetwork):
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
         f = self.features(x)
-        if training_graph():
+        # (with a subclass or a forward hook on a part, that part sees, and may replace,
+        # one whole-map call)
+        if training_graph() or not (_plain(self.sigmoid_branch, SigmoidBasisBranch)
+                                    and _plain(self.hat_branch, MexicanHatBranch)
+                                    and _plain(self.fusion, nn.Conv2d)):
             return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
         # inference: the head is per pixel, so it runs in row strips of about
         # chunk_pixels pixels (the branches' own strips) straight into the output; only
@@ -85,10 +89,6 @@ class TwoBranchFCDenseNet(SSRNetwork):
         # side and the fusion's were 62 more channels at the head's peak, issue 16)
         n, _, h, w = f.shape
         L = self.n_bands
-        if not (_plain(self.sigmoid_branch, SigmoidBasisBranch)
-                and _plain(self.hat_branch, MexicanHatBranch) and _plain(self.fusion, nn.Conv2d)):
-            # a subclass or a forward hook sees (and may replace) one whole-map call
-            return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
         out = f.new_empty(n, L, h, w)
         rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
         for r0 in range(0, h, rows):
