@@ -12,6 +12,18 @@ import torch.nn.functional as F  # noqa: E402
 
 from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
 from mehs.ssr.net.layers import MaxPool2x2  # noqa: E402
+from mehs.ssr.tiling import tiled_torch_call  # noqa: E402
+
+
+def _model(net, name="toy", **tiling):
+    """The attributes :func:`tiled_torch_call` reads of a torch SSR model."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(network=net, device="cpu", name=name, tiling=tiling or "off")
+
+
+#: A budget in which ``_WideAttention``'s 128² field probe fills and its 256² one does not fit.
+WIDE_TILING = dict(bytes_per_pixel=1.0, max_bytes=40 * 320, statistics="image", blend=8)
 
 
 def _chunked(net, pixels):
@@ -124,16 +136,12 @@ class _SizeDependent(torch.nn.Module):
 
 
 def test_a_crop_that_pools_differently_costs_a_run_not_the_result():
-    from types import SimpleNamespace
-
-    from mehs.ssr.tiling import tiled_torch_call
-
     torch.manual_seed(4)
     net = _SizeDependent().eval()
     rgb = contrast_rgb(48, 400, seed=2)
 
     def run(**tiling):
-        model = SimpleNamespace(network=net, device="cpu", name="toy", tiling=tiling or "off")
+        model = _model(net, **tiling)
         return tiled_torch_call(model, rgb), model
 
     whole, _ = run()
@@ -244,16 +252,9 @@ class _WideAttention(torch.nn.Module):
 def test_a_field_wider_than_the_budget_allows_to_probe_is_not_a_global_operation():
     # a 128² autograd probe fills; the budget forbids the 256² one: before, that answer
     # was the global operations' margin, so image-wide means were refused (and cached)
-    from types import SimpleNamespace
-
-    from mehs.ssr.tiling import tiled_torch_call
-
     torch.manual_seed(8)
-    net = _WideAttention().eval()
+    model = _model(_WideAttention().eval(), "wide", **WIDE_TILING)
     rgb = contrast_rgb(40, 480, seed=3)
-    model = SimpleNamespace(network=net, device="cpu", name="wide",
-                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 320,
-                                        statistics="image", blend=8))
     with pytest.warns(RuntimeWarning, match="receptive field is wider than a 128-pixel probe"):
         tiled_torch_call(model, rgb)
     assert model._tiling_probe["margin"] >= 64 and model._tiling_probe["margin_bound"]
@@ -282,37 +283,25 @@ class _MeansDependent(torch.nn.Module):
 
 
 def test_a_pooling_missing_before_where_collecting_stopped_is_refused():
-    from types import SimpleNamespace
-
     from mehs.errors import InputError
-    from mehs.ssr.tiling import tiled_torch_call
 
     torch.manual_seed(9)
-    model = SimpleNamespace(network=_MeansDependent().eval(), device="cpu", name="toy",
-                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 96,
-                                        statistics="image", margin=8, align=8))
+    model = _model(_MeansDependent().eval(), bytes_per_pixel=1.0, max_bytes=40 * 96,
+                   statistics="image", margin=8, align=8)
     with pytest.raises(InputError, match="did not see"):
         tiled_torch_call(model, contrast_rgb(40, 300, seed=4))
 
 
-def test_a_lower_bound_margin_is_probed_again_by_the_next_call():
-    from types import SimpleNamespace
-
-    from mehs.ssr.tiling import tiled_torch_call
+def test_a_lower_bound_margin_is_probed_again_by_the_next_call(monkeypatch):
+    import mehs.ssr.tiling as tiling
 
     torch.manual_seed(10)
-    net = _WideAttention().eval()
+    model = _model(_WideAttention().eval(), "wide", **WIDE_TILING)
     rgb = contrast_rgb(40, 480, seed=3)
-    model = SimpleNamespace(network=net, device="cpu", name="wide",
-                            tiling=dict(bytes_per_pixel=1.0, max_bytes=40 * 320,
-                                        statistics="image", blend=8))
     with pytest.warns(RuntimeWarning, match="receptive field is wider"):
         tiled_torch_call(model, rgb)
     assert model._tiling_probe["margin_bound"]
     # a budget that holds the 256² probe: measured now, and no longer a bound
-    model.tiling = dict(bytes_per_pixel=1.0, max_bytes=40 * 320, statistics="image", blend=8)
-    import mehs.ssr.tiling as tiling
-
     real = tiling.torch_receptive_radius
     seen = []
 
@@ -321,11 +310,8 @@ def test_a_lower_bound_margin_is_probed_again_by_the_next_call():
         k["max_bytes"] = 1 << 34
         return real(*a, **k)
 
-    tiling.torch_receptive_radius = roomy
-    try:
-        tiled_torch_call(model, rgb)
-    finally:
-        tiling.torch_receptive_radius = real
+    monkeypatch.setattr(tiling, "torch_receptive_radius", roomy)
+    tiled_torch_call(model, rgb)
     assert seen and model._tiling_probe["margin"] == 72     # 70 px, on the 8-px grid
     assert not model._tiling_probe.get("margin_bound")
 
