@@ -12,7 +12,7 @@ import torch.nn.functional as F  # noqa: E402
 
 from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
 from mehs.ssr.net.layers import MaxPool2x2  # noqa: E402
-from mehs.ssr.tiling import tiled_torch_call  # noqa: E402
+from mehs.ssr.tiling_torch import tiled_torch_call  # noqa: E402
 
 
 def _model(net, name="toy", **tiling):
@@ -293,7 +293,7 @@ def test_a_pooling_missing_before_where_collecting_stopped_is_refused():
 
 
 def test_a_lower_bound_margin_is_probed_again_by_the_next_call(monkeypatch):
-    import mehs.ssr.tiling as tiling
+    import mehs.ssr.tiling_torch as tiling
 
     torch.manual_seed(10)
     model = _model(_WideAttention().eval(), "wide", **WIDE_TILING)

@@ -8,7 +8,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mehs.ssr import tiling  # noqa: E402
+from mehs.ssr import tiling_torch as tiling  # noqa: E402
+from mehs.ssr.allocator import allocator_overhead  # noqa: E402
 from mehs.ssr.probe_cache import ProbeStore, network_key  # noqa: E402
 
 
@@ -52,7 +53,7 @@ def counted(monkeypatch, tmp_path):
 def _budget(net):
     m = tiling.torch_memory_probe(net)
     n = 96 * 96
-    return int(tiling.allocator_overhead(n) * (m["fixed_bytes"] + m["bytes_per_pixel"] * n))
+    return int(allocator_overhead(n) * (m["fixed_bytes"] + m["bytes_per_pixel"] * n))
 
 
 def test_a_second_model_of_the_same_architecture_reads_the_probes(counted, tmp_path):

@@ -57,7 +57,7 @@ def _model(net, **tiling):
 
 @pytest.mark.parametrize("shape", [(150, 230), (96, 128)])
 def test_torch_tiles_equal_whole_image(shape):
-    from mehs.ssr.tiling import tiled_torch_call
+    from mehs.ssr.tiling_torch import tiled_torch_call
 
     torch.manual_seed(1)
     net = LocalUNet()
@@ -78,7 +78,7 @@ def test_mehs_network_tiles_equal_whole_image_when_local():
     # the real FC-DenseNet architecture (3 poolings, dense skips, replicate padding);
     # its channel attention is made local (constant scale) so exact equality is expected
     from mehs.ssr.net import build_network
-    from mehs.ssr.tiling import tiled_torch_call
+    from mehs.ssr.tiling_torch import tiled_torch_call
 
     torch.manual_seed(2)
     net = build_network(variant="fcdensenet", first_channels=8, down_layers=(1, 1, 1),

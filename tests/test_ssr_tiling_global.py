@@ -12,7 +12,7 @@ from mehs.ssr.tiling import TilingPlan, tile_starts
 torch = pytest.importorskip("torch")
 
 from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
-from mehs.ssr.tiling import tiled_torch_call  # noqa: E402
+from mehs.ssr.tiling_torch import tiled_torch_call  # noqa: E402
 from mehs.ssr.tiling_global import owned_spans  # noqa: E402
 
 
@@ -132,7 +132,7 @@ def test_networks_without_poolings_or_with_other_global_operations():
                             tiling=dict(bytes_per_pixel=1.0, max_bytes=64 * 200,
                                         statistics="image"),
                             _tiling_probe={"margin": GLOBAL_MARGIN, "align": 8})
-    with pytest.raises(InputError, match="not average poolings"):
+    with pytest.raises(InputError, match="not statistics tiles can assemble"):
         tiled_torch_call(model, _rgb(64, 400))
     # by default such a network keeps each tile's own statistics
     model.tiling = dict(bytes_per_pixel=1.0, max_bytes=64 * 200)

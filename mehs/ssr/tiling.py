@@ -27,15 +27,15 @@ memory per counted byte.
 
 Global operations. A network with one is not tile-invariant: the channel
 attention of :mod:`mehs.ssr.net.layers` averages each feature map over the whole
-input (squeeze-and-excitation), so a tile with its own averages would differ
-slightly from whole-image inference. Where a network's only global operations are
-such poolings, the tiles run with the whole image's means instead, at the cost of
-one more, partial run over the tiles (:mod:`mehs.ssr.tiling_global`;
-``{"statistics": "tile"}`` turns it off). Other global operations (MST++'s
-spectral-wise attention, AWAN's non-local blocks) keep each tile's own: the ramp
-hides the seams, and large tiles (as large as the memory budget allows) keep the
-statistics close. ONNX graphs get the same, rebuilt to take and report their
-poolings' means and probed once (:mod:`mehs.ssr.tiling_onnx`).
+input (squeeze-and-excitation), and MST++'s spectral-wise attention compares channels
+over all pixels, so a tile with its own statistics would differ from whole-image
+inference. Both are sums over pixels: the tiles run with the whole image's instead,
+at the cost of one or more further runs over the tiles (:mod:`mehs.ssr.tiling_global`,
+:mod:`mehs.ssr.tiling_torch`; ``{"statistics": "tile"}`` turns it off). Other global
+operations (AWAN's non-local blocks) keep each tile's own: the ramp hides the seams,
+and large tiles (as large as the memory budget allows) keep the statistics close.
+ONNX graphs get image-wide average poolings, rebuilt to take and report their
+means and probed once (:mod:`mehs.ssr.tiling_onnx`); other statistics stay each tile's.
 
 Size multiples. A network that takes only sizes divisible by ``k`` (a model's
 ``size_multiple``, or ``model.tiling["size_multiple"]``) gets every call, whole
@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from typing import Callable
 
 import numpy as np
@@ -71,7 +70,7 @@ from mehs.ssr.allocator import trim_heap as _trim_heap
 from mehs.ssr.tiling_blend import (TilingPlan, _covered,  # noqa: F401 (public here)
                                    predict_tiled, tile_starts)
 from mehs.ssr.tiling_global import statistics_mode
-from mehs.ssr.tiling_pad import grid, padded, padded_torch_module, size_multiple
+from mehs.ssr.tiling_pad import grid, size_multiple
 from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, MEMORY_PROBES,  # noqa: F401 (public here)
                                     PROBE_CHUNK_SHARE, _round_up, torch_align,
                                     torch_bytes_per_pixel, torch_memory_probe,
@@ -365,129 +364,6 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         if wide:
             return image_means(fn, rgb, plan, statistics == "image")
         return predict_tiled(fn, rgb, plan)
-
-
-def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
-    """``model.network`` (torch, eval mode) on ``rgb (H, W, 3)`` → ``(H, W, B)``, tiled when large.
-
-    The probes measure the network's memory (:func:`torch_memory_probe`), its
-    margin (:func:`torch_receptive_radius` on its pooling grid: tiles then agree
-    with whole-image inference wherever the network is local) and its grid.
-    """
-    import torch
-
-    k = size_multiple(model)
-
-    def whole(x: np.ndarray) -> np.ndarray:
-        t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None]).to(model.device)
-        with torch.no_grad():
-            return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
-
-    run = padded(whole, k, getattr(model, "name", "model"))
-    net = model.network
-    # the probes run the network on sizes of their own: padded to the multiple too
-    probed = padded_torch_module(net, k)
-
-    given = getattr(model, "tiling", None)
-    opts = given if isinstance(given, dict) else {}
-    cached = model.__dict__.get("_tiling_probe", {})
-    if cached.pop("margin_bound", False):
-        # a lower bound is this call's answer only: a later budget may measure the field
-        cached.pop("margin", None)
-
-    def margin() -> int:
-        # the autograd probes keep within the memory a tile may have
-        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
-        with torch.enable_grad():
-            m = torch_receptive_radius(probed, align=grid(torch_align(net), k), max_bytes=budget)
-        net.zero_grad(set_to_none=True)
-        return m
-
-    cap = getattr(net, "max_tile_pixels", None)
-
-    def memory() -> dict:
-        if cap is None:
-            return torch_memory_probe(probed)
-        # memory super-linear in the tile (global attention): small probes, and the
-        # network says how large a tile fits the budget; the per-pixel figure is raised
-        mem = torch_memory_probe(probed, sizes=(32, 48))
-        budget = env_max_bytes() or default_budget()
-        mem["bytes_per_pixel"] = max(mem["bytes_per_pixel"], budget / cap(budget))
-        mem["allocator"] = None          # the cap already is a resident-memory figure
-        return mem
-
-    fixed_margin = getattr(net, "TILING_MARGIN", None)
-    probes = {"bytes_per_pixel": memory,
-              "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
-              "align": lambda: torch_align(net)}
-    if cap is None and k == 1:
-        # measured once per architecture, not once per process (mehs's own networks;
-        # one padded to a multiple measures its padded calls: not cached)
-        from mehs.ssr.probe_cache import ProbeStore
-
-        store = ProbeStore.for_network(net)
-        probes = {name: store.measured(kind, probes[name])
-                  for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
-                                     ("align", "align"))}
-    probes["margin"] = _margin_or_bound(model, probes["margin"])
-    return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
-
-
-def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
-    """``measure``, or the least radius the field can have where it is wider than any
-    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, not stored
-    in the probe cache (a larger budget measures it), and marked in
-    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
-    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call: the next probes again.
-    (A field that fills even the largest probe, 512 px, still counts as global.)"""
-    from mehs.ssr.tiling_probes import FieldWiderThanBudget
-
-    def call() -> int:
-        try:
-            return measure()
-        except FieldWiderThanBudget as e:
-            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
-            warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
-                          f"than a {e.probe}-pixel probe, the largest the memory budget allows "
-                          f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
-                          "from whole-image inference near their seams (with more memory, "
-                          "MEHS_TILE_MEMORY, a larger probe measures fields up to 256 px)",
-                          RuntimeWarning, stacklevel=2)
-            return e.lower_bound
-    return call
-
-
-def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
-    """The ``image_means`` of :func:`tiled_network_call` for ``model.network``.
-
-    A network without global poolings is local: plain tiles already equal the whole
-    image. One with global operations that are not poolings (a measured margin of
-    :data:`GLOBAL_MARGIN`: spectral-wise or non-local attention) gets each tile's own
-    statistics, or is refused when ``strict``. ``_tiling_last["statistics"]`` says
-    which ran ("image" or "tile").
-    """
-    from mehs.ssr.net.layers import ChannelAttention
-    from mehs.ssr.tiling_global import predict_tiled_image_means
-
-    net = model.network
-
-    def stitch(fn, rgb, plan, strict):
-        record = model.__dict__.setdefault("_tiling_last", {})
-        probe = model.__dict__.get("_tiling_probe", {})
-        is_global = probe.get("margin") == GLOBAL_MARGIN and not probe.get("margin_bound")
-        if getattr(net, "max_tile_pixels", None) is not None or is_global:
-            if strict:
-                raise InputError(f"{getattr(model, 'name', type(net).__name__)}: its global "
-                                 "operations are not average poolings, so tiles cannot "
-                                 "equal the whole image; use tiling statistics 'tile' or "
-                                 "'off'")
-            return predict_tiled(fn, rgb, plan)
-        if not any(isinstance(m, ChannelAttention) for m in net.modules()):
-            return predict_tiled(fn, rgb, plan)       # local: plain tiles are exact
-        record["statistics"] = "image"
-        return predict_tiled_image_means(fn, rgb, plan, record=record,
-                                         multiple=size_multiple(model))
-    return stitch
 
 
 #: ONNX graphs cannot be introspected here: a margin and grid that cover the

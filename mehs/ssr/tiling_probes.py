@@ -175,10 +175,14 @@ def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
 
 
 def _global_pools_detached(network):
-    """Context: the channel attention's global means detached from autograd (see below)."""
+    """Context: the global statistics (channel attention's means, spectral-wise attention's
+    channel similarity: :func:`mehs.ssr.net.pooling.detached_statistics`) detached from
+    autograd (see below)."""
     import contextlib
 
     import torch
+
+    from mehs.ssr.net.pooling import detached_statistics
 
     @contextlib.contextmanager
     def ctx():
@@ -191,7 +195,8 @@ def _global_pools_detached(network):
                 m.forward = local          # an instance attribute shadows the method
                 patched.append(m)
         try:
-            yield
+            with detached_statistics():
+                yield
         finally:
             for m in patched:
                 del m.forward
@@ -227,9 +232,10 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
 
     The gradient of an output pixel w.r.t. the input is non-zero exactly inside
     its receptive field. A global average (the channel attention of
-    :mod:`mehs.ssr.net.layers`) would spread it over the whole probe, so its
-    mean is detached during the probe: the radius is that of the convolutions,
-    poolings and up-samplings. The probe doubles until the field fits inside it;
+    :mod:`mehs.ssr.net.layers`) or a channel similarity over all pixels (MST++'s
+    spectral-wise attention) would spread it over the whole probe, so these
+    statistics are detached during the probe: the radius is that of the
+    convolutions, poolings and up-samplings. The probe doubles until the field fits inside it;
     a field still filling a ``max_probe`` probe (another global operation)
     gives :data:`GLOBAL_MARGIN`.
 

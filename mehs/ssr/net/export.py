@@ -165,7 +165,7 @@ class TorchSSRModel(SSRModel):
             return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
         # global operations (channel attention), or a size multiple to pad to: the whole
         # image, or tiles with a margin when it would not fit in memory (mehs.ssr.tiling)
-        from mehs.ssr.tiling import tiled_torch_call
+        from mehs.ssr.tiling_torch import tiled_torch_call
 
         return np.asarray(tiled_torch_call(self, rgb), dtype=np.float32)
 

@@ -35,6 +35,10 @@ class ChannelAttention(nn.Module):
     so the block initially multiplies every channel by exactly ``sigmoid(0) = 0.5``.
     """
 
+    #: its global mean goes through :func:`~mehs.ssr.net.pooling.pooled_mean`: tiles
+    #: can run with the whole image's (:mod:`mehs.ssr.tiling_global`)
+    image_statistics = True
+
     def __init__(self, channels: int, reduction: int = 4, *, zero_init: bool = False):
         super().__init__()
         hidden = max(1, channels // reduction)

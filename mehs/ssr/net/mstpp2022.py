@@ -42,10 +42,19 @@ import torch.nn.functional as F
 
 from mehs.errors import InputError
 from mehs.ssr.net.base import NetConfig, SSRNetwork
+from mehs.ssr.net.pooling import image_statistic, statistics_detached
+
+
+#: Pixels per chunk of :meth:`SpectralMSA._similarity_sums` (a tile's owned part).
+SIMILARITY_CHUNK = 1 << 16
 
 
 class SpectralMSA(nn.Module):
     """Spectral-wise multi-head self-attention on ``(N, H, W, C)`` → ``(N, H, W, C)``."""
+
+    #: its channel similarity is a sum over pixels (:meth:`_image_similarity`): tiles
+    #: can run with the whole image's (:mod:`mehs.ssr.tiling_global`)
+    image_statistics = True
 
     def __init__(self, dim: int, dim_head: int, heads: int):
         super().__init__()
@@ -70,15 +79,64 @@ class SpectralMSA(nn.Module):
         def heads_first(t):  # (n, hw, heads·d) → (n, heads, d, hw)
             return t.reshape(n, h * w, self.heads, self.dim_head).permute(0, 2, 3, 1)
 
-        q = F.normalize(heads_first(self.to_q(tokens)), dim=-1, p=2)
-        k = F.normalize(heads_first(self.to_k(tokens)), dim=-1, p=2)
+        q_inp, k_inp = self.to_q(tokens), self.to_k(tokens)
+        attn = self._image_similarity(k_inp, q_inp, h, w) if n == 1 else None
+        if attn is None:
+            q = F.normalize(heads_first(q_inp), dim=-1, p=2)
+            k = F.normalize(heads_first(k_inp), dim=-1, p=2)
+            attn = k @ q.transpose(-2, -1)
+            if statistics_detached():
+                # a receptive-field probe: the similarity sums over every pixel
+                attn = attn.detach()
         v = heads_first(v_inp)
-        attn = (k @ q.transpose(-2, -1)) * self.rescale  # (n, heads, d, d)
+        attn = attn * self.rescale                        # (n, heads, d, d)
         out = attn.softmax(dim=-1) @ v                    # (n, heads, d, hw)
         out = out.permute(0, 3, 1, 2).reshape(n, h * w, self.heads * self.dim_head)
         out_c = self.proj(out).view(n, h, w, c)
         out_p = self.pos_emb(v_inp.reshape(n, h, w, c).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
         return out_c + out_p
+
+    def _image_similarity(self, k_inp: torch.Tensor, q_inp: torch.Tensor, h: int,
+                          w: int) -> torch.Tensor | None:
+        """``K̂ Q̂ᵀ`` of the whole image while tiles run under image-wide statistics, else None.
+
+        Its entries are sums over pixels, ``Σ k_i q_j / (‖k_i‖ ‖q_j‖)``, so tiles can
+        assemble them (:func:`mehs.ssr.net.pooling.image_statistic`): the channel Gram
+        matrix and squared norms of the image, as means over its pixels (the count
+        cancels).
+        """
+        inner = self.heads * self.dim_head
+        maps = tuple(t.view(1, h, w, inner).permute(0, 3, 1, 2) for t in (k_inp, q_inp))
+        stats = image_statistic(self, maps, self._similarity_sums, self._cosines)
+        if stats is None:
+            return None
+        return self._cosines(stats).to(dtype=k_inp.dtype, device=k_inp.device)
+
+    def _cosines(self, stats: torch.Tensor) -> torch.Tensor:
+        # (1, heads, d, d): Gram / (‖k_i‖ ‖q_j‖), as F.normalize's floor keeps 0 for 0
+        nh, d = self.heads, self.dim_head
+        gram = stats[:nh * d * d].view(1, nh, d, d)
+        norms = stats[nh * d * d:].view(2, 1, nh, d).sqrt().clamp_min(1e-30)
+        return gram / (norms[0][..., :, None] * norms[1][..., None, :])
+
+    def _similarity_sums(self, k: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """Per head the Gram matrix ``K Qᵀ``, then ``Σ k²`` and ``Σ q²``, flat (float64),
+        over the pixels of ``(C, h, w)`` views of channels-last maps."""
+        nh, d = self.heads, self.dim_head
+        k, q = k.permute(1, 2, 0), q.permute(1, 2, 0)          # (h, w, C) views
+        rows = max(1, SIMILARITY_CHUNK // max(1, k.shape[1]))
+        gram = torch.zeros(nh, d, d, dtype=torch.float64, device=k.device)
+        kk = torch.zeros(nh, d, dtype=torch.float64, device=k.device)
+        qq = torch.zeros_like(kk)
+        # in row chunks: the owned part of a tile is a strided view, and a copy of all of
+        # it (two maps of C channels) would add ~250 B/px to the tile's peak
+        for r in range(0, k.shape[0], rows):
+            kc = k[r:r + rows].reshape(-1, nh, d).transpose(0, 1)    # (heads, P, d)
+            qc = q[r:r + rows].reshape(-1, nh, d).transpose(0, 1)
+            gram += (kc.transpose(1, 2) @ qc).double()
+            kk += (kc * kc).sum(1).double()
+            qq += (qc * qc).sum(1).double()
+        return torch.cat([gram.reshape(-1), kk.reshape(-1), qq.reshape(-1)])
 
 
 class FeedForward(nn.Module):

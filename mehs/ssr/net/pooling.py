@@ -1,24 +1,29 @@
-"""Global average pooling that tiled inference can make image-wide (issue 16).
+"""Global statistics that tiled inference can make image-wide (issue 16).
 
 The channel attention of mehs's networks (squeeze-and-excitation,
 :class:`mehs.ssr.net.layers.ChannelAttention`) scales each feature map by a function of
-its mean over the *whole* input. Run tile by tile, each tile sees its own means, so
-the output differs from whole-image inference however wide the margin (up to ~1e-3
-of the output's range for a trained paper network). A mean is a sum over pixels,
-though, and sums can be assembled from tiles. Such layers call :func:`pooled_mean`;
-inside an :class:`ImageMeans` context it
+its mean over the *whole* input; MST++'s spectral-wise attention
+(:class:`mehs.ssr.net.mstpp2022.SpectralMSA`) mixes channels by their cosine similarity
+over all pixels. Run tile by tile, each tile sees its own statistics, so the output
+differs from whole-image inference however wide the margin (up to ~1e-3 of the output's
+range for a trained paper network, ~2e-3 for an MST++ with trained-like attention). A
+mean, a Gram matrix and a squared norm are sums over pixels, though, and sums can be
+assembled from tiles. Such layers call :func:`image_statistic` (:func:`pooled_mean` for
+a mean) and declare ``image_statistics = True``; inside an :class:`ImageMeans` context it
 
 - adds, for the tile about to run, each layer's sum over the part of the image that
   tile *owns* (the owned parts partition the padded image on the pooling grid, and
   lie where the tile's features equal the whole image's: at least a margin from a
   shared edge), and
-- hands every layer the image-wide means of the previous run instead of the tile's.
+- hands every layer the image-wide statistic of the previous run instead of the tile's.
 
 :func:`mehs.ssr.tiling_global.predict_tiled_image_means` runs the tiles until the
-means it hands out are the means the run measures (a fixed point: whole-image
-inference is the only one), which takes one collecting run and one more.
+statistics it hands out are those the run measures (a fixed point: whole-image
+inference is the only one), which takes one collecting run and one more for channel
+attention, a few more for MST++'s chain of attention layers.
 
-Shapes: ``x`` is ``(1, C, h, w)`` (tiles run one at a time); means are ``(1, C, 1, 1)``.
+Shapes: maps are ``(1, C, h, w)`` (tiles run one at a time); a pooled mean is
+``(1, C, 1, 1)``.
 """
 
 from __future__ import annotations
@@ -33,14 +38,63 @@ from mehs.ssr.tiling_blend import owned_cells
 
 _ACTIVE: contextvars.ContextVar["ImageMeans | None"] = contextvars.ContextVar(
     "mehs_image_means", default=None)
+_DETACHED: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "mehs_statistics_detached", default=False)
 
 
 def pooled_mean(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
     """``x.mean(dim=(2, 3), keepdim=True)``, or the image-wide mean inside :class:`ImageMeans`."""
     ctx = _ACTIVE.get()
-    if ctx is None:
-        return x.mean(dim=(2, 3), keepdim=True)
-    return ctx.mean(module, x)
+    m = None if ctx is None else ctx.statistic(module, (x,), _channel_sums)
+    if m is None:
+        m = x.mean(dim=(2, 3), keepdim=True)
+        return m.detach() if _DETACHED.get() else m
+    return m.view(1, -1, 1, 1).to(dtype=x.dtype, device=x.device)
+
+
+def image_statistic(module: torch.nn.Module, maps: tuple[torch.Tensor, ...],
+                    reduce, compared=None) -> torch.Tensor | None:
+    """The image-wide mean over pixels of ``reduce``, or None: use the tile's (or image's) own.
+
+    ``maps``: ``(1, C_i, h, w)`` feature maps of one layer call, of one size;
+    ``reduce(*parts)`` sums a statistic over the pixels of the parts of them (``(C_i, h',
+    w')`` views), as a tensor of any fixed shape. Inside :class:`ImageMeans` the part a
+    tile owns is summed, and from the second run over the tiles on, the image-wide mean
+    (the sum over the image / its pixels, float32) of the previous run is returned.
+    Outside it, and in the first run, None: the layer computes its statistic from its
+    own input, as without tiles. Layers whose global operation is such a mean (the
+    spectral-wise attention of :mod:`mehs.ssr.net.mstpp2022`: channel Gram matrix and
+    norms over all pixels) call this, and declare ``image_statistics = True``;
+    :func:`pooled_mean` is one.
+
+    ``compared(mean) -> tensor``: what of the statistic decides that the runs over the
+    tiles have settled (:meth:`ImageMeans.finish`), if not the mean itself: the
+    attention's cosine similarities, which its Gram matrix and norms move together.
+    """
+    ctx = _ACTIVE.get()
+    return None if ctx is None else ctx.statistic(module, tuple(maps), reduce, compared)
+
+
+def statistics_detached() -> bool:
+    """True inside :func:`detached_statistics`: a layer's global statistic leaves autograd."""
+    return _DETACHED.get()
+
+
+@contextlib.contextmanager
+def detached_statistics():
+    """Context: global statistics (:func:`pooled_mean`, and layers that ask
+    :func:`statistics_detached`) are detached from autograd, so that a gradient
+    probe (:func:`mehs.ssr.tiling_probes.torch_receptive_radius`) measures the
+    network's local field only."""
+    token = _DETACHED.set(True)
+    try:
+        yield
+    finally:
+        _DETACHED.reset(token)
+
+
+def _channel_sums(part: torch.Tensor) -> torch.Tensor:
+    return part.sum(dim=(1, 2))
 
 
 class PoolingsCollected(Exception):
@@ -61,6 +115,10 @@ class ImageMeans:
         # keyed by (layer, its n-th call in one forward): a layer called twice pools twice
         self._sums: dict[tuple, torch.Tensor] = {}
         self._counts: dict[tuple, int] = {}
+        # pixels per cell of each layer call's map, per axis (see _owned)
+        self._cell: dict[tuple, int] = {}
+        # what of a statistic the runs' changes compare (see finish)
+        self._compared: dict[tuple, object] = {}
         self._means: dict[tuple, torch.Tensor] | None = None
         self._tile: tuple | None = None
         self._calls: dict[torch.nn.Module, int] = {}
@@ -120,14 +178,19 @@ class ImageMeans:
             self._last = self._previous
         self._calls = {}
 
-    def mean(self, module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    def statistic(self, module: torch.nn.Module, maps: tuple[torch.Tensor, ...],
+                  reduce, compared=None) -> torch.Tensor | None:
+        """See :func:`image_statistic`: collect the owned part of this call's statistic;
+        the previous run's image-wide mean, or None (the tile's own)."""
         k = self._calls.get(module, 0)
         self._calls[module] = k + 1
         key = self._previous = (module, k)
         if key == self._last:
             self._past_last = True
+        if compared is not None:
+            self._compared[key] = compared
         if self._tile is not None:
-            self._collect(key, x)
+            self._collect(key, maps, reduce)
             if self._stop and key == self._last:
                 self._stopped = True
                 raise PoolingsCollected
@@ -138,45 +201,74 @@ class ImageMeans:
                 # collects it; a pooling missing before that point ran in some tiles
                 # only, which image-wide means cannot serve
                 self._missing = True
-                return x.mean(dim=(2, 3), keepdim=True)
+                return None
             if m is None:
                 raise InputError(f"a global pooling ({type(module).__name__}, call {k + 1}) "
                                  "ran that the collecting run did not see; image-wide means "
                                  "need every tile to run the same layers")
-            return m.to(dtype=x.dtype, device=x.device)
-        return x.mean(dim=(2, 3), keepdim=True)
+            return m
+        return None
 
-    def _collect(self, key: tuple, x: torch.Tensor) -> None:
+    def _collect(self, key: tuple, maps: tuple[torch.Tensor, ...], reduce) -> None:
         (y0, y1), (x0, x1), (oy0, oy1), (ox0, ox1), last_y, last_x = self._tile
-        if x.dim() != 4 or x.shape[0] != 1:
-            raise InputError(f"image-wide means need (1, C, h, w) features, got {tuple(x.shape)}")
-        h, w = int(x.shape[2]), int(x.shape[3])
-        # the maps cover the padded tile: a 42-row last tile padded to 48 pools to 6 cells
-        # of 8 rows, which ceil(42 / 6) = 7 would misplace
-        k = self._multiple
-        rows = owned_cells(-(-(y1 - y0) // k) * k, h, oy0 - y0, oy1 - y0, last_y)
-        cols = owned_cells(-(-(x1 - x0) // k) * k, w, ox0 - x0, ox1 - x0, last_x)
-        part = x[0, :, rows[0]:rows[1], cols[0]:cols[1]]
+        x = maps[0]
+        if (x.dim() != 4 or x.shape[0] != 1
+                or any(m.dim() != 4 or m.shape[0] != 1 or m.shape[2:] != x.shape[2:]
+                       for m in maps)):
+            raise InputError("image-wide means need (1, C, h, w) features of one size, got "
+                             + ", ".join(str(tuple(m.shape)) for m in maps))
+        rows = self._owned(key, 0, y1 - y0, int(x.shape[2]), oy0 - y0, oy1 - y0, last_y)
+        cols = self._owned(key, 1, x1 - x0, int(x.shape[3]), ox0 - x0, ox1 - x0, last_x)
+        parts = [m[0, :, rows[0]:rows[1], cols[0]:cols[1]] for m in maps]
         # float32 sums (torch sums in cascade: ~1e-7 relative) added up in float64 on the
         # CPU (a float64 sum cast the whole feature map first: +90 MB at 1024×512; Apple's
         # MPS devices have no float64)
-        s = part.sum(dim=(1, 2)).to(device="cpu", dtype=torch.float64)
+        with torch.no_grad():
+            s = reduce(*parts).to(device="cpu", dtype=torch.float64)
+        n = parts[0].shape[1] * parts[0].shape[2]
         if key in self._sums:
             self._sums[key] += s
-            self._counts[key] += part.shape[1] * part.shape[2]
+            self._counts[key] += n
         else:
             self._sums[key] = s
-            self._counts[key] = part.shape[1] * part.shape[2]
+            self._counts[key] = n
+
+    def _owned(self, key: tuple, axis: int, n: int, m: int, lo: int, hi: int,
+               last: bool) -> tuple[int, int]:
+        """The cells of an ``m``-cell map of an ``n``-pixel tile axis that the tile owns.
+
+        The map covers the tile padded up to the pooling grid, by the tiling
+        (``multiple``) or by the network itself: a 42-row last tile padded to 48 pools
+        to 6 cells of 8 rows, which ceil(42 / 6) = 7 would misplace. A network that pads
+        inside (the FC-DenseNet to 2**depth, MST++ to 8) is not declared, so a layer's
+        cell size is learnt from the tiles before an axis's last, which need no padding
+        and whose cells are exact (the first tile along an axis with several is one).
+        """
+        cell = self._cell.get((key, axis))
+        if last and cell is not None:
+            if cell * m < n:
+                raise InputError(f"a {n}-pixel tile gave a {m}-cell pooled map of "
+                                 f"{cell}-pixel cells, short of the tile: image-wide means "
+                                 "need the tiles on the network's pooling grid "
+                                 "(model.tiling['align'])")
+            return owned_cells(cell * m, m, lo, hi, last)
+        k = self._multiple
+        span = -(-n // k) * k
+        cells = owned_cells(span, m, lo, hi, last)
+        if not last:
+            self._cell[(key, axis)] = span // m
+        return cells
 
     def finish(self) -> float:
         """End a run over the image: its sums become the means handed out next.
 
-        Returns the largest change of any mean since the previous run, relative to
-        that layer's largest mean (``inf`` after the first run).
+        Returns the largest change of any statistic since the previous run, relative to
+        that layer's largest (``inf`` after the first run). A layer may say what of its
+        statistic is compared (``compared`` of :func:`image_statistic`).
         """
         if not self._sums:
             raise InputError("no global pooling ran: nothing to make image-wide")
-        new = {k: (v / self._counts[k]).to(torch.float32).view(1, -1, 1, 1)
+        new = {k: (v / self._counts[k]).to(torch.float32)
                for k, v in self._sums.items()}
         change = float("inf")
         if self._means is not None and not self._missing:
@@ -184,7 +276,11 @@ class ImageMeans:
             for k, m in new.items():
                 old = self._means.get(k)
                 if old is None:
-                    return float("inf")
+                    change = float("inf")
+                    break
+                f = self._compared.get(k)
+                if f is not None:
+                    m, old = f(m), f(old)
                 scale = float(m.abs().max()) or 1.0
                 change = max(change, float((m - old).abs().max()) / scale)
         self._means, self._sums, self._counts, self._tile = new, {}, {}, None
