@@ -129,3 +129,34 @@ def test_last_tiles_off_the_grid_of_a_network_that_pads_inside(width):
     assert m._tiling_last["summary"]["tiles"] >= 2 and width % align != 0
     assert plan.width % align == 0
     np.testing.assert_allclose(image, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_onnx_last_tile_off_the_grid_of_a_network_that_pads_inside(tmp_path):
+    # the same for an exported graph (grid 32, as the full-size paper network's): the
+    # graph sized the last tile's cells ceil(tile / map) in the graph itself, and a
+    # 357-pixel-wide image was refused; the cells learnt from the first tile are fed in
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from mehs.ssr.models import load_model
+    from mehs.ssr.net.export import TorchSSRModel, export_onnx
+
+    torch.manual_seed(4)
+    net = build_network(arch="hdrssr", preset="tiny", down_layers=(1, 1, 1, 1, 1),
+                        mode="e2e").eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, ChannelAttention):
+                m.squeeze.weight.mul_(20.0)
+                m.excite.weight.mul_(20.0)
+    assert torch_align(net) == 32
+    margin = torch_receptive_radius(net, align=32)
+    model = load_model(str(export_onnx(TorchSSRModel(net), tmp_path / "deep.onnx")))
+    rgb = contrast_rgb(48, 357, seed=5)
+    model.tiling = "off"
+    whole = model(rgb)
+    model.tiling = dict(bytes_per_pixel=1.0, max_bytes=48 * 352, blend=16, margin=margin,
+                        align=32, statistics="image")
+    tiled = model(rgb)
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    assert model._tiling_last["statistics"] == "image"
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())

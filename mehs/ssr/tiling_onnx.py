@@ -13,7 +13,9 @@ rebuilds the graph with the ``onnx`` package so that every global average poolin
 - outputs its feature map's sum over the part of the tile the tile owns
   (``mehs_sum_<k>``, float32 ``(1, C)``) and the map's shape (``mehs_map_<k>``): the
   owned span comes in tile pixels (``mehs_owned``: rows ``[y0, y1)``, columns
-  ``[x0, x1)``) and the graph divides it by each map's pixel size.
+  ``[x0, x1)``) and the graph divides it by each map's pixel size: ``ceil(tile / map)``,
+  or the size given in ``mehs_cells`` (per pooling and axis; 0: not given), which an
+  image's last tile gets from the tiles before it when the graph pads it inside.
 
 :func:`predict_tiled_onnx_image_means` then runs the tiles as
 :func:`mehs.ssr.tiling_global.predict_tiled_image_means` does: a collecting run, then
@@ -51,7 +53,7 @@ PROBE_QUANTILE = 0.999
 #: Owned-span end of an image's last tile, which runs on into the network's padding
 #: (``Slice`` clamps it to the map).
 OPEN_END = 2 ** 40
-_GIVEN, _OWNED = "mehs_given", "mehs_owned"
+_GIVEN, _OWNED, _CELLS = "mehs_given", "mehs_owned", "mehs_cells"
 
 
 def find_poolings(model) -> list[int]:
@@ -165,11 +167,16 @@ def means_graph(model, input_name: str, layout: str):
 
         shape_x = emit(node("Shape", [x]))
         cells = []
-        for axis, size in ((2, tile_h), (3, tile_w)):
+        for a, (axis, size) in enumerate(((2, tile_h), (3, tile_w))):
             m = emit(node("Slice", [shape_x, c[axis], c[axis + 1]]))
-            # pixels per cell of the map: ceil(tile / map), as the network pads the tile
-            cells.append(emit(node("Div", [emit(node("Sub", [emit(node("Add", [size, m])), one])),
-                                           m])))
+            # pixels per cell of the map: given (learnt from earlier tiles, for a last tile
+            # the network padded inside), else ceil(tile / map)
+            ceil = emit(node("Div", [emit(node("Sub", [emit(node("Add", [size, m])), one])),
+                                     m]))
+            at = [emit(ints([2 * k + a])), emit(ints([2 * k + a + 1]))]
+            given = emit(node("Slice", [_CELLS, *at]))
+            cells.append(emit(node("Where", [emit(node("Greater", [given, c[0]])), given,
+                                             ceil])))
         starts = emit(node("Concat", [emit(node("Div", [owned[0], cells[0]])),
                                       emit(node("Div", [owned[2], cells[1]]))], axis=0))
         ends = emit(node("Concat", [emit(node("Div", [owned[1], cells[0]])),
@@ -191,7 +198,8 @@ def means_graph(model, input_name: str, layout: str):
     del g.node[:]
     g.node.extend(nodes)
     g.input.extend([helper.make_tensor_value_info(_GIVEN, TensorProto.BOOL, []),
-                    helper.make_tensor_value_info(_OWNED, TensorProto.INT64, [4])] + inputs)
+                    helper.make_tensor_value_info(_OWNED, TensorProto.INT64, [4]),
+                    helper.make_tensor_value_info(_CELLS, TensorProto.INT64, [2 * k])] + inputs)
     g.output.extend(outputs)
     return model, k
 
@@ -210,6 +218,8 @@ class OnnxImageMeans:
         from mehs.ssr.models import onnx_session_options
 
         self.model = model
+        # pixels per cell of each pooling's map, per axis, from tiles that need no padding
+        self.cells: dict[tuple[int, int], int] = {}
         proto = onnx.load(str(model.path))
         graph, self.k = means_graph(proto, model.input_name, model.layout)
         if not self.k:
@@ -253,10 +263,12 @@ class OnnxImageMeans:
             self.model.session, self.model._run_outputs, self.model._run_feeds = self._old
             self._old = None
 
-    def feeds(self, means: list[np.ndarray] | None, owned: np.ndarray | None) -> dict:
+    def feeds(self, means: list[np.ndarray] | None, owned: np.ndarray | None,
+              cells: np.ndarray | None = None) -> dict:
         none = np.zeros((1, 1, 1, 1), dtype=self.dtype)
         return {_GIVEN: np.array(means is not None),
                 _OWNED: np.zeros(4, np.int64) if owned is None else owned,
+                _CELLS: np.zeros(2 * self.k, np.int64) if cells is None else cells,
                 **{f"mehs_mean_{i}": none if means is None else means[i].astype(self.dtype)
                    for i in range(self.k)}}
 
@@ -267,13 +279,17 @@ class OnnxImageMeans:
 
         A graph with a size multiple gets the tile reflect-padded to it (the owned span's
         open end then runs on into that padding, as the whole padded image's does); its
-        pooled maps' cells are sized on the padded tile.
+        pooled maps' cells are sized on the padded tile. A graph that pads inside (to its
+        pooling grid: the mehs networks) pools an off-grid last tile over its own padding:
+        its cells are those learnt from the tiles before it (``cells``), which need none.
         """
         from mehs.ssr.tiling_pad import pad_to_multiple, size_multiple
 
         m = self.model
         x = pad_to_multiple(rgb, size_multiple(m))
-        feeds = {m.input_name: m._graph_input(x), **self.feeds(means, owned)}
+        learnt = np.array([self.cells.get((i, a), 0) if last[a] else 0
+                           for i in range(self.k) for a in (0, 1)], np.int64)
+        feeds = {m.input_name: m._graph_input(x), **self.feeds(means, owned, learnt)}
         session = m.session if spectra or self.collect is None else self.collect
         if session is not m.session:
             names = {i.name for i in session.get_inputs()}
@@ -285,8 +301,19 @@ class OnnxImageMeans:
             s, shape = np.asarray(extra[2 * i], np.float64), np.asarray(extra[2 * i + 1])
             # the maps cover the padded tile (a 42-row last tile padded to 48 pools to
             # 6 cells of 8 rows, not ceil(42 / 6) = 7): the padded length, as in the graph
-            cells = [owned_cells(x.shape[a], int(shape[2 + a]), int(owned[2 * a]),
-                                  int(owned[2 * a + 1]), last[a], m.name) for a in (0, 1)]
+            cells = []
+            for a in (0, 1):
+                n_map, cell = int(shape[2 + a]), int(learnt[2 * i + a])
+                n = cell * n_map if cell else x.shape[a]
+                if cell and n < x.shape[a]:
+                    raise InputError(f"{m.name}: a {x.shape[a]}-pixel tile gave a {n_map}-cell "
+                                     f"pooled map of {cell}-pixel cells, short of the tile: "
+                                     "image-wide means need the tiles on the network's "
+                                     "pooling grid (model.tiling['align'])")
+                cells.append(owned_cells(n, n_map, int(owned[2 * a]), int(owned[2 * a + 1]),
+                                         last[a], m.name))
+                if not last[a]:
+                    self.cells[(i, a)] = n // n_map
             n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])
             sums[i] = s.reshape(-1) if sums[i] is None else sums[i] + s.reshape(-1)
             counts[i] += n
