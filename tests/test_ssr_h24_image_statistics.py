@@ -160,3 +160,60 @@ def test_onnx_last_tile_off_the_grid_of_a_network_that_pads_inside(tmp_path):
     assert model._tiling_last["summary"]["tiles"] >= 2
     assert model._tiling_last["statistics"] == "image"
     np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_real_64_pixel_field_is_not_taken_for_a_global_operation():
+    # MST++ with a 3-block bottleneck has a 64-pixel field on the 8-grid, the margin that
+    # used to mark "global": each tile then got its own similarity (2e-3 off), silently
+    torch.manual_seed(0)
+    net = build_network(arch="mstpp", preset="tiny", levels=2, num_blocks=(1, 1, 3)).eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, SpectralMSA):
+                m.rescale.fill_(8.0)
+                m.proj.weight.mul_(20.0)
+    margin = torch_receptive_radius(net, align=8)
+    assert margin == 64 != GLOBAL_MARGIN
+    rgb = contrast_rgb(24, 400, seed=2)
+    whole, _ = _run(net, rgb)
+    model = SimpleNamespace(network=net, device="cpu", name="mst",
+                            tiling=dict(bytes_per_pixel=1.0, max_bytes=24 * 232, blend=16),
+                            _tiling_probe={"margin": margin, "align": 8})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        tiled = tiled_torch_call(model, rgb)
+    assert model._tiling_last["statistics"] == "image"
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_mst_declares_its_pooling_grid():
+    # four levels pad to 16 inside: tiles on an 8-grid started off the network's grid
+    net = build_network(arch="mstpp", preset="tiny", levels=4, num_blocks=(1, 1, 1, 1, 1))
+    assert torch_align(net) == 16 == net.multiple
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_float_attention_statistics_do_not_overflow(dtype):
+    # the Gram matrix of a half-float tile was summed in half floats: inf, then NaN output
+    # and a run that counted as settled
+    from mehs.ssr.net.pooling import ImageMeans
+
+    torch.manual_seed(1)
+    msa = SpectralMSA(62, 31, 2).eval()
+    with torch.no_grad():
+        msa.to_q.weight.mul_(10.0)
+        msa.to_k.weight.mul_(10.0)
+    msa = msa.to(dtype)
+    x = torch.randn(1, 64, 80, 62).to(dtype)
+    with torch.no_grad():
+        own = msa(x).float()
+        means = ImageMeans()
+        with means.active():
+            for _ in range(2):
+                means.enter((0, 64), (0, 80), (0, 64), (0, 80), True, True)
+                second = msa(x).float()
+                change = means.finish()
+    assert torch.isfinite(second).all() and change < 1e-2
+    tol = 2e-3 if dtype is torch.float16 else 2e-2
+    assert float((second - own).abs().max() / own.abs().max()) < tol

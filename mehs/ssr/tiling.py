@@ -396,3 +396,13 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
     return tiled_network_call(model, fn, rgb, {
         "bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
         "align": lambda: ONNX_DEFAULT_ALIGN}, image_means=stitcher)
+
+
+def __getattr__(name: str):
+    # the torch hook lives in mehs.ssr.tiling_torch (which imports this module);
+    # the old import path keeps working without an import cycle
+    if name == "tiled_torch_call":
+        from mehs.ssr.tiling_torch import tiled_torch_call
+
+        return tiled_torch_call
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -105,9 +105,10 @@ def tile_windows(rows: dict, cols: dict, plan: TilingPlan, h: int, w: int):
 
 def warn_unsettled(change: float, max_runs: int) -> None:
     """The warning of a run over the tiles whose image-wide means did not settle."""
-    warnings.warn(f"tiled inference: the image-wide pooling means still moved by {change:.1e} "
-                  f"(relative) after {max_runs} runs; the output may differ from whole-image "
-                  "inference by about as much", RuntimeWarning, stacklevel=3)
+    warnings.warn(f"tiled inference: the image-wide statistics (pooling means, attention "
+                  f"similarities) still moved by {change:.1e} (relative) after {max_runs} runs; "
+                  "the output may differ from whole-image inference by about as much",
+                  RuntimeWarning, stacklevel=3)
 
 
 def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarray,

@@ -204,9 +204,12 @@ def _global_pools_detached(network):
 
 
 #: Margin used when a network's gradient reaches the whole probe (a global
-#: operation such as spectral-wise attention over all pixels, or a field wider
-#: than the largest probe): tiles are then approximate whatever the margin.
-GLOBAL_MARGIN = 64
+#: operation such as non-local attention over all pixels, or a field wider
+#: than the largest probe): tiles are then approximate whatever the margin. It also
+#: marks that verdict, so it is one no tiling probe measures: probes run on the tile
+#: grid (at least 8), whose margins are multiples of it (64 was: a real 64-pixel field,
+#: MST++ with a 3-block bottleneck, was taken for a global operation).
+GLOBAL_MARGIN = 65
 
 
 #: Resident bytes per counted byte assumed for a receptive-field probe (autograd

@@ -125,18 +125,18 @@ class SpectralMSA(nn.Module):
         nh, d = self.heads, self.dim_head
         k, q = k.permute(1, 2, 0), q.permute(1, 2, 0)          # (h, w, C) views
         rows = max(1, SIMILARITY_CHUNK // max(1, k.shape[1]))
-        gram = torch.zeros(nh, d, d, dtype=torch.float64, device=k.device)
-        kk = torch.zeros(nh, d, dtype=torch.float64, device=k.device)
-        qq = torch.zeros_like(kk)
+        total = torch.zeros(nh * d * (d + 2), dtype=torch.float64)
         # in row chunks: the owned part of a tile is a strided view, and a copy of all of
-        # it (two maps of C channels) would add ~250 B/px to the tile's peak
+        # it (two maps of C channels) would add ~250 B/px to the tile's peak. Each chunk
+        # in float32 (half floats overflow a Gram matrix), the totals in float64 on the
+        # CPU (Apple's MPS devices have no float64)
         for r in range(0, k.shape[0], rows):
-            kc = k[r:r + rows].reshape(-1, nh, d).transpose(0, 1)    # (heads, P, d)
-            qc = q[r:r + rows].reshape(-1, nh, d).transpose(0, 1)
-            gram += (kc.transpose(1, 2) @ qc).double()
-            kk += (kc * kc).sum(1).double()
-            qq += (qc * qc).sum(1).double()
-        return torch.cat([gram.reshape(-1), kk.reshape(-1), qq.reshape(-1)])
+            kc = k[r:r + rows].reshape(-1, nh, d).transpose(0, 1).float()   # (heads, P, d)
+            qc = q[r:r + rows].reshape(-1, nh, d).transpose(0, 1).float()
+            part = torch.cat([(kc.transpose(1, 2) @ qc).reshape(-1),
+                              (kc * kc).sum(1).reshape(-1), (qc * qc).sum(1).reshape(-1)])
+            total += part.to(device="cpu", dtype=torch.float64)
+        return total
 
 
 class FeedForward(nn.Module):
@@ -176,6 +176,8 @@ class MST(nn.Module):
 
     def __init__(self, dim: int, levels: int, num_blocks: Sequence[int]):
         super().__init__()
+        # down-samplings: the tile grid (mehs.ssr.tiling_probes.torch_align) is 2**depth
+        self.depth = int(levels)
         if len(num_blocks) != levels + 1:
             raise ValueError(f"MST with {levels} levels needs {levels + 1} block counts")
         self.embedding = nn.Conv2d(dim, dim, 3, 1, 1, bias=False)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 
+import numpy as np
 import torch
 
 from mehs.errors import InputError
@@ -68,8 +69,9 @@ def image_statistic(module: torch.nn.Module, maps: tuple[torch.Tensor, ...],
     :func:`pooled_mean` is one.
 
     ``compared(mean) -> tensor``: what of the statistic decides that the runs over the
-    tiles have settled (:meth:`ImageMeans.finish`), if not the mean itself: the
-    attention's cosine similarities, which its Gram matrix and norms move together.
+    tiles have settled (:meth:`ImageMeans.finish`), if not the mean itself relative to
+    its largest value: a quantity on a fixed scale, whose absolute change is compared
+    (the attention's cosine similarities, which its Gram matrix and norms move together).
     """
     ctx = _ACTIVE.get()
     return None if ctx is None else ctx.statistic(module, tuple(maps), reduce, compared)
@@ -240,9 +242,10 @@ class ImageMeans:
         The map covers the tile padded up to the pooling grid, by the tiling
         (``multiple``) or by the network itself: a 42-row last tile padded to 48 pools
         to 6 cells of 8 rows, which ceil(42 / 6) = 7 would misplace. A network that pads
-        inside (the FC-DenseNet to 2**depth, MST++ to 8) is not declared, so a layer's
-        cell size is learnt from the tiles before an axis's last, which need no padding
-        and whose cells are exact (the first tile along an axis with several is one).
+        inside (the FC-DenseNet to 2**depth, MST++ to max(8, 2**levels)) does not say
+        so, so a layer's cell size is learnt from the tiles before an axis's last, which
+        need no padding and whose cells are exact (the first tile along an axis with
+        several is one).
         """
         cell = self._cell.get((key, axis))
         if last and cell is not None:
@@ -280,9 +283,17 @@ class ImageMeans:
                     break
                 f = self._compared.get(k)
                 if f is not None:
-                    m, old = f(m), f(old)
-                scale = float(m.abs().max()) or 1.0
-                change = max(change, float((m - old).abs().max()) / scale)
+                    # already on a fixed scale (cosines): compared as they are
+                    m, old, scale = f(m), f(old), 1.0
+                else:
+                    scale = float(m.abs().max()) or 1.0
+                d = float((m - old).abs().max()) / scale
+                if not np.isfinite(d):
+                    raise InputError(f"image-wide statistics of {type(k[0]).__name__} (call "
+                                     f"{k[1] + 1}) are not finite: the tiles' features "
+                                     "overflow or hold NaN; use tiling statistics 'tile' "
+                                     "or 'off'")
+                change = max(change, d)
         self._means, self._sums, self._counts, self._tile = new, {}, {}, None
         self._partial, self._stopped, self._missing = self._stopped, False, False
         self._stop = False
