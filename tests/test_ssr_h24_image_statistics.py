@@ -23,12 +23,12 @@ def _run(net, rgb, **tiling):
     return tiled_torch_call(model, rgb), model
 
 
-def _sharp_mst(seed=0):
+def _sharp_mst(seed=0, num_blocks=(1, 1, 1)):
     """MST++ with two U-Net levels, its attention made strongly image-dependent, as
     training makes it: at initialisation (σ = 1, projection weights of std 0.02) the
     attention hardly reaches the output, and a tile's own similarity would pass any test."""
     torch.manual_seed(seed)
-    net = build_network(arch="mstpp", preset="tiny", levels=2, num_blocks=(1, 1, 1)).eval()
+    net = build_network(arch="mstpp", preset="tiny", levels=2, num_blocks=num_blocks).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, SpectralMSA):
@@ -165,13 +165,7 @@ def test_onnx_last_tile_off_the_grid_of_a_network_that_pads_inside(tmp_path):
 def test_a_real_64_pixel_field_is_not_taken_for_a_global_operation():
     # MST++ with a 3-block bottleneck has a 64-pixel field on the 8-grid, the margin that
     # used to mark "global": each tile then got its own similarity (2e-3 off), silently
-    torch.manual_seed(0)
-    net = build_network(arch="mstpp", preset="tiny", levels=2, num_blocks=(1, 1, 3)).eval()
-    with torch.no_grad():
-        for m in net.modules():
-            if isinstance(m, SpectralMSA):
-                m.rescale.fill_(8.0)
-                m.proj.weight.mul_(20.0)
+    net = _sharp_mst(num_blocks=(1, 1, 3))
     margin = torch_receptive_radius(net, align=8)
     assert margin == 64 != GLOBAL_MARGIN
     rgb = contrast_rgb(24, 400, seed=2)
