@@ -26,6 +26,15 @@ def _model(net, name="toy", **tiling):
 WIDE_TILING = dict(bytes_per_pixel=1.0, max_bytes=40 * 320, statistics="image", blend=8)
 
 
+def _assert_strips_match_graph(net, rgb, tol=1e-6):
+    """The network's inference (row strips, no autograd) equals its autograd graph's
+    output (which never runs in strips), to ``tol`` relative and of the largest value."""
+    with torch.no_grad():
+        lean = net(rgb)
+    plain = net(rgb.clone().requires_grad_()).detach()
+    torch.testing.assert_close(lean, plain, rtol=tol, atol=tol * float(plain.abs().max()))
+
+
 def _chunked(net, pixels):
     for m in net.modules():
         if isinstance(getattr(m, "chunk_pixels", None), int):
@@ -41,11 +50,8 @@ def test_row_strips_give_the_training_graphs_numbers(arch, n):
     net = build_network(arch=arch, preset="tiny").eval()
     rgb = torch.rand(n, 3, 45, 37) * 20
     _chunked(net, 150)
-    with torch.no_grad():
-        lean = net(rgb)
-    plain = net(rgb.clone().requires_grad_()).detach()
     # same sums per pixel; only the head's 1×1 convolutions may round differently per shape
-    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+    _assert_strips_match_graph(net, rgb)
 
 
 def _peak_live_bytes(net, x):
@@ -206,10 +212,7 @@ def test_strips_keep_forward_hooks_and_subclassed_attention():
             m[-1].load_state_dict(old.state_dict())
     _chunked(net, 150)
     rgb = torch.rand(1, 3, 40, 36) * 5
-    with torch.no_grad():
-        lean = net(rgb)
-    plain = net(rgb.clone().requires_grad_()).detach()
-    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+    _assert_strips_match_graph(net, rgb)
     calls = []
     layers = [m for m in net.modules() if isinstance(m, DenseLayer)]
     for m in layers:
@@ -228,10 +231,7 @@ def test_batch_norm_without_running_statistics_is_not_split_into_strips():
             m.running_mean = m.running_var = None
     _chunked(net, 150)
     rgb = torch.rand(1, 3, 40, 36) * 5
-    with torch.no_grad():
-        lean = net(rgb)
-    plain = net(rgb.clone().requires_grad_()).detach()
-    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+    _assert_strips_match_graph(net, rgb, tol=1e-5)
 
 
 class _WideAttention(torch.nn.Module):
@@ -327,7 +327,4 @@ def test_hooks_that_replace_the_head_or_an_up_block_output_are_honoured():
     up = net.features.up_blocks[-1]
     assert isinstance(up, DenseBlock)
     up.register_forward_hook(lambda m, i, y: y + 0.25)
-    with torch.no_grad():
-        lean = net(rgb)
-    plain = net(rgb.clone().requires_grad_()).detach()
-    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+    _assert_strips_match_graph(net, rgb)

@@ -98,11 +98,12 @@ def test_spectral_attention_outside_tiles_is_unchanged(chunk, monkeypatch):
     torch.testing.assert_close(second, own, rtol=1e-5, atol=1e-5)
 
 
-def _deep_attention_net(seed=0):
+def _deep_attention_net(seed=0, down_layers=(1, 1, 1, 1), **params):
     """The paper's network, four poolings deep (grid 16, as the full preset's 32), channel
-    attention at every level and made image-dependent; it pads to 16 inside."""
+    attention at every level and made image-dependent; it pads to its grid inside."""
     torch.manual_seed(seed)
-    net = build_network(arch="hdrssr", preset="tiny", down_layers=(1, 1, 1, 1)).eval()
+    net = build_network(arch="hdrssr", preset="tiny", down_layers=down_layers,
+                        **params).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, ChannelAttention):
@@ -140,14 +141,7 @@ def test_onnx_last_tile_off_the_grid_of_a_network_that_pads_inside(tmp_path):
     from mehs.ssr.models import load_model
     from mehs.ssr.net.export import TorchSSRModel, export_onnx
 
-    torch.manual_seed(4)
-    net = build_network(arch="hdrssr", preset="tiny", down_layers=(1, 1, 1, 1, 1),
-                        mode="e2e").eval()
-    with torch.no_grad():
-        for m in net.modules():
-            if isinstance(m, ChannelAttention):
-                m.squeeze.weight.mul_(20.0)
-                m.excite.weight.mul_(20.0)
+    net = _deep_attention_net(seed=4, down_layers=(1, 1, 1, 1, 1), mode="e2e")
     assert torch_align(net) == 32
     margin = torch_receptive_radius(net, align=32)
     model = load_model(str(export_onnx(TorchSSRModel(net), tmp_path / "deep.onnx")))
