@@ -64,15 +64,19 @@ def tile_starts(n: int, tile: int, overlap: int, align: int) -> list[int]:
     return starts
 
 
-def owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str = "") -> tuple[int, int]:
+def owned_cells(n: int, m: int, lo: int, hi: int, last: bool, what: str = "",
+                cell: int | None = None) -> tuple[int, int]:
     """The cells ``[lo // s, hi // s)`` of an ``m``-cell pooled map of an ``n``-pixel tile
     axis that the tile owns (owned pixels ``[lo, hi)``; to the map's end when ``last``).
 
     The map covers the tile padded up to the pooling grid (only the image's last tile
-    is padded): each cell is ``s = ceil(n / m)`` pixels, and the owned span must fall on
-    cell boundaries.
+    is padded): each cell is ``s = ceil(n / m)`` pixels, or ``cell`` where given: a
+    network that pads inside to its own grid pools an image's last tile over that
+    padding, whose cells ``ceil`` misjudges (a 108-pixel tile padded to 128 pools to 16
+    cells of 8, not 7); they are the cells of the tiles before it, which need none.
+    The owned span must fall on cell boundaries.
     """
-    s = -(-n // m)
+    s = cell or -(-n // m)
     if m * s < n or (not last and m * s != n) or lo % s or (not last and hi % s):
         raise InputError(f"{what + ': ' if what else ''}a {n}-pixel tile gave a {m}-cell "
                          f"pooled map whose cells do not fall on the owned span [{lo}, {hi}): "

@@ -303,15 +303,9 @@ class OnnxImageMeans:
             # 6 cells of 8 rows, not ceil(42 / 6) = 7): the padded length, as in the graph
             cells = []
             for a in (0, 1):
-                n_map, cell = int(shape[2 + a]), int(learnt[2 * i + a])
-                n = cell * n_map if cell else x.shape[a]
-                if cell and n < x.shape[a]:
-                    raise InputError(f"{m.name}: a {x.shape[a]}-pixel tile gave a {n_map}-cell "
-                                     f"pooled map of {cell}-pixel cells, short of the tile: "
-                                     "image-wide means need the tiles on the network's "
-                                     "pooling grid (model.tiling['align'])")
+                n, n_map = x.shape[a], int(shape[2 + a])
                 cells.append(owned_cells(n, n_map, int(owned[2 * a]), int(owned[2 * a + 1]),
-                                         last[a], m.name))
+                                         last[a], m.name, cell=int(learnt[2 * i + a])))
                 if not last[a]:
                     self.cells[(i, a)] = n // n_map
             n = (cells[0][1] - cells[0][0]) * (cells[1][1] - cells[1][0])

@@ -247,17 +247,10 @@ class ImageMeans:
         need no padding and whose cells are exact (the first tile along an axis with
         several is one).
         """
-        cell = self._cell.get((key, axis))
-        if last and cell is not None:
-            if cell * m < n:
-                raise InputError(f"a {n}-pixel tile gave a {m}-cell pooled map of "
-                                 f"{cell}-pixel cells, short of the tile: image-wide means "
-                                 "need the tiles on the network's pooling grid "
-                                 "(model.tiling['align'])")
-            return owned_cells(cell * m, m, lo, hi, last)
         k = self._multiple
         span = -(-n // k) * k
-        cells = owned_cells(span, m, lo, hi, last)
+        cells = owned_cells(span, m, lo, hi, last,
+                            cell=self._cell.get((key, axis)) if last else None)
         if not last:
             self._cell[(key, axis)] = span // m
         return cells
