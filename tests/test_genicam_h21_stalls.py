@@ -41,6 +41,18 @@ def _sim(**kw):
     return SimGenicamDevices(scene, SensorModel(seed=SEED), start_homed=True, **kw)
 
 
+def _poll_until(stream, done, deadline_s=20.0):
+    """Poll until ``done(frames so far, with host times)``; fail if the stream goes quiet."""
+    t_end = time.time() + deadline_s
+    while True:
+        stream.poll(0.005)
+        frames = stream.frames()
+        if frames and done(frames):
+            return frames
+        if time.time() > t_end:
+            raise AssertionError(f"stream stopped delivering: {len(frames)} frames in {deadline_s} s")
+
+
 def test_free_running_frames_keep_their_clock_through_a_stall():
     from mehs.capture.genicam import GenicamCamera
 
@@ -48,22 +60,23 @@ def test_free_running_frames_keep_their_clock_through_a_stall():
     with dev, GenicamCamera.open(dev.camera_url, timeout=0.5) as cam:
         cam.set_integration_time(1.0)
         with cam.stream(100.0) as s:
-            t_end = time.time() + 0.25
-            while time.time() < t_end:
-                s.poll(0.005)
+            # wait on frames, not on the wall clock: a loaded CI host may start the
+            # stream late, and a count of frames per wall-clock interval then fails
+            # although no tick was lost (seen: 53 of 55 frames in a full CI run)
+            _poll_until(s, lambda fr: len(fr) >= 10)
+            t_stall0 = time.time()
             stall = threading.Thread(target=hold_gil, args=(0.15,))
             stall.start()
             stall.join()
-            t_end = time.time() + 0.25
-            while time.time() < t_end:
-                s.poll(0.005)
-            frames = s.frames()
+            t_stall1 = time.time()
+            frames = _poll_until(s, lambda fr: fr[-1].t > t_stall1 + 0.1)
         assert dev.camera.buffer_overflows == 0
     t = np.array([f.t for f in frames])
     ids = np.array([f.frame_id for f in frames])
     step = np.diff(t)
     # every tick of the 100 Hz clock is a frame, through the 150 ms stall included
-    assert len(frames) >= 55, len(frames)
+    assert t[0] < t_stall0 and t[-1] > t_stall1 + 0.1, (t[0] - t_stall0, t[-1] - t_stall1)
+    assert len(frames) >= 25, len(frames)
     np.testing.assert_allclose(step, 0.01, atol=1e-6, err_msg=f"gaps of {step.max() * 1000:.0f} ms")
     assert np.all(np.diff(ids) == 1)
 
