@@ -185,9 +185,14 @@ def test_receptive_field_probe_grows_only_within_the_memory_budget():
     assert torch_receptive_radius(net, probe=32, max_probe=128) == 20
     assert sizes == [32, 64]
     sizes.clear()
+    # the 64² gradient probe would not fit 1 MiB; a forward-mode one (a third of its
+    # memory, measured on the 32² size first) does, and finds the same field
+    assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20) == 20
+    assert sizes == [32, 32, 64]
+    sizes.clear()
     with pytest.raises(FieldWiderThanBudget) as e:
-        torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20)
-    assert sizes == [32]                   # the 64² probe would not have fitted 1 MiB
+        torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=256 << 10)
+    assert sizes == [32, 32]               # neither 64² probe would have fitted 256 KiB
     assert e.value.lower_bound == 16 and e.value.probe == 32    # not a global operation
     sizes.clear()
     assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 30) == 20

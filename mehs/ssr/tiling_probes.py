@@ -253,38 +253,102 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     ``round_up(R − align + 1, align)`` its trailing edge (both on the grid).
 
     ``max_bytes``: a larger probe runs only if the memory the last one held, scaled to
-    its size (× :data:`RADIUS_PROBE_OVERHEAD`), fits; else :class:`FieldWiderThanBudget`
-    is raised. Autograd keeps every layer's output, ~24× what the inference holds: the
-    full-size paper network's 512² probe held 9 GB and took 23 s to find its field
-    (~400 px) wider than the probe anyway.
+    its size (× :data:`RADIUS_PROBE_OVERHEAD`), fits. Autograd keeps every layer's
+    output, ~24× what the inference holds: the full-size paper network's 512² probe
+    held 9 GB and took 23 s to find its field (~400 px) wider than the probe anyway;
+    MST++'s 256² probe, the one its 112-px field needs, held 2.6 GB. Where the next
+    gradient probe does not fit, the field is measured in forward mode
+    (:func:`_forward_mode_margin`: a Jacobian-vector product keeps one layer's output
+    and its tangent at a time, ~3× an inference's memory) — the same margin; where
+    that does not fit either, or the network has an operator without a forward-mode
+    derivative, :class:`FieldWiderThanBudget` is raised.
     """
     import torch
 
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
     a = max(1, int(align))
+    forward_mode = False
     while True:
-        x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
         c = probe // 2 // a * a
-        with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
-            network(x)[0, :, c:c + a, c:c + a].sum().backward()
-        held = mode.peak
-        g = x.grad[0].abs().sum(0).cpu().numpy()
-        ys, xs = np.nonzero(g > 0)
-        if ys.size == 0:
-            return 0
-        lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
-        if lo > 0 and hi < probe - 1:
-            reach_lo, reach_hi = int(c - lo), int(hi - c)
-            if a == 1:
-                return max(reach_lo, reach_hi)
-            return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
+        if forward_mode:
+            try:
+                margin, held = _forward_mode_margin(network, probe, a, device)
+            except (NotImplementedError, RuntimeError):
+                # an operator without a forward-mode derivative: the gradient's bound
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe) from None
+            if margin is not None:
+                return margin
+        else:
+            x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
+            with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
+                network(x)[0, :, c:c + a, c:c + a].sum().backward()
+            held = mode.peak
+            g = x.grad[0].abs().sum(0).cpu().numpy()
+            del x
+            ys, xs = np.nonzero(g > 0)
+            if ys.size == 0:
+                return 0
+            lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
+            if lo > 0 and hi < probe - 1:
+                reach_lo, reach_hi = int(c - lo), int(hi - c)
+                if a == 1:
+                    return max(reach_lo, reach_hi)
+                return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
         if probe >= max_probe:
             return GLOBAL_MARGIN
         if max_bytes is not None and held * 4 * RADIUS_PROBE_OVERHEAD > max_bytes:
-            # the field reaches past the probe's edge from a centre probe // 2 away
-            raise FieldWiderThanBudget(_round_up(probe // 2, a), probe)
+            if forward_mode:
+                # the field reaches past the probe's edge from a centre probe // 2 away
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe)
+            # measure what forward mode holds on this size before it grows
+            forward_mode = True
+            continue
         probe *= 2
+
+
+def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | None, int]:
+    """The margin :func:`torch_receptive_radius` measures, from one Jacobian-vector
+    product; None where the field fills the ``probe²`` probe. Also the bytes it held.
+
+    The tangent of a random perturbation of the ``a × a`` input block at an aligned
+    centre ``c`` is non-zero at the outputs whose field holds that block. An output
+    ``o = c + k·a + q`` at grid phase ``q`` reaching ``L_q`` left and ``R_q`` right is
+    reached iff ``o − L_q ≤ c + a − 1`` and ``o + R_q ≥ c``, so per phase the last
+    output reached gives ``round_up(L_q − q, a) = o_last − c − q`` (the gradient's
+    leading margin is the largest over the phases) and the first one
+    ``round_up(R_q + q − a + 1, a) = c + q − o_first`` (its trailing margin): the
+    gradient probe's margin, exactly.
+    """
+    import torch
+    from torch.autograd import forward_ad
+
+    from mehs.ssr.net.pooling import plain_graph
+
+    x = torch.rand(1, 3, probe, probe, device=device)
+    c = probe // 2 // a * a
+    v = torch.zeros_like(x)
+    v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device)
+    with torch.no_grad(), plain_graph(), _global_pools_detached(network), \
+            _peak_mode(reorders=False) as mode, forward_ad.dual_level():
+        tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
+        if tangent is None:       # nothing depends on the input: no field
+            return 0, mode.peak
+        reached = (tangent[0] != 0).any(0).cpu().numpy()
+    held = mode.peak
+    rows, cols = np.nonzero(reached.any(1))[0], np.nonzero(reached.any(0))[0]
+    if rows.size == 0:
+        return 0, held
+    if min(rows.min(), cols.min()) == 0 or max(rows.max(), cols.max()) == probe - 1:
+        return None, held
+    lead = trail = 0
+    for idx in (rows, cols):
+        phase = (idx - c) % a
+        for q in np.unique(phase):
+            at = idx[phase == q]
+            lead = max(lead, int(at.max()) - c - int(q))
+            trail = max(trail, c + int(q) - int(at.min()))
+    return max(lead, trail), held
 
 
 def torch_align(network) -> int:

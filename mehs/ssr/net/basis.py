@@ -25,6 +25,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from mehs.ssr.net.pooling import plain_graph_wanted
+
 #: Wavelength range mapped to [0, 1] before the basis functions are evaluated.
 LAMBDA_RANGE_NM = (400.0, 700.0)
 
@@ -96,7 +98,7 @@ class _BasisBranch(nn.Module):
         """``(N, C, H, W)`` features → ``(N, L, H, W)``; into ``out`` (that shape) if given."""
         n, _, h, w = x.shape
         if (self.chunk_pixels <= 0 or (torch.is_grad_enabled() and x.requires_grad)
-                or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
+                or plain_graph_wanted() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
             # training: autograd keeps every strip's temporaries anyway, strips only add work
             y = self._evaluate(x)
             return y if out is None else out.copy_(y)

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.pooling import pooled_mean
+from mehs.ssr.net.pooling import plain_graph_wanted, pooled_mean
 
 
 class ChannelAttention(nn.Module):
@@ -208,8 +208,10 @@ class DenseBlock(nn.Module):
 
 
 def training_graph() -> bool:
-    """True where autograd or an exporter needs the plain concatenating graph."""
-    return torch.is_grad_enabled() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
+    """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`)
+    or an exporter needs the plain concatenating graph."""
+    return (torch.is_grad_enabled() or plain_graph_wanted() or torch.jit.is_tracing()
+            or torch.onnx.is_in_onnx_export())
 
 
 class MaxPool2x2(nn.MaxPool2d):

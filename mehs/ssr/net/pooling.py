@@ -41,6 +41,7 @@ _ACTIVE: contextvars.ContextVar["ImageMeans | None"] = contextvars.ContextVar(
     "mehs_image_means", default=None)
 _DETACHED: contextvars.ContextVar[bool] = contextvars.ContextVar(
     "mehs_statistics_detached", default=False)
+_PLAIN: contextvars.ContextVar[bool] = contextvars.ContextVar("mehs_plain_graph", default=False)
 
 
 def pooled_mean(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
@@ -93,6 +94,25 @@ def detached_statistics():
         yield
     finally:
         _DETACHED.reset(token)
+
+
+def plain_graph_wanted() -> bool:
+    """True inside :func:`plain_graph`."""
+    return _PLAIN.get()
+
+
+@contextlib.contextmanager
+def plain_graph():
+    """Context: layers build the graph they build for training (stock operators, no
+    ``out=`` writes into preallocated maps, no strips) although autograd is off.
+    Forward-mode differentiation (the field probe's Jacobian-vector product,
+    :func:`mehs.ssr.tiling_probes.torch_receptive_radius`) has no derivative for
+    ``out=`` operators, and needs no autograd graph."""
+    token = _PLAIN.set(True)
+    try:
+        yield
+    finally:
+        _PLAIN.reset(token)
 
 
 def _channel_sums(part: torch.Tensor) -> torch.Tensor:

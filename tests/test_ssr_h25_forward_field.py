@@ -1,0 +1,124 @@
+"""The receptive-field probe measures in forward mode where its gradient does not fit.
+
+The autograd probe keeps every layer's output (~24× an inference's memory): under the
+default 2 GB cap MST++'s full preset, whose 112-px field needs a 256² probe, stopped at
+128², warned twice per call, tiled with a 64-px lower bound (tiles then differ from the
+whole image near their seams) and probed again on every call. A Jacobian-vector product
+holds one layer's output and its tangent at a time; read per grid phase, it gives the
+gradient probe's margin exactly.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+from _checks import contrast_rgb
+
+torch = pytest.importorskip("torch")
+
+from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
+from mehs.ssr.tiling_probes import (_forward_mode_margin, torch_align,  # noqa: E402
+                                    torch_receptive_radius)
+from mehs.ssr.tiling_torch import tiled_torch_call  # noqa: E402
+
+
+class _Phased(torch.nn.Module):
+    """A strided convolution and a transposed one: the field depends on the grid phase."""
+
+    def __init__(self):
+        super().__init__()
+        self.down = torch.nn.Conv2d(3, 4, 5, stride=2, padding=2)
+        self.mid = torch.nn.Conv2d(4, 4, 3, padding=1)
+        self.up = torch.nn.ConvTranspose2d(4, 3, 4, stride=2, padding=1)
+        self.tail = torch.nn.Conv2d(3, 2, (1, 3), padding=(0, 1))
+
+    def forward(self, x):
+        return self.tail(self.up(torch.tanh(self.mid(torch.tanh(self.down(x))))))
+
+
+@pytest.mark.parametrize("case", ["mstpp", "hdrssr", "phased"])
+def test_forward_mode_margin_equals_the_gradient_probes(case):
+    torch.manual_seed(1)
+    if case == "phased":
+        net, a = _Phased().eval(), 2
+    else:                # hdrssr: its inference writes out= and in strips (plain_graph)
+        net = build_network(arch=case, preset="tiny").eval()
+        a = torch_align(net)
+    with torch.enable_grad():
+        grad = torch_receptive_radius(net, probe=128, max_probe=256, align=a)
+    for probe in (128, 256):
+        margin, held = _forward_mode_margin(net, probe, a, "cpu")
+        if margin is not None:
+            break
+    assert margin == grad and held > 0, (margin, grad)
+    assert grad > 0
+
+
+class _WideAttention(torch.nn.Module):
+    """A 72-pixel receptive radius (24 3×3 convolutions dilated by 3) and one channel
+    attention."""
+
+    def __init__(self):
+        super().__init__()
+        self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=3, dilation=3)
+                                         for _ in range(24))
+        self.ca = ChannelAttention(3, 1)
+        self.out = torch.nn.Conv2d(3, 4, 1)
+
+    def forward(self, x):
+        for c in self.convs:
+            x = torch.tanh(c(x))
+        return self.out(self.ca(x))
+
+
+def test_a_field_the_gradient_cannot_afford_is_measured_and_tiles_equal_the_whole_image():
+    from types import SimpleNamespace
+
+    torch.manual_seed(8)
+    net = _WideAttention().eval()
+    # 16 MiB: after the 128² probes (gradient 5.4 MB, forward mode 2.0 MB held) the 256²
+    # gradient probe does not fit, the forward-mode one does; 1200 B/px make tiles of
+    # ~14k pixels, two or more along a 40×480 image
+    model = SimpleNamespace(network=net, device="cpu", name="wide",
+                            tiling=dict(bytes_per_pixel=1200.0, max_bytes=16 << 20,
+                                        statistics="image", blend=8))
+    rgb = contrast_rgb(40, 480, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)    # no lower-bound warning
+        tiled = tiled_torch_call(model, rgb)
+    assert model._tiling_probe["margin"] == 72              # 72 px, on the 8-px grid
+    assert not model._tiling_probe.get("margin_bound")
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    with torch.no_grad():
+        whole = net(torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None])[0]
+    whole = whole.permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_network_without_forward_mode_derivatives_keeps_the_lower_bound():
+    from mehs.ssr.tiling_probes import FieldWiderThanBudget
+
+    class _NoForward(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, g):
+            return g
+
+    class _Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=1)
+                                             for _ in range(20))
+
+        def forward(self, x):
+            for c in self.convs:
+                x = torch.tanh(c(x))
+            return _NoForward.apply(x)
+
+    torch.manual_seed(0)
+    with pytest.raises(FieldWiderThanBudget) as e:
+        torch_receptive_radius(_Net(), probe=32, max_probe=128, max_bytes=1 << 20)
+    assert e.value.lower_bound == 16 and e.value.probe == 32
