@@ -122,3 +122,46 @@ def test_a_network_without_forward_mode_derivatives_keeps_the_lower_bound():
     with pytest.raises(FieldWiderThanBudget) as e:
         torch_receptive_radius(_Net(), probe=32, max_probe=128, max_bytes=1 << 20)
     assert e.value.lower_bound == 16 and e.value.probe == 32
+
+
+def test_a_bound_is_kept_until_a_budget_can_measure_the_field(tmp_path, monkeypatch):
+    # a field no probe the budget allows can measure was probed again by every call of
+    # every process (the full paper network: a gradient and two forward-mode probes)
+    from types import SimpleNamespace
+
+    import mehs.ssr.tiling_torch as tiling
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    calls = []
+    real = tiling.torch_receptive_radius
+
+    def counted(*a, **k):
+        calls.append(k.get("max_bytes"))
+        if k["max_bytes"] >= 1 << 34:
+            return 64          # what the 256² probe measures (see the test above), 20 s sooner
+        return real(*a, **k)
+
+    monkeypatch.setattr(tiling, "torch_receptive_radius", counted)
+    torch.manual_seed(3)
+    # a 3-block bottleneck: a 64-px field, which a 128² probe cannot resolve
+    net = build_network(arch="mstpp", preset="tiny", levels=2, num_blocks=(1, 3, 1)).eval()
+    rgb = contrast_rgb(16, 400, seed=5)
+
+    def model(max_bytes):
+        # tiles of 16 × 320 pixels whatever the budget
+        return SimpleNamespace(network=net, device="cpu", name="mst",
+                               tiling=dict(bytes_per_pixel=max_bytes / (16 * 320),
+                                           max_bytes=max_bytes, statistics="image", blend=8))
+
+    for _ in range(2):                     # the second call reads the bound back
+        with pytest.warns(RuntimeWarning, match="wider than a 128-pixel probe"):
+            tiled_torch_call(model(16 * 320), rgb)
+        assert len(calls) == 1
+    stored = next(tmp_path.rglob("*.json")).read_text()
+    assert '"margin_bound"' in stored and '"lower_bound": 64' in stored
+    roomy = model(1 << 34)                 # holds the 256² gradient probe: probed again
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        tiled_torch_call(roomy, rgb)
+    assert len(calls) == 2
+    assert roomy._tiling_probe["margin"] == 64 and not roomy._tiling_probe.get("margin_bound")

@@ -33,7 +33,11 @@ from mehs._cache import cache_dir
 #: Bumped when the meaning of a stored figure changes.
 FORMAT = "mehs-tiling-probe/1"
 #: What is stored, with the type each must have when read back.
-_KINDS = {"memory": dict, "margin": int, "align": int}
+_KINDS = {"memory": dict, "margin": int, "align": int,
+          # a field wider than the probes a budget allows: {"needed", "lower_bound",
+          # "probe"} (:class:`mehs.ssr.tiling_probes.FieldWiderThanBudget`); a budget of
+          # at least "needed" bytes measures again
+          "margin_bound": dict}
 
 
 def _mehs_module(cls: type) -> bool:

@@ -224,9 +224,11 @@ class FieldWiderThanBudget(Exception):
     measures it): ``lower_bound`` is the least radius the field can have, on the grid.
     """
 
-    def __init__(self, lower_bound: int, probe: int):
+    def __init__(self, lower_bound: int, probe: int, needed: int | None = None):
         super().__init__(f"receptive field wider than a {probe}-pixel probe")
         self.lower_bound, self.probe = int(lower_bound), int(probe)
+        #: bytes the next probe would have needed (None: unknown)
+        self.needed = None if needed is None else int(needed)
 
 
 def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
@@ -269,6 +271,7 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     device = param.device if param is not None else "cpu"
     a = max(1, int(align))
     forward_mode = False
+    need = None          # bytes the next (gradient, then forward-mode) probe needs
     while True:
         c = probe // 2 // a * a
         if forward_mode:
@@ -276,7 +279,7 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
                 margin, held = _forward_mode_margin(network, probe, a, device)
             except (NotImplementedError, RuntimeError):
                 # an operator without a forward-mode derivative: the gradient's bound
-                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe) from None
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need) from None
             if margin is not None:
                 return margin
         else:
@@ -297,10 +300,11 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
                 return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
         if probe >= max_probe:
             return GLOBAL_MARGIN
-        if max_bytes is not None and held * 4 * RADIUS_PROBE_OVERHEAD > max_bytes:
+        need = held * 4 * RADIUS_PROBE_OVERHEAD
+        if max_bytes is not None and need > max_bytes:
             if forward_mode:
                 # the field reaches past the probe's edge from a centre probe // 2 away
-                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe)
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need)
             # measure what forward mode holds on this size before it grows
             forward_mode = True
             continue

@@ -54,15 +54,36 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         # a lower bound is this call's answer only: a later budget may measure the field
         cached.pop("margin", None)
 
-    def margin() -> int:
-        # the autograd probes keep within the memory a tile may have
-        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
-        with torch.enable_grad():
-            m = torch_receptive_radius(probed, align=grid(torch_align(net), k), max_bytes=budget)
-        net.zero_grad(set_to_none=True)
-        return m
-
     cap = getattr(net, "max_tile_pixels", None)
+    # measured once per architecture, not once per process (mehs's own networks;
+    # one padded to a multiple measures its padded calls: not cached)
+    store = None
+    if cap is None and k == 1:
+        from mehs.ssr.probe_cache import ProbeStore
+
+        store = ProbeStore.for_network(net)
+
+    def margin() -> int:
+        from mehs.ssr.tiling_probes import FieldWiderThanBudget
+
+        # the probes keep within the memory a tile may have
+        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
+        bound = store.get("margin_bound") if store is not None else None
+        if bound is not None and budget < bound.get("needed", 0):
+            # this budget cannot measure it either (the full paper network's probes:
+            # ~15 s, every process)
+            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
+        try:
+            with torch.enable_grad():
+                return torch_receptive_radius(probed, align=grid(torch_align(net), k),
+                                              max_bytes=budget)
+        except FieldWiderThanBudget as e:
+            if store is not None and e.needed is not None:
+                store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
+                                           "probe": e.probe})
+            raise
+        finally:
+            net.zero_grad(set_to_none=True)
 
     def memory() -> dict:
         if cap is None:
@@ -79,12 +100,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
               "align": lambda: torch_align(net)}
-    if cap is None and k == 1:
-        # measured once per architecture, not once per process (mehs's own networks;
-        # one padded to a multiple measures its padded calls: not cached)
-        from mehs.ssr.probe_cache import ProbeStore
-
-        store = ProbeStore.for_network(net)
+    if store is not None:
         probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
