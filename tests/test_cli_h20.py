@@ -142,7 +142,10 @@ def test_resume_hint_and_check_keep_a_natural_scenes_lighting(tmp_path, capsys):
     out = tmp_path / "nat"
     err = _fails(capsys, ["capture", "--simulate", "--scene", "natural", "--lighting", "sodium",
                           "--size", "16", "--out", out, "--times", "1,10,100", "--timeout", "0.1",
-                          "--faults", "camera:timeout@50x20", "--no-progress"],
+                          # read 70: mid-exposure 1 (48 reads an exposure: 16 dark, 16 white, 16
+                          # lines). A busy host's spurious 0.1-s timeouts add reads to exposure 0;
+                          # at read 50 two of them moved the fault into exposure 0
+                          "--faults", "camera:timeout@70x20", "--no-progress"],
                  "--resume", "--lighting sodium", logged=True)
     doc = json.loads((out / "scene.json").read_text())
     assert [e["status"] for e in doc["exposures"]][0] == "complete"

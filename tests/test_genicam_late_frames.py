@@ -119,8 +119,11 @@ def _capture(out, faults, times, url_suffix="", scan="step"):
 
     scene = make_scene("colorchecker", lines=SIZE, samples=SIZE, seed=SEED)
     dev = SimGenicamDevices(scene, SensorModel(seed=SEED), faults=faults)
+    # the fault's frame is late by a trigger, not by a time: the timeout only has to exceed
+    # a busy host's worst frame latency (seen: 0.12 s), or a spurious timeout adds a retry
+    # (and, with frame ids off, a late frame) of its own and the counts below are off
     with dev, ZaberStage.open(dev.stage_url) as stage, \
-            GenicamCamera.open(dev.camera_url + url_suffix, timeout=0.5) as cam:
+            GenicamCamera.open(dev.camera_url + url_suffix, timeout=2.0) as cam:
         doc = capture_scene(stage, cam, out, times_ms=times, lines=SIZE, progress=False, scan=scan)
         held = list(dev.camera._relay.held_frames)
     return doc, held

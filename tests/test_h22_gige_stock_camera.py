@@ -37,7 +37,7 @@ def stock_camera():
     from mehs.capture.gvcp_lock import GvcpPortLock
 
     mp = pytest.MonkeyPatch()
-    mp.setenv("MEHS_GVCP_WAIT_S", "120")      # another run's simulator: wait for it, then serve
+    mp.setenv("MEHS_GVCP_WAIT_S", "900")      # another run's simulator: wait for it (as conftest)
     lock = GvcpPortLock("127.0.0.1").acquire()
     proc = subprocess.Popen([STOCK, "-i", "127.0.0.1", "-s", SERIAL],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -45,7 +45,7 @@ def stock_camera():
         from mehs.capture.aravis import import_aravis
 
         Aravis, _ = import_aravis()
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60   # (a moment when idle: 0.03 s; 0.2 s on a busy host)
         while True:            # wait until it answers GVCP (a fresh process needs a moment)
             try:
                 Aravis.Camera.new("127.0.0.1")
@@ -138,7 +138,7 @@ def test_free_running_stream_and_back_to_triggered(stock_camera):
         t0 = time.time()
         with cam.stream(20.0) as s:
             got = []
-            deadline = time.monotonic() + 5.0
+            deadline = time.monotonic() + 30.0    # 3 frames at 20 Hz: a bound, not a window
             while len(got) < 3 and time.monotonic() < deadline:
                 got += s.poll(0.5)
             frames = s.frames()

@@ -164,7 +164,9 @@ def test_driver_checksums_against_the_simulator_over_tcp(world):
     world.homed = True
     st = SimStage(world)
     srv = DeviceServer(st.handle, name="stage").start()
-    stage = ZaberStage.open(srv.url, timeout=0.5, checksum=True, retries=0)
+    # no reply is expected to time out here, and with retries=0 a reply a busy host delayed
+    # past the timeout would be a DeviceTimeout, not the checksum error: a generous timeout
+    stage = ZaberStage.open(srv.url, timeout=10.0, checksum=True, retries=0)
     try:
         with pytest.raises(ZaberProtocolError, match="comm.checksum = 1"):
             stage.position()
