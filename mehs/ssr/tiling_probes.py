@@ -224,11 +224,15 @@ class FieldWiderThanBudget(Exception):
     measures it): ``lower_bound`` is the least radius the field can have, on the grid.
     """
 
-    def __init__(self, lower_bound: int, probe: int, needed: int | None = None):
+    def __init__(self, lower_bound: int, probe: int, needed: int | None = None,
+                 effective: int | None = None):
         super().__init__(f"receptive field wider than a {probe}-pixel probe")
         self.lower_bound, self.probe = int(lower_bound), int(probe)
         #: bytes the next probe would have needed (None: unknown)
         self.needed = None if needed is None else int(needed)
+        #: the margin past which the field's influence is below float32 rounding, where
+        #: the largest probe showed it (:func:`_effective_margin`), else None
+        self.effective = None if effective is None else int(effective)
 
 
 def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
@@ -260,10 +264,13 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     held 9 GB and took 23 s to find its field (~400 px) wider than the probe anyway;
     MST++'s 256² probe, the one its 112-px field needs, held 2.6 GB. Where the next
     gradient probe does not fit, the field is measured in forward mode
-    (:func:`_forward_mode_margin`: a Jacobian-vector product keeps one layer's output
-    and its tangent at a time, ~3× an inference's memory) — the same margin; where
-    that does not fit either, or the network has an operator without a forward-mode
-    derivative, :class:`FieldWiderThanBudget` is raised.
+    (:func:`_forward_mode_margin`: a Jacobian-vector product keeps the layers' outputs
+    an inference keeps, with their tangents — MST++ full at 256²: 1.0 GB resident
+    against the gradient's 2.6 GB) — the same margin; where that does not fit either,
+    or the network has an operator without a forward-mode derivative,
+    :class:`FieldWiderThanBudget` is raised, with the margin past which the largest
+    forward-mode probe saw the field's influence fall below float32 rounding
+    (:func:`_effective_margin`) where it did.
     """
     import torch
 
@@ -272,11 +279,12 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     a = max(1, int(align))
     forward_mode = False
     need = None          # bytes the next (gradient, then forward-mode) probe needs
+    effective = None
     while True:
         c = probe // 2 // a * a
         if forward_mode:
             try:
-                margin, held = _forward_mode_margin(network, probe, a, device)
+                margin, held, effective = _forward_mode_margin(network, probe, a, device)
             except (NotImplementedError, RuntimeError):
                 # an operator without a forward-mode derivative: the gradient's bound
                 raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need) from None
@@ -304,16 +312,18 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
         if max_bytes is not None and need > max_bytes:
             if forward_mode:
                 # the field reaches past the probe's edge from a centre probe // 2 away
-                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need)
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need, effective)
             # measure what forward mode holds on this size before it grows
             forward_mode = True
             continue
         probe *= 2
 
 
-def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | None, int]:
+def _forward_mode_margin(network, probe: int, a: int,
+                         device) -> tuple[int | None, int, int | None]:
     """The margin :func:`torch_receptive_radius` measures, from one Jacobian-vector
-    product; None where the field fills the ``probe²`` probe. Also the bytes it held.
+    product; None where the field fills the ``probe²`` probe. Also the bytes it held, and
+    where the field fills the probe, its :func:`_effective_margin` (else None).
 
     The tangent of a random perturbation of the ``a × a`` input block at an aligned
     centre ``c`` is non-zero at the outputs whose field holds that block. An output
@@ -337,14 +347,15 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
             _peak_mode(reorders=False) as mode, forward_ad.dual_level():
         tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
         if tangent is None:       # nothing depends on the input: no field
-            return 0, mode.peak
-        reached = (tangent[0] != 0).any(0).cpu().numpy()
+            return 0, mode.peak, None
+        size = tangent[0].abs().sum(0, dtype=torch.float64).cpu().numpy()
     held = mode.peak
+    reached = size > 0
     rows, cols = np.nonzero(reached.any(1))[0], np.nonzero(reached.any(0))[0]
     if rows.size == 0:
-        return 0, held
+        return 0, held, None
     if min(rows.min(), cols.min()) == 0 or max(rows.max(), cols.max()) == probe - 1:
-        return None, held
+        return None, held, _effective_margin(size, c, a)
     lead = trail = 0
     for idx in (rows, cols):
         phase = (idx - c) % a
@@ -352,7 +363,40 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
             at = idx[phase == q]
             lead = max(lead, int(at.max()) - c - int(q))
             trail = max(trail, c + int(q) - int(at.min()))
-    return max(lead, trail), held
+    return max(lead, trail), held, None
+
+
+#: Share of an output's sensitivity to its input (the forward-mode tangent's sum) that
+#: :func:`_effective_margin` may leave outside a tile: float32 rounding.
+EFFECTIVE_TAIL = 1e-7
+
+
+def _effective_margin(size: np.ndarray, c: int, a: int) -> int | None:
+    """The least margin on the grid past which a field too wide to measure holds less than
+    :data:`EFFECTIVE_TAIL` of an output's sensitivity, or None where it has not decayed so
+    within a quarter of the probe (the probe's own edges would hide the rest).
+
+    ``size``: ``(probe, probe)`` magnitude of the tangent of the ``a × a`` input block at
+    ``c`` (:func:`_forward_mode_margin`). Translated, the outputs at Chebyshev distance
+    ``> m`` from the block weigh what an output's inputs ``> m`` away do; one grid step is
+    added for the block's own extent. The full-size paper network's field is ~400 px, but
+    (untrained) its tangent falls to 8e-7 of its peak 16 px from the block and to 7e-9 at
+    32 px: its tiles need 48 px, not the 128 px its lower bound would give.
+    """
+    probe = size.shape[0]
+    idx = np.arange(probe)
+    along = np.maximum(np.maximum(c - idx, idx - (c + a - 1)), 0)
+    dist = np.maximum(along[:, None], along[None, :])
+    total = float(size.sum())
+    if not total > 0:
+        return None
+    # the tangent's sum over each distance, then the tail beyond each
+    ring = np.bincount(dist.ravel(), weights=size.ravel(), minlength=probe)
+    tail = total - np.cumsum(ring)
+    for m in range(0, probe // 4 + 1, a):
+        if tail[m] <= EFFECTIVE_TAIL * total:
+            return m + a
+    return None
 
 
 def torch_align(network) -> int:

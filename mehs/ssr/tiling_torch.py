@@ -72,7 +72,8 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         if bound is not None and budget < bound.get("needed", 0):
             # this budget cannot measure it either (the full paper network's probes:
             # ~15 s, every process)
-            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
+            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"],
+                                       bound.get("effective"))
         try:
             with torch.enable_grad():
                 return torch_receptive_radius(probed, align=grid(torch_align(net), k),
@@ -80,7 +81,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         except FieldWiderThanBudget as e:
             if store is not None and e.needed is not None:
                 store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
-                                           "probe": e.probe})
+                                           "probe": e.probe, "effective": e.effective})
             raise
         finally:
             net.zero_grad(set_to_none=True)
@@ -109,11 +110,13 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
 
 
 def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
-    """``measure``, or the least radius the field can have where it is wider than any
-    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, not stored
-    in the probe cache (a larger budget measures it), and marked in
-    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
-    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call: the next probes again.
+    """``measure``, or where the field is wider than any probe the budget allows
+    (:class:`FieldWiderThanBudget`) the margin past which the largest probe saw its
+    influence fall below float32 rounding (``e.effective``; tiles then equal the whole
+    image to rounding), else the least radius the field can have, with a warning.
+    Marked in ``model._tiling_probe["margin_bound"]`` (and ``"margin_effective"``), so
+    that it is not taken for a global operation's :data:`GLOBAL_MARGIN`; it holds for one
+    call (the probe cache keeps it for the budgets that cannot measure the field).
     (A field that fills even the largest probe, 512 px, still counts as global.)"""
     from mehs.ssr.tiling_probes import FieldWiderThanBudget
 
@@ -121,7 +124,12 @@ def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
         try:
             return measure()
         except FieldWiderThanBudget as e:
-            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
+            probe = model.__dict__.setdefault("_tiling_probe", {})
+            probe["margin_bound"] = True
+            if e.effective is not None:
+                probe["margin_effective"] = True
+                return e.effective
+            probe.pop("margin_effective", None)
             warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
                           f"than a {e.probe}-pixel probe, the largest the memory budget allows "
                           f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
