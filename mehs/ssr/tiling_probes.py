@@ -177,30 +177,15 @@ def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
 def _global_pools_detached(network):
     """Context: the global statistics (channel attention's means, spectral-wise attention's
     channel similarity: :func:`mehs.ssr.net.pooling.detached_statistics`) detached from
-    autograd (see below)."""
-    import contextlib
+    autograd, so that the field probes measure the network's local field only.
 
-    import torch
-
+    A context variable, not a patch of the layers: an instance attribute that replaced
+    ``ChannelAttention.forward`` was shared by every thread, so of two first calls on
+    one network the probe that finished first deleted the other's patch
+    (``AttributeError``), and tiles running meanwhile skipped their pooled means."""
     from mehs.ssr.net.pooling import detached_statistics
 
-    @contextlib.contextmanager
-    def ctx():
-        patched = []
-        for m in network.modules():
-            if type(m).__name__ == "ChannelAttention":
-                def local(x, _m=m):
-                    s = x.mean(dim=(2, 3), keepdim=True).detach()
-                    return x * torch.sigmoid(_m.excite(torch.relu(_m.squeeze(s))))
-                m.forward = local          # an instance attribute shadows the method
-                patched.append(m)
-        try:
-            with detached_statistics():
-                yield
-        finally:
-            for m in patched:
-                del m.forward
-    return ctx()
+    return detached_statistics()
 
 
 #: Margin used when a network's gradient reaches the whole probe (a global

@@ -116,7 +116,8 @@ def plain_graph():
 
 
 def _channel_sums(part: torch.Tensor) -> torch.Tensor:
-    return part.sum(dim=(1, 2))
+    # float32 at least: a half-float map's sum over a 300² part overflows to inf
+    return part.sum(dim=(1, 2), dtype=torch.promote_types(part.dtype, torch.float32))
 
 
 class PoolingsCollected(Exception):

@@ -1,0 +1,110 @@
+"""An independent review's findings on the tiles' image-wide statistics (session 25).
+
+- The field probe replaced ``ChannelAttention.forward`` on the shared instances: two
+  first calls on one network in two threads crashed (the probe that finished first
+  deleted the other's patch), and tiles running during another thread's probe skipped
+  their pooled means.
+- Channel attention's owned sums were taken in the map's dtype: a half-float map's sum
+  overflowed to inf.
+- The ONNX loop compared NaN changes with ``max``: all the runs ran, then the output
+  contract failed; the torch path refuses non-finite statistics at once.
+"""
+
+import threading
+
+import numpy as np
+import pytest
+from _checks import contrast_rgb
+
+torch = pytest.importorskip("torch")
+
+from mehs.errors import InputError  # noqa: E402
+from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
+from mehs.ssr.net.pooling import ImageMeans  # noqa: E402
+from mehs.ssr.tiling_probes import _global_pools_detached  # noqa: E402
+
+
+def test_interleaved_probes_on_one_network_leave_its_layers_working():
+    torch.manual_seed(0)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    rgb = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        before = net(rgb)
+    entered, second_in, first_out = threading.Event(), threading.Event(), threading.Event()
+    errors = []
+
+    def first():
+        with _global_pools_detached(net):
+            entered.set()
+            second_in.wait(30)
+        first_out.set()
+
+    def second():
+        entered.wait(30)
+        try:
+            with _global_pools_detached(net):
+                second_in.set()
+                first_out.wait(30)
+        except Exception as e:          # noqa: BLE001 (the failure under test)
+            errors.append(repr(e))
+            second_in.set()
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, errors
+    # another thread's probe does not change what this one computes
+    hold, release = threading.Event(), threading.Event()
+
+    def prober():
+        with _global_pools_detached(net):
+            hold.set()
+            release.wait(30)
+
+    p = threading.Thread(target=prober)
+    p.start()
+    hold.wait(30)
+    try:
+        # the layers this thread runs are the class's, pooled means included
+        assert not [m for m in net.modules() if "forward" in m.__dict__]
+        with torch.no_grad():
+            torch.testing.assert_close(net(rgb), before)
+    finally:
+        release.set()
+        p.join(60)
+
+
+def test_half_float_channel_attention_sums_do_not_overflow():
+    torch.manual_seed(1)
+    ca = ChannelAttention(8).eval().half()
+    x = (torch.rand(1, 8, 300, 300) + 0.5).half()          # 90 000 px, mean ~1
+    means = ImageMeans()
+    with torch.no_grad(), means.active():
+        for _ in range(2):
+            means.enter((0, 300), (0, 300), (0, 300), (0, 300), True, True)
+            out = ca(x)
+            means.finish()
+    with torch.no_grad():
+        own = ca(x)                                       # the whole map's own mean
+    m = means._means[(ca, 0)].float()
+    assert torch.isfinite(m).all()
+    torch.testing.assert_close(m.view(-1), x.float().mean(dim=(2, 3)).view(-1), rtol=1e-3,
+                               atol=0)
+    torch.testing.assert_close(out.float(), own.float(), rtol=2e-3, atol=2e-3)
+
+
+def test_onnx_image_means_refuse_non_finite_statistics_at_once(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from test_ssr_tiling_onnx import TILES, se_graph
+
+    from mehs.ssr.models import OnnxModel
+
+    model = OnnxModel(se_graph(tmp_path / "se.onnx"))
+    rgb = contrast_rgb(256, 640, seed=2)
+    rgb[10, 300, 1] = np.nan
+    model.tiling = dict(TILES, statistics="image")
+    with pytest.raises(InputError, match="not finite"):
+        model.predict(rgb)
+    assert model._tiling_last.get("image_runs", 1) <= 2
