@@ -70,6 +70,12 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         # the probes keep within the memory a tile may have
         budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
         bound = store.get("margin_bound") if store is not None else None
+        # an effective margin is read off the weights' influence, unlike the field:
+        # kept for these weights only (a trained network's may decay more slowly)
+        weights = _weights_digest(net) if store is not None else None
+        if bound is not None and bound.get("effective") is not None \
+                and bound.get("weights") != weights:
+            bound = None
         if bound is not None and budget < bound.get("needed", 0):
             # this budget cannot measure it either (the full paper network's probes:
             # ~15 s, every process)
@@ -82,7 +88,8 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         except FieldWiderThanBudget as e:
             if store is not None and e.needed is not None:
                 store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
-                                           "probe": e.probe, "effective": e.effective})
+                                           "probe": e.probe, "effective": e.effective,
+                                           "weights": weights})
             raise
         finally:
             net.zero_grad(set_to_none=True)
@@ -112,6 +119,20 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
                                      ("align", "align"))}
     probes["margin"] = _margin_or_bound(model, probes["margin"])
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
+
+
+def _weights_digest(net) -> str:
+    """SHA-1 of a network's parameters and buffers (names, dtypes, shapes, bytes)."""
+    import hashlib
+
+    import torch
+
+    h = hashlib.sha1()
+    with torch.no_grad():
+        for name, t in list(net.named_parameters()) + list(net.named_buffers()):
+            h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
+            h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
