@@ -240,11 +240,13 @@ def test_batch_norm_without_running_statistics_is_not_split_into_strips():
 
 
 class _WideAttention(torch.nn.Module):
-    """A 70-pixel receptive radius (70 3×3 convolutions) and one channel attention."""
+    """A 70-pixel receptive radius (70 3×3 convolutions; ``layers × dilation`` in general)
+    and one channel attention."""
 
-    def __init__(self):
+    def __init__(self, layers: int = 70, dilation: int = 1):
         super().__init__()
-        self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=1) for _ in range(70))
+        self.convs = torch.nn.ModuleList(
+            torch.nn.Conv2d(3, 3, 3, padding=dilation, dilation=dilation) for _ in range(layers))
         self.ca = ChannelAttention(3, 1)
         self.out = torch.nn.Conv2d(3, 4, 1)
 

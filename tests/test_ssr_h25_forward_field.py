@@ -16,7 +16,7 @@ from _checks import contrast_rgb
 
 torch = pytest.importorskip("torch")
 
-from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
+from mehs.ssr.net import build_network  # noqa: E402
 from mehs.ssr.tiling_probes import (_forward_mode_margin, torch_align,  # noqa: E402
                                     torch_receptive_radius)
 from mehs.ssr.tiling_torch import tiled_torch_call  # noqa: E402
@@ -54,28 +54,18 @@ def test_forward_mode_margin_equals_the_gradient_probes(case):
     assert grad > 0
 
 
-class _WideAttention(torch.nn.Module):
-    """A 72-pixel receptive radius (24 3×3 convolutions dilated by 3) and one channel
-    attention."""
+def _wide_attention():
+    """A 72-pixel receptive radius (24 3×3 convolutions dilated by 3), one channel attention."""
+    from test_ssr_h23_lean_inference import _WideAttention
 
-    def __init__(self):
-        super().__init__()
-        self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=3, dilation=3)
-                                         for _ in range(24))
-        self.ca = ChannelAttention(3, 1)
-        self.out = torch.nn.Conv2d(3, 4, 1)
-
-    def forward(self, x):
-        for c in self.convs:
-            x = torch.tanh(c(x))
-        return self.out(self.ca(x))
+    return _WideAttention(layers=24, dilation=3)
 
 
 def test_a_field_the_gradient_cannot_afford_is_measured_and_tiles_equal_the_whole_image():
     from types import SimpleNamespace
 
     torch.manual_seed(8)
-    net = _WideAttention().eval()
+    net = _wide_attention().eval()
     # 16 MiB: after the 128² probes (gradient 5.4 MB, forward mode 2.0 MB held) the 256²
     # gradient probe does not fit, the forward-mode one does; 1200 B/px make tiles of
     # ~14k pixels, two or more along a 40×480 image
