@@ -108,3 +108,48 @@ def test_onnx_image_means_refuse_non_finite_statistics_at_once(tmp_path):
     with pytest.raises(InputError, match="not finite"):
         model.predict(rgb)
     assert model._tiling_last.get("image_runs", 1) <= 2
+
+
+def test_a_deep_chain_of_attention_runs_until_every_statistic_is_the_images():
+    # each statistic depends only on the ones before it: run r collects the r-th exactly.
+    # A 4-level MST++ (9 attention layers) with sharp attention stopped at 6 runs with
+    # its similarities still moving by 3e-3 (a warning, the output 9e-6 off)
+    import warnings
+    from types import SimpleNamespace
+
+    from mehs.ssr.net.mstpp2022 import SpectralMSA
+    from mehs.ssr.tiling_probes import torch_align, torch_receptive_radius
+    from mehs.ssr.tiling_torch import tiled_torch_call
+
+    torch.manual_seed(0)
+    net = build_network(arch="mstpp", preset="tiny", levels=4, num_blocks=(1,) * 5).eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, SpectralMSA):
+                m.rescale.fill_(8.0)
+                m.proj.weight.mul_(20.0)
+    a = torch_align(net)
+    rgb = contrast_rgb(64, 900)
+    with torch.no_grad():
+        whole = net(torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None])[0]
+    whole = whole.permute(1, 2, 0).numpy()
+    model = SimpleNamespace(network=net, device="cpu", name="mst4", tiling=dict(
+        bytes_per_pixel=1.0, max_bytes=64 * 400, blend=16, align=a,
+        margin=torch_receptive_radius(net, align=a)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)       # settled
+        tiled = tiled_torch_call(model, rgb)
+    last = model._tiling_last
+    assert last["summary"]["tiles"] >= 3 and last["statistics"] == "image"
+    assert 6 < last["image_runs"] <= 10 and last["image_means_change"] <= 1e-5
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_an_explicit_run_limit_still_holds():
+    from mehs.ssr.tiling_global import MAX_RUNS, go_on
+
+    assert go_on(5, None, 3, 1.0, 2.0) and not go_on(6, None, 3, 1.0, 2.0)   # 3 statistics
+    assert go_on(6, None, 9, 1.0, 2.0) and not go_on(6, None, 9, 2.0, 1.0)   # not falling
+    assert not go_on(10, None, 9, 1e-3, 1.0)                  # exact after 9 + 1 runs
+    assert not go_on(3, 3, 40, 1.0, 2.0) and go_on(2, 3, 40, 1.0, 2.0)
+    assert MAX_RUNS == 6

@@ -43,7 +43,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import TilingPlan, owned_cells, predict_tiled
-from mehs.ssr.tiling_global import (IMAGE_MEANS_TOL, MAX_RUNS, owned_spans, tile_windows,
+from mehs.ssr.tiling_global import (IMAGE_MEANS_TOL, go_on, owned_spans, tile_windows,
                                     warn_unsettled)
 from mehs.ssr.tiling_onnx_graph import _CELLS, _GIVEN, _OWNED, means_graph, pruned_graph
 
@@ -179,7 +179,8 @@ def _register_shared_arena(ort) -> None:
 
 
 def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan: TilingPlan,
-                                   *, tol: float = IMAGE_MEANS_TOL, max_runs: int = MAX_RUNS,
+                                   *, tol: float = IMAGE_MEANS_TOL,
+                                   max_runs: int | None = None,
                                    record: dict | None = None) -> np.ndarray:
     """:func:`mehs.ssr.tiling_blend.predict_tiled` of the model behind ``means`` with
     image-wide pooling means; float32 ``(H, W, B)``. ``record`` as
@@ -188,7 +189,7 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
     model = means.model
     if plan.tile is None:
         return model._predict_whole(rgb)
-    if max_runs < 2:
+    if max_runs is not None and max_runs < 2:
         raise InputError(f"image-wide means need at least 2 runs over the tiles, got {max_runs}")
     h, w = rgb.shape[:2]
     rows, cols = owned_spans(h, plan.tile, plan), owned_spans(w, plan.width, plan)
@@ -209,7 +210,9 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
                   spectra=False)
     given = _finite_means(sums, counts)
     change = float("inf")
-    for run in range(2, max_runs + 1):
+    run, before = 1, float("inf")
+    while go_on(run, max_runs, means.k, change, before):
+        run, before = run + 1, change
         sums, counts = fresh()
         here: dict = {}
 
@@ -228,7 +231,7 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
         record.update(image_runs=run, image_means_change=change)
         if change <= tol:
             return out
-    warn_unsettled(change, max_runs)
+    warn_unsettled(change, run)
     return out
 
 

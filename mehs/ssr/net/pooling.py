@@ -182,6 +182,10 @@ class ImageMeans:
         self._stop = stop_early
         self._past_last = False
 
+    def collected(self) -> list[tuple]:
+        """The statistics (layer, call) the last finished run handed out means for."""
+        return list(self._means or {})
+
     def learn_last(self, run) -> None:
         """Learn the last pooling of a forward from ``run()``, a forward on a small crop
         (its poolings are neither collected nor handed image means).
