@@ -153,3 +153,56 @@ def test_an_explicit_run_limit_still_holds():
     assert not go_on(10, None, 9, 1e-3, 1.0)                  # exact after 9 + 1 runs
     assert not go_on(3, 3, 40, 1.0, 2.0) and go_on(2, 3, 40, 1.0, 2.0)
     assert MAX_RUNS == 6
+
+
+def test_two_threads_probing_at_once_measure_the_same_field():
+    # torch has one forward-mode dual level per process: the second thread's probe failed
+    # and read as a network without forward-mode derivatives (a lower bound, cached)
+    from test_ssr_h23_lean_inference import _WideField
+
+    from mehs.ssr.tiling_probes import torch_receptive_radius
+
+    torch.manual_seed(0)
+    nets = [_WideField(), _WideField()]
+    results, errors = [None, None], []
+    start = threading.Barrier(2)
+
+    def probe(i):
+        try:
+            start.wait(30)
+            for _ in range(3):
+                # 1 MiB: the 64² probe runs in forward mode (see test_ssr_h23_lean_inference)
+                r = torch_receptive_radius(nets[i], probe=32, max_probe=128, max_bytes=1 << 20)
+                results[i] = r if results[i] in (None, r) else -1
+        except Exception as e:          # noqa: BLE001
+            errors.append(repr(e))
+
+    threads = [threading.Thread(target=probe, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not errors, errors
+    assert results == [20, 20]
+
+
+def test_bands_that_sum_to_a_constant_still_show_their_field():
+    # the gradient probe back-propagated the bands' plain sum: a network whose bands are
+    # centred on their mean had a zero gradient, a margin of 0, and tiles 7.6 % of the
+    # range off
+    from mehs.ssr.tiling_probes import torch_receptive_radius
+
+    class Normalised(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.convs = torch.nn.ModuleList(torch.nn.Conv2d(3, 3, 3, padding=1) for _ in range(6))
+            self.out = torch.nn.Conv2d(3, 5, 1)
+
+        def forward(self, x):
+            for c in self.convs:
+                x = torch.tanh(c(x))
+            y = self.out(x)
+            return y - y.mean(dim=1, keepdim=True)
+
+    torch.manual_seed(2)
+    assert torch_receptive_radius(Normalised(), probe=32) == 6

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 
 import numpy as np
 
@@ -209,15 +210,11 @@ class FieldWiderThanBudget(Exception):
     measures it): ``lower_bound`` is the least radius the field can have, on the grid.
     """
 
-    def __init__(self, lower_bound: int, probe: int, needed: int | None = None,
-                 effective: int | None = None):
+    def __init__(self, lower_bound: int, probe: int, needed: int | None = None):
         super().__init__(f"receptive field wider than a {probe}-pixel probe")
         self.lower_bound, self.probe = int(lower_bound), int(probe)
         #: bytes the next probe would have needed (None: unknown)
         self.needed = None if needed is None else int(needed)
-        #: the margin past which the field's influence is below float32 rounding, where
-        #: the largest probe showed it (:func:`_effective_margin`), else None
-        self.effective = None if effective is None else int(effective)
 
 
 def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
@@ -253,9 +250,10 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     an inference keeps, with their tangents — MST++ full at 256²: 1.0 GB resident
     against the gradient's 2.6 GB) — the same margin; where that does not fit either,
     or the network has an operator without a forward-mode derivative,
-    :class:`FieldWiderThanBudget` is raised, with the margin past which the largest
-    forward-mode probe saw the field's influence fall below float32 rounding
-    (:func:`_effective_margin`) where it did.
+    :class:`FieldWiderThanBudget` is raised with the half-width of the largest probe the
+    field filled: a lower bound. (A margin read off how fast the field's influence
+    decays was tried and dropped: measured on the probe's random input it missed a
+    gate that opens on brighter pixels, and tiles were 4e-2 of the range off, silently.)
     """
     import torch
 
@@ -264,21 +262,27 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     a = max(1, int(align))
     forward_mode = False
     need = None          # bytes the next (gradient, then forward-mode) probe needs
-    effective = None
+    filled = probe       # the largest probe the field has filled
     while True:
         c = probe // 2 // a * a
         if forward_mode:
             try:
-                margin, held, effective = _forward_mode_margin(network, probe, a, device)
-            except (NotImplementedError, RuntimeError):
+                margin, held = _forward_mode_margin(network, probe, a, device)
+            except (NotImplementedError, RuntimeError) as e:
+                if not _no_forward_derivative(e):
+                    raise
                 # an operator without a forward-mode derivative: the gradient's bound
-                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need) from None
+                raise FieldWiderThanBudget(_round_up(filled // 2, a), filled, need) from None
             if margin is not None:
                 return margin
         else:
             x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
             with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
-                network(x)[0, :, c:c + a, c:c + a].sum().backward()
+                block = network(x)[0, :, c:c + a, c:c + a]
+                # a random cotangent: the bands' plain sum is constant for a network
+                # whose bands sum to one (normalised spectra, a softmax), and its
+                # gradient, zero, read as no field at all
+                block.backward(torch.randn_like(block))
             held = mode.peak
             g = x.grad[0].abs().sum(0).cpu().numpy()
             del x
@@ -291,24 +295,44 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
                 if a == 1:
                     return max(reach_lo, reach_hi)
                 return max(_round_up(reach_lo, a), _round_up(max(0, reach_hi - a + 1), a))
+        filled = probe
         if probe >= max_probe:
             return GLOBAL_MARGIN
         need = held * 4 * RADIUS_PROBE_OVERHEAD
         if max_bytes is not None and need > max_bytes:
             if forward_mode:
                 # the field reaches past the probe's edge from a centre probe // 2 away
-                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need, effective)
+                raise FieldWiderThanBudget(_round_up(probe // 2, a), probe, need)
             # measure what forward mode holds on this size before it grows
             forward_mode = True
             continue
         probe *= 2
 
 
-def _forward_mode_margin(network, probe: int, a: int,
-                         device) -> tuple[int | None, int, int | None]:
+#: One forward-mode probe at a time: torch has one dual level per process, and a second
+#: thread's ``dual_level()`` fails ("Nested forward mode AD is not supported"), which
+#: read as a network without forward-mode derivatives (a lower bound, cached).
+_FORWARD_MODE = threading.Lock()
+
+
+def _no_forward_derivative(e: BaseException) -> bool:
+    """Whether ``e`` says an operator has no forward-mode derivative (not, say, that
+    memory ran out, which is no property of the network to keep in the probe cache)."""
+    if isinstance(e, NotImplementedError):
+        return True
+    text = str(e).lower()
+    return "forward" in text and ("not implemented" in text or "not supported" in text
+                                  or "does not support" in text or "jvp" in text)
+
+
+def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | None, int]:
+    with _FORWARD_MODE:
+        return _forward_mode_margin_locked(network, probe, a, device)
+
+
+def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[int | None, int]:
     """The margin :func:`torch_receptive_radius` measures, from one Jacobian-vector
-    product; None where the field fills the ``probe²`` probe. Also the bytes it held, and
-    where the field fills the probe, its :func:`_effective_margin` (else None).
+    product; None where the field fills the ``probe²`` probe. Also the bytes it held.
 
     The tangent of a random perturbation of the ``a × a`` input block at an aligned
     centre ``c`` is non-zero at the outputs whose field holds that block. An output
@@ -332,15 +356,14 @@ def _forward_mode_margin(network, probe: int, a: int,
             _peak_mode(reorders=False) as mode, forward_ad.dual_level():
         tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
         if tangent is None:       # nothing depends on the input: no field
-            return 0, mode.peak, None
-        size = tangent[0].abs().sum(0, dtype=torch.float64).cpu().numpy()
+            return 0, mode.peak
+        reached = (tangent[0] != 0).any(0).cpu().numpy()
     held = mode.peak
-    reached = size > 0
     rows, cols = np.nonzero(reached.any(1))[0], np.nonzero(reached.any(0))[0]
     if rows.size == 0:
-        return 0, held, None
+        return 0, held
     if min(rows.min(), cols.min()) == 0 or max(rows.max(), cols.max()) == probe - 1:
-        return None, held, _effective_margin(size, c, a)
+        return None, held
     lead = trail = 0
     for idx in (rows, cols):
         phase = (idx - c) % a
@@ -348,40 +371,7 @@ def _forward_mode_margin(network, probe: int, a: int,
             at = idx[phase == q]
             lead = max(lead, int(at.max()) - c - int(q))
             trail = max(trail, c + int(q) - int(at.min()))
-    return max(lead, trail), held, None
-
-
-#: Share of an output's sensitivity to its input (the forward-mode tangent's sum) that
-#: :func:`_effective_margin` may leave outside a tile: float32 rounding.
-EFFECTIVE_TAIL = 1e-7
-
-
-def _effective_margin(size: np.ndarray, c: int, a: int) -> int | None:
-    """The least margin on the grid past which a field too wide to measure holds less than
-    :data:`EFFECTIVE_TAIL` of an output's sensitivity, or None where it has not decayed so
-    within a quarter of the probe (the probe's own edges would hide the rest).
-
-    ``size``: ``(probe, probe)`` magnitude of the tangent of the ``a × a`` input block at
-    ``c`` (:func:`_forward_mode_margin`). Translated, the outputs at Chebyshev distance
-    ``> m`` from the block weigh what an output's inputs ``> m`` away do; one grid step is
-    added for the block's own extent. The full-size paper network's field is ~400 px, but
-    (untrained) its tangent falls to 8e-7 of its peak 16 px from the block and to 7e-9 at
-    32 px: its tiles need 48 px, not the 128 px its lower bound would give.
-    """
-    probe = size.shape[0]
-    idx = np.arange(probe)
-    along = np.maximum(np.maximum(c - idx, idx - (c + a - 1)), 0)
-    dist = np.maximum(along[:, None], along[None, :])
-    total = float(size.sum())
-    if not total > 0:
-        return None
-    # the tangent's sum over each distance, then the tail beyond each
-    ring = np.bincount(dist.ravel(), weights=size.ravel(), minlength=probe)
-    tail = total - np.cumsum(ring)
-    for m in range(0, probe // 4 + 1, a):
-        if tail[m] <= EFFECTIVE_TAIL * total:
-            return m + a
-    return None
+    return max(lead, trail), held
 
 
 def torch_align(network) -> int:

@@ -70,17 +70,10 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         # the probes keep within the memory a tile may have
         budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
         bound = store.get("margin_bound") if store is not None else None
-        # an effective margin is read off the weights' influence, unlike the field:
-        # kept for these weights only (a trained network's may decay more slowly)
-        weights = _weights_digest(net) if store is not None else None
-        if bound is not None and bound.get("effective") is not None \
-                and bound.get("weights") != weights:
-            bound = None
         if bound is not None and budget < bound.get("needed", 0):
             # this budget cannot measure it either (the full paper network's probes:
-            # ~15 s, every process)
-            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"],
-                                       bound.get("effective"))
+            # ~6 s, every process)
+            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
         try:
             with torch.enable_grad():
                 return torch_receptive_radius(probed, align=grid(torch_align(net), k),
@@ -88,8 +81,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         except FieldWiderThanBudget as e:
             if store is not None and e.needed is not None:
                 store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
-                                           "probe": e.probe, "effective": e.effective,
-                                           "weights": weights})
+                                           "probe": e.probe})
             raise
         finally:
             net.zero_grad(set_to_none=True)
@@ -121,28 +113,12 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
 
 
-def _weights_digest(net) -> str:
-    """SHA-1 of a network's parameters and buffers (names, dtypes, shapes, bytes)."""
-    import hashlib
-
-    import torch
-
-    h = hashlib.sha1()
-    with torch.no_grad():
-        for name, t in list(net.named_parameters()) + list(net.named_buffers()):
-            h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
-            h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()
-
-
 def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
-    """``measure``, or where the field is wider than any probe the budget allows
-    (:class:`FieldWiderThanBudget`) the margin past which the largest probe saw its
-    influence fall below float32 rounding (``e.effective``; tiles then equal the whole
-    image to rounding), else the least radius the field can have, with a warning.
-    Marked in ``model._tiling_probe["margin_bound"]`` (and ``"margin_effective"``), so
-    that it is not taken for a global operation's :data:`GLOBAL_MARGIN`; it holds for one
-    call (the probe cache keeps it for the budgets that cannot measure the field).
+    """``measure``, or the least radius the field can have where it is wider than any
+    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, and marked in
+    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
+    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call (the probe cache keeps
+    it for the budgets that cannot measure the field; a larger one measures it).
     (A field that fills even the largest probe, 512 px, still counts as global.)"""
     from mehs.ssr.tiling_probes import FieldWiderThanBudget
 
@@ -150,12 +126,7 @@ def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
         try:
             return measure()
         except FieldWiderThanBudget as e:
-            probe = model.__dict__.setdefault("_tiling_probe", {})
-            probe["margin_bound"] = True
-            if e.effective is not None:
-                probe["margin_effective"] = True
-                return e.effective
-            probe.pop("margin_effective", None)
+            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
             warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
                           f"than a {e.probe}-pixel probe, the largest the memory budget allows "
                           f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
