@@ -206,3 +206,51 @@ def test_bands_that_sum_to_a_constant_still_show_their_field():
 
     torch.manual_seed(2)
     assert torch_receptive_radius(Normalised(), probe=32) == 6
+
+
+class _UNet(torch.nn.Module):
+    """A user's U-Net: ``levels`` poolings in its forward, no ``depth`` attribute."""
+
+    def __init__(self, levels):
+        super().__init__()
+        self.levels = levels
+        self.inc = torch.nn.Conv2d(3, 8, 3, padding=1)
+        self.mid = torch.nn.Conv2d(8, 8, 3, padding=1)
+        self.out = torch.nn.Conv2d(8, 4, 3, padding=1)
+
+    def forward(self, x):
+        y = torch.relu(self.inc(x))
+        for _ in range(self.levels):
+            y = torch.nn.functional.max_pool2d(torch.tanh(self.mid(y)), 2)
+        for _ in range(self.levels):
+            y = torch.nn.functional.interpolate(self.mid(y), scale_factor=2, mode="nearest")
+        return self.out(y)
+
+
+@pytest.mark.parametrize("levels,grid", [(0, 8), (3, 8), (4, 16), (5, 32)])
+def test_a_network_without_a_declared_depth_gets_its_measured_grid(levels, grid):
+    from mehs.ssr.tiling_probes import torch_align
+
+    torch.manual_seed(levels)
+    assert torch_align(_UNet(levels).eval()) == grid
+
+
+def test_a_user_unet_tiles_on_its_own_grid():
+    # it declared no depth: tiles on an 8-grid, each pooling in another phase than the
+    # whole image, differed from it however wide the margin
+    from types import SimpleNamespace
+
+    from mehs.ssr.tiling_torch import tiled_torch_call
+
+    torch.manual_seed(4)
+    net = _UNet(4).eval()
+    rgb = contrast_rgb(64, 400, seed=6)
+    with torch.no_grad():
+        whole = net(torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None])[0]
+    whole = whole.permute(1, 2, 0).numpy()
+    model = SimpleNamespace(network=net, device="cpu", name="unet", tiling=dict(
+        bytes_per_pixel=1.0, max_bytes=64 * 200, blend=8, statistics="tile"))
+    tiled = tiled_torch_call(model, rgb)
+    assert model._tiling_probe["align"] == 16
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
