@@ -344,15 +344,21 @@ def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[in
     gradient probe's margin, exactly.
     """
     import torch
+    from torch.autograd import forward_ad
+
+    from mehs.ssr.net.pooling import plain_graph
 
     x = torch.rand(1, 3, probe, probe, device=device)
     c = probe // 2 // a * a
     v = torch.zeros_like(x)
     v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device)
-    tangent, held = _tangent(network, x, v)
-    if tangent is None:           # nothing depends on the input: no field
-        return 0, held
-    reached = (tangent != 0).any(0)
+    with torch.no_grad(), plain_graph(), _global_pools_detached(network), \
+            _peak_mode(reorders=False) as mode, forward_ad.dual_level():
+        tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
+        if tangent is None:       # nothing depends on the input: no field
+            return 0, mode.peak
+        reached = (tangent[0] != 0).any(0).cpu().numpy()
+    held = mode.peak
     rows, cols = np.nonzero(reached.any(1))[0], np.nonzero(reached.any(0))[0]
     if rows.size == 0:
         return 0, held
@@ -368,101 +374,8 @@ def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[in
     return max(lead, trail), held
 
 
-def _tangent(network, x, v):
-    """The forward-mode tangent ``(C, H, W)`` (numpy) of ``network`` at ``x`` in the
-    direction ``v``, the global statistics detached, or None where nothing depends on
-    the input; and the bytes it held. (Under the caller's :data:`_FORWARD_MODE`.)"""
-    import torch
-    from torch.autograd import forward_ad
-
-    from mehs.ssr.net.pooling import plain_graph
-
-    with torch.no_grad(), plain_graph(), _global_pools_detached(network), \
-            _peak_mode(reorders=False) as mode, forward_ad.dual_level():
-        tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
-        out = None if tangent is None else tangent[0].cpu().numpy()
-    return out, mode.peak
-
-
-#: Grids :func:`torch_period` tries, and the sides of its probes (the larger only where
-#: the field is too wide for the smaller: a 4-level U-Net's reaches ~100 px).
-PERIODS, PERIOD_PROBES = (8, 16, 32, 64), (256, 512)
-
-
-def torch_period(network, *, periods: tuple[int, ...] = PERIODS,
-                 probes: tuple[int, ...] = PERIOD_PROBES) -> int | None:
-    """The least grid in ``periods`` on which the network's local part is shift-equivariant,
-    measured on the smallest of ``probes`` that holds its field; None where that cannot
-    be measured here (see :func:`_period_on`)."""
-    for probe in probes:
-        found = _period_on(network, periods, probe)
-        if found != "wide":
-            return found
-    return None
-
-
-def _period_on(network, periods: tuple[int, ...], probe: int) -> int | None | str:
-    """:func:`torch_period` on one ``probe²`` probe.
-
-    A network that pools ``d`` times computes each output the same way only at shifts
-    that are multiples of ``2**d``: tiles on a finer grid see another pooling phase than
-    the whole image and differ from it however wide the margin. For each shift ``s`` the
-    image is a random ``s × s`` patch repeated, so that it is its own shift and every
-    global statistic is the same in both runs; the forward-mode tangents of a random
-    block and of the block shifted by ``s`` are then the same map, shifted, to 1e-4 of its
-    peak, where the network is equivariant under ``s`` (compared where the outputs'
-    inputs lie inside the probe). None where forward mode is not available; "wide" where
-    the field reaches the probe's edges (a larger probe may hold it).
-    """
-    import torch
-
-    param = next(network.parameters(), None)
-    device = param.device if param is not None else "cpu"
-    top = max(periods)
-    # the block left of the centre: the shifted one, up to max(periods) right, too
-    c = (probe - top) // 2 // top * top
-    reps = -(-probe // min(periods))
-    try:
-        with _FORWARD_MODE:
-            for s in periods:
-                x = torch.rand(1, 3, s, s, device=device).repeat(1, 1, reps, reps)
-                x = x[..., :probe, :probe].contiguous()
-                v = torch.zeros_like(x)
-                v[..., c:c + 8, c:c + 8] = torch.randn(1, 3, 8, 8, device=device)
-                t0, _ = _tangent(network, x, v)
-                if t0 is None:
-                    return None
-                mag = np.abs(t0).max(0)
-                rows, cols = np.nonzero(mag.any(1))[0], np.nonzero(mag.any(0))[0]
-                if rows.size == 0:
-                    return None
-                lo, hi = min(rows.min(), cols.min()), max(rows.max(), cols.max())
-                reach = int(max(c - lo, hi - c - 7))
-                w0, w1 = reach, probe - reach - s
-                if lo == 0 or hi == probe - 1 or w0 > c or w1 < c + 8:
-                    return "wide"
-                ts, _ = _tangent(network, x, torch.roll(v, (s, s), (2, 3)))
-                if ts is None:
-                    return None
-                d = t0[:, w0:w1, w0:w1] - ts[:, w0 + s:w1 + s, w0 + s:w1 + s]
-                if np.abs(d).max() <= 1e-4 * mag.max():
-                    return s
-    except (NotImplementedError, RuntimeError) as e:
-        if not _no_forward_derivative(e):
-            raise
-    return None
-
-
 def torch_align(network) -> int:
-    """Tile grid of a torch network: ``2**depth`` of its deepest pooling stack as its
-    modules declare it (at least 8), else the grid :func:`torch_period` measures, else
-    the coarsest it tries (64: a coarser grid only limits the tiles' sizes, a finer one
-    than the network's breaks them). Before, a network that declared no depth got 8:
-    a user's 4-level U-Net was tiled on an 8-grid, each tile pooling in another phase
-    than the whole image."""
+    """Tile grid of a torch network: ``2**depth`` of its deepest pooling stack (at least 8)."""
     depths = [int(getattr(m, "depth")) for m in network.modules()
               if isinstance(getattr(m, "depth", None), int)]
-    if depths:
-        return max([8] + [2 ** d for d in depths])
-    measured = torch_period(network)
-    return max(PERIODS) if measured is None else max(8, measured)
+    return max([8] + [2 ** d for d in depths])

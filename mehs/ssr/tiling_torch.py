@@ -54,15 +54,6 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         # a lower bound is this call's answer only: a later budget may measure the field
         cached.pop("margin", None)
 
-    known: dict = {}
-
-    def align() -> int:
-        # measured (torch_period) where the network declares no depth: once a call
-        if "align" not in known:
-            known["align"] = model.__dict__.get("_tiling_probe", {}).get("align") \
-                or torch_align(net)
-        return known["align"]
-
     cap = getattr(net, "max_tile_pixels", None)
     # measured once per architecture, not once per process (mehs's own networks;
     # one padded to a multiple measures its padded calls: not cached)
@@ -85,7 +76,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
             raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
         try:
             with torch.enable_grad():
-                return torch_receptive_radius(probed, align=grid(align(), k),
+                return torch_receptive_radius(probed, align=grid(torch_align(net), k),
                                               max_bytes=budget)
         except FieldWiderThanBudget as e:
             if store is not None and e.needed is not None:
@@ -113,7 +104,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
     fixed_margin = getattr(net, "TILING_MARGIN", None)
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
-              "align": align}
+              "align": lambda: torch_align(net)}
     if store is not None:
         probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
