@@ -206,3 +206,13 @@ def test_bands_that_sum_to_a_constant_still_show_their_field():
 
     torch.manual_seed(2)
     assert torch_receptive_radius(Normalised(), probe=32) == 6
+
+
+def test_a_nested_forward_mode_level_is_not_a_missing_derivative():
+    from mehs.ssr.tiling_probes import _no_forward_derivative
+
+    assert not _no_forward_derivative(RuntimeError("Nested forward mode AD is not supported"))
+    assert _no_forward_derivative(RuntimeError(
+        "Trying to use forward AD with maximum_out that does not support it"))
+    assert _no_forward_derivative(NotImplementedError("jvp"))
+    assert not _no_forward_derivative(RuntimeError("DefaultCPUAllocator: not enough memory"))
