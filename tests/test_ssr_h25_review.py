@@ -216,3 +216,26 @@ def test_a_nested_forward_mode_level_is_not_a_missing_derivative():
         "Trying to use forward AD with maximum_out that does not support it"))
     assert _no_forward_derivative(NotImplementedError("jvp"))
     assert not _no_forward_derivative(RuntimeError("DefaultCPUAllocator: not enough memory"))
+
+
+def test_the_probes_leave_the_callers_random_state_alone():
+    # the probes drew their random inputs from torch's global generator: a user's seeded
+    # run went otherwise once a tiled call had probed a network; and they now answer the
+    # same on every call
+    from test_ssr_h23_lean_inference import _WideField
+
+    from mehs.ssr.tiling_probes import torch_memory_probe, torch_receptive_radius
+
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    wide = _WideField()
+    torch.manual_seed(11)
+    expected = torch.rand(4)
+    torch.manual_seed(11)
+    first = torch_memory_probe(net)
+    with torch.enable_grad():
+        torch_receptive_radius(net, align=8)
+        # and the forward-mode probe (1 MiB: see test_ssr_h23_lean_inference)
+        assert torch_receptive_radius(wide, probe=32, max_probe=128,
+                                      max_bytes=1 << 20) == 20
+    torch.testing.assert_close(torch.rand(4), expected)
+    assert torch_memory_probe(net)["bytes_per_pixel"] == first["bytes_per_pixel"]

@@ -36,6 +36,17 @@ MEMORY_PROBES = (96, 128)
 PROBE_CHUNK_SHARE = 0.25
 
 
+def _generator(device):
+    """A seeded generator for a probe's random input: the probes answer the same on
+    every call, and leave the caller's torch random state as it was (a tiled call drew
+    from it, so a user's seeded run went otherwise once tiles were probed)."""
+    import torch
+
+    g = torch.Generator(device=device)
+    g.manual_seed(0x6D656873)
+    return g
+
+
 def _peak_mode(reorders: bool = True):
     """A torch dispatch mode whose ``peak`` is the most bytes of live tensors it saw.
 
@@ -96,7 +107,7 @@ def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
     with torch.no_grad(), _peak_mode() as mode:
-        y = network(torch.rand(1, 3, side, side, device=device))
+        y = network(torch.rand(1, 3, side, side, device=device, generator=_generator(device)))
         bands = int(y.shape[1]) * y.element_size()
         del y
     return mode.peak, bands
@@ -276,13 +287,15 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
             if margin is not None:
                 return margin
         else:
-            x = torch.rand(1, 3, probe, probe, device=device, requires_grad=True)
+            g = _generator(device)
+            x = torch.rand(1, 3, probe, probe, device=device, generator=g, requires_grad=True)
             with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
                 block = network(x)[0, :, c:c + a, c:c + a]
                 # a random cotangent: the bands' plain sum is constant for a network
                 # whose bands sum to one (normalised spectra, a softmax), and its
                 # gradient, zero, read as no field at all
-                block.backward(torch.randn_like(block))
+                block.backward(torch.randn(block.shape, device=block.device, dtype=block.dtype,
+                                           generator=g))
             held = mode.peak
             g = x.grad[0].abs().sum(0).cpu().numpy()
             del x
@@ -350,10 +363,11 @@ def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[in
 
     from mehs.ssr.net.pooling import plain_graph
 
-    x = torch.rand(1, 3, probe, probe, device=device)
+    g = _generator(device)
+    x = torch.rand(1, 3, probe, probe, device=device, generator=g)
     c = probe // 2 // a * a
     v = torch.zeros_like(x)
-    v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device)
+    v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device, generator=g)
     with torch.no_grad(), plain_graph(), _global_pools_detached(network), \
             _peak_mode(reorders=False) as mode, forward_ad.dual_level():
         tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
