@@ -21,7 +21,7 @@ torch = pytest.importorskip("torch")
 from mehs.errors import InputError  # noqa: E402
 from mehs.ssr.net import ChannelAttention, build_network  # noqa: E402
 from mehs.ssr.net.pooling import ImageMeans  # noqa: E402
-from mehs.ssr.tiling_probes import _global_pools_detached  # noqa: E402
+from mehs.ssr.net.pooling import detached_statistics  # noqa: E402
 
 
 def test_interleaved_probes_on_one_network_leave_its_layers_working():
@@ -34,7 +34,7 @@ def test_interleaved_probes_on_one_network_leave_its_layers_working():
     errors = []
 
     def first():
-        with _global_pools_detached(net):
+        with detached_statistics():
             entered.set()
             second_in.wait(30)
         first_out.set()
@@ -42,7 +42,7 @@ def test_interleaved_probes_on_one_network_leave_its_layers_working():
     def second():
         entered.wait(30)
         try:
-            with _global_pools_detached(net):
+            with detached_statistics():
                 second_in.set()
                 first_out.wait(30)
         except Exception as e:          # noqa: BLE001 (the failure under test)
@@ -59,7 +59,7 @@ def test_interleaved_probes_on_one_network_leave_its_layers_working():
     hold, release = threading.Event(), threading.Event()
 
     def prober():
-        with _global_pools_detached(net):
+        with detached_statistics():
             hold.set()
             release.wait(30)
 

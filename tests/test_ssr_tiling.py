@@ -235,7 +235,8 @@ def test_awan_tiles_bound_its_quadratic_attention(monkeypatch):
 def test_margin_covers_every_phase_of_the_pooling_grid(make):
     # behind a pooling the receptive field depends on the pixel's phase on the grid;
     # the aligned margin must cover the worst phase at a tile's leading and trailing edge
-    from mehs.ssr.tiling_probes import _global_pools_detached, torch_align, torch_receptive_radius
+    from mehs.ssr.net.pooling import detached_statistics
+    from mehs.ssr.tiling_probes import torch_align, torch_receptive_radius
 
     torch.manual_seed(5)
     if make == "local_unet":
@@ -250,7 +251,7 @@ def test_margin_covers_every_phase_of_the_pooling_grid(make):
     m = torch_receptive_radius(net, probe=128, align=a)
     c = 64
     x = torch.rand(a, 3, 128, 128, requires_grad=True)
-    with _global_pools_detached(net):                # the attention's mean is global
+    with detached_statistics():                # the attention's mean is global
         sum(net(x)[p, :, c + p, c + p].sum() for p in range(a)).backward()
     for p in range(a):
         g = x.grad[p].abs().sum(0).numpy()

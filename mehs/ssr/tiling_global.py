@@ -141,8 +141,8 @@ def predict_tiled_image_means(fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     ``fn`` must run a torch network whose global poolings go through
     :func:`mehs.ssr.net.pooling.pooled_mean`, in this thread. Returns float32
     ``(H, W, B)``. Warns when the means have not settled to ``tol`` after ``max_runs``
-    runs (default: :func:`go_on`'s rule; the last run's output is returned). ``record`` receives ``image_runs`` (runs
-    over the tiles, the collecting one included) and ``image_means_change`` (the last
+    runs (default: :func:`go_on`'s rule; the last run's output is returned). ``record``
+    receives ``image_runs`` (runs over the tiles, the collecting one included) and ``image_means_change`` (the last
     run's relative change of the means). ``multiple``: ``fn`` reflect-pads each tile to
     multiples of it (:func:`mehs.ssr.tiling_pad.padded`), which the pooled maps then cover.
     """

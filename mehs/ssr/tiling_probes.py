@@ -186,20 +186,6 @@ def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
     return torch_memory_probe(network, sizes=(probe, probe * 3 // 2))["bytes_per_pixel"]
 
 
-def _global_pools_detached(network):
-    """Context: the global statistics (channel attention's means, spectral-wise attention's
-    channel similarity: :func:`mehs.ssr.net.pooling.detached_statistics`) detached from
-    autograd, so that the field probes measure the network's local field only.
-
-    A context variable, not a patch of the layers: an instance attribute that replaced
-    ``ChannelAttention.forward`` was shared by every thread, so of two first calls on
-    one network the probe that finished first deleted the other's patch
-    (``AttributeError``), and tiles running meanwhile skipped their pooled means."""
-    from mehs.ssr.net.pooling import detached_statistics
-
-    return detached_statistics()
-
-
 #: Margin used when a network's gradient reaches the whole probe (a global
 #: operation such as non-local attention over all pixels, or a field wider
 #: than the largest probe): tiles are then approximate whatever the margin. It also
@@ -268,6 +254,10 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     """
     import torch
 
+    # global statistics (channel attention's means, spectral-wise attention's channel
+    # similarity) leave autograd: the probes measure the network's local field only
+    from mehs.ssr.net.pooling import detached_statistics
+
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
     a = max(1, int(align))
@@ -289,17 +279,17 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
         else:
             g = _generator(device)
             x = torch.rand(1, 3, probe, probe, device=device, generator=g, requires_grad=True)
-            with _global_pools_detached(network), _peak_mode(reorders=False) as mode:
+            with detached_statistics(), _peak_mode(reorders=False) as mode:
                 block = network(x)[0, :, c:c + a, c:c + a]
                 # a random cotangent: the bands' plain sum is constant for a network
-                # whose bands sum to one (normalised spectra, a softmax), and its
-                # gradient, zero, read as no field at all
+                # whose bands are centred on their mean, and its gradient, zero, read as
+                # no field at all
                 block.backward(torch.randn(block.shape, device=block.device, dtype=block.dtype,
                                            generator=g))
             held = mode.peak
-            g = x.grad[0].abs().sum(0).cpu().numpy()
+            grad = x.grad[0].abs().sum(0).cpu().numpy()
             del x
-            ys, xs = np.nonzero(g > 0)
+            ys, xs = np.nonzero(grad > 0)
             if ys.size == 0:
                 return 0
             lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
@@ -341,11 +331,6 @@ def _no_forward_derivative(e: BaseException) -> bool:
 
 
 def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | None, int]:
-    with _FORWARD_MODE:
-        return _forward_mode_margin_locked(network, probe, a, device)
-
-
-def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[int | None, int]:
     """The margin :func:`torch_receptive_radius` measures, from one Jacobian-vector
     product; None where the field fills the ``probe²`` probe. Also the bytes it held.
 
@@ -361,14 +346,14 @@ def _forward_mode_margin_locked(network, probe: int, a: int, device) -> tuple[in
     import torch
     from torch.autograd import forward_ad
 
-    from mehs.ssr.net.pooling import plain_graph
+    from mehs.ssr.net.pooling import detached_statistics, plain_graph
 
     g = _generator(device)
     x = torch.rand(1, 3, probe, probe, device=device, generator=g)
     c = probe // 2 // a * a
     v = torch.zeros_like(x)
     v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device, generator=g)
-    with torch.no_grad(), plain_graph(), _global_pools_detached(network), \
+    with _FORWARD_MODE, torch.no_grad(), plain_graph(), detached_statistics(), \
             _peak_mode(reorders=False) as mode, forward_ad.dual_level():
         tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
         if tangent is None:       # nothing depends on the input: no field
