@@ -375,8 +375,14 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
     return max(lead, trail), held
 
 
-def torch_align(network) -> int:
-    """Tile grid of a torch network: ``2**depth`` of its deepest pooling stack (at least 8)."""
+def torch_align(network, *, max_pixels: int | None = None, multiple: int = 1) -> int:
+    """Tile grid of a torch network: at least 8, a multiple of ``2**depth`` of its deepest
+    declared pooling stack, and of every down-sampling its operators perform
+    (:func:`mehs.ssr.tiling_grid.torch_grid`, which ``max_pixels`` and ``multiple``
+    are handed to: a network that declares nothing, a user's U-Net, is measured)."""
+    from mehs.ssr.tiling_grid import torch_grid
+
     depths = [int(getattr(m, "depth")) for m in network.modules()
               if isinstance(getattr(m, "depth", None), int)]
-    return max([8] + [2 ** d for d in depths])
+    declared = max([8] + [2 ** d for d in depths])
+    return math.lcm(declared, torch_grid(network, max_pixels=max_pixels, multiple=multiple))

@@ -76,7 +76,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
             raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
         try:
             with torch.enable_grad():
-                return torch_receptive_radius(probed, align=grid(torch_align(net), k),
+                return torch_receptive_radius(probed, align=grid(align(), k),
                                               max_bytes=budget)
         except FieldWiderThanBudget as e:
             if store is not None and e.needed is not None:
@@ -101,16 +101,41 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         mem["allocator"] = None          # the cap already is a resident-memory figure
         return mem
 
+    def measure_align() -> int:
+        # the grid probe runs the network whole on 384×256: within the budget, by the
+        # memory probe's figure where it ran (a user's bytes_per_pixel may be a fiction)
+        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
+        bpp = model.__dict__.get("_tiling_probe", {}).get("bytes_per_pixel")
+        limit = None if bpp is None else int(budget // max(float(bpp), 1.0))
+        if cap is not None:
+            limit = min(limit or cap(budget), cap(budget))
+        return torch_align(probed, max_pixels=limit, multiple=k)
+
+    # the margin probe needs the grid first: one measurement for both
+    align = _once(measure_align)
     fixed_margin = getattr(net, "TILING_MARGIN", None)
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
-              "align": lambda: torch_align(net)}
+              "align": align}
     if store is not None:
         probes = {name: store.measured(kind, probes[name])
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
+        # the margin probe reads the grid through the store too
+        align = probes["align"] = _once(probes["align"])
     probes["margin"] = _margin_or_bound(model, probes["margin"])
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
+
+
+def _once(fn: Callable[[], int]) -> Callable[[], int]:
+    """``fn``, called at most once."""
+    done: list[int] = []
+
+    def call() -> int:
+        if not done:
+            done.append(fn())
+        return done[0]
+    return call
 
 
 def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:

@@ -1,0 +1,190 @@
+"""The tile grid of torch networks that declare none (issue 16, session 26).
+
+Tiles equal whole-image inference only where their edges lie on the network's
+down-sampling grid. The grid was read off a ``depth`` attribute (mehs's own networks) and
+was 8 for every other network: a user's 5-level U-Net, or a network pooling in cells of
+32 through ``torch.nn.functional`` alone, was tiled off its grid and its output was off by
+a tenth of its range near the seams, silently.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+F = torch.nn.functional
+
+from types import SimpleNamespace  # noqa: E402
+
+from mehs.errors import InputError  # noqa: E402
+
+
+class CellNet(torch.nn.Module):
+    """A 3×3 convolution plus the mean of each ``cell × cell`` block (functional ops only:
+    no module ever sees the pooled map). Its grid is ``cell``."""
+
+    def __init__(self, cell: int):
+        super().__init__()
+        self.cell = cell
+        self.a = torch.nn.Conv2d(3, 4, 3, padding=1)
+        self.b = torch.nn.Conv2d(3, 4, 1)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        c = self.cell
+        y = F.pad(self.b(x), (0, (-w) % c, 0, (-h) % c), mode="replicate")
+        y = F.interpolate(F.avg_pool2d(torch.tanh(y), c), scale_factor=c, mode="nearest")
+        return self.a(x) + y[..., :h, :w]
+
+
+class AvgUNet(torch.nn.Module):
+    """A U-Net of ``levels`` average poolings (no ``depth`` attribute): grid ``2**levels``."""
+
+    def __init__(self, levels: int, ch: int = 4):
+        super().__init__()
+        self.levels = levels
+        self.inc = torch.nn.Conv2d(3, ch, 3, padding=1)
+        self.down = torch.nn.ModuleList(torch.nn.Conv2d(ch, ch, 3, padding=1)
+                                        for _ in range(levels))
+        self.up = torch.nn.ModuleList(torch.nn.Conv2d(ch, ch, 1) for _ in range(levels))
+        self.out = torch.nn.Conv2d(ch, 4, 1)
+
+    def forward(self, x):
+        y, skips = torch.relu(self.inc(x)), []
+        for d in self.down:
+            skips.append(y)
+            y = F.avg_pool2d(torch.tanh(d(y)), 2)
+        for u, s in zip(self.up, reversed(skips)):
+            y = F.interpolate(torch.tanh(u(y)), scale_factor=2, mode="nearest") + s
+        return self.out(y)
+
+
+def _tiled_vs_whole(net, rgb, **opts):
+    from mehs.ssr.tiling_torch import tiled_torch_call
+
+    with torch.no_grad():
+        whole = net(torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None])[0]
+    whole = whole.permute(1, 2, 0).numpy()
+    model = SimpleNamespace(network=net, device="cpu", name="user", tiling=dict(
+        bytes_per_pixel=1.0, blend=8, statistics="tile", **opts))
+    tiled = tiled_torch_call(model, rgb)
+    return tiled, whole, model
+
+
+@pytest.mark.parametrize("cell", [16, 32, 24])
+def test_a_network_pooling_through_functional_ops_is_tiled_on_its_grid(cell):
+    torch.manual_seed(cell)
+    net = CellNet(cell).eval()
+    rng = np.random.default_rng(cell)
+    rgb = rng.random((288, 384, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_vs_whole(net, rgb, max_bytes=150 * 150)
+    assert model._tiling_last["summary"]["tiles"] >= 4
+    assert model._tiling_probe["align"] % cell == 0
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_user_unet_without_a_depth_attribute_is_tiled_on_its_grid():
+    from mehs.ssr.tiling_probes import torch_align
+
+    torch.manual_seed(0)
+    net = AvgUNet(5).eval()
+    assert torch_align(net) == 32
+    rgb = np.random.default_rng(1).random((256, 448, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_vs_whole(net, rgb, max_bytes=224 * 224, margin=64)
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_strides_are_read_from_exact_and_rounded_map_sizes():
+    from mehs.ssr.tiling_grid import _stride_of
+
+    assert _stride_of(192, 128, 384, 256) == 2
+    assert _stride_of(3, 2, 384, 256) == 128          # not 127 (which rounds to it too)
+    assert _stride_of(128, 86, 384, 256) == 3         # 256 padded to 258 before pooling
+    assert _stride_of(16, 11, 384, 256) == 24         # 256 padded to 264
+    assert _stride_of(1, 1, 384, 256) is None         # a global statistic
+    assert _stride_of(384, 256, 384, 256) is None     # full size
+    assert _stride_of(768, 512, 384, 256) is None     # up-sampled
+
+
+class Decoy(torch.nn.Module):
+    """Local, with shapes that look down-sampled but do not follow the input: a
+    48×32 parameter, a global 1×1 pooling, and a 96×64 attention-like matrix."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.randn(48, 32))
+        self.q = torch.nn.Parameter(torch.randn(96, 3))
+        self.conv = torch.nn.Conv2d(3, 3, 3, padding=1)
+
+    def forward(self, x):
+        y = self.conv(x)
+        gate = torch.sigmoid(F.adaptive_avg_pool2d(y, 1))
+        mix = (self.w * 2.0).sum() + (self.q @ self.q[:64].T).mean()   # (48, 32), (96, 64)
+        return y * gate + 1e-3 * mix
+
+
+def test_shapes_that_do_not_follow_the_input_are_no_grid():
+    from mehs.ssr.tiling_grid import torch_grid, torch_strides
+
+    torch.manual_seed(0)
+    assert torch_strides(Decoy().eval()) == set()
+    assert torch_grid(Decoy().eval()) == 1
+
+
+def test_strides_of_traced_modules_and_pixel_unshuffle():
+    from mehs.ssr.tiling_grid import torch_strides
+
+    torch.manual_seed(0)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)    # torch ≥ 2.9 on jit
+        traced = torch.jit.trace(AvgUNet(4).eval(), torch.rand(1, 3, 64, 64))
+    assert torch_strides(traced) == {2, 4, 8, 16}
+
+    class Shuffle(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.conv = torch.nn.Conv2d(48, 48, 3, padding=1)
+
+        def forward(self, x):
+            return F.pixel_shuffle(self.conv(F.pixel_unshuffle(x, 4)), 4)
+
+    assert torch_strides(Shuffle().eval()) == {4}
+
+
+def test_the_measured_grid_agrees_with_what_mehs_networks_declare():
+    from mehs.ssr.net import build_network
+    from mehs.ssr.tiling_grid import torch_strides
+
+    torch.manual_seed(0)
+    net = build_network().eval()                       # three poolings of the FC-DenseNet
+    depth = max(m.depth for m in net.modules() if isinstance(getattr(m, "depth", None), int))
+    assert max(torch_strides(net)) == 2 ** depth == 8
+
+
+def test_the_grid_probe_leaves_the_callers_random_state_alone():
+    from mehs.ssr.tiling_grid import torch_grid
+
+    net = CellNet(16).eval()
+    torch.manual_seed(3)
+    expected = torch.rand(4)
+    torch.manual_seed(3)
+    torch_grid(net)
+    assert torch.equal(torch.rand(4), expected)
+
+
+def test_the_grid_probe_fits_a_pixel_cap():
+    from mehs.ssr.tiling_grid import torch_grid
+
+    seen = []
+
+    class Recorder(CellNet):
+        def forward(self, x):
+            seen.append(x.shape[-2] * x.shape[-1])
+            return super().forward(x)
+
+    assert torch_grid(Recorder(16).eval(), max_pixels=10_000) == 16
+    assert max(seen) <= 10_000
