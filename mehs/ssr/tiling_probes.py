@@ -16,6 +16,9 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
+import warnings
+
+from typing import Callable
 
 import numpy as np
 
@@ -359,12 +362,19 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
         if tangent is None:       # nothing depends on the input: no field
             return 0, mode.peak
         reached = (tangent[0] != 0).any(0).cpu().numpy()
-    held = mode.peak
+    return margin_from_reached(reached, c, a), mode.peak
+
+
+def margin_from_reached(reached: np.ndarray, c: int, a: int) -> int | None:
+    """The margin of a field, from the outputs ``reached (P, P)`` bool that a change of the
+    ``a × a`` input block at ``(c, c)`` moves (see :func:`_forward_mode_margin`); None where
+    they touch the probe's edge (the field may reach past it), 0 where there are none."""
     rows, cols = np.nonzero(reached.any(1))[0], np.nonzero(reached.any(0))[0]
     if rows.size == 0:
-        return 0, held
-    if min(rows.min(), cols.min()) == 0 or max(rows.max(), cols.max()) == probe - 1:
-        return None, held
+        return 0
+    if (min(rows.min(), cols.min()) == 0
+            or rows.max() == reached.shape[0] - 1 or cols.max() == reached.shape[1] - 1):
+        return None
     lead = trail = 0
     for idx in (rows, cols):
         phase = (idx - c) % a
@@ -372,7 +382,7 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
             at = idx[phase == q]
             lead = max(lead, int(at.max()) - c - int(q))
             trail = max(trail, c + int(q) - int(at.min()))
-    return max(lead, trail), held
+    return max(lead, trail)
 
 
 def torch_align(network, *, max_pixels: int | None = None, multiple: int = 1) -> int:
@@ -386,3 +396,36 @@ def torch_align(network, *, max_pixels: int | None = None, multiple: int = 1) ->
               if isinstance(getattr(m, "depth", None), int)]
     declared = max([8] + [2 ** d for d in depths])
     return math.lcm(declared, torch_grid(network, max_pixels=max_pixels, multiple=multiple))
+
+
+def once(fn: Callable[[], int]) -> Callable[[], int]:
+    """``fn``, called at most once."""
+    done: list[int] = []
+
+    def call() -> int:
+        if not done:
+            done.append(fn())
+        return done[0]
+    return call
+
+
+def margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
+    """``measure``, or the least radius the field can have where it is wider than any
+    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, and marked in
+    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
+    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call (the probe cache keeps
+    it for the budgets that cannot measure the field; a larger one measures it).
+    (A field that fills even the largest probe, 512 px, still counts as global.)"""
+    def call() -> int:
+        try:
+            return measure()
+        except FieldWiderThanBudget as e:
+            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
+            warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
+                          f"than a {e.probe}-pixel probe, the largest the memory budget allows "
+                          f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
+                          "from whole-image inference near their seams (with more memory, "
+                          "MEHS_TILE_MEMORY, a larger probe measures it)",
+                          RuntimeWarning, stacklevel=2)
+            return e.lower_bound
+    return call

@@ -13,7 +13,6 @@ whole-image inference to float rounding.
 
 from __future__ import annotations
 
-import warnings
 from typing import Callable
 
 import numpy as np
@@ -22,8 +21,8 @@ from mehs.errors import InputError
 from mehs.ssr.tiling import default_budget, env_max_bytes, tiled_network_call
 from mehs.ssr.tiling_blend import predict_tiled
 from mehs.ssr.tiling_pad import grid, padded, padded_torch_module, size_multiple
-from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, torch_align, torch_memory_probe,
-                                    torch_receptive_radius)
+from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, margin_or_bound, once, torch_align,
+                                    torch_memory_probe, torch_receptive_radius)
 
 
 def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
@@ -112,7 +111,7 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         return torch_align(probed, max_pixels=limit, multiple=k)
 
     # the margin probe needs the grid first: one measurement for both
-    align = _once(measure_align)
+    align = once(measure_align)
     fixed_margin = getattr(net, "TILING_MARGIN", None)
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
@@ -122,44 +121,9 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
                   for name, kind in (("bytes_per_pixel", "memory"), ("margin", "margin"),
                                      ("align", "align"))}
         # the margin probe reads the grid through the store too
-        align = probes["align"] = _once(probes["align"])
-    probes["margin"] = _margin_or_bound(model, probes["margin"])
+        align = probes["align"] = once(probes["align"])
+    probes["margin"] = margin_or_bound(model, probes["margin"])
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
-
-
-def _once(fn: Callable[[], int]) -> Callable[[], int]:
-    """``fn``, called at most once."""
-    done: list[int] = []
-
-    def call() -> int:
-        if not done:
-            done.append(fn())
-        return done[0]
-    return call
-
-
-def _margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
-    """``measure``, or the least radius the field can have where it is wider than any
-    probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, and marked in
-    ``model._tiling_probe["margin_bound"]``, so that it is not taken for a global
-    operation's :data:`GLOBAL_MARGIN`. The bound holds for one call (the probe cache keeps
-    it for the budgets that cannot measure the field; a larger one measures it).
-    (A field that fills even the largest probe, 512 px, still counts as global.)"""
-    from mehs.ssr.tiling_probes import FieldWiderThanBudget
-
-    def call() -> int:
-        try:
-            return measure()
-        except FieldWiderThanBudget as e:
-            model.__dict__.setdefault("_tiling_probe", {})["margin_bound"] = True
-            warnings.warn(f"{getattr(model, 'name', 'model')}: its receptive field is wider "
-                          f"than a {e.probe}-pixel probe, the largest the memory budget allows "
-                          f"to measure; tiles use a {e.lower_bound}-pixel margin and may differ "
-                          "from whole-image inference near their seams (with more memory, "
-                          "MEHS_TILE_MEMORY, a larger probe measures fields up to 256 px)",
-                          RuntimeWarning, stacklevel=2)
-            return e.lower_bound
-    return call
 
 
 def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
