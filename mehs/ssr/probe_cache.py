@@ -90,8 +90,9 @@ class ProbeStore:
     ``get`` or ``put``, so a store is free to make for every call that might need it.
     """
 
-    def __init__(self, network):
+    def __init__(self, network, *, key=None):
         self._network = network
+        self._key = key             # a callable giving the key, else network_key(network)
         self._where: tuple[Path | None, str | None] | None = None
         self._data: dict | None = None
 
@@ -99,10 +100,24 @@ class ProbeStore:
     def for_network(cls, network) -> "ProbeStore":
         return cls(network)
 
+    @classmethod
+    def for_onnx(cls, model) -> "ProbeStore":
+        """The store of an ONNX model's grid and margin, keyed by its graph file's bytes
+        (:func:`mehs.ssr.tiling_onnx_probes.onnx_file_key`); its memory is not stored
+        (onnxruntime's arena makes it depend on what ran before)."""
+        from mehs.ssr.tiling_onnx_probes import onnx_file_key
+
+        return cls(None, key=lambda: onnx_file_key(model))
+
     def _resolve(self) -> tuple[Path | None, str | None]:
         if self._where is None:
             folder = cache_dir()
-            key = network_key(self._network) if folder is not None else None
+            if folder is None:
+                key = None
+            elif self._key is not None:
+                key = self._key()
+            else:
+                key = network_key(self._network)
             self._where = (None if key is None else folder / "tiling" / f"{key[:32]}.json", key)
         return self._where
 

@@ -366,9 +366,10 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
         return predict_tiled(fn, rgb, plan)
 
 
-#: ONNX graphs cannot be introspected here: a margin and grid that cover the
-#: small and tiny mehs networks (margins 56 and 16 px on grids of 8) and
-#: most U-Nets up to 5 poolings; set ``model.tiling = {"margin": ...}`` otherwise.
+#: The margin and grid of an ONNX graph that cannot be measured (the ``onnx`` package
+#: missing, a bare function): they cover the small and tiny mehs networks (margins 56
+#: and 16 px on grids of 8) and U-Nets up to 5 poolings with short fields; an
+#: :class:`~mehs.ssr.models.OnnxModel` is measured (:mod:`mehs.ssr.tiling_onnx_probes`).
 ONNX_DEFAULT_MARGIN, ONNX_DEFAULT_ALIGN = 64, 32
 
 
@@ -393,9 +394,15 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
         from mehs.ssr.tiling_onnx import onnx_image_means_stitcher
 
         stitcher = onnx_image_means_stitcher(model)
-    return tiled_network_call(model, fn, rgb, {
-        "bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
-        "align": lambda: ONNX_DEFAULT_ALIGN}, image_means=stitcher)
+    if hasattr(model, "session") and hasattr(model, "path"):
+        from mehs.ssr.tiling_onnx_probes import onnx_tiling_probes
+
+        given = getattr(model, "tiling", None)
+        probes = onnx_tiling_probes(model, memory, given if isinstance(given, dict) else {})
+    else:       # a graph behind a bare function cannot be rebuilt to measure
+        probes = {"bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
+                  "align": lambda: ONNX_DEFAULT_ALIGN}
+    return tiled_network_call(model, fn, rgb, probes, image_means=stitcher)
 
 
 def __getattr__(name: str):

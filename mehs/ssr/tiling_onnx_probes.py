@@ -1,0 +1,300 @@
+"""The tiling grid and margin of an ONNX graph, measured (issue 16, session 26).
+
+Until session 26 every ONNX model was tiled with a 64-pixel margin on a 32-pixel grid:
+a graph with a wider field (MST++'s is 112 px) or a deeper pooling stack was tiled
+off what its tiles need, and differed from whole-image inference near the seams without
+a word. Both are now measured once per graph file (kept in the probe cache, keyed by
+the file's bytes):
+
+- :func:`onnx_strides` — the grid, as :mod:`mehs.ssr.tiling_grid` reads it for torch:
+  the graph is rebuilt with a ``Shape`` node on every node output, run on a 384×256
+  input and its transpose, and every output whose two adjacent dimensions follow the
+  input's down-sampled is a map of that stride. (``onnx.shape_inference`` cannot do it:
+  the size a graph pads to inside is computed, and its maps' sizes are unknown to it.)
+- :func:`onnx_margin` — the margin, by finite differences, as tiling cuts: a strip's
+  input on one side of an aligned cut is replaced, and the farthest output that moves
+  on the other side is how far a tile's missing context reaches into it (the sum of
+  everything cut off, not one block's share). A graph's global average poolings would
+  spread the change over every output; they run on given means
+  (:class:`mehs.ssr.tiling_onnx.OnnxImageMeans`, the same in both runs), so what is
+  measured is the field of the rest. An output moved by less than float rounding is
+  not counted: tiles are then equal to that rounding. A field that fills the largest
+  probe the memory budget allows gives a lower bound with a warning
+  (:class:`~mehs.ssr.tiling_probes.FieldWiderThanBudget`), one that fills a
+  :data:`MAX_PROBE` probe a global operation (:data:`GLOBAL_MARGIN`).
+
+Without the ``onnx`` package the graph cannot be rebuilt: the defaults of
+:mod:`mehs.ssr.tiling` (64 px on a grid of 32) are used, with a warning.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+
+from mehs.ssr.tiling_grid import PROBE_SHAPE, _adjacent_pairs, _stride_of
+from mehs.ssr.tiling_probes import GLOBAL_MARGIN, FieldWiderThanBudget
+
+#: The longest margin probe (fields of up to ~1000 px: the full paper network's ~400).
+MAX_PROBE = 2048
+#: The first margin probe's length, and the strips' width (a field's reach along one
+#: axis does not need the other's extent).
+FIRST_PROBE, STRIP = 256, 64
+
+
+def _session(proto, model):
+    import onnxruntime as ort
+
+    from mehs.ssr.onnx_model import onnx_session_options
+
+    return ort.InferenceSession(proto.SerializeToString(), sess_options=onnx_session_options(),
+                                providers=model.session.get_providers())
+
+
+def _input(model, rgb: np.ndarray) -> dict:
+    return {model.input_name: model._graph_input(np.ascontiguousarray(rgb, dtype=np.float32))}
+
+
+def onnx_strides(model, *, shape: tuple[int, int] = PROBE_SHAPE) -> set[int]:
+    """Strides ``s ≥ 2`` of the down-sampled maps an :class:`~mehs.ssr.models.OnnxModel`'s
+    graph computes (see module doc). ``shape`` must be a multiple of the model's size
+    multiple (no padding blurs the maps)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    proto = onnx.load(str(model.path))
+    g = proto.graph
+    typed = {v.name: v.type for v in [*g.value_info, *g.output]}
+    values = []
+    for node in g.node:
+        for name in node.output:
+            t = typed.get(name)
+            # sequences, maps and optionals have no Shape
+            if name and (t is None or t.HasField("tensor_type")):
+                values.append(name)
+    shapes = [f"mehs_shape_{i}" for i in range(len(values))]
+    g.node.extend(helper.make_node("Shape", [v], [s]) for v, s in zip(values, shapes))
+    del g.output[:]
+    g.output.extend(helper.make_tensor_value_info(s, TensorProto.INT64, [None]) for s in shapes)
+    session = _session(proto, model)
+    h, w = shape
+    rng = np.random.default_rng(0x6D656873)
+    runs = []
+    for size in ((h, w), (w, h)):
+        outs = session.run(shapes, _input(model, rng.random((*size, 3), dtype=np.float32)))
+        runs.append({v: tuple(int(d) for d in o) for v, o in zip(values, outs)})
+    strides = set()
+    for v, out in runs[0].items():
+        other = runs[1].get(v)
+        if other is None:
+            continue
+        for j, d, e in _adjacent_pairs(out):
+            s = _stride_of(d, e, h, w)
+            if s is not None and other == out[:j] + (e, d) + out[j + 2:]:
+                strides.add(s)
+    return strides
+
+
+def onnx_grid(model, *, max_pixels: int | None = None) -> int:
+    """Tile grid of an ONNX model: the least common multiple of 8, its size multiple and
+    :func:`onnx_strides` (``max_pixels`` as :func:`mehs.ssr.tiling_grid.torch_grid`)."""
+    from mehs.ssr.tiling_pad import size_multiple
+
+    k = size_multiple(model)
+    h, w = PROBE_SHAPE
+    if max_pixels is not None:
+        while h * w > max_pixels and w > 16:
+            h, w = h // 2, w // 2
+    h, w = -(-h // k) * k, -(-w // k) * k
+    if h == w:
+        h += k
+    return math.lcm(8, k, *onnx_strides(model, shape=(h, w)))
+
+
+def _runner(model):
+    """``(run, close)``: ``run(rgb)`` is the model's output with its global average
+    poolings on means given once (from the first image it sees); ``close()`` puts the
+    model's graph back."""
+    from mehs.ssr.tiling_onnx import OPEN_END, OnnxImageMeans, _finite_means
+
+    from mehs.errors import InputError
+
+    try:
+        state = OnnxImageMeans(model)
+    except InputError:
+        # a graph whose poolings cannot take given means: they spread the change over
+        # every output, and the field reads as global (so do its tiles' statistics)
+        return model._predict_whole, lambda: None
+    if not state.k:
+        return model._predict_whole, lambda: None
+    given: list = []
+    whole = np.array([0, OPEN_END, 0, OPEN_END], np.int64)
+
+    def run(rgb: np.ndarray) -> np.ndarray:
+        if not given:
+            sums, counts = [None] * state.k, [0] * state.k
+            state.run(rgb, whole, (True, True), None, sums, counts, spectra=False)
+            given.extend(_finite_means(sums, counts))
+        return state.run(rgb, whole, (True, True), given, [None] * state.k, [0] * state.k)
+    return run, state.restore
+
+
+def _reach(run, length: int, side: int, a: int, rng, axis: int) -> int | None:
+    """The margin along ``axis`` (1: columns, 0: rows) that a ``side``-wide strip of
+    ``length`` pixels shows: the input on either side of an aligned cut ``c`` is
+    replaced, and the outputs that move on the far side tell how far a tile's cut-off
+    context reaches into it (all rows of the strip together). None where they reach the
+    strip's end."""
+    shape = (side, length, 3) if axis == 1 else (length, side, 3)
+    x = rng.random(shape, dtype=np.float32)
+    c = length // 2 // a * a
+    y0 = run(x)
+    far = []
+    for before in (True, False):
+        moved = x.copy()
+        cut = (slice(None), slice(None, c) if before else slice(c, None))
+        cut = cut if axis == 1 else cut[::-1]
+        moved[cut] = rng.random(moved[cut].shape, dtype=np.float32)
+        # NaN or inf counts as moved: the probe cannot tell, and a wider margin is safe
+        changed = ~(run(moved) == y0).all(-1).all(1 - axis)
+        idx = np.nonzero(changed[c:] if before else changed[:c])[0]
+        if before:
+            if changed[-1]:
+                return None
+            far.append(int(idx.max()) + 1 if idx.size else 0)   # outputs c … c + reach − 1
+        else:
+            if changed[0]:
+                return None
+            far.append(c - int(idx.min()) if idx.size else 0)
+    return max(-(-f // a) * a for f in far)
+
+
+def onnx_margin(model, align: int, *, max_bytes: int | None = None,
+                bytes_per_pixel: float | None = None) -> int:
+    """Tile margin of an ONNX model on the grid ``align``, by finite differences (see the
+    module doc): strips :data:`STRIP` pixels wide and 256, 512, … :data:`MAX_PROBE` long,
+    along each axis. ``max_bytes``/``bytes_per_pixel``: a longer strip runs only if two
+    of its images' worth of memory fit; else :class:`FieldWiderThanBudget` (half the
+    longest strip the field filled, on the grid: a lower bound)."""
+    from mehs.ssr.tiling_pad import size_multiple
+
+    a = max(1, int(align))
+    step = math.lcm(a, size_multiple(model))
+    side = -(-max(STRIP, 2 * step) // step) * step
+    length = -(-max(FIRST_PROBE, 4 * step) // step) * step
+    rng = np.random.default_rng(0x6D656873)
+    run, close = _runner(model)
+    filled = None
+    try:
+        while True:
+            need = None if bytes_per_pixel is None else 2.0 * bytes_per_pixel * length * side
+            # the first strip always runs (smaller than any tile worth a margin)
+            if (filled is not None and max_bytes is not None and need is not None
+                    and need > max_bytes):
+                raise FieldWiderThanBudget(-(-(filled // 2) // a) * a, filled, int(need))
+            margins = [_reach(run, length, side, a, rng, axis) for axis in (1, 0)]
+            if None not in margins:
+                return max(margins)
+            filled = length
+            if length >= MAX_PROBE:
+                return GLOBAL_MARGIN
+            length *= 2
+    finally:
+        close()
+
+
+def onnx_file_key(model) -> str:
+    """The probe-cache key of an ONNX model: its file's bytes, its size multiple and the
+    probes' source (an edit measures again)."""
+    from pathlib import Path
+
+    import mehs.ssr.tiling_grid
+    import mehs.ssr.tiling_onnx
+    import mehs.ssr.tiling_onnx_graph
+    import mehs.ssr.tiling_probes
+    from mehs.ssr.tiling_pad import size_multiple
+
+    h = hashlib.sha256()
+    with open(model.path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    h.update(f"\0k={size_multiple(model)}\0".encode())
+    for mod in (mehs.ssr.tiling_grid, mehs.ssr.tiling_onnx, mehs.ssr.tiling_onnx_graph,
+                mehs.ssr.tiling_probes):
+        h.update(hashlib.sha256(Path(mod.__file__).read_bytes()).digest())
+    h.update(Path(__file__).read_bytes())
+    return h.hexdigest()
+
+
+def onnx_tiling_probes(model, memory, opts: dict) -> dict:
+    """The ``probes`` of :func:`mehs.ssr.tiling.tiled_network_call` for an ONNX model:
+    ``memory`` as given, the grid (:func:`onnx_grid`) and the margin (:func:`onnx_margin`,
+    a lower bound with a warning where the budget cannot hold the probe that contains
+    the field), both kept in the probe cache by the graph file's bytes."""
+    import warnings
+
+    from mehs.ssr.probe_cache import ProbeStore
+    from mehs.ssr.tiling import (ONNX_DEFAULT_ALIGN, ONNX_DEFAULT_MARGIN, default_budget,
+                                 env_max_bytes)
+    from mehs.ssr.tiling_probes import margin_or_bound, once
+
+    store = ProbeStore.for_onnx(model)
+    cached = model.__dict__.get("_tiling_probe", {})
+    if cached.pop("margin_bound", False):
+        cached.pop("margin", None)      # a lower bound is one call's answer only
+
+    def budget() -> int:
+        return int(opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss")))
+
+    def bpp() -> float | None:
+        v = model.__dict__.get("_tiling_probe", {}).get("bytes_per_pixel")
+        return None if v is None else float(v)
+
+    def no_onnx(what: str, default: int) -> int:
+        warnings.warn(f"{model.name}: the onnx package is missing, so its tiling {what} cannot "
+                      f"be measured; {default} px is used (pip install \"mehs[onnx]\", or "
+                      f"model.tiling = {{\"{what}\": …}})", RuntimeWarning, stacklevel=4)
+        return default
+
+    def align() -> int:
+        v = store.get("align")
+        if v is None:
+            b = bpp()
+            try:
+                v = onnx_grid(model, max_pixels=None if b is None else int(budget() // b))
+            except ImportError:
+                return no_onnx("align", ONNX_DEFAULT_ALIGN)
+            store.put("align", v)
+        return v
+
+    align = once(align)
+
+    def margin() -> int:
+        v = store.get("margin")
+        if v is not None:
+            return v
+        b = budget()
+        bound = store.get("margin_bound")
+        if bound is not None and b < bound.get("needed", 0):
+            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
+        try:
+            v = onnx_margin(model, align(), max_bytes=b, bytes_per_pixel=bpp())
+        except ImportError:
+            return no_onnx("margin", ONNX_DEFAULT_MARGIN)
+        except FieldWiderThanBudget as e:
+            if e.needed is not None:
+                store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
+                                           "probe": e.probe})
+            raise
+        finally:
+            # the arena keeps the probes' peak, which the tiles' budget would lose
+            release = getattr(model, "release_memory", None)
+            if release is not None:
+                release()
+        store.put("margin", v)
+        return v
+
+    return {"bytes_per_pixel": memory, "margin": margin_or_bound(model, margin),
+            "align": align}

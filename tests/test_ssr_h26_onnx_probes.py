@@ -1,0 +1,163 @@
+"""The tiling margin and grid of ONNX graphs, measured (issue 16, session 26).
+
+Every ONNX model was tiled with a 64-pixel margin on a 32-pixel grid: a graph with a
+wider field, or more poolings, was tiled short of its context or off its grid, and its
+tiles differed from whole-image inference near the seams without a word.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+nn, F = torch.nn, torch.nn.functional
+
+
+class Dilated(nn.Module):
+    """Local, no pooling: five 3×3 convolutions dilated by 16, a 80-pixel field."""
+
+    def __init__(self, dilation: int = 16, layers: int = 5):
+        super().__init__()
+        self.convs = nn.ModuleList(nn.Conv2d(3 if i == 0 else 4, 4, 3, padding=dilation,
+                                             dilation=dilation) for i in range(layers))
+        self.out = nn.Conv2d(4, 31, 1)
+
+    def forward(self, x):
+        for c in self.convs:
+            x = torch.tanh(c(x))
+        return self.out(x)
+
+
+class AvgUNet(nn.Module):
+    """A U-Net of ``levels`` average poolings that pads itself to its grid."""
+
+    def __init__(self, levels: int, ch: int = 4):
+        super().__init__()
+        self.levels = levels
+        self.inc = nn.Conv2d(3, ch, 3, padding=1)
+        self.down = nn.ModuleList(nn.Conv2d(ch, ch, 3, padding=1) for _ in range(levels))
+        self.up = nn.ModuleList(nn.Conv2d(ch, ch, 1) for _ in range(levels))
+        self.out = nn.Conv2d(ch, 31, 1)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        m = 2 ** self.levels
+        x = F.pad(x, (0, (-w) % m, 0, (-h) % m), mode="replicate")
+        y, skips = torch.relu(self.inc(x)), []
+        for d in self.down:
+            skips.append(y)
+            y = F.avg_pool2d(torch.tanh(d(y)), 2)
+        for u, s in zip(self.up, reversed(skips)):
+            y = F.interpolate(torch.tanh(u(y)), scale_factor=2, mode="nearest") + s
+        return self.out(y)[..., :h, :w]
+
+
+def _export(net, path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(net.eval(), (torch.rand(1, 3, 64, 64),), str(path), dynamo=False,
+                          input_names=["rgb"], output_names=["spectra"],
+                          dynamic_axes={"rgb": {2: "h", 3: "w"}, "spectra": {2: "h", 3: "w"}})
+    return path
+
+
+def _tiled_and_whole(path, rgb, max_side):
+    from mehs.ssr.models import OnnxModel
+
+    model = OnnxModel(path)
+    model.tiling = "off"
+    whole = model.predict(rgb)
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * max_side ** 2,
+                    "statistics": "tile"}
+    tiled = model.predict(rgb)
+    return tiled, whole, model
+
+
+def test_a_graph_with_a_field_wider_than_64_pixels_gets_its_margin(tmp_path):
+    torch.manual_seed(0)
+    path = _export(Dilated(), tmp_path / "dilated.onnx")
+    rgb = np.random.default_rng(0).random((320, 700, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_and_whole(path, rgb, 320)
+    assert model._tiling_last["summary"]["tiles"] >= 3
+    assert 64 < model._tiling_probe["margin"] <= 80
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_graph_with_six_poolings_is_tiled_on_its_grid(tmp_path):
+    torch.manual_seed(1)
+    path = _export(AvgUNet(6), tmp_path / "unet6.onnx")
+    rgb = np.random.default_rng(1).random((256, 1024, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_and_whole(path, rgb, 288)   # 32-grid tiles: 0.24 off
+    assert model._tiling_probe["align"] == 64
+    assert model._tiling_last["summary"]["tiles"] >= 2
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_the_grid_and_margin_are_kept_per_graph_file(tmp_path, monkeypatch):
+    import mehs.ssr.tiling_onnx_probes as probes
+    from mehs.ssr.models import OnnxModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path / "cache"))
+    torch.manual_seed(2)
+    path = _export(Dilated(dilation=4, layers=3), tmp_path / "d.onnx")
+    rgb = np.random.default_rng(2).random((256, 600, 3), dtype=np.float32)
+    opts = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 200 ** 2}
+    first = OnnxModel(path)
+    first.tiling = dict(opts)
+    first.predict(rgb)
+    measured = first._tiling_probe["margin"], first._tiling_probe["align"]
+    assert measured == (16, 8)           # three 3×3 convolutions dilated by 4: 12, on the grid
+    calls = []
+    monkeypatch.setattr(probes, "onnx_margin", lambda *a, **k: calls.append(a) or 0)
+    monkeypatch.setattr(probes, "onnx_strides", lambda *a, **k: calls.append(a) or set())
+    again = OnnxModel(path)
+    again.tiling = dict(opts)
+    again.predict(rgb)
+    assert (again._tiling_probe["margin"], again._tiling_probe["align"]) == measured
+    assert calls == []
+    # another graph (other weights: other bytes) is measured afresh
+    torch.manual_seed(3)
+    other = OnnxModel(_export(Dilated(dilation=4, layers=3), tmp_path / "e.onnx"))
+    other.tiling = dict(opts)
+    other.predict(rgb)
+    assert len(calls) == 2
+
+
+def test_a_field_the_budget_cannot_contain_is_a_lower_bound(tmp_path):
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_margin
+    from mehs.ssr.tiling_probes import FieldWiderThanBudget
+
+    torch.manual_seed(4)
+    model = OnnxModel(_export(Dilated(dilation=40, layers=4), tmp_path / "wide.onnx"))  # 160 px
+    with pytest.raises(FieldWiderThanBudget) as e:
+        onnx_margin(model, 8, max_bytes=2 * 1000 * 256 * 64 + 1, bytes_per_pixel=1000.0)
+    assert e.value.lower_bound == 128 and e.value.probe == 256
+    assert onnx_margin(model, 8) == 160
+
+
+def test_a_global_operation_other_than_average_pooling_reads_as_global(tmp_path):
+    from test_ssr_tiling_onnx import se_graph
+
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_margin
+    from mehs.ssr.tiling_probes import GLOBAL_MARGIN
+
+    # the average pooling runs on given means; the max pooling still sees the whole input
+    assert onnx_margin(OnnxModel(se_graph(tmp_path / "g.onnx", other_global=True)), 8) \
+        == GLOBAL_MARGIN
+    assert onnx_margin(OnnxModel(se_graph(tmp_path / "se.onnx")), 8) < GLOBAL_MARGIN
+
+
+def test_the_strides_follow_the_input_not_the_weights(tmp_path):
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_strides
+
+    torch.manual_seed(5)
+    assert onnx_strides(OnnxModel(_export(AvgUNet(3), tmp_path / "u3.onnx"))) == {2, 4, 8}
+    assert onnx_strides(OnnxModel(_export(Dilated(2, 2), tmp_path / "d.onnx"))) == set()
