@@ -161,3 +161,25 @@ def test_the_strides_follow_the_input_not_the_weights(tmp_path):
     torch.manual_seed(5)
     assert onnx_strides(OnnxModel(_export(AvgUNet(3), tmp_path / "u3.onnx"))) == {2, 4, 8}
     assert onnx_strides(OnnxModel(_export(Dilated(2, 2), tmp_path / "d.onnx"))) == set()
+
+
+class BrightGate(nn.Module):
+    """A 3×3 convolution, plus a wide path open only where the input exceeds 2: dead on
+    inputs in [0, 1), 48 px wide on HDR radiance."""
+
+    def __init__(self):
+        super().__init__()
+        self.near = nn.Conv2d(3, 31, 3, padding=1)
+        self.far = nn.Conv2d(3, 31, 3, padding=16, dilation=16)
+
+    def forward(self, x):
+        return self.near(x) + self.far(torch.relu(x - 2.0))
+
+
+def test_a_path_open_only_on_bright_pixels_is_in_the_margin(tmp_path):
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_margin
+
+    torch.manual_seed(6)
+    model = OnnxModel(_export(BrightGate(), tmp_path / "gate.onnx"))
+    assert onnx_margin(model, 8) == 16                # not 8: the 1-px convolution's

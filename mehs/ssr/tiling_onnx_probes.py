@@ -14,7 +14,8 @@ the file's bytes):
 - :func:`onnx_margin` — the margin, by finite differences, as tiling cuts: a strip's
   input on one side of an aligned cut is replaced, and the farthest output that moves
   on the other side is how far a tile's missing context reaches into it (the sum of
-  everything cut off, not one block's share). A graph's global average poolings would
+  everything cut off, not one block's share), on inputs in [0, 1) and on inputs whose
+  brightness spans 0.1–100 (a path open only on bright pixels is then open). A graph's global average poolings would
   spread the change over every output; they run on given means
   (:class:`mehs.ssr.tiling_onnx.OnnxImageMeans`, the same in both runs), so what is
   measured is the field of the rest. An output moved by less than float rounding is
@@ -141,14 +142,24 @@ def _runner(model):
     return run, state.restore
 
 
-def _reach(run, length: int, side: int, a: int, rng, axis: int) -> int | None:
+def _probe_input(rng, shape, hdr: bool) -> np.ndarray:
+    """Uniform [0, 1), or (``hdr``) that times a log-uniform brightness from 0.1 to 100
+    per pixel: a path that opens only on bright (or dark) pixels is open somewhere."""
+    x = rng.random(shape, dtype=np.float32)
+    if hdr:
+        x *= (10.0 ** rng.uniform(-1.0, 2.0, shape[:2] + (1,))).astype(np.float32)
+    return x
+
+
+def _reach(run, length: int, side: int, a: int, rng, axis: int,
+           hdr: bool = False) -> int | None:
     """The margin along ``axis`` (1: columns, 0: rows) that a ``side``-wide strip of
     ``length`` pixels shows: the input on either side of an aligned cut ``c`` is
     replaced, and the outputs that move on the far side tell how far a tile's cut-off
     context reaches into it (all rows of the strip together). None where they reach the
-    strip's end."""
+    strip's end. ``hdr``: inputs of :func:`_probe_input`."""
     shape = (side, length, 3) if axis == 1 else (length, side, 3)
-    x = rng.random(shape, dtype=np.float32)
+    x = _probe_input(rng, shape, hdr)
     c = length // 2 // a * a
     y0 = run(x)
     far = []
@@ -156,7 +167,7 @@ def _reach(run, length: int, side: int, a: int, rng, axis: int) -> int | None:
         moved = x.copy()
         cut = (slice(None), slice(None, c) if before else slice(c, None))
         cut = cut if axis == 1 else cut[::-1]
-        moved[cut] = rng.random(moved[cut].shape, dtype=np.float32)
+        moved[cut] = _probe_input(rng, moved[cut].shape, hdr)
         # NaN or inf counts as moved: the probe cannot tell, and a wider margin is safe
         changed = ~(run(moved) == y0).all(-1).all(1 - axis)
         idx = np.nonzero(changed[c:] if before else changed[:c])[0]
@@ -194,7 +205,8 @@ def onnx_margin(model, align: int, *, max_bytes: int | None = None,
             if (filled is not None and max_bytes is not None and need is not None
                     and need > max_bytes):
                 raise FieldWiderThanBudget(-(-(filled // 2) // a) * a, filled, int(need))
-            margins = [_reach(run, length, side, a, rng, axis) for axis in (1, 0)]
+            margins = [_reach(run, length, side, a, rng, axis, hdr)
+                       for axis in (1, 0) for hdr in (False, True)]
             if None not in margins:
                 return max(margins)
             filled = length
