@@ -173,6 +173,12 @@ class _WideField(torch.nn.Module):
         return x
 
 
+def _pairs(sizes):
+    # every probe runs on two inputs (uniform, and HDR brightness: session 26)
+    assert sizes[::2] == sizes[1::2], sizes
+    return sizes[::2]
+
+
 def test_receptive_field_probe_grows_only_within_the_memory_budget():
     # the full-size paper network's field is wider than 256 px: its autograd probes grew
     # to 512² and held 9 GB under a 2 GB cap before they gave up
@@ -183,20 +189,20 @@ def test_receptive_field_probe_grows_only_within_the_memory_budget():
     sizes = []
     net.register_forward_pre_hook(lambda mod, inp: sizes.append(inp[0].shape[-1]))
     assert torch_receptive_radius(net, probe=32, max_probe=128) == 20
-    assert sizes == [32, 64]
+    assert _pairs(sizes) == [32, 64]
     sizes.clear()
     # the 64² gradient probe would not fit 1 MiB; a forward-mode one (a third of its
     # memory, measured on the 32² size first) does, and finds the same field
     assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 20) == 20
-    assert sizes == [32, 32, 64]
+    assert _pairs(sizes) == [32, 32, 64]
     sizes.clear()
     with pytest.raises(FieldWiderThanBudget) as e:
         torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=256 << 10)
-    assert sizes == [32, 32]               # neither 64² probe would have fitted 256 KiB
+    assert _pairs(sizes) == [32, 32]       # neither 64² probe would have fitted 256 KiB
     assert e.value.lower_bound == 16 and e.value.probe == 32    # not a global operation
     sizes.clear()
     assert torch_receptive_radius(net, probe=32, max_probe=128, max_bytes=1 << 30) == 20
-    assert sizes == [32, 64]
+    assert _pairs(sizes) == [32, 64]
 
 
 # -- what the strips must not change (an independent review's findings) ----------------

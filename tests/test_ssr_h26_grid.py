@@ -188,3 +188,32 @@ def test_the_grid_probe_fits_a_pixel_cap():
 
     assert torch_grid(Recorder(16).eval(), max_pixels=10_000) == 16
     assert max(seen) <= 10_000
+
+
+class BrightGate(torch.nn.Module):
+    """A 3×3 convolution, plus a path 16 px wide open only where the input exceeds 2."""
+
+    def __init__(self):
+        super().__init__()
+        self.near = torch.nn.Conv2d(3, 4, 3, padding=1)
+        self.far = torch.nn.Conv2d(3, 4, 3, padding=16, dilation=16)
+
+    def forward(self, x):
+        return self.near(x) + self.far(torch.relu(x - 2.0))
+
+
+@pytest.mark.parametrize("forward_mode", [False, True])
+def test_the_field_probes_see_a_path_open_only_on_bright_pixels(forward_mode):
+    # on inputs in [0, 1) the gate is shut and the field read 1 px: tiles of HDR radiance
+    # with a 1-px margin lost the far path at their seams
+    from mehs.ssr.tiling_probes import _forward_mode_margin, torch_receptive_radius
+
+    torch.manual_seed(0)
+    net = BrightGate().eval()
+    if forward_mode:
+        # the perturbed block is one grid cell (8×8 pixels of many brightnesses)
+        assert _forward_mode_margin(net, 128, 8, "cpu")[0] == 16
+    else:
+        with torch.enable_grad():
+            assert torch_receptive_radius(net, align=1) == 16
+            assert torch_receptive_radius(net, align=8) == 16

@@ -50,6 +50,19 @@ def _generator(device):
     return g
 
 
+def probe_input(g, side: int, device, hdr: bool):
+    """A probe's ``(1, 3, side, side)`` input from generator ``g``: uniform in [0, 1), or
+    (``hdr``) that times a log-uniform brightness from 0.1 to 100 per pixel. The field
+    probes run on both and take the union: a path open only on bright pixels (a gate
+    past 1) is dead on the first, a path that saturates on bright ones on the second."""
+    import torch
+
+    x = torch.rand(1, 3, side, side, device=device, generator=g)
+    if hdr:
+        x *= 10.0 ** (torch.rand(1, 1, side, side, device=device, generator=g) * 3.0 - 1.0)
+    return x
+
+
 def _peak_mode(reorders: bool = True):
     """A torch dispatch mode whose ``peak`` is the most bytes of live tensors it saw.
 
@@ -222,7 +235,8 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
     """Receptive-field radius (pixels) of a torch network's local part, measured by autograd.
 
     The gradient of an output pixel w.r.t. the input is non-zero exactly inside
-    its receptive field. A global average (the channel attention of
+    its receptive field, wherever its paths are open: the probes run on two inputs
+    (:func:`probe_input`: [0, 1), and brightness spanning 0.1–100) and take the union. A global average (the channel attention of
     :mod:`mehs.ssr.net.layers`) or a channel similarity over all pixels (MST++'s
     spectral-wise attention) would spread it over the whole probe, so these
     statistics are detached during the probe: the radius is that of the
@@ -280,19 +294,24 @@ def torch_receptive_radius(network, *, probe: int = 128, max_probe: int = 512,
             if margin is not None:
                 return margin
         else:
-            g = _generator(device)
-            x = torch.rand(1, 3, probe, probe, device=device, generator=g, requires_grad=True)
-            with detached_statistics(), _peak_mode(reorders=False) as mode:
-                block = network(x)[0, :, c:c + a, c:c + a]
-                # a random cotangent: the bands' plain sum is constant for a network
-                # whose bands are centred on their mean, and its gradient, zero, read as
-                # no field at all
-                block.backward(torch.randn(block.shape, device=block.device, dtype=block.dtype,
-                                           generator=g))
-            held = mode.peak
-            grad = x.grad[0].abs().sum(0).cpu().numpy()
-            del x
-            ys, xs = np.nonzero(grad > 0)
+            held, grad = 0, None
+            for hdr in (False, True):
+                g = _generator(device)
+                x = probe_input(g, probe, device, hdr).requires_grad_()
+                with detached_statistics(), _peak_mode(reorders=False) as mode:
+                    block = network(x)[0, :, c:c + a, c:c + a]
+                    # a random cotangent: the bands' plain sum is constant for a network
+                    # whose bands are centred on their mean, and its gradient, zero, read
+                    # as no field at all
+                    block.backward(torch.randn(block.shape, device=block.device,
+                                               dtype=block.dtype, generator=g))
+                    del block
+                held = max(held, mode.peak)
+                here = x.grad[0].abs().sum(0).cpu().numpy() > 0
+                grad = here if grad is None else grad | here
+                del x
+                network.zero_grad(set_to_none=True)
+            ys, xs = np.nonzero(grad)
             if ys.size == 0:
                 return 0
             lo, hi = min(ys.min(), xs.min()), max(ys.max(), xs.max())
@@ -351,18 +370,24 @@ def _forward_mode_margin(network, probe: int, a: int, device) -> tuple[int | Non
 
     from mehs.ssr.net.pooling import detached_statistics, plain_graph
 
-    g = _generator(device)
-    x = torch.rand(1, 3, probe, probe, device=device, generator=g)
     c = probe // 2 // a * a
-    v = torch.zeros_like(x)
-    v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device, generator=g)
-    with _FORWARD_MODE, torch.no_grad(), plain_graph(), detached_statistics(), \
-            _peak_mode(reorders=False) as mode, forward_ad.dual_level():
-        tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
-        if tangent is None:       # nothing depends on the input: no field
-            return 0, mode.peak
-        reached = (tangent[0] != 0).any(0).cpu().numpy()
-    return margin_from_reached(reached, c, a), mode.peak
+    reached, held = None, 0
+    for hdr in (False, True):
+        g = _generator(device)
+        x = probe_input(g, probe, device, hdr)
+        v = torch.zeros_like(x)
+        v[..., c:c + a, c:c + a] = torch.randn(1, 3, a, a, device=device, generator=g)
+        with _FORWARD_MODE, torch.no_grad(), plain_graph(), detached_statistics(), \
+                _peak_mode(reorders=False) as mode, forward_ad.dual_level():
+            tangent = forward_ad.unpack_dual(network(forward_ad.make_dual(x, v))).tangent
+            # None: nothing depends on the input
+            here = (np.zeros((probe, probe), bool) if tangent is None
+                    else (tangent[0] != 0).any(0).cpu().numpy())
+            del tangent
+        held = max(held, mode.peak)
+        reached = here if reached is None else reached | here
+        del x, v
+    return margin_from_reached(reached, c, a), held
 
 
 def margin_from_reached(reached: np.ndarray, c: int, a: int) -> int | None:
