@@ -171,6 +171,10 @@ class GenicamSimCamera:
         (about 1 ms for 64 × 204); 100 Hz keeps a loaded two-core host on time.
     link_delay_ms
         Every GVSP packet reaches the receiver this much later (a slow link; 0: direct).
+    start_delay_ms
+        The sensor's first exposure comes this long after AcquisitionStart (a camera
+        that settles its sensor first); a sequence gives each acquisition its own,
+        the last repeating.
     port_wait_s
         Seconds to wait for another process's simulated camera to free GVCP port
         3956 (default: environment ``MEHS_GVCP_WAIT_S``, else 0 — fail at once);
@@ -181,7 +185,8 @@ class GenicamSimCamera:
                  pixel_formats: tuple[str, ...] = ("Mono12", "Mono16", "Mono12Packed", "Mono12p"),
                  shutter: bool = True, faults: list[GvFault] | str | None = None,
                  interface: str | None = None, max_frame_rate: float = 100.0,
-                 link_delay_ms: float = 0.0, port_wait_s: float | None = None):
+                 link_delay_ms: float = 0.0, port_wait_s: float | None = None,
+                 start_delay_ms: float | tuple[float, ...] = 0.0):
         self.Aravis, _ = import_aravis()
         self.world = world
         self.serial = serial
@@ -191,6 +196,9 @@ class GenicamSimCamera:
         self.pixel_format, self.pixel_formats, self.shutter = pixel_format, tuple(pixel_formats), shutter
         self.interface = interface or self.Aravis.GV_FAKE_CAMERA_DEFAULT_INTERFACE
         self.link_delay_s = float(link_delay_ms) / 1000.0
+        delays = start_delay_ms if isinstance(start_delay_ms, (tuple, list)) else (start_delay_ms,)
+        self.start_delays_s = [float(d) / 1000.0 for d in delays] or [0.0]
+        self.acquisitions = 0
         self._port_lock = GvcpPortLock(self.interface, port_wait_s)
         self.lens_capped = False
         self.frames = 0
@@ -382,6 +390,13 @@ class GenicamSimCamera:
             # (Any non-zero value keeps the fake camera streaming; 2 marks this one as seen.)
             fc.write_register(gx.REG_ACQUISITION, 2)
             self._next_tick = None
+            delay = self.start_delays_s[min(self.acquisitions, len(self.start_delays_s) - 1)]
+            self.acquisitions += 1
+            if delay > 0:
+                # the camera's own thread waits: no frame until the sensor has settled,
+                # and its frame clock starts then
+                time.sleep(delay)
+                ts_ns += int(delay * 1e9)
         if self._read(0x300) == 0:   # TriggerMode Off: free-running on the frame clock
             ts_ns = self._frame_clock(fc, ts_ns)
             self._lib.arv_buffer_set_timestamp(buf, ts_ns)

@@ -35,6 +35,10 @@ MAX_BLUR_LINES = 0.1
 RUN_UP_LINES = 4
 #: Longest wait (s) after the stage stopped for frames exposed during the scan to arrive
 LATE_FRAMES_S = 2.0
+#: Longest wait (s) for a free-running camera's first frame after AcquisitionStart (at
+#: least 20 frame periods): cameras settle their sensor first, and a loaded host adds its
+#: own stalls; a pass that gets none is scanned again (:func:`scan_continuous`).
+FIRST_FRAME_S = 5.0
 
 
 def assign_frames(u: np.ndarray, lines: int) -> tuple[np.ndarray, int, np.ndarray]:
@@ -151,7 +155,8 @@ def _stage_speed(stage) -> int | None:
 
 
 def scan_continuous(stage, camera, *, attempts: int = 3, **kwargs) -> tuple[np.ndarray, dict[str, Any]]:
-    """A constant-velocity scan (:func:`scan_once`), scanned again while lines are missing.
+    """A constant-velocity scan (:func:`scan_once`), scanned again while lines are missing
+    or the camera did not start streaming (a new AcquisitionStart each pass).
 
     Each attempt is a complete new scan; missing lines are never patched from
     another pass. ``info["attempts"]`` lists why earlier passes were rejected.
@@ -160,13 +165,13 @@ def scan_continuous(stage, camera, *, attempts: int = 3, **kwargs) -> tuple[np.n
     for attempt in range(max(1, int(attempts))):
         try:
             raw, info = scan_once(stage, camera, **kwargs)
-        except MissingLines as exc:
+        except (MissingLines, NoFirstFrame) as exc:
             failures.append(exc.problem)
             events = getattr(camera, "events", None)
             if events is not None:
                 events.append(f"scan: pass {attempt + 1} rejected: {exc.problem}")
             if attempt + 1 >= max(1, int(attempts)):
-                raise MissingLines(f"{exc.problem} (in each of {attempt + 1} passes)", exc.path) from None
+                raise type(exc)(f"{exc.problem} (in each of {attempt + 1} passes)", exc.path) from None
             continue
         info["rejected_passes"] = failures
         return raw, info
@@ -177,10 +182,15 @@ class MissingLines(DeviceError):
     """A continuous scan in which no frame reached some lines."""
 
 
+class NoFirstFrame(DeviceTimeout):
+    """A streaming camera sent no frame after AcquisitionStart (the stage had not moved)."""
+
+
 def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int,
               start_position: int, t_ms: float, oversample: float = DEFAULT_OVERSAMPLE,
               max_blur_lines: float = MAX_BLUR_LINES, run_up_lines: int = RUN_UP_LINES,
-              on_line: Callable[[int], None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+              on_line: Callable[[int], None] | None = None,
+              first_frame_s: float = FIRST_FRAME_S) -> tuple[np.ndarray, dict[str, Any]]:
     """One constant-velocity scan of ``lines`` lines at integration time ``t_ms``.
 
     Returns
@@ -194,8 +204,11 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
 
     Raises
     ------
-    DeviceError
+    MissingLines
         Lines no frame reached (lost frames, stage too fast), naming them.
+    NoFirstFrame
+        A streaming camera sent nothing within ``first_frame_s`` of AcquisitionStart
+        (before the stage moved).
     """
     rate = _line_rate(camera, t_ms)
     # Frames per line: at least `oversample`, and enough that the slit moves at most
@@ -222,11 +235,12 @@ def scan_once(stage, camera, *, lines: int, samples: int, bands: int, pitch: int
         with source as s:
             if hasattr(camera, "stream"):
                 # the camera must be streaming before the stage leaves the first line
-                t_first = time.time() + max(2.0, 20.0 / rate)
+                wait = max(float(first_frame_s), 20.0 / rate)
+                t_first = time.time() + wait
                 while not s.poll(0.01):
                     if time.time() > t_first:
-                        raise DeviceTimeout("the camera sent no frame after AcquisitionStart",
-                                            getattr(camera, "name", None))
+                        raise NoFirstFrame(f"the camera sent no frame within {wait:.1f} s of "
+                                           "AcquisitionStart", getattr(camera, "name", None))
             if hasattr(camera, "stream"):
                 _wait_for_phase(stage, s.frames(), rate, lead_s=(int(start_position) - p_from) / speed)
             t0 = time.time()
