@@ -183,3 +183,20 @@ def test_a_path_open_only_on_bright_pixels_is_in_the_margin(tmp_path):
     torch.manual_seed(6)
     model = OnnxModel(_export(BrightGate(), tmp_path / "gate.onnx"))
     assert onnx_margin(model, 8) == 16                # not 8: the 1-px convolution's
+
+
+def test_an_onnx_mstpp_whose_tiles_cannot_equal_the_whole_image_says_so(tmp_path):
+    # its channel similarity spans the image and is no average pooling: its tiles were
+    # 2.7e-2 of the range off the whole image without a word
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.net import build_network
+    from mehs.ssr.net.export import TorchSSRModel, export_onnx
+
+    torch.manual_seed(7)
+    net = build_network(arch="mstpp", preset="tiny").eval()
+    model = OnnxModel(export_onnx(TorchSSRModel(net, name="m"), tmp_path / "mst.onnx"))
+    rgb = np.random.default_rng(7).gamma(1.0, 0.5, (256, 512, 3)).astype(np.float32)
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 256 ** 2}
+    with pytest.warns(RuntimeWarning, match="tiles use their own statistics"):
+        model.predict(rgb)
+    assert model._tiling_last["summary"]["tiles"] >= 2

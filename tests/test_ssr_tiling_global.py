@@ -2,6 +2,8 @@
 
 from types import SimpleNamespace
 
+import warnings
+
 import numpy as np
 import pytest
 from _checks import contrast_rgb
@@ -134,10 +136,16 @@ def test_networks_without_poolings_or_with_other_global_operations():
                             _tiling_probe={"margin": GLOBAL_MARGIN, "align": 8})
     with pytest.raises(InputError, match="not statistics tiles can assemble"):
         tiled_torch_call(model, _rgb(64, 400))
-    # by default such a network keeps each tile's own statistics
+    # by default such a network keeps each tile's own statistics, and says so (session 26)
     model.tiling = dict(bytes_per_pixel=1.0, max_bytes=64 * 200)
-    tiled_torch_call(model, _rgb(64, 400))
+    with pytest.warns(RuntimeWarning, match="tiles use their own statistics"):
+        tiled_torch_call(model, _rgb(64, 400))
     assert model._tiling_last["statistics"] == "tile"
+    # unless that was asked for
+    model.tiling = dict(bytes_per_pixel=1.0, max_bytes=64 * 200, statistics="tile")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        tiled_torch_call(model, _rgb(64, 400))
 
 
 def test_collecting_run_stops_at_the_last_pooling():

@@ -131,7 +131,9 @@ def test_onnx_graph_with_another_global_operation_keeps_each_tiles_means(tmp_pat
     whole = _predict(OnnxModel(path), rgb, "off")
     model = OnnxModel(path)
     session = model.session
-    out = _predict(model, rgb, dict(TILES))
+    # tiles that cannot equal the whole image say so (session 26: 3e-2 off for MST++)
+    with pytest.warns(RuntimeWarning, match="tiles use their own statistics"):
+        out = _predict(model, rgb, dict(TILES))
     assert model._tiling_last["statistics"] == "tile"
     assert model._tiling_probe["image_means"] is False
     assert model._tiling_probe["image_means_probe_diff"] > 1e-5

@@ -67,6 +67,17 @@ def statistics_mode(opts: dict) -> str:
     return mode
 
 
+def warn_tiles_differ(model, why: str) -> None:
+    """Say that tiles run with their own statistics and so differ from the whole image
+    (statistics "auto" on a network whose global operations tiles cannot assemble):
+    ~1e-5 of the range for AWAN's attention, 3e-2 for an ONNX MST++'s channel
+    similarity. Silent where the user asked for per-tile statistics."""
+    warnings.warn(f"{getattr(model, 'name', 'model')}: {why}, so its tiles use their own "
+                  "statistics and differ from whole-image inference; with more memory "
+                  "(MEHS_TILE_MEMORY) fewer tiles, with tiling 'off' none; statistics "
+                  "'tile' says this is wanted", RuntimeWarning, stacklevel=4)
+
+
 def owned_spans(n: int, tile: int, plan: TilingPlan) -> dict[int, tuple[int, int, bool]]:
     """Per tile origin along an axis of ``n``: the span ``[lo, hi)`` it owns, and whether it is last.
 

@@ -44,7 +44,8 @@ import numpy as np
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import TilingPlan, owned_cells, predict_tiled
 from mehs.ssr.tiling_global import (IMAGE_MEANS_TOL, go_on, owned_spans, tile_windows,
-                                    warn_unsettled)
+                                    warn_tiles_differ, warn_unsettled)
+from mehs.ssr.tiling_probes import GLOBAL_MARGIN
 from mehs.ssr.tiling_onnx_graph import _CELLS, _GIVEN, _OWNED, means_graph, pruned_graph
 
 #: Whole-image agreement a probe of the rebuilt graph must show (relative to the range),
@@ -304,6 +305,11 @@ def onnx_image_means_stitcher(model) -> Callable[..., np.ndarray]:
                 raise InputError(f"{model.name}: image-wide tiling statistics do not make its "
                                  f"tiles equal the whole image: {why}; use statistics 'tile' "
                                  "or 'off'", getattr(model, "path", None))
+            if probe["image_means_poolings"] != 0 or probe.get("margin") == GLOBAL_MARGIN:
+                # (a graph without poolings and with a measured field is local: exact)
+                warn_tiles_differ(model, "its global operations are not average poolings "
+                                         "tiles can assemble" if not probe["image_means_poolings"]
+                                  else probe["image_means_why"])
             return predict_tiled(fn, rgb, plan)
         record["statistics"] = "image"
         return predict_tiled_onnx_image_means(model.__dict__["_onnx_image_means"], rgb, plan,

@@ -137,7 +137,7 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
     gets each tile's own statistics, or is refused when ``strict``.
     ``_tiling_last["statistics"]`` says which ran ("image" or "tile").
     """
-    from mehs.ssr.tiling_global import predict_tiled_image_means
+    from mehs.ssr.tiling_global import predict_tiled_image_means, warn_tiles_differ
 
     net = model.network
 
@@ -151,6 +151,8 @@ def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
                                  "operations are not statistics tiles can assemble (average "
                                  "poolings, spectral-wise attention), so tiles cannot equal "
                                  "the whole image; use tiling statistics 'tile' or 'off'")
+            warn_tiles_differ(model, "its global operations are not statistics tiles can "
+                                     "assemble")
             return predict_tiled(fn, rgb, plan)
         if not any(getattr(m, "image_statistics", False) is True for m in net.modules()):
             return predict_tiled(fn, rgb, plan)       # local: plain tiles are exact
