@@ -125,6 +125,18 @@ def torch_strides(network, *, shape: tuple[int, int] = PROBE_SHAPE, device=None,
     return strides
 
 
+def probe_shape(max_pixels: int | None = None, multiple: int = 1) -> tuple[int, int]:
+    """:data:`PROBE_SHAPE`, halved until it has at most ``max_pixels``, its sides rounded up
+    to ``multiple`` (and kept unequal)."""
+    h, w = PROBE_SHAPE
+    if max_pixels is not None:
+        while h * w > max_pixels and w > 16:
+            h, w = h // 2, w // 2
+    k = max(1, int(multiple))
+    h, w = -(-h // k) * k, -(-w // k) * k
+    return (h + k, w) if h == w else (h, w)
+
+
 def torch_grid(network, *, max_pixels: int | None = None, multiple: int = 1) -> int:
     """The least common multiple of :func:`torch_strides` (1 where nothing down-samples).
 
@@ -134,13 +146,5 @@ def torch_grid(network, *, max_pixels: int | None = None, multiple: int = 1) -> 
     sizes the network takes (:mod:`mehs.ssr.tiling_pad`); the probe's sides are made
     multiples of it, so that no padding blurs the maps' sizes.
     """
-    h, w = PROBE_SHAPE
-    if max_pixels is not None:
-        while h * w > max_pixels and w > 16:
-            h, w = h // 2, w // 2
-    k = max(1, int(multiple))
-    h, w = -(-h // k) * k, -(-w // k) * k
-    if h == w:
-        h += k
-    found = torch_strides(network, shape=(h, w))
+    found = torch_strides(network, shape=probe_shape(max_pixels, multiple))
     return math.lcm(*found) if found else 1

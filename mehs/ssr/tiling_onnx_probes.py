@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from mehs.ssr.tiling_grid import PROBE_SHAPE, _adjacent_pairs, _stride_of
+from mehs.ssr.tiling_grid import PROBE_SHAPE, _adjacent_pairs, _stride_of, probe_shape
 from mehs.ssr.tiling_probes import GLOBAL_MARGIN, FieldWiderThanBudget
 
 #: The longest margin probe (fields of up to ~1000 px: the full paper network's ~400).
@@ -104,23 +104,15 @@ def onnx_grid(model, *, max_pixels: int | None = None) -> int:
     from mehs.ssr.tiling_pad import size_multiple
 
     k = size_multiple(model)
-    h, w = PROBE_SHAPE
-    if max_pixels is not None:
-        while h * w > max_pixels and w > 16:
-            h, w = h // 2, w // 2
-    h, w = -(-h // k) * k, -(-w // k) * k
-    if h == w:
-        h += k
-    return math.lcm(8, k, *onnx_strides(model, shape=(h, w)))
+    return math.lcm(8, k, *onnx_strides(model, shape=probe_shape(max_pixels, k)))
 
 
 def _runner(model):
     """``(run, close)``: ``run(rgb)`` is the model's output with its global average
     poolings on means given once (from the first image it sees); ``close()`` puts the
     model's graph back."""
-    from mehs.ssr.tiling_onnx import OPEN_END, OnnxImageMeans, _finite_means
-
     from mehs.errors import InputError
+    from mehs.ssr.tiling_onnx import OPEN_END, OnnxImageMeans, _finite_means
 
     try:
         state = OnnxImageMeans(model)
