@@ -97,15 +97,18 @@ def test_a_user_unet_without_a_depth_attribute_is_tiled_on_its_grid():
 
 
 def test_strides_are_read_from_exact_and_rounded_map_sizes():
-    from mehs.ssr.tiling_grid import _stride_of
+    from mehs.ssr.tiling_grid import _area_stride, _axis_stride
 
-    assert _stride_of(192, 128, 384, 256) == 2
-    assert _stride_of(3, 2, 384, 256) == 128          # not 127 (which rounds to it too)
-    assert _stride_of(128, 86, 384, 256) == 3         # 256 padded to 258 before pooling
-    assert _stride_of(16, 11, 384, 256) == 24         # 256 padded to 264
-    assert _stride_of(1, 1, 384, 256) is None         # a global statistic
-    assert _stride_of(384, 256, 384, 256) is None     # full size
-    assert _stride_of(768, 512, 384, 256) is None     # up-sampled
+    assert _axis_stride(192, 384, 128, 256) == 2
+    assert _axis_stride(3, 384, 2, 256) == 128        # not 127 (which rounds to it too)
+    assert _axis_stride(128, 384, 86, 256) == 3       # 256 padded to 258 before pooling
+    assert _axis_stride(16, 384, 11, 256) == 24       # 256 padded to 264
+    assert _axis_stride(384, 384, 256, 256) == 1      # full size
+    assert _axis_stride(1, 384, 1, 256) is None       # a global statistic
+    assert _axis_stride(48, 384, 48, 256) is None     # does not follow the input
+    assert _axis_stride(768, 384, 512, 256) is None   # up-sampled
+    assert _area_stride(384, (384, 256), 96, (192, 128)) == 16      # 16×16 windows
+    assert _area_stride(2035, (384, 256), 28 * 19, (192, 128)) == 7  # 7×7, padded
 
 
 class Decoy(torch.nn.Module):
@@ -162,7 +165,9 @@ def test_the_measured_grid_agrees_with_what_mehs_networks_declare():
     torch.manual_seed(0)
     net = build_network().eval()                       # three poolings of the FC-DenseNet
     depth = max(m.depth for m in net.modules() if isinstance(getattr(m, "depth", None), int))
-    assert max(torch_strides(net)) == 2 ** depth == 8
+    # (its rows run in strips of so many pixels: they follow the width inversely, and
+    # are no stride of 3)
+    assert torch_strides(net) == {2, 4, 8} and 2 ** depth == 8
 
 
 def test_the_grid_probe_leaves_the_callers_random_state_alone():
@@ -186,8 +191,12 @@ def test_the_grid_probe_fits_a_pixel_cap():
             seen.append(x.shape[-2] * x.shape[-1])
             return super().forward(x)
 
-    assert torch_grid(Recorder(16).eval(), max_pixels=10_000) == 16
-    assert max(seen) <= 10_000
+    assert torch_grid(Recorder(16).eval(), max_pixels=40_000) == 16
+    assert max(seen) <= 40_000
+    # not below 192×128: a network padding to a grid of 64 read 13 and 24 at 96×64
+    seen.clear()
+    assert torch_grid(Recorder(16).eval(), max_pixels=5_000) == 16
+    assert max(seen) == 192 * 128
 
 
 class BrightGate(torch.nn.Module):
@@ -217,3 +226,53 @@ def test_the_field_probes_see_a_path_open_only_on_bright_pixels(forward_mode):
         with torch.enable_grad():
             assert torch_receptive_radius(net, align=1) == 16
             assert torch_receptive_radius(net, align=8) == 16
+
+
+class Aniso(torch.nn.Module):
+    """Pools rows by 2 and columns by 16: its grid is 16."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = torch.nn.Conv2d(3, 4, 3, padding=1)
+        self.b = torch.nn.Conv2d(3, 4, 1)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        y = F.pad(self.b(x), (0, (-w) % 16, 0, (-h) % 2), mode="replicate")
+        y = F.interpolate(F.avg_pool2d(torch.tanh(y), (2, 16)), scale_factor=(2, 16),
+                          mode="nearest")
+        return self.a(x) + y[..., :h, :w]
+
+
+class UnfoldWindows(torch.nn.Module):
+    """Self-attention in 16×16 windows written with unfold / fold: its grid is 16, and
+    no map of it is ever (H/16, W/16)."""
+
+    def __init__(self, ws: int = 16, c: int = 4):
+        super().__init__()
+        self.ws, self.c = ws, c
+        self.inp = torch.nn.Conv2d(3, c, 3, padding=1)
+        self.qkv = torch.nn.Linear(c, 3 * c)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        ws, c = self.ws, self.c
+        y = F.pad(self.inp(x), (0, (-w) % ws, 0, (-h) % ws))
+        t = F.unfold(y, ws, stride=ws)
+        n = t.shape[-1]
+        q, k, v = self.qkv(t.view(c, ws * ws, n).permute(2, 1, 0)).chunk(3, -1)
+        a = torch.softmax(q @ k.transpose(1, 2) / c ** 0.5, -1) @ v
+        y = y + F.fold(a.permute(2, 1, 0).reshape(1, c * ws * ws, n), y.shape[-2:], ws, stride=ws)
+        return y[..., :h, :w]
+
+
+@pytest.mark.parametrize("make", [Aniso, UnfoldWindows])
+def test_anisotropic_poolings_and_flattened_windows_set_the_grid(make):
+    # both were tiled on a grid of 8: 6.1e-2 and 1.6e-2 of the range off, silently
+    torch.manual_seed(0)
+    net = make().eval()
+    rgb = np.random.default_rng(0).random((256, 448, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_vs_whole(net, rgb, max_bytes=200 * 200)
+    assert model._tiling_probe["align"] % 16 == 0
+    assert model._tiling_last["summary"]["tiles"] >= 3
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())

@@ -200,3 +200,138 @@ def test_an_onnx_mstpp_whose_tiles_cannot_equal_the_whole_image_says_so(tmp_path
     with pytest.warns(RuntimeWarning, match="tiles use their own statistics"):
         model.predict(rgb)
     assert model._tiling_last["summary"]["tiles"] >= 2
+
+
+class TwoOutputs(nn.Module):
+    """``aux``: a 1×1 convolution; ``spectra``: the dilated 80-pixel field."""
+
+    def __init__(self):
+        super().__init__()
+        self.aux = nn.Conv2d(3, 31, 1)
+        self.wide = Dilated()
+
+    def forward(self, x):
+        return self.aux(x), self.wide(x)
+
+
+def test_the_probe_cache_tells_the_outputs_of_one_graph_apart(tmp_path, monkeypatch):
+    # a margin measured on one output was read back for the other: 1.7e-1 off
+    from mehs.ssr.models import OnnxModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path / "cache"))
+    torch.manual_seed(8)
+    path = tmp_path / "two.onnx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(TwoOutputs().eval(), (torch.rand(1, 3, 64, 64),), str(path),
+                          dynamo=False, input_names=["rgb"], output_names=["aux", "spectra"],
+                          dynamic_axes={n: {2: "h", 3: "w"} for n in ("rgb", "aux", "spectra")})
+    rgb = np.random.default_rng(8).random((320, 700, 3), dtype=np.float32)
+    margins = {}
+    for out in ("aux", "spectra"):
+        model = OnnxModel(path, output=out)
+        model.tiling = "off"
+        whole = model.predict(rgb)
+        model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 320 ** 2}
+        tiled = model.predict(rgb)
+        margins[out] = model._tiling_probe["margin"]
+        np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+    assert margins["aux"] == 0 and margins["spectra"] == 80
+
+
+def test_the_probe_cache_follows_external_weights(tmp_path, monkeypatch):
+    # new weights in the .onnx.data file, the .onnx unchanged: the old margin was reused
+    import onnx
+
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_file_key
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path / "cache"))
+    torch.manual_seed(9)
+    net = Dilated(dilation=8, layers=2).eval()
+    path = tmp_path / "ext" / "net.onnx"
+    path.parent.mkdir()
+
+    proto = onnx.load(str(_export(net, tmp_path / "plain.onnx")))
+    onnx.save_model(proto, str(path), save_as_external_data=True,
+                    all_tensors_to_one_file=True, location="net.onnx.data", size_threshold=0)
+    graph = path.read_bytes()
+    key = onnx_file_key(OnnxModel(path))
+    data = path.parent / "net.onnx.data"
+    weights = np.fromfile(data, dtype=np.float32)
+    (weights * 2.0).tofile(data)                    # "trained": same sizes and offsets
+    assert path.read_bytes() == graph
+    assert onnx_file_key(OnnxModel(path)) != key
+
+
+def test_a_graph_with_sequence_values_is_measured(tmp_path):
+    # Shape on a sequence-typed value made onnxruntime refuse the probe's graph
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_grid
+
+    w = numpy_helper.from_array(
+        np.random.default_rng(0).normal(size=(31, 3, 3, 3)).astype(np.float32), "W")
+    nodes = [helper.make_node("Conv", ["rgb", "W"], ["y"], pads=[1, 1, 1, 1]),
+             helper.make_node("SplitToSequence", ["y"], ["seq"], axis=1),
+             helper.make_node("ConcatFromSequence", ["seq"], ["spectra"], axis=1)]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info("rgb", TensorProto.FLOAT, [1, 3, "h", "w"])],
+        [helper.make_tensor_value_info("spectra", TensorProto.FLOAT, [1, 31, "h", "w"])], [w])
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    proto.ir_version = 8
+    onnx.save(proto, str(tmp_path / "seq.onnx"))
+    model = OnnxModel(tmp_path / "seq.onnx")
+    assert onnx_grid(model) == 8
+    rgb = np.random.default_rng(0).random((256, 600, 3), dtype=np.float32)
+    model.tiling = "off"
+    whole = model.predict(rgb)
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 256 ** 2}
+    np.testing.assert_allclose(model.predict(rgb), whole, rtol=0,
+                               atol=1e-5 * np.abs(whole).max())
+
+
+def test_the_margin_probe_leaves_the_models_session_in_place(tmp_path):
+    # it rebuilt the graph on the model itself: another thread's run found the rebuilt
+    # session without its feeds ("Required inputs ['mehs_given', …] are missing")
+    from test_ssr_tiling_onnx import se_graph
+
+    import mehs.ssr.tiling_onnx as tiling_onnx
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_onnx_probes import onnx_margin
+
+    model = OnnxModel(se_graph(tmp_path / "se.onnx"))
+    session, outputs, feeds = model.session, model._run_outputs, model._run_feeds
+    seen = []
+    run = tiling_onnx.OnnxImageMeans.run
+
+    def spy(self, *a, **k):
+        seen.append(model.session is session and model._run_feeds is feeds)
+        return run(self, *a, **k)
+
+    tiling_onnx.OnnxImageMeans.run = spy
+    try:
+        onnx_margin(model, 8)
+    finally:
+        tiling_onnx.OnnxImageMeans.run = run
+    assert seen and all(seen)
+    assert (model.session, model._run_outputs, model._run_feeds) == (session, outputs, feeds)
+
+
+def test_a_global_graph_fills_each_strip_length_once(tmp_path, monkeypatch):
+    # every strip of a global operation reaches its ends: the first decides, not all 12
+    # runs of a length (MST++ tiny: 12.8 s of probes)
+    from test_ssr_tiling_onnx import se_graph
+
+    import mehs.ssr.tiling_onnx_probes as probes
+    from mehs.ssr.models import OnnxModel
+    from mehs.ssr.tiling_probes import GLOBAL_MARGIN
+
+    calls = []
+    reach = probes._reach
+    monkeypatch.setattr(probes, "_reach", lambda *a, **k: calls.append(a[1]) or reach(*a, **k))
+    model = OnnxModel(se_graph(tmp_path / "g.onnx", other_global=True))
+    assert probes.onnx_margin(model, 8) == GLOBAL_MARGIN
+    assert calls == [256, 512, 1024, 2048]

@@ -72,12 +72,14 @@ def network_key(network) -> str | None:
     files = {sys.modules[type(m).__module__].__file__ for m in mods if _mehs_module(type(m))}
     import mehs.ssr.net.pooling
     import mehs.ssr.tiling
+    import mehs.ssr.tiling_grid
     import mehs.ssr.tiling_probes
     import mehs.ssr.tiling_torch
 
     # the probes, the hook that runs them, and the statistics they detach
     files |= {mehs.ssr.tiling.__file__, mehs.ssr.tiling_probes.__file__,
-              mehs.ssr.tiling_torch.__file__, mehs.ssr.net.pooling.__file__, __file__}
+              mehs.ssr.tiling_grid.__file__, mehs.ssr.tiling_torch.__file__,
+              mehs.ssr.net.pooling.__file__, __file__}
     for f in sorted(f for f in files if f):
         add(Path(f).name, hashlib.sha256(Path(f).read_bytes()).hexdigest())
     return h.hexdigest()

@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from mehs.ssr.tiling_grid import PROBE_SHAPE, _adjacent_pairs, _stride_of, probe_shape
+from mehs.ssr.tiling_grid import PROBE_SHAPE, probe_shape, shapes, strides_of_runs
 from mehs.ssr.tiling_probes import GLOBAL_MARGIN, FieldWiderThanBudget
 
 #: The longest margin probe (fields of up to ~1000 px: the full paper network's ~400).
@@ -60,60 +60,62 @@ def _input(model, rgb: np.ndarray) -> dict:
 
 def onnx_strides(model, *, shape: tuple[int, int] = PROBE_SHAPE) -> set[int]:
     """Strides ``s ≥ 2`` of the down-sampled maps an :class:`~mehs.ssr.models.OnnxModel`'s
-    graph computes (see module doc). ``shape`` must be a multiple of the model's size
-    multiple (no padding blurs the maps)."""
+    graph computes (:mod:`mehs.ssr.tiling_grid`). ``shape`` must be a multiple of the
+    model's size multiple (no padding blurs the maps), and even."""
     import onnx
     from onnx import TensorProto, helper
 
     proto = onnx.load(str(model.path))
     g = proto.graph
-    typed = {v.name: v.type for v in [*g.value_info, *g.output]}
+    try:
+        # the types of the intermediate values (their shapes may stay unknown)
+        inferred = onnx.shape_inference.infer_shapes(proto).graph
+        typed = {v.name: v.type for v in [*inferred.value_info, *inferred.output]}
+    except Exception:                   # noqa: BLE001 - a graph onnx cannot infer
+        typed = {v.name: v.type for v in [*g.value_info, *g.output]}
     values = []
     for node in g.node:
         for name in node.output:
             t = typed.get(name)
-            # sequences, maps and optionals have no Shape
-            if name and (t is None or t.HasField("tensor_type")):
+            # sequences, maps and optionals have no Shape; an untyped value is left out
+            if name and t is not None and t.HasField("tensor_type"):
                 values.append(name)
-    shapes = [f"mehs_shape_{i}" for i in range(len(values))]
-    g.node.extend(helper.make_node("Shape", [v], [s]) for v, s in zip(values, shapes))
+    names = [f"mehs_shape_{i}" for i in range(len(values))]
+    g.node.extend(helper.make_node("Shape", [v], [s]) for v, s in zip(values, names))
     del g.output[:]
-    g.output.extend(helper.make_tensor_value_info(s, TensorProto.INT64, [None]) for s in shapes)
+    g.output.extend(helper.make_tensor_value_info(s, TensorProto.INT64, [None]) for s in names)
     session = _session(proto, model)
-    h, w = shape
+    sizes = shapes(shape)
     rng = np.random.default_rng(0x6D656873)
     runs = []
-    for size in ((h, w), (w, h)):
-        outs = session.run(shapes, _input(model, rng.random((*size, 3), dtype=np.float32)))
+    for size in sizes:
+        outs = session.run(names, _input(model, rng.random((*size, 3), dtype=np.float32)))
         runs.append({v: tuple(int(d) for d in o) for v, o in zip(values, outs)})
-    strides = set()
-    for v, out in runs[0].items():
-        other = runs[1].get(v)
-        if other is None:
-            continue
-        for j, d, e in _adjacent_pairs(out):
-            s = _stride_of(d, e, h, w)
-            if s is not None and other == out[:j] + (e, d) + out[j + 2:]:
-                strides.add(s)
-    return strides
+    return strides_of_runs(runs, sizes)
 
 
-def onnx_grid(model, *, max_pixels: int | None = None) -> int:
+def onnx_grid(model) -> int:
     """Tile grid of an ONNX model: the least common multiple of 8, its size multiple and
-    :func:`onnx_strides` (``max_pixels`` as :func:`mehs.ssr.tiling_grid.torch_grid`)."""
+    :func:`onnx_strides`. (The probe is not shrunk to a memory budget: on a smaller one
+    a network that pads to its grid blurs its maps' sizes, and the grid read off them
+    was wrong, and cached.)"""
     from mehs.ssr.tiling_pad import size_multiple
 
     k = size_multiple(model)
-    return math.lcm(8, k, *onnx_strides(model, shape=probe_shape(max_pixels, k)))
+    return math.lcm(8, k, *onnx_strides(model, shape=probe_shape(None, k)))
 
 
 def _runner(model):
     """``(run, close)``: ``run(rgb)`` is the model's output with its global average
-    poolings on means given once (from the first image it sees); ``close()`` puts the
-    model's graph back."""
+    poolings on means given once (from the first image it sees); ``close()`` lets the
+    rebuilt graph go. The graph is rebuilt on a copy of the model: the model's own
+    session stays in place for other threads."""
+    import copy
+
     from mehs.errors import InputError
     from mehs.ssr.tiling_onnx import OPEN_END, OnnxImageMeans, _finite_means
 
+    model = copy.copy(model)
     try:
         state = OnnxImageMeans(model)
     except InputError:
@@ -197,8 +199,16 @@ def onnx_margin(model, align: int, *, max_bytes: int | None = None,
             if (filled is not None and max_bytes is not None and need is not None
                     and need > max_bytes):
                 raise FieldWiderThanBudget(-(-(filled // 2) // a) * a, filled, int(need))
-            margins = [_reach(run, length, side, a, rng, axis, hdr)
-                       for axis in (1, 0) for hdr in (False, True)]
+            margins = []
+            for axis in (1, 0):
+                for hdr in (False, True):
+                    # the first strip the field fills decides: a longer one comes next
+                    # (a global operation fills them all: 4 runs a length, not 12)
+                    margins.append(_reach(run, length, side, a, rng, axis, hdr))
+                    if margins[-1] is None:
+                        break
+                if margins[-1] is None:
+                    break
             if None not in margins:
                 return max(margins)
             filled = length
@@ -209,9 +219,34 @@ def onnx_margin(model, align: int, *, max_bytes: int | None = None,
         close()
 
 
+def _external_files(path) -> list:
+    """The files an ONNX model keeps its external-data tensors in (their bytes are the
+    weights, which the margin depends on)."""
+    from pathlib import Path
+
+    import onnx
+
+    proto = onnx.load(str(path), load_external_data=False)
+    found = set()
+    graphs = [proto.graph]
+    while graphs:
+        g = graphs.pop()
+        for t in g.initializer:
+            if t.data_location == onnx.TensorProto.EXTERNAL:
+                for e in t.external_data:
+                    if e.key == "location":
+                        found.add(e.value)
+        for n in g.node:
+            for a in n.attribute:
+                graphs.extend([a.g] if a.HasField("g") else [])
+                graphs.extend(a.graphs)
+    return [Path(path).parent / f for f in sorted(found)]
+
+
 def onnx_file_key(model) -> str:
-    """The probe-cache key of an ONNX model: its file's bytes, its size multiple and the
-    probes' source (an edit measures again)."""
+    """The probe-cache key of an ONNX model: its file's bytes and its external data's,
+    the output it is read from, its size multiple and the probes' source (an edit
+    measures again)."""
     from pathlib import Path
 
     import mehs.ssr.tiling_grid
@@ -221,10 +256,18 @@ def onnx_file_key(model) -> str:
     from mehs.ssr.tiling_pad import size_multiple
 
     h = hashlib.sha256()
-    with open(model.path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    h.update(f"\0k={size_multiple(model)}\0".encode())
+    files = [model.path]
+    try:
+        files += _external_files(model.path)
+    except ImportError:
+        pass                  # without onnx nothing is measured, so nothing is stored
+    for name in files:
+        h.update(f"\0{Path(name).name}\0".encode())
+        with open(name, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    h.update(f"\0k={size_multiple(model)}\0out={getattr(model, 'output_name', '')}\0"
+             f"layout={getattr(model, 'layout', '')}\0".encode())
     for mod in (mehs.ssr.tiling_grid, mehs.ssr.tiling_onnx, mehs.ssr.tiling_onnx_graph,
                 mehs.ssr.tiling_probes):
         h.update(hashlib.sha256(Path(mod.__file__).read_bytes()).digest())
@@ -239,6 +282,7 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
     the field), both kept in the probe cache by the graph file's bytes."""
     import warnings
 
+    from mehs.errors import first_line
     from mehs.ssr.probe_cache import ProbeStore
     from mehs.ssr.tiling import (ONNX_DEFAULT_ALIGN, ONNX_DEFAULT_MARGIN, default_budget,
                                  env_max_bytes)
@@ -253,23 +297,27 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
         return int(opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss")))
 
     def bpp() -> float | None:
+        # measured only: a bytes_per_pixel given for planning the tiles may be a fiction
         v = model.__dict__.get("_tiling_probe", {}).get("bytes_per_pixel")
         return None if v is None else float(v)
 
-    def no_onnx(what: str, default: int) -> int:
-        warnings.warn(f"{model.name}: the onnx package is missing, so its tiling {what} cannot "
-                      f"be measured; {default} px is used (pip install \"mehs[onnx]\", or "
-                      f"model.tiling = {{\"{what}\": …}})", RuntimeWarning, stacklevel=4)
+    def unmeasured(what: str, default: int, why: str) -> int:
+        warnings.warn(f"{model.name}: its tiling {what} cannot be measured ({why}); {default} "
+                      f"px is used, which may not cover it (model.tiling = {{\"{what}\": …}})",
+                      RuntimeWarning, stacklevel=4)
         return default
 
     def align() -> int:
         v = store.get("align")
         if v is None:
-            b = bpp()
             try:
-                v = onnx_grid(model, max_pixels=None if b is None else int(budget() // b))
+                v = onnx_grid(model)
             except ImportError:
-                return no_onnx("align", ONNX_DEFAULT_ALIGN)
+                return unmeasured("align", ONNX_DEFAULT_ALIGN,
+                                  'the onnx package is missing: pip install "mehs[onnx]"')
+            except Exception as exc:    # noqa: BLE001 - onnxruntime's own types
+                return unmeasured("align", ONNX_DEFAULT_ALIGN,
+                                  f"its graph with Shape nodes does not run: {first_line(exc)}")
             store.put("align", v)
         return v
 
@@ -286,7 +334,8 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
         try:
             v = onnx_margin(model, align(), max_bytes=b, bytes_per_pixel=bpp())
         except ImportError:
-            return no_onnx("margin", ONNX_DEFAULT_MARGIN)
+            return unmeasured("margin", ONNX_DEFAULT_MARGIN,
+                              'the onnx package is missing: pip install "mehs[onnx]"')
         except FieldWiderThanBudget as e:
             if e.needed is not None:
                 store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,

@@ -101,13 +101,14 @@ def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
         return mem
 
     def measure_align() -> int:
-        # the grid probe runs the network whole on 384×256: within the budget, by the
-        # memory probe's figure where it ran (a user's bytes_per_pixel may be a fiction)
-        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
-        bpp = model.__dict__.get("_tiling_probe", {}).get("bytes_per_pixel")
-        limit = None if bpp is None else int(budget // max(float(bpp), 1.0))
+        # the grid probe runs the network whole on 384×256 (and its transpose and half):
+        # a smaller probe blurs the sizes of a network that pads to its grid, and the grid
+        # read off them was wrong; only a network whose memory grows faster than its
+        # input (a max_tile_pixels cap) gets one that fits
+        limit = None
         if cap is not None:
-            limit = min(limit or cap(budget), cap(budget))
+            limit = cap(opts.get("max_bytes") or env_max_bytes()
+                        or default_budget(opts.get("max_rss")))
         return torch_align(probed, max_pixels=limit, multiple=k)
 
     # the margin probe needs the grid first: one measurement for both
