@@ -25,21 +25,26 @@ from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, margin_or_bound, once, torch_
                                     torch_memory_probe, torch_receptive_radius)
 
 
-def tiled_torch_call(model, rgb: np.ndarray) -> np.ndarray:
+def tiled_torch_call(model, rgb: np.ndarray,
+                     whole: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """``model.network`` (torch, eval mode) on ``rgb (H, W, 3)`` → ``(H, W, B)``, tiled when large.
 
     The probes measure the network's memory (:func:`torch_memory_probe`), its
     margin (:func:`torch_receptive_radius` on its pooling grid: tiles then agree
     with whole-image inference wherever the network is local) and its grid.
+    ``whole``: how the model runs one image or tile ``(h, w, 3)`` → ``(h, w, B)`` (its
+    own checks and conversions), else ``model.network`` on it; the probes run
+    ``model.network``.
     """
     import torch
 
     k = size_multiple(model)
 
-    def whole(x: np.ndarray) -> np.ndarray:
-        t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None]).to(model.device)
-        with torch.no_grad():
-            return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
+    if whole is None:
+        def whole(x: np.ndarray) -> np.ndarray:
+            t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None]).to(model.device)
+            with torch.no_grad():
+                return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
 
     run = padded(whole, k, getattr(model, "name", "model"))
     net = model.network

@@ -236,9 +236,21 @@ class TorchScriptModel(SSRModel):
                                 wavelengths=self._declared, size_multiple=self.size_multiple)
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
-        from mehs.ssr.tiling_pad import call_padded, size_multiple
+        """``rgb (H, W, 3)`` → ``(H, W, B)``; in overlapping tiles when the image would not
+        fit the memory budget (:mod:`mehs.ssr.tiling`, ``tiling`` as for
+        :class:`TorchSSRModel`): the probes run the module through :attr:`network`."""
+        from mehs.ssr.tiling_torch import tiled_torch_call
 
-        return call_padded(self._predict_whole, rgb, size_multiple(self), self.name)
+        return np.asarray(tiled_torch_call(self, np.asarray(rgb, dtype=np.float32),
+                                           whole=self._predict_whole), dtype=np.float32)
+
+    @property
+    def network(self) -> "torch.nn.Module":
+        """The module as the tiling probes run it: ``(1, 3, H, W)`` float32 in, its first
+        output as float32 out."""
+        if self.__dict__.get("_network") is None:
+            self._network = _FirstOutput(self.module, self.dtype).eval()
+        return self._network
 
     @torch.no_grad()
     def _predict_whole(self, rgb: np.ndarray) -> np.ndarray:
@@ -266,6 +278,21 @@ class TorchScriptModel(SSRModel):
             raise InputError(f"{self.name}: the module gives {y.shape[1]} bands; declare them "
                              "with wavelengths= or a 'wavelengths' attribute", self.path)
         return y[0].permute(1, 2, 0).float().cpu().numpy()
+
+
+class _FirstOutput(nn.Module):
+    """A module's first output (MST++ and AWAN return tuples), in float32, its input cast
+    to the module's float type."""
+
+    def __init__(self, module, dtype):
+        super().__init__()
+        self.module, self.dtype = module, dtype
+
+    def forward(self, x):
+        y = self.module(x.to(self.dtype))
+        if isinstance(y, (tuple, list)):
+            y = y[0]
+        return y.float()
 
 
 def load_torch_model(checkpoint: str | Path, *, name: str | None = None,

@@ -1,0 +1,88 @@
+"""TorchScript models run in tiles when memory is short (issue 16, session 26).
+
+A user's TorchScript archive (``torch.jit.save``; the usual way to ship MST++, AWAN or
+HSCNN+ weights with their code) always ran on the whole image: a 2048×1024 image through
+MST++ held 4.4 GB, whatever the memory budget said.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+nn, F = torch.nn, torch.nn.functional
+
+
+class UNet(nn.Module):
+    """Three poolings, padding itself to 8."""
+
+    def __init__(self):
+        super().__init__()
+        self.inc = nn.Conv2d(3, 8, 3, padding=1)
+        self.down = nn.ModuleList(nn.Conv2d(8, 8, 3, padding=1) for _ in range(3))
+        self.out = nn.Conv2d(8, 31, 3, padding=1)
+
+    def forward(self, x):
+        h, w = x.shape[-2], x.shape[-1]
+        x = F.pad(x, [0, (8 - w % 8) % 8, 0, (8 - h % 8) % 8], mode="replicate")
+        y = torch.relu(self.inc(x))
+        skips = []
+        for d in self.down:
+            skips.append(y)
+            y = F.avg_pool2d(torch.tanh(d(y)), 2)
+        for s in skips[::-1]:
+            y = F.interpolate(y, scale_factor=2.0, mode="nearest") + s
+        return self.out(y)[:, :, :h, :w]
+
+
+class Pair(nn.Module):
+    """A tuple out, as MST++'s and AWAN's public code gives."""
+
+    def __init__(self):
+        super().__init__()
+        self.net = UNet()
+
+    def forward(self, x):
+        y = self.net(x)
+        return y, y.mean()
+
+
+def _save(net, path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)    # torch ≥ 2.9 on jit
+        torch.jit.save(torch.jit.script(net.eval()), str(path))
+    return path
+
+
+@pytest.mark.parametrize("pair", [False, True])
+def test_a_torchscript_model_is_tiled_to_its_budget(tmp_path, pair):
+    from mehs.ssr.net.export import TorchScriptModel
+
+    torch.manual_seed(0)
+    model = TorchScriptModel(_save(Pair() if pair else UNet(), tmp_path / "unet.pt"))
+    rgb = np.random.default_rng(0).random((256, 600, 3), dtype=np.float32)
+    model.tiling = "off"
+    whole = model.predict(rgb)
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 200 ** 2}
+    tiled = model.predict(rgb)
+    last = model._tiling_last
+    assert last["summary"]["tiles"] >= 3
+    assert model._tiling_probe["align"] == 8 and model._tiling_probe["margin"] > 0
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_tiled_torchscript_model_keeps_its_checks(tmp_path):
+    from mehs.errors import InputError
+    from mehs.ssr.net.export import TorchScriptModel
+
+    class Five(nn.Module):
+        def forward(self, x):
+            return x[:, :1].repeat(1, 5, 1, 1)
+
+    model = TorchScriptModel(_save(Five(), tmp_path / "five.pt"))
+    model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 200 ** 2}
+    with pytest.raises(InputError, match="gives 5 bands"):
+        model.predict(np.zeros((256, 600, 3), np.float32))
