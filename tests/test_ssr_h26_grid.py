@@ -276,3 +276,33 @@ def test_anisotropic_poolings_and_flattened_windows_set_the_grid(make):
     assert model._tiling_probe["align"] % 16 == 0
     assert model._tiling_last["summary"]["tiles"] >= 3
     np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+class BlockNorm(torch.nn.Module):
+    """Statistics of 16×16 blocks through a view: (C, H/16, 16, W/16, 16), no two of the
+    block axes adjacent."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 4, 3, padding=1)
+
+    def forward(self, x):
+        h, w = x.shape[-2:]
+        y = F.pad(self.conv(x), (0, (-w) % 16, 0, (-h) % 16), mode="replicate")
+        c, hh, ww = y.shape[1], y.shape[2] // 16, y.shape[3] // 16
+        v = y.view(1, c, hh, 16, ww, 16)
+        v = (v - v.mean((3, 5), keepdim=True)) / (v.std((3, 5), keepdim=True) + 1e-3)
+        return v.view(1, c, hh * 16, ww * 16)[..., :h, :w]
+
+
+def test_block_statistics_through_a_view_set_the_grid():
+    # the probe paired adjacent axes only: grid 8, tiles 1e-1 of the range off
+    from mehs.ssr.tiling_grid import torch_strides
+
+    torch.manual_seed(0)
+    net = BlockNorm().eval()
+    assert torch_strides(net) == {16}
+    rgb = np.random.default_rng(0).random((256, 448, 3), dtype=np.float32)
+    tiled, whole, model = _tiled_vs_whole(net, rgb, max_bytes=170 * 170)
+    assert model._tiling_last["summary"]["tiles"] >= 3
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())

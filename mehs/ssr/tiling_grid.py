@@ -15,8 +15,9 @@ and half its size. Every operator's output shapes are recorded (torch:
 scripted module alike; ONNX: ``Shape`` nodes, :mod:`mehs.ssr.tiling_onnx_probes`), and
 each output is compared with the same output of the other runs (:func:`strides_between`):
 
-- two adjacent dimensions that follow the input's height and width, each down-sampled by
-  some stride (``(H/2, W/16)``: an anisotropic pooling gives both 2 and 16) — a map;
+- two dimensions that follow the input's height and width, each down-sampled by some
+  stride (``(H/2, W/16)``: an anisotropic pooling gives both 2 and 16; ``(C, H/16, 16,
+  W/16, 16)``: blocks through a view) — a map;
 - one dimension that follows the input's area down-sampled by ``s²`` — windows or tokens
   flattened (``unfold`` into 16×16 windows, a Swin block's window count).
 
@@ -99,27 +100,29 @@ def map_strides(sa: tuple[int, ...], sb: tuple[int, ...] | None, sc: tuple[int, 
     """Strides ``≥ 2`` of the maps one operator output shows, shaped ``sa``, ``sb``, ``sc``
     on the inputs of :func:`shapes` ``sizes`` (None: not seen in that run).
 
-    Two adjacent dimensions are a map when each follows its input axis between the
-    first two runs with a stride of its own; strides that differ between the axes must
+    Two dimensions (the only two that differ) are a map when each follows its input
+    axis between the first two runs with a stride of its own; strides that differ between the axes must
     hold in the third run too (rows that a memory-lean network processes in strips of
     so many pixels follow the width inversely, and read as a stride of 3 otherwise).
     """
     if sb is None or len(sa) != len(sb) or sa == sb:
         return set()
-    diff = {k for k in range(len(sa)) if sa[k] != sb[k]}
+    diff = [k for k in range(len(sa)) if sa[k] != sb[k]]
+    if len(diff) != 2:
+        return set()
     (ha, wa), (hb, wb), (hc, wc) = sizes
     found: set[int] = set()
-    for j in range(len(sa) - 1):
-        if not diff <= {j, j + 1}:
-            continue
+    # the two axes need not be adjacent ((C, H/16, 16, W/16, 16): 16×16 blocks through a
+    # view), nor in the input's order
+    for j, k in (diff, diff[::-1]):
         sh = _axis_stride(sa[j], ha, sb[j], hb)
-        sw = _axis_stride(sa[j + 1], wa, sb[j + 1], wb)
+        sw = _axis_stride(sa[k], wa, sb[k], wb)
         if sh is None or sw is None:
             continue
         if sh != sw:
             ok = (sc is not None and len(sc) == len(sa)
-                  and all(sc[k] == sa[k] for k in range(len(sa)) if k not in (j, j + 1))
-                  and _fits(sc[j], hc, sh) and _fits(sc[j + 1], wc, sw))
+                  and all(sc[m] == sa[m] for m in range(len(sa)) if m not in (j, k))
+                  and _fits(sc[j], hc, sh) and _fits(sc[k], wc, sw))
             if not ok:
                 continue
         found |= {sh, sw} - {1}
