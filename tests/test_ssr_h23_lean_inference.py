@@ -1,6 +1,8 @@
 """Lean SSR network inference (issue 16): row strips, a cheap max-pool, and collecting runs
 that never run the head. Each must give the numbers of the plain training graph."""
 
+import warnings
+
 import numpy as np
 import pytest
 from _checks import contrast_rgb
@@ -151,8 +153,12 @@ def test_a_crop_that_pools_differently_costs_a_run_not_the_result():
         return tiled_torch_call(model, rgb), model
 
     whole, _ = run()
-    image, m = run(bytes_per_pixel=1.0, max_bytes=48 * 136, statistics="image",
-                   margin=8, align=8)
+    with warnings.catch_warnings():
+        # its second attention layer runs on tiles over 1600 px only: the check of the
+        # tiles on a probe image (session 26) may take it for a network whose tiles differ
+        warnings.simplefilter("ignore", RuntimeWarning)
+        image, m = run(bytes_per_pixel=1.0, max_bytes=48 * 136, statistics="image",
+                       margin=8, align=8)
     assert m._tiling_last["summary"]["tiles"] >= 3
     # the collecting run stopped after ca1, so ca2's means came one run later
     assert m._tiling_last["image_runs"] >= 3

@@ -362,8 +362,23 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                          "statistics 'tile'")
     with reused_heap(reuse):
         if wide:
-            return image_means(fn, rgb, plan, statistics == "image")
-        return predict_tiled(fn, rgb, plan)
+            out = image_means(fn, rgb, plan, statistics == "image")
+        else:
+            out = predict_tiled(fn, rgb, plan)
+    check = probes.get("check_tiles")
+    if check is not None and statistics != "tile" and not record.get("tiles_differ") \
+            and check(record):
+        from mehs.ssr.tiling_check import check_tiles
+
+        def run(x: np.ndarray, p: TilingPlan) -> np.ndarray:
+            if record.get("statistics") == "image":
+                return image_means(fn, x, p, False)
+            return predict_tiled(fn, x, p)
+
+        saved = dict(record)
+        check_tiles(model, fn, plan, run, (h, w))
+        model.__dict__["_tiling_last"] = saved        # the probe's run is not this call's
+    return out
 
 
 #: The margin and grid of an ONNX graph that cannot be measured (the ``onnx`` package
@@ -399,6 +414,8 @@ def tiled_onnx_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.ndarr
 
         given = getattr(model, "tiling", None)
         probes = onnx_tiling_probes(model, memory, given if isinstance(given, dict) else {})
+        # graphs tiled with image-wide means were checked on a probe already
+        probes["check_tiles"] = lambda record: record.get("statistics") == "tile"
     else:       # a graph behind a bare function cannot be rebuilt to measure
         probes = {"bytes_per_pixel": memory, "margin": lambda: ONNX_DEFAULT_MARGIN,
                   "align": lambda: ONNX_DEFAULT_ALIGN}

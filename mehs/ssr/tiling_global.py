@@ -72,6 +72,7 @@ def warn_tiles_differ(model, why: str) -> None:
     (statistics "auto" on a network whose global operations tiles cannot assemble):
     ~1e-5 of the range for AWAN's attention, 3e-2 for an ONNX MST++'s channel
     similarity. Silent where the user asked for per-tile statistics."""
+    model.__dict__.setdefault("_tiling_last", {})["tiles_differ"] = True
     warnings.warn(f"{getattr(model, 'name', 'model')}: {why}, so its tiles use their own "
                   "statistics and differ from whole-image inference; with more memory "
                   "(MEHS_TILE_MEMORY) fewer tiles, with tiling 'off' none; statistics "

@@ -129,6 +129,11 @@ def tiled_torch_call(model, rgb: np.ndarray,
         # the margin probe reads the grid through the store too
         align = probes["align"] = once(probes["align"])
     probes["margin"] = margin_or_bound(model, probes["margin"])
+    from mehs.ssr.probe_cache import network_key
+
+    # a user's network is checked on a probe image (mehs's own are, in the test suite)
+    user = network_key(net) is None
+    probes["check_tiles"] = lambda record: user
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
 
 
