@@ -86,3 +86,43 @@ def test_a_tiled_torchscript_model_keeps_its_checks(tmp_path):
     model.tiling = {"bytes_per_pixel": 1000.0, "max_bytes": 1000 * 200 ** 2}
     with pytest.raises(InputError, match="gives 5 bands"):
         model.predict(np.zeros((256, 600, 3), np.float32))
+
+
+class Multiple64(nn.Module):
+    """Six poolings without padding: takes only multiples of 64, and declares nothing."""
+
+    def __init__(self):
+        super().__init__()
+        self.inc = nn.Conv2d(3, 8, 3, padding=1)
+        self.down = nn.ModuleList(nn.Conv2d(8, 8, 3, padding=1) for _ in range(6))
+        self.out = nn.Conv2d(8, 31, 3, padding=1)
+
+    def forward(self, x):
+        y = torch.relu(self.inc(x))
+        skips = []
+        for d in self.down:
+            skips.append(y)
+            y = F.avg_pool2d(torch.tanh(d(y)), 2)
+        for s in skips[::-1]:
+            y = F.interpolate(y, scale_factor=2.0, mode="nearest") + s
+        return self.out(y)
+
+
+def test_a_module_that_takes_only_some_sizes_still_runs_whole(tmp_path):
+    # the tiling probes run it on sizes of their own (96²): a raw TorchScript error where
+    # it ran whole before
+    from mehs.errors import InputError
+    from mehs.ssr.net.export import TorchScriptModel
+
+    torch.manual_seed(2)
+    path = _save(Multiple64(), tmp_path / "m64.pt")
+    model = TorchScriptModel(path)
+    rgb = np.random.default_rng(2).random((512, 512, 3), dtype=np.float32)
+    with pytest.warns(RuntimeWarning, match="tiling probes cannot run"):
+        out = model.predict(rgb)
+    assert out.shape == (512, 512, 31)
+    model.tiling = "off"
+    np.testing.assert_array_equal(model.predict(rgb), out)
+    with pytest.raises(InputError, match="fails on a 500×500 image"), \
+            pytest.warns(RuntimeWarning, match="tiling probes cannot run"):
+        TorchScriptModel(path).predict(np.zeros((500, 500, 3), np.float32))

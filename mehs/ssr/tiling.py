@@ -376,7 +376,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
             return predict_tiled(fn, x, p)
 
         saved = dict(record)
-        check_tiles(model, fn, plan, run, (h, w))
+        check_tiles(model, fn, plan, run, saved)
         model.__dict__["_tiling_last"] = saved        # the probe's run is not this call's
     return out
 

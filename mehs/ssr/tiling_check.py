@@ -7,13 +7,13 @@ Some are not, and no field or shape shows it: a bilinear up-sampling to the inpu
 with ``align_corners=True`` (older HRNet-style code) samples at positions that depend on
 the whole image's size, and its tiles were 7.9e-2 of the range off, silently.
 
-:func:`check_tiles` runs the plan on a probe image — two tiles side by side, on the
-plan's grid, margin and blend, as large as the plan's where that is small beside the
-image — and compares it with the whole probe image; a
+:func:`check_tiles` runs the plan on two probe images — two tiles side by side, and two
+one above the other, on the plan's grid, margin and blend, as large as the plan's where a
+probe fits one tile's pixels — and compares them with the whole probe images; a
 difference above :data:`CHECK_TOL` of the range (all but 0.1 % of the values) gives a
-warning naming the model. Once per model and plan shape. mehs's own networks, whose
-tiles the test suite compares with whole images, skip it, as do tiles that are known to
-differ (their own statistics) and plans whose probe would not be small beside the image.
+warning naming the model, on every call (measured once per model and plan shape).
+mehs's own networks, whose tiles the test suite compares with whole images, skip it, as
+do tiles that are known to differ (their own statistics).
 """
 
 from __future__ import annotations
@@ -28,9 +28,6 @@ from mehs.ssr.tiling_blend import TilingPlan
 #: Agreement the probe must show (relative to the range), by all but 0.1 % of its values:
 #: a graph that divides by its output's X+Y+Z magnifies rounding at a few pixels.
 CHECK_TOL, CHECK_QUANTILE = 1e-5, 0.999
-#: The largest probe, as a share of the image's pixels (with the whole probe and its two
-#: tiles, about three times that is computed).
-CHECK_SHARE = 0.1
 
 
 def probe_image(h: int, w: int) -> np.ndarray:
@@ -43,47 +40,73 @@ def probe_image(h: int, w: int) -> np.ndarray:
     return x
 
 
-def check_tiles(model, fn: Callable[[np.ndarray], np.ndarray], plan: TilingPlan,
-                run: Callable[[np.ndarray, TilingPlan], np.ndarray],
-                shape: tuple[int, int]) -> float | None:
-    """Compare ``run(probe, probe_plan)`` (the tiled path) with ``fn(probe)`` (whole) on a
-    probe of two tiles of ``plan``'s grid, margin and blend; warn where they differ.
-
-    Returns the difference (relative to the range, at :data:`CHECK_QUANTILE`), or None
-    where it was not checked (done before for this plan shape, or the probe would be more
-    than :data:`CHECK_SHARE` of the ``shape`` image). Kept in ``model._tiling_probe``
-    (``tiles_checked``, ``tiles_check_diff``).
-    """
+def _probe_tiles(plan: TilingPlan) -> tuple[int, int] | None:
+    """Tile height and width for the probes: the plan's own (a network may act on a
+    tile's size), halved on the grid while a probe of two of them would need more pixels
+    than one of the plan's tiles (the tile budget), down to the smallest tile on the grid;
+    None where even that probe would need more than twice a tile."""
     a = plan.align
-    cache = model.__dict__.setdefault("_tiling_probe", {})
-    key = [plan.margin, plan.blend, a]
-    if cache.get("tiles_checked") == key:
-        return None
-    # the plan's own tiles where they are small beside the image (a network may act on a
-    # tile's size), else smaller ones on the grid, down to the smallest
     smallest = -(-(plan.overlap + a) // a) * a
     th, tw = max(plan.tile, smallest), max(plan.width, smallest)
-    limit = CHECK_SHARE * shape[0] * shape[1]
+    budget = plan.tile * plan.width
 
-    def pixels(th: int, tw: int) -> int:
-        return th * (tw + (tw - plan.overlap) // a * a)
+    def pixels(th: int, tw: int) -> int:      # the larger of the two probes
+        return max(th * (tw + (tw - plan.overlap) // a * a),
+                   tw * (th + (th - plan.overlap) // a * a))
 
-    while pixels(th, tw) > limit and max(th, tw) > smallest:
+    while pixels(th, tw) > budget and max(th, tw) > smallest:
         th, tw = max(smallest, th // 2 // a * a), max(smallest, tw // 2 // a * a)
-    if pixels(th, tw) > limit:
-        return None
-    rgb = probe_image(th, tw + (tw - plan.overlap) // a * a)
-    whole = np.asarray(fn(rgb), dtype=np.float32)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)      # said once, below
-        tiled = np.asarray(run(rgb, TilingPlan(th, plan.margin, plan.blend, a, tw)),
-                           dtype=np.float32)
-    scale = float(np.abs(whole).max()) or 1.0
-    d = np.abs(tiled - whole) / scale
-    diff = float(np.quantile(d, CHECK_QUANTILE)) if np.isfinite(d).all() else float("inf")
-    cache["tiles_checked"], cache["tiles_check_diff"] = key, diff
-    if diff > CHECK_TOL:
-        warnings.warn(f"{getattr(model, 'name', 'model')}: on a probe image its tiles "
+    return (th, tw) if pixels(th, tw) <= 2 * budget else None
+
+
+def check_tiles(model, fn: Callable[[np.ndarray], np.ndarray], plan: TilingPlan,
+                run: Callable[[np.ndarray, TilingPlan], np.ndarray],
+                record: dict) -> float | None:
+    """Compare ``run(probe, probe_plan)`` (the tiled path) with ``fn(probe)`` (whole) on two
+    probes, two tiles of ``plan``'s grid, margin and blend side by side and two one above
+    the other (a network may be shift-equivariant along one axis only); warn where they
+    differ, on every call.
+
+    Returns the difference (relative to the range, at :data:`CHECK_QUANTILE`), or None
+    where the probe would need more than twice a tile's pixels (warned: the tiles are
+    unchecked). Measured once per model and plan shape (``model._tiling_probe``:
+    ``tiles_checked``, ``tiles_check_diff``); the call's ``record`` gets
+    ``tiles_check_diff`` and, where they differ, ``tiles_differ``.
+    """
+    a = plan.align
+    name = getattr(model, "name", "model")
+    cache = model.__dict__.setdefault("_tiling_probe", {})
+    key = [plan.margin, plan.blend, a, plan.tile, plan.width]
+    if cache.get("tiles_checked") != key:
+        sides = _probe_tiles(plan)
+        diff = None
+        if sides is not None:
+            th, tw = sides
+            diff = 0.0
+            for h, w in ((th, tw + (tw - plan.overlap) // a * a),
+                         (th + (th - plan.overlap) // a * a, tw)):
+                rgb = probe_image(h, w)
+                whole = np.asarray(fn(rgb), dtype=np.float32)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)    # said below
+                    tiled = np.asarray(run(rgb, TilingPlan(th, plan.margin, plan.blend, a, tw)),
+                                       dtype=np.float32)
+                scale = float(np.abs(whole).max()) or 1.0
+                d = np.abs(tiled - whole) / scale
+                diff = max(diff, float(np.quantile(d, CHECK_QUANTILE))
+                           if np.isfinite(d).all() else float("inf"))
+                del rgb, whole, tiled, d
+        cache["tiles_checked"], cache["tiles_check_diff"] = key, diff
+    diff = cache["tiles_check_diff"]
+    record["tiles_check_diff"] = diff
+    if diff is None:
+        warnings.warn(f"{name}: its tiles (margin {plan.margin}, grid {a}) could not be "
+                      "checked against whole-image inference within the tile budget; they "
+                      "are exact only if the network is shift-equivariant on its grid and "
+                      "its field within the margin", RuntimeWarning, stacklevel=4)
+    elif diff > CHECK_TOL:
+        record["tiles_differ"] = True
+        warnings.warn(f"{name}: on a probe image its tiles "
                       f"(margin {plan.margin}, grid {a}) differ from whole-image inference "
                       f"by {diff:.1e} of the range: it is not shift-equivariant on its grid "
                       "(a resampling to the image's size, align_corners=True?) or its field "

@@ -239,10 +239,26 @@ class TorchScriptModel(SSRModel):
         """``rgb (H, W, 3)`` → ``(H, W, B)``; in overlapping tiles when the image would not
         fit the memory budget (:mod:`mehs.ssr.tiling`, ``tiling`` as for
         :class:`TorchSSRModel`): the probes run the module through :attr:`network`."""
+        from mehs.ssr.tiling_pad import call_padded, size_multiple
         from mehs.ssr.tiling_torch import tiled_torch_call
 
-        return np.asarray(tiled_torch_call(self, np.asarray(rgb, dtype=np.float32),
-                                           whole=self._predict_whole), dtype=np.float32)
+        rgb = np.asarray(rgb, dtype=np.float32)
+        if not self.__dict__.get("_untileable"):
+            try:
+                return np.asarray(tiled_torch_call(self, rgb, whole=self._predict_whole),
+                                  dtype=np.float32)
+            except RuntimeError as exc:
+                if "memory" in str(exc).lower():
+                    raise
+                # the probes run the module on sizes of their own (96², 384×256, …),
+                # which a module that takes only some sizes refuses; the tiles themselves
+                # go through _predict_whole, whose errors are InputErrors
+                self._untileable = True
+                warnings.warn(f"{self.name}: its tiling probes cannot run the module "
+                              f"({first_line(exc)}); it runs on whole images (a module that "
+                              "takes only sizes divisible by k: size_multiple=k)",
+                              RuntimeWarning, stacklevel=2)
+        return call_padded(self._predict_whole, rgb, size_multiple(self), self.name)
 
     @property
     def network(self) -> "torch.nn.Module":
