@@ -39,25 +39,30 @@ class CellNet(torch.nn.Module):
 
 
 class AvgUNet(torch.nn.Module):
-    """A U-Net of ``levels`` average poolings (no ``depth`` attribute): grid ``2**levels``."""
+    """A U-Net of ``levels`` average poolings (no ``depth`` attribute): grid ``2**levels``;
+    ``pad``: it pads itself to its grid (else it takes multiples of it only)."""
 
-    def __init__(self, levels: int, ch: int = 4):
+    def __init__(self, levels: int, ch: int = 4, bands: int = 4, pad: bool = False):
         super().__init__()
-        self.levels = levels
+        self.levels, self.pad = levels, pad
         self.inc = torch.nn.Conv2d(3, ch, 3, padding=1)
         self.down = torch.nn.ModuleList(torch.nn.Conv2d(ch, ch, 3, padding=1)
                                         for _ in range(levels))
         self.up = torch.nn.ModuleList(torch.nn.Conv2d(ch, ch, 1) for _ in range(levels))
-        self.out = torch.nn.Conv2d(ch, 4, 1)
+        self.out = torch.nn.Conv2d(ch, bands, 1)
 
     def forward(self, x):
+        h, w = x.shape[-2:]
+        if self.pad:
+            m = 2 ** self.levels
+            x = F.pad(x, (0, (-w) % m, 0, (-h) % m), mode="replicate")
         y, skips = torch.relu(self.inc(x)), []
         for d in self.down:
             skips.append(y)
             y = F.avg_pool2d(torch.tanh(d(y)), 2)
         for u, s in zip(self.up, reversed(skips)):
             y = F.interpolate(torch.tanh(u(y)), scale_factor=2, mode="nearest") + s
-        return self.out(y)
+        return self.out(y)[..., :h, :w]
 
 
 def _tiled_vs_whole(net, rgb, **opts):

@@ -33,28 +33,11 @@ class Dilated(nn.Module):
         return self.out(x)
 
 
-class AvgUNet(nn.Module):
-    """A U-Net of ``levels`` average poolings that pads itself to its grid."""
+def AvgUNet(levels: int):
+    """A U-Net of ``levels`` average poolings that pads itself to its grid, 31 bands."""
+    from test_ssr_h26_grid import AvgUNet as UNet
 
-    def __init__(self, levels: int, ch: int = 4):
-        super().__init__()
-        self.levels = levels
-        self.inc = nn.Conv2d(3, ch, 3, padding=1)
-        self.down = nn.ModuleList(nn.Conv2d(ch, ch, 3, padding=1) for _ in range(levels))
-        self.up = nn.ModuleList(nn.Conv2d(ch, ch, 1) for _ in range(levels))
-        self.out = nn.Conv2d(ch, 31, 1)
-
-    def forward(self, x):
-        h, w = x.shape[-2:]
-        m = 2 ** self.levels
-        x = F.pad(x, (0, (-w) % m, 0, (-h) % m), mode="replicate")
-        y, skips = torch.relu(self.inc(x)), []
-        for d in self.down:
-            skips.append(y)
-            y = F.avg_pool2d(torch.tanh(d(y)), 2)
-        for u, s in zip(self.up, reversed(skips)):
-            y = F.interpolate(torch.tanh(u(y)), scale_factor=2, mode="nearest") + s
-        return self.out(y)[..., :h, :w]
+    return UNet(levels, bands=31, pad=True)
 
 
 def _export(net, path):

@@ -17,17 +17,21 @@ nn, F = torch.nn, torch.nn.functional
 
 
 class UNet(nn.Module):
-    """Three poolings, padding itself to 8."""
+    """``levels`` poolings; ``pad``: padding itself to its grid, else taking only its
+    multiples (and declaring nothing)."""
 
-    def __init__(self):
+    def __init__(self, levels: int = 3, pad: bool = True):
         super().__init__()
+        self.m, self.pad = 2 ** levels, pad
         self.inc = nn.Conv2d(3, 8, 3, padding=1)
-        self.down = nn.ModuleList(nn.Conv2d(8, 8, 3, padding=1) for _ in range(3))
+        self.down = nn.ModuleList(nn.Conv2d(8, 8, 3, padding=1) for _ in range(levels))
         self.out = nn.Conv2d(8, 31, 3, padding=1)
 
     def forward(self, x):
         h, w = x.shape[-2], x.shape[-1]
-        x = F.pad(x, [0, (8 - w % 8) % 8, 0, (8 - h % 8) % 8], mode="replicate")
+        if self.pad:
+            m = self.m
+            x = F.pad(x, [0, (m - w % m) % m, 0, (m - h % m) % m], mode="replicate")
         y = torch.relu(self.inc(x))
         skips = []
         for d in self.down:
@@ -88,26 +92,6 @@ def test_a_tiled_torchscript_model_keeps_its_checks(tmp_path):
         model.predict(np.zeros((256, 600, 3), np.float32))
 
 
-class Multiple64(nn.Module):
-    """Six poolings without padding: takes only multiples of 64, and declares nothing."""
-
-    def __init__(self):
-        super().__init__()
-        self.inc = nn.Conv2d(3, 8, 3, padding=1)
-        self.down = nn.ModuleList(nn.Conv2d(8, 8, 3, padding=1) for _ in range(6))
-        self.out = nn.Conv2d(8, 31, 3, padding=1)
-
-    def forward(self, x):
-        y = torch.relu(self.inc(x))
-        skips = []
-        for d in self.down:
-            skips.append(y)
-            y = F.avg_pool2d(torch.tanh(d(y)), 2)
-        for s in skips[::-1]:
-            y = F.interpolate(y, scale_factor=2.0, mode="nearest") + s
-        return self.out(y)
-
-
 def test_a_module_that_takes_only_some_sizes_still_runs_whole(tmp_path):
     # the tiling probes run it on sizes of their own (96²): a raw TorchScript error where
     # it ran whole before
@@ -115,7 +99,7 @@ def test_a_module_that_takes_only_some_sizes_still_runs_whole(tmp_path):
     from mehs.ssr.net.export import TorchScriptModel
 
     torch.manual_seed(2)
-    path = _save(Multiple64(), tmp_path / "m64.pt")
+    path = _save(UNet(6, pad=False), tmp_path / "m64.pt")    # multiples of 64 only
     model = TorchScriptModel(path)
     rgb = np.random.default_rng(2).random((512, 512, 3), dtype=np.float32)
     with pytest.warns(RuntimeWarning, match="tiling probes cannot run"):
