@@ -110,3 +110,21 @@ def test_a_module_that_takes_only_some_sizes_still_runs_whole(tmp_path):
     with pytest.raises(InputError, match="fails on a 500×500 image"), \
             pytest.warns(RuntimeWarning, match="tiling probes cannot run"):
         TorchScriptModel(path).predict(np.zeros((500, 500, 3), np.float32))
+
+
+def test_a_module_with_a_malformed_output_still_gets_a_clear_error(tmp_path):
+    # the probes read its output as a tensor: a raw AttributeError ('dict' has no
+    # 'float') where whole-image runs name the problem
+    from typing import Dict
+
+    from mehs.errors import InputError
+    from mehs.ssr.net.export import TorchScriptModel
+
+    class AsDict(nn.Module):
+        def forward(self, x) -> Dict[str, torch.Tensor]:
+            return {"spectra": x.repeat(1, 11, 1, 1)[:, :31]}
+
+    model = TorchScriptModel(_save(AsDict(), tmp_path / "dict.pt"))
+    with pytest.raises(InputError, match="is not \\(1, B, 512, 600\\)"), \
+            pytest.warns(RuntimeWarning, match="tiling probes cannot run"):
+        model.predict(np.zeros((512, 600, 3), np.float32))

@@ -174,7 +174,10 @@ class GenicamSimCamera:
     start_delay_ms
         The sensor's first exposure comes this long after AcquisitionStart (a camera
         that settles its sensor first); a sequence gives each acquisition its own,
-        the last repeating.
+        the last repeating. The fake camera's one thread waits it out, and answers no
+        GVCP meanwhile: keep it under the host's wait for a first frame plus Aravis's
+        ~2.5 s of GVCP retries, or the AcquisitionStop of a rejected pass times out and
+        the camera reads as unplugged (a real camera answers while it settles).
     port_wait_s
         Seconds to wait for another process's simulated camera to free GVCP port
         3956 (default: environment ``MEHS_GVCP_WAIT_S``, else 0 — fail at once);

@@ -87,15 +87,18 @@ def check_tiles(model, fn: Callable[[np.ndarray], np.ndarray], plan: TilingPlan,
                          (th + (th - plan.overlap) // a * a, tw)):
                 rgb = probe_image(h, w)
                 whole = np.asarray(fn(rgb), dtype=np.float32)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)    # said below
-                    tiled = np.asarray(run(rgb, TilingPlan(th, plan.margin, plan.blend, a, tw)),
-                                       dtype=np.float32)
+                # (no catch_warnings around it: its filters are the process's, and another
+                # thread's warnings went unseen meanwhile)
+                d = np.array(run(rgb, TilingPlan(th, plan.margin, plan.blend, a, tw)),
+                             dtype=np.float32)
                 scale = float(np.abs(whole).max()) or 1.0
-                d = np.abs(tiled - whole) / scale
+                np.subtract(d, whole, out=d)                 # in place: within a tile's memory
+                np.abs(d, out=d)
+                del whole
+                d /= scale
                 diff = max(diff, float(np.quantile(d, CHECK_QUANTILE))
                            if np.isfinite(d).all() else float("inf"))
-                del rgb, whole, tiled, d
+                del rgb, d
         cache["tiles_checked"], cache["tiles_check_diff"] = key, diff
     diff = cache["tiles_check_diff"]
     record["tiles_check_diff"] = diff

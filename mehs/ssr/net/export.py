@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from mehs import __version__
-from mehs.errors import FormatError, InputError, first_line
+from mehs.errors import FormatError, InputError, MehsError, first_line
 from mehs.io.atomic import atomic_path
 from mehs.rgb import WAVELENGTHS_31
 from mehs.ssr.contract import SSRModel, TrainedFor
@@ -247,12 +247,16 @@ class TorchScriptModel(SSRModel):
             try:
                 return np.asarray(tiled_torch_call(self, rgb, whole=self._predict_whole),
                                   dtype=np.float32)
-            except RuntimeError as exc:
+            except MehsError:
+                raise                       # a tile's own (from _predict_whole), or ours
+            except (RuntimeError, AttributeError, IndexError, TypeError, ValueError) as exc:
                 if "memory" in str(exc).lower():
                     raise
                 # the probes run the module on sizes of their own (96², 384×256, …),
-                # which a module that takes only some sizes refuses; the tiles themselves
-                # go through _predict_whole, whose errors are InputErrors
+                # which a module that takes only some sizes refuses, and read its output
+                # as a tensor (a dict or a 3-D output fails there); the tiles themselves go
+                # through _predict_whole, whose errors are InputErrors, and so does the
+                # whole image below
                 self._untileable = True
                 warnings.warn(f"{self.name}: its tiling probes cannot run the module "
                               f"({first_line(exc)}); it runs on whole images (a module that "
