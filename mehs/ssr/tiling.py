@@ -266,8 +266,10 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     or a dict as :func:`torch_memory_probe` returns) for images above
     :data:`SMALL_IMAGE`, the margin and grid probes only when the image is
     actually tiled. ``MEHS_TILE_MEMORY`` (MiB) sets ``max_bytes``; without it the
-    budget is :func:`default_budget` less the stitched output. What was done is
-    left in ``model._tiling_last`` (plan, budget, seconds spent probing).
+    budget is :func:`default_budget` less the stitched output. ``probes["check_tiles"]``
+    (optional): given the call's record after the tiles ran, whether to check the plan on
+    a probe image (:mod:`mehs.ssr.tiling_check`). What was done is left in
+    ``model._tiling_last`` (plan, budget, seconds spent probing, the check's difference).
     """
     mode = getattr(model, "tiling", "auto")
     if mode == "off" or mode is None:
