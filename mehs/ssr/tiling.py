@@ -130,6 +130,12 @@ def default_budget(max_rss: int | None = None) -> int:
     return int(min(max(cap - _rss(), min(MIN_BUDGET, cap)), share))
 
 
+def probe_budget(opts: dict) -> int:
+    """Bytes a tiling probe may use: the ``max_bytes`` of ``model.tiling`` (``opts``), else
+    ``MEHS_TILE_MEMORY``, else :func:`default_budget` under its ``max_rss``."""
+    return int(opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss")))
+
+
 def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
                blend: int = DEFAULT_BLEND, align: int = 8, max_bytes: int | None = None,
                fixed_bytes: float = 0.0, out_bytes: float = 0.0,

@@ -12,8 +12,9 @@ The network runs on three small random inputs, :data:`SHAPES`: ``H × W``, its t
 and half its size. Every operator's output shapes are recorded (torch:
 :func:`torch_strides`, a ``TorchDispatchMode``, which sees functional poolings,
 ``pixel_unshuffle``, ``unfold``, strided convolutions and the operators inside a traced or
-scripted module alike; ONNX: ``Shape`` nodes, :mod:`mehs.ssr.tiling_onnx_probes`), and
-each output is compared with the same output of the other runs (:func:`strides_between`):
+scripted module alike; ONNX: onnxruntime's profiler, :mod:`mehs.ssr.tiling_onnx_probes`), and
+each output is compared with the same output of the other runs (:func:`map_strides`,
+:func:`flattened_strides`):
 
 - two dimensions that follow the input's height and width, each down-sampled by some
   stride (``(H/2, W/16)``: an anisotropic pooling gives both 2 and 16; ``(C, H/16, 16,

@@ -43,15 +43,15 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import TilingPlan, owned_cells, predict_tiled
+from mehs.ssr.tiling_check import CHECK_TOL, probe_image, relative_difference
 from mehs.ssr.tiling_global import (IMAGE_MEANS_TOL, go_on, owned_spans, tile_windows,
                                     warn_tiles_differ, warn_unsettled)
 from mehs.ssr.tiling_probes import GLOBAL_MARGIN
 from mehs.ssr.tiling_onnx_graph import _CELLS, _GIVEN, _OWNED, means_graph, pruned_graph
 
 #: Whole-image agreement a probe of the rebuilt graph must show (relative to the range),
-#: by all but a 1e-3 share of its values.
-PROBE_TOL = 1e-5
-PROBE_QUANTILE = 0.999
+#: by all but a 1e-3 share of its values (:func:`mehs.ssr.tiling_check.relative_difference`).
+PROBE_TOL = CHECK_TOL
 #: Owned-span end of an image's last tile, which runs on into the network's padding
 #: (``Slice`` clamps it to the map).
 OPEN_END = 2 ** 40
@@ -251,15 +251,6 @@ def _finite_means(sums, counts) -> list[np.ndarray]:
     return means
 
 
-def _probe_image(h: int, w: int) -> np.ndarray:
-    """Strong left-right and top-bottom contrast: a tile's own means differ from the image's."""
-    rng = np.random.default_rng(7)
-    x = rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32)
-    x[:, : w // 3] *= 4.0
-    x[: h // 2, :, 1] *= 0.2
-    return x
-
-
 def probe_image_means(means: OnnxImageMeans, plan: TilingPlan) -> tuple[bool, float]:
     """Whether tiles with image-wide means equal whole-image inference on a probe.
 
@@ -273,19 +264,14 @@ def probe_image_means(means: OnnxImageMeans, plan: TilingPlan) -> tuple[bool, fl
     probe_plan = TilingPlan(side, plan.margin, plan.blend, a, side)
     diff = 0.0
     for h, w in ((side, side + step), (side + step, side)):
-        rgb = _probe_image(h, w)
+        rgb = probe_image(h, w)
         whole = means.model._predict_whole(rgb)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             tiled = predict_tiled_onnx_image_means(means, rgb, probe_plan)
-        scale = float(np.abs(whole).max()) or 1.0
-        d = np.abs(tiled - whole) / scale
-        if not np.isfinite(d).all():
-            return False, float("inf")
-        # a quantile, not the largest: a graph that restores luminance itself divides by
-        # its output's X+Y+Z, and an untrained network's is near zero at a few pixels,
-        # which magnifies float rounding there; other global operations move most values
-        diff = max(diff, float(np.quantile(d, PROBE_QUANTILE)))
+        diff = max(diff, relative_difference(tiled, whole, overwrite=True))
+        if diff == float("inf"):
+            return False, diff
     return diff <= PROBE_TOL, diff
 
 

@@ -6,17 +6,16 @@ off what its tiles need, and differed from whole-image inference near the seams 
 a word. Both are now measured once per graph file (kept in the probe cache, keyed by
 the file's bytes):
 
-- :func:`onnx_strides` — the grid, as :mod:`mehs.ssr.tiling_grid` reads it for torch:
-  the graph is rebuilt with a ``Shape`` node on every node output, run on a 384×256
-  input and its transpose, and every output whose two adjacent dimensions follow the
-  input's down-sampled is a map of that stride. (``onnx.shape_inference`` cannot do it:
-  the size a graph pads to inside is computed, and its maps' sizes are unknown to it.)
+- :func:`onnx_strides` — the grid, as :mod:`mehs.ssr.tiling_grid` reads it for torch,
+  from the output shapes onnxruntime's profiler records for every node over the three
+  probe runs. (``onnx.shape_inference`` cannot do it: the size a graph pads to inside is
+  computed, and its maps' sizes are unknown to it.)
 - :func:`onnx_margin` — the margin, by finite differences, as tiling cuts: a strip's
   input on one side of an aligned cut is replaced, and the farthest output that moves
   on the other side is how far a tile's missing context reaches into it (the sum of
   everything cut off, not one block's share), on inputs in [0, 1) and on inputs whose
-  brightness spans 0.1–100 (a path open only on bright pixels is then open). A graph's global average poolings would
-  spread the change over every output; they run on given means
+  brightness spans 0.1–100 (a path open only on bright pixels is then open). A graph's
+  global average poolings would spread the change over every output; they run on given means
   (:class:`mehs.ssr.tiling_onnx.OnnxImageMeans`, the same in both runs), so what is
   measured is the field of the rest. An output moved by less than float rounding is
   not counted: tiles are then equal to that rounding. A field that fills the largest
@@ -24,7 +23,7 @@ the file's bytes):
   (:class:`~mehs.ssr.tiling_probes.FieldWiderThanBudget`), one that fills a
   :data:`MAX_PROBE` probe a global operation (:data:`GLOBAL_MARGIN`).
 
-Without the ``onnx`` package the graph cannot be rebuilt: the defaults of
+Without the ``onnx`` package, or where the grid probe cannot run, the defaults of
 :mod:`mehs.ssr.tiling` (64 px on a grid of 32) are used, with a warning.
 """
 
@@ -43,15 +42,6 @@ MAX_PROBE = 2048
 #: The first margin probe's length, and the strips' width (a field's reach along one
 #: axis does not need the other's extent).
 FIRST_PROBE, STRIP = 256, 64
-
-
-def _session(proto, model):
-    import onnxruntime as ort
-
-    from mehs.ssr.onnx_model import onnx_session_options
-
-    return ort.InferenceSession(proto.SerializeToString(), sess_options=onnx_session_options(),
-                                providers=model.session.get_providers())
 
 
 def _input(model, rgb: np.ndarray) -> dict:
@@ -314,17 +304,13 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
 
     from mehs.errors import first_line
     from mehs.ssr.probe_cache import ProbeStore
-    from mehs.ssr.tiling import (ONNX_DEFAULT_ALIGN, ONNX_DEFAULT_MARGIN, default_budget,
-                                 env_max_bytes)
-    from mehs.ssr.tiling_probes import margin_or_bound, once
+    from mehs.ssr.tiling import ONNX_DEFAULT_ALIGN, ONNX_DEFAULT_MARGIN, probe_budget
+    from mehs.ssr.tiling_probes import margin_or_bound, once, within_known_bound
 
     store = ProbeStore.for_onnx(model)
     cached = model.__dict__.get("_tiling_probe", {})
     if cached.pop("margin_bound", False):
         cached.pop("margin", None)      # a lower bound is one call's answer only
-
-    def budget() -> int:
-        return int(opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss")))
 
     def bpp() -> float | None:
         # measured only: a bytes_per_pixel given for planning the tiles may be a fiction
@@ -347,7 +333,7 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
                                   'the onnx package is missing: pip install "mehs[onnx]"')
             except Exception as exc:    # noqa: BLE001 - onnxruntime's own types
                 return unmeasured("align", ONNX_DEFAULT_ALIGN,
-                                  f"its graph with Shape nodes does not run: {first_line(exc)}")
+                                  f"the grid probe's run failed: {first_line(exc)}")
             store.put("align", v)
         return v
 
@@ -357,20 +343,13 @@ def onnx_tiling_probes(model, memory, opts: dict) -> dict:
         v = store.get("margin")
         if v is not None:
             return v
-        b = budget()
-        bound = store.get("margin_bound")
-        if bound is not None and b < bound.get("needed", 0):
-            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
+        b = probe_budget(opts)
         try:
-            v = onnx_margin(model, align(), max_bytes=b, bytes_per_pixel=bpp())
+            v = within_known_bound(store, b, lambda: onnx_margin(
+                model, align(), max_bytes=b, bytes_per_pixel=bpp()))
         except ImportError:
             return unmeasured("margin", ONNX_DEFAULT_MARGIN,
                               'the onnx package is missing: pip install "mehs[onnx]"')
-        except FieldWiderThanBudget as e:
-            if e.needed is not None:
-                store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
-                                           "probe": e.probe})
-            raise
         finally:
             # the arena keeps the probes' peak, which the tiles' budget would lose
             release = getattr(model, "release_memory", None)

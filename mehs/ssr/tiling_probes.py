@@ -434,6 +434,24 @@ def once(fn: Callable[[], int]) -> Callable[[], int]:
     return call
 
 
+def within_known_bound(store, budget: int, measure: Callable[[], int]) -> int:
+    """``measure()``, unless ``store`` (a :class:`~mehs.ssr.probe_cache.ProbeStore`, or
+    None) keeps a field bound that ``budget`` cannot measure past (raised again at once:
+    the full paper network's probes cost ~6 s a process); a
+    :class:`FieldWiderThanBudget` from ``measure`` is kept there with the bytes the next
+    probe needs, which a larger budget measures."""
+    bound = store.get("margin_bound") if store is not None else None
+    if bound is not None and budget < bound.get("needed", 0):
+        raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
+    try:
+        return measure()
+    except FieldWiderThanBudget as e:
+        if store is not None and e.needed is not None:
+            store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
+                                       "probe": e.probe})
+        raise
+
+
 def margin_or_bound(model, measure: Callable[[], int]) -> Callable[[], int]:
     """``measure``, or the least radius the field can have where it is wider than any
     probe the budget allows (:class:`FieldWiderThanBudget`): with a warning, and marked in

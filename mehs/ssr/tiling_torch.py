@@ -18,11 +18,12 @@ from typing import Callable
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.ssr.tiling import default_budget, env_max_bytes, tiled_network_call
+from mehs.ssr.tiling import default_budget, env_max_bytes, probe_budget, tiled_network_call
 from mehs.ssr.tiling_blend import predict_tiled
 from mehs.ssr.tiling_pad import grid, padded, padded_torch_module, size_multiple
 from mehs.ssr.tiling_probes import (GLOBAL_MARGIN, margin_or_bound, once, torch_align,
-                                    torch_memory_probe, torch_receptive_radius)
+                                    torch_memory_probe, torch_receptive_radius,
+                                    within_known_bound)
 
 
 def tiled_torch_call(model, rgb: np.ndarray,
@@ -69,24 +70,16 @@ def tiled_torch_call(model, rgb: np.ndarray,
 
     def margin() -> int:
         from mehs.ssr.allocator import trim_heap
-        from mehs.ssr.tiling_probes import FieldWiderThanBudget
 
         # the probes keep within the memory a tile may have
-        budget = opts.get("max_bytes") or env_max_bytes() or default_budget(opts.get("max_rss"))
-        bound = store.get("margin_bound") if store is not None else None
-        if bound is not None and budget < bound.get("needed", 0):
-            # this budget cannot measure it either (the full paper network's probes:
-            # ~6 s, every process)
-            raise FieldWiderThanBudget(bound["lower_bound"], bound["probe"], bound["needed"])
-        try:
+        budget = probe_budget(opts)
+
+        def measure() -> int:
             with torch.enable_grad():
                 return torch_receptive_radius(probed, align=grid(align(), k),
                                               max_bytes=budget)
-        except FieldWiderThanBudget as e:
-            if store is not None and e.needed is not None:
-                store.put("margin_bound", {"needed": e.needed, "lower_bound": e.lower_bound,
-                                           "probe": e.probe})
-            raise
+        try:
+            return within_known_bound(store, budget, measure)
         finally:
             net.zero_grad(set_to_none=True)
             # the probes' layer outputs are freed to the C heap, which keeps them
@@ -110,10 +103,7 @@ def tiled_torch_call(model, rgb: np.ndarray,
         # a smaller probe blurs the sizes of a network that pads to its grid, and the grid
         # read off them was wrong; only a network whose memory grows faster than its
         # input (a max_tile_pixels cap) gets one that fits
-        limit = None
-        if cap is not None:
-            limit = cap(opts.get("max_bytes") or env_max_bytes()
-                        or default_budget(opts.get("max_rss")))
+        limit = None if cap is None else cap(probe_budget(opts))
         return torch_align(probed, max_pixels=limit, multiple=k)
 
     # the margin probe needs the grid first: one measurement for both
