@@ -274,6 +274,57 @@ class TransitionDown(nn.Sequential):
         return out
 
 
+def conv_transpose_into(up: nn.Module, x: torch.Tensor, dst: torch.Tensor,
+                        chunk_pixels: int = STRIP_PIXELS) -> None:
+    """Inference: ``dst[...] = up(x)`` for an ``nn.ConvTranspose2d`` ``up``, in row strips
+    of about ``chunk_pixels`` output pixels.
+
+    CPU transposed convolutions gather through a column buffer of ``C_out·k²`` values
+    per *input* pixel (0.9 GB for FC-DenseNet56's last up-sampling at 2048×1024, the
+    peak of its whole-image inference, issue 16); a strip's is a few MB. Output row
+    ``o`` receives input row ``i`` where ``o = i·s − p + j·d`` (``j < k``), so a strip
+    of output rows needs the input rows between those bounds and sees exactly their
+    products; output rows no input row reaches hold the bias, as in the whole call.
+    A module that is not plain (a subclass, hooks) runs whole, as does a ``dst`` not of
+    the call's shape (which then raises as the plain assignment would).
+    """
+    n, _, h_in, _ = x.shape
+    h_out = dst.shape[2]
+    if not _plain(up, nn.ConvTranspose2d) or chunk_pixels <= 0:
+        dst[...] = up(x)
+        return
+    (k, _), (s, _), (p, pw), (d, _) = up.kernel_size, up.stride, up.padding, up.dilation
+    kw, sw, dw, opw = up.kernel_size[1], up.stride[1], up.dilation[1], up.output_padding[1]
+    w_out = (x.shape[3] - 1) * sw - 2 * pw + dw * (kw - 1) + opw + 1
+    rows = max(1, chunk_pixels // max(1, n * dst.shape[3]))
+    if (rows >= h_out or h_out != (h_in - 1) * s - 2 * p + d * (k - 1) + up.output_padding[0] + 1
+            or dst.shape[3] != w_out or dst.shape[:2] != (n, up.out_channels)):
+        dst[...] = up(x)
+        return
+    for o0 in range(0, h_out, rows):
+        o1 = min(h_out, o0 + rows)
+        a = max(0, -(-(o0 + p - (k - 1) * d) // s))          # ceil
+        b = min(h_in - 1, (o1 - 1 + p) // s)
+        if a > b:                                              # no input row reaches them
+            _fill_bias(dst[:, :, o0:o1], up.bias)
+            continue
+        y = F.conv_transpose2d(x[:, :, a:b + 1], up.weight, up.bias, (s, sw), (0, pw),
+                               (0, opw), up.groups, (d, dw))
+        # the strip's local row 0 is global row a·s − p
+        lo, hi = max(o0, a * s - p), min(o1, a * s - p + y.shape[2])
+        if lo > o0 or hi < o1:
+            _fill_bias(dst[:, :, o0:o1], up.bias)
+        if hi > lo:
+            dst[:, :, lo:hi] = y[:, :, lo - (a * s - p):hi - (a * s - p)]
+
+
+def _fill_bias(t: torch.Tensor, bias: torch.Tensor | None) -> None:
+    if bias is None:
+        t.zero_()
+    else:
+        t.copy_(bias.view(1, -1, 1, 1).expand_as(t))
+
+
 class FCDenseNet(nn.Module):
     """FC-DenseNet encoder–decoder feature extractor.
 
@@ -298,6 +349,9 @@ class FCDenseNet(nn.Module):
 
     Input ``(N, in_channels, H, W)``; output ``(N, out_channels, H, W)``.
     """
+
+    #: Output pixels per row strip of the up-sampling at inference (:func:`conv_transpose_into`).
+    chunk_pixels: int = STRIP_PIXELS
 
     def __init__(self, in_channels: int = 3, *, first_channels: int = 16,
                  down_layers: Sequence[int] = (2, 2, 2), bottleneck_layers: int = 2,
@@ -363,7 +417,7 @@ class FCDenseNet(nn.Module):
             buf = block.empty_buffer(skip, c_up + c_skip)
             buf[:, c_up:c_up + c_skip] = skip
             del skip
-            buf[:, :c_up] = up(x)
+            conv_transpose_into(up, x, buf[:, :c_up], self.chunk_pixels)
             del x
             x = block.fill(buf)
             del buf                    # (x is a copy of its new channels, or all of it)

@@ -1,0 +1,79 @@
+"""Lean inference, session 27 (issue 16): transposed convolutions in row strips."""
+
+import itertools
+
+import pytest
+
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from torch import nn  # noqa: E402
+
+from mehs.ssr.net import build_network  # noqa: E402
+from mehs.ssr.net.layers import conv_transpose_into  # noqa: E402
+
+
+CONFIGS = [(k, s, p, d, op) for k, s, p, d, op in itertools.product(
+    (1, 2, 3, 4), (1, 2, 3), (0, 1, 2), (1, 2), (0, 1, 2)) if op < max(s, d) and p <= d * (k - 1)]
+
+
+@pytest.mark.parametrize("k,s,p,d,op", CONFIGS)
+def test_strips_of_a_transposed_convolution_are_the_whole_call(k, s, p, d, op):
+    # every strip's output rows, with bias-only rows no input reaches (p large, k small)
+    torch.manual_seed(k * 100 + s * 10 + p)
+    for bias in (True, False):
+        up = nn.ConvTranspose2d(3, 4, k, stride=s, padding=p, output_padding=op, dilation=d,
+                                bias=bias)
+        x = torch.randn(2, 3, 6, 5)
+        with torch.no_grad():
+            want = up(x)
+            for pixels in (1, 2 * want.shape[3], 5 * want.shape[3]):
+                got = torch.full_like(want, float("nan"))
+                conv_transpose_into(up, x, got, pixels)
+                torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_module_with_a_hook_or_a_wrong_destination_runs_whole():
+    up = nn.ConvTranspose2d(3, 4, 3, stride=2, padding=1, output_padding=1)
+    x = torch.randn(1, 3, 6, 5)
+    seen = []
+    up.register_forward_hook(lambda m, i, o: seen.append(o.shape))
+    with torch.no_grad():
+        dst = torch.empty(1, 4, 12, 10)
+        conv_transpose_into(up, x, dst, 10)
+        assert seen == [torch.Size([1, 4, 12, 10])]
+        with pytest.raises(RuntimeError):
+            conv_transpose_into(up, x, torch.empty(1, 4, 11, 10), 10)
+
+
+def _largest_transposed_output(net, x):
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Watch(TorchDispatchMode):
+        largest = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            if func is torch.ops.aten.convolution.default and args[6]:     # transposed
+                Watch.largest = max(Watch.largest, out.shape[-2] * out.shape[-1])
+            return out
+
+    with torch.no_grad(), Watch():
+        net(x)
+    return Watch.largest
+
+
+@pytest.mark.parametrize("arch", ["hdrssr", "galliani"])
+def test_fc_densenet_upsamples_in_strips(arch):
+    # CPU transposed convolutions gather through a C_out·k² column buffer per input
+    # pixel: FC-DenseNet56's last one held 0.9 GB at 2048×1024, its inference's peak
+    torch.manual_seed(0)
+    net = build_network(arch=arch, preset="tiny").eval()
+    net.features.chunk_pixels = 64 * 8
+    x = torch.rand(1, 3, 64, 64)
+    # (a strip computes the rows its input rows reach: a few more than it keeps)
+    assert 0 < _largest_transposed_output(net, x) <= 2 * 64 * 8
+    with torch.no_grad():
+        lean = net(x)
+    plain = net(x.clone().requires_grad_()).detach()
+    torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
