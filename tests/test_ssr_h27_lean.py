@@ -77,3 +77,73 @@ def test_fc_densenet_upsamples_in_strips(arch):
         lean = net(x)
     plain = net(x.clone().requires_grad_()).detach()
     torch.testing.assert_close(lean, plain, rtol=1e-6, atol=1e-6 * float(plain.abs().max()))
+
+
+def _chunked(net, pixels):
+    for m in net.modules():
+        if isinstance(getattr(m, "chunk_pixels", None), int):
+            m.chunk_pixels = pixels
+
+
+def _lean_and_plain(net, x):
+    with torch.no_grad():
+        lean = net(x)
+    plain = net(x.clone().requires_grad_()).detach()
+    return lean, plain
+
+
+@pytest.mark.parametrize("preset,n,shape,rows", [("tiny", 1, (45, 37), 3), ("full", 1, (40, 64), 3),
+                                                 ("small", 2, (33, 24), 3), ("tiny", 1, (16, 8), 0)])
+def test_mstpp_strips_give_the_plain_graphs_numbers(preset, n, shape, rows):
+    # strips of a few rows: every attention block's positional term and every
+    # feed-forward block's depth-wise convolution reads context rows across strips
+    from mehs.ssr.net.mstpp2022 import MSAB
+
+    torch.manual_seed(5)
+    net = build_network(arch="mstpp", preset=preset).eval()
+    with torch.no_grad():                      # attention that mixes channels unevenly
+        for m in net.modules():
+            if hasattr(m, "rescale"):
+                m.rescale.fill_(4.0)
+    x = torch.rand(n, 3, *shape) * 10
+    # (rows=0: one row per strip, fewer than the context rows the strips overwrite later)
+    _chunked(net, rows * shape[1] or 1)
+    blocks = [m for m in net.modules() if type(m) is MSAB]
+    with torch.no_grad():
+        assert blocks and all(b._strippable() for b in blocks)
+    lean, plain = _lean_and_plain(net, x)
+    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+
+
+CONV_CONFIGS = [(k, s, p, d) for k, s, p, d in itertools.product((1, 2, 3, 4), (1, 2, 3), (0, 1, 2, 4), (1, 2))]
+
+
+@pytest.mark.parametrize("k,s,p,d", CONV_CONFIGS)
+def test_strips_of_a_convolution_are_the_whole_call(k, s, p, d):
+    from mehs.ssr.net.layers import conv2d_into
+
+    torch.manual_seed(k + 7 * s + 31 * p)
+    conv = nn.Conv2d(3, 4, k, stride=s, padding=p, dilation=d)
+    x = torch.randn(2, 3, 9, 6)
+    with torch.no_grad():
+        try:
+            want = conv(x)
+        except RuntimeError:                   # a kernel wider than the padded image
+            return
+        extra = torch.randn_like(want)
+        for pixels in (1, 2 * want.shape[3], 5 * want.shape[3]):
+            got = conv2d_into(conv, x, chunk_pixels=pixels)
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+            out = torch.full_like(want, float("nan"))
+            conv2d_into(conv, x, out, add=extra, chunk_pixels=pixels)
+            torch.testing.assert_close(out, want + extra, rtol=1e-5, atol=1e-6)
+
+
+def test_a_same_padded_or_hooked_convolution_runs_whole():
+    from mehs.ssr.net.layers import conv2d_into
+
+    x = torch.randn(1, 3, 9, 6)
+    with torch.no_grad():
+        for conv in (nn.Conv2d(3, 4, 3, padding="same"), nn.Conv2d(3, 4, 3, padding=1,
+                                                                   padding_mode="reflect")):
+            torch.testing.assert_close(conv2d_into(conv, x, chunk_pixels=6), conv(x))

@@ -277,52 +277,115 @@ class TransitionDown(nn.Sequential):
 def conv_transpose_into(up: nn.Module, x: torch.Tensor, dst: torch.Tensor,
                         chunk_pixels: int = STRIP_PIXELS) -> None:
     """Inference: ``dst[...] = up(x)`` for an ``nn.ConvTranspose2d`` ``up``, in row strips
-    of about ``chunk_pixels`` output pixels.
+    of about ``chunk_pixels`` output pixels (:func:`conv_transpose_rows`).
 
     CPU transposed convolutions gather through a column buffer of ``C_out·k²`` values
     per *input* pixel (0.9 GB for FC-DenseNet56's last up-sampling at 2048×1024, the
-    peak of its whole-image inference, issue 16); a strip's is a few MB. Output row
-    ``o`` receives input row ``i`` where ``o = i·s − p + j·d`` (``j < k``), so a strip
-    of output rows needs the input rows between those bounds and sees exactly their
-    products; output rows no input row reaches hold the bias, as in the whole call.
-    A module that is not plain (a subclass, hooks) runs whole, as does a ``dst`` not of
-    the call's shape (which then raises as the plain assignment would).
+    peak of its whole-image inference, issue 16); a strip's is a few MB. A module that
+    is not plain (a subclass, hooks) runs whole, as does a ``dst`` not of the call's
+    shape (which then raises as the plain assignment would).
     """
-    n, _, h_in, _ = x.shape
-    h_out = dst.shape[2]
-    if not _plain(up, nn.ConvTranspose2d) or chunk_pixels <= 0:
-        dst[...] = up(x)
-        return
-    (k, _), (s, _), (p, pw), (d, _) = up.kernel_size, up.stride, up.padding, up.dilation
-    kw, sw, dw, opw = up.kernel_size[1], up.stride[1], up.dilation[1], up.output_padding[1]
-    w_out = (x.shape[3] - 1) * sw - 2 * pw + dw * (kw - 1) + opw + 1
-    rows = max(1, chunk_pixels // max(1, n * dst.shape[3]))
-    if (rows >= h_out or h_out != (h_in - 1) * s - 2 * p + d * (k - 1) + up.output_padding[0] + 1
-            or dst.shape[3] != w_out or dst.shape[:2] != (n, up.out_channels)):
+    n, h_out = x.shape[0], dst.shape[2]
+    rows = max(1, chunk_pixels // max(1, n * dst.shape[3])) if chunk_pixels > 0 else h_out
+    if rows >= h_out or not _plain(up, nn.ConvTranspose2d) or dst.shape != conv_transpose_shape(up, x):
         dst[...] = up(x)
         return
     for o0 in range(0, h_out, rows):
         o1 = min(h_out, o0 + rows)
-        a = max(0, -(-(o0 + p - (k - 1) * d) // s))          # ceil
-        b = min(h_in - 1, (o1 - 1 + p) // s)
-        if a > b:                                              # no input row reaches them
-            _fill_bias(dst[:, :, o0:o1], up.bias)
-            continue
-        y = F.conv_transpose2d(x[:, :, a:b + 1], up.weight, up.bias, (s, sw), (0, pw),
-                               (0, opw), up.groups, (d, dw))
-        # the strip's local row 0 is global row a·s − p
-        lo, hi = max(o0, a * s - p), min(o1, a * s - p + y.shape[2])
-        if lo > o0 or hi < o1:
-            _fill_bias(dst[:, :, o0:o1], up.bias)
-        if hi > lo:
-            dst[:, :, lo:hi] = y[:, :, lo - (a * s - p):hi - (a * s - p)]
+        dst[:, :, o0:o1] = conv_transpose_rows(up, x, o0, o1)
 
 
-def _fill_bias(t: torch.Tensor, bias: torch.Tensor | None) -> None:
-    if bias is None:
-        t.zero_()
-    else:
-        t.copy_(bias.view(1, -1, 1, 1).expand_as(t))
+def conv_transpose_shape(up: nn.ConvTranspose2d, x: torch.Tensor) -> torch.Size:
+    """The shape of ``up(x)`` (no ``output_size``)."""
+    h, w = (
+        (x.shape[2 + i] - 1) * up.stride[i] - 2 * up.padding[i]
+        + up.dilation[i] * (up.kernel_size[i] - 1) + up.output_padding[i] + 1 for i in (0, 1))
+    return torch.Size((x.shape[0], up.out_channels, h, w))
+
+
+def conv_transpose_rows(up: nn.ConvTranspose2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
+    """Rows ``o0:o1`` of ``up(x)`` (``x`` ``(N, C, h, w)``), from the input rows that reach them.
+
+    Output row ``o`` receives input row ``i`` where ``o = i·s − p + j·d`` (``j < k``): the
+    strip's products are exactly the whole call's; rows no input row reaches hold the
+    bias, as in the whole call.
+    """
+    (k, _), (s, sw), (p, pw), (d, dw) = up.kernel_size, up.stride, up.padding, up.dilation
+    h_in = x.shape[2]
+    a = max(0, -(-(o0 + p - (k - 1) * d) // s))                # ceil
+    b = min(h_in - 1, (o1 - 1 + p) // s)
+    shape = conv_transpose_shape(up, x[:, :, :1])
+    out_shape = (shape[0], shape[1], o1 - o0, shape[3])
+    if a > b:                                                  # no input row reaches them
+        return _bias_rows(up, x, out_shape)
+    y = F.conv_transpose2d(x[:, :, a:b + 1], up.weight, up.bias, (s, sw), (0, pw),
+                           (0, up.output_padding[1]), up.groups, (d, dw))
+    top = a * s - p                            # the global row of the strip's local row 0
+    lo, hi = max(o0, top), min(o1, top + y.shape[2])
+    if lo == o0 and hi == o1:
+        return y[:, :, o0 - top:o1 - top]
+    out = _bias_rows(up, x, out_shape)
+    if hi > lo:
+        out[:, :, lo - o0:hi - o0] = y[:, :, lo - top:hi - top]
+    return out
+
+
+def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = None, *,
+                add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
+    """Inference: ``conv(x)`` (``+ add``) in row strips of about ``chunk_pixels`` output
+    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory).
+
+    A whole-map CPU convolution reorders its input into oneDNN's blocked layout and its
+    output back: one more image-sized map at the call (0.26 GB for 31 channels at
+    2048×1024); a strip's stays in cache. A convolution that is not a plain zero-padded
+    ``nn.Conv2d`` runs whole.
+    """
+    n, _, h, w = x.shape
+    plain = _plain(conv, nn.Conv2d) and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
+    if plain and chunk_pixels > 0:
+        (k, kw), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
+        h_out = (h + 2 * p - d * (k - 1) - 1) // s + 1
+        w_out = (w + 2 * pw - dw * (kw - 1) - 1) // sw + 1
+        rows = max(1, chunk_pixels // max(1, n * w_out))
+    if not plain or chunk_pixels <= 0 or rows >= h_out:
+        # (one strip would be the whole call, with a padded copy of the input)
+        y = conv(x)
+        if add is not None:
+            y = y + add
+        if out is None:
+            return y
+        out[...] = y
+        return out
+    if out is None:
+        out = x.new_empty(n, conv.out_channels, h_out, w_out)
+    for o0 in range(0, h_out, rows):
+        o1 = min(h_out, o0 + rows)
+        y = conv2d_rows(conv, x, o0, o1)
+        if add is not None:
+            y += add[:, :, o0:o1]
+        out[:, :, o0:o1] = y
+    return out
+
+
+def conv2d_rows(conv: nn.Conv2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
+    """Rows ``o0:o1`` of a zero-padded ``conv(x)``: the input rows they read, zero rows
+    where those lie beyond the image (the convolution's own padding)."""
+    (k, _), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
+    h = x.shape[2]
+    lo, hi = o0 * s - p, (o1 - 1) * s - p + d * (k - 1) + 1          # input rows read
+    a = min(h, max(0, lo))
+    part = x[:, :, a:max(a, min(h, hi))]
+    top, bottom = max(0, min(hi, 0) - lo), max(0, hi - max(lo, h))
+    if top or bottom:
+        part = F.pad(part, (0, 0, top, bottom))
+    return F.conv2d(part, conv.weight, conv.bias, (s, sw), (0, pw), (d, dw), conv.groups)
+
+
+def _bias_rows(up: nn.ConvTranspose2d, x: torch.Tensor, shape) -> torch.Tensor:
+    out = x.new_zeros(shape)
+    if up.bias is not None:
+        out += up.bias.view(1, -1, 1, 1)
+    return out
 
 
 class FCDenseNet(nn.Module):

@@ -41,7 +41,9 @@ from torch import nn
 import torch.nn.functional as F
 
 from mehs.errors import InputError
+from mehs.ssr.net import mstpp_lean
 from mehs.ssr.net.base import NetConfig, SSRNetwork
+from mehs.ssr.net.layers import conv2d_into, training_graph
 from mehs.ssr.net.pooling import image_statistic, statistics_detached
 
 
@@ -156,6 +158,9 @@ class FeedForward(nn.Module):
 class MSAB(nn.Module):
     """``num_blocks`` × (S-MSA + residual, LayerNorm → FFN + residual) on ``(N, C, H, W)``."""
 
+    #: Pixels per row strip at inference (:mod:`mehs.ssr.net.mstpp_lean`; 0: whole maps).
+    chunk_pixels: int = mstpp_lean.STRIP_PIXELS
+
     def __init__(self, dim: int, dim_head: int, heads: int, num_blocks: int):
         super().__init__()
         self.attn = nn.ModuleList(SpectralMSA(dim, dim_head, heads) for _ in range(num_blocks))
@@ -163,16 +168,58 @@ class MSAB(nn.Module):
         self.ff = nn.ModuleList(FeedForward(dim) for _ in range(num_blocks))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self._strippable():
+            return self.lean_forward(x, owned=False)
         x = x.permute(0, 2, 3, 1)
         for attn, norm, ff in zip(self.attn, self.norm, self.ff):
             x = attn(x) + x
             x = ff(norm(x)) + x
         return x.permute(0, 3, 1, 2)
 
+    def lean_forward(self, x: torch.Tensor, *, owned: bool) -> torch.Tensor:
+        """Inference in row strips (see :meth:`_strippable`): no image-sized temporaries
+        (issue 16). ``owned``: ``x`` is the caller's to overwrite (the result is then ``x``)."""
+        y = x
+        for i, (attn, norm, ff) in enumerate(zip(self.attn, self.norm, self.ff)):
+            out = y if (owned or i > 0) else torch.empty_like(y, memory_format=torch.contiguous_format)
+            mstpp_lean.msa_residual(attn, y, out, self.chunk_pixels)
+            y = out
+            mstpp_lean.ffn_residual_(norm, ff, y, self.chunk_pixels)
+        return y
+
+    def _strippable(self) -> bool:
+        """Inference whose parts are this module's own, as built (see :mod:`mstpp_lean`)."""
+        if not mstpp_lean.lean_allowed((self, MSAB)):
+            return False
+        for attn, norm, ff in zip(self.attn, self.norm, self.ff):
+            if not (type(attn) is SpectralMSA and type(norm) is nn.LayerNorm
+                    and type(ff) is FeedForward and len(ff.net) == 5
+                    and all(type(m) is nn.Linear for m in (attn.to_q, attn.to_k, attn.to_v, attn.proj))
+                    and _convs(attn.pos_emb, 0, 2) == [(3, 1)] * 2
+                    and _convs(ff.net, 0, 2, 4) == [(1, 0), (3, 1), (1, 0)]):
+                return False
+        return True
+
+
+def _convs(seq: nn.Sequential, *at: int) -> list | None:
+    """``(kernel, padding)`` of the square, stride-1 ``nn.Conv2d`` at positions ``at`` of ``seq``."""
+    out = []
+    for i in at:
+        m = seq[i] if i < len(seq) else None
+        if not (type(m) is nn.Conv2d and m.stride == (1, 1) and m.dilation == (1, 1)
+                and m.padding_mode == "zeros" and isinstance(m.padding, tuple)
+                and len(set(m.kernel_size)) == 1 and len(set(m.padding)) == 1):
+            return None
+        out.append((m.kernel_size[0], m.padding[0]))
+    return out
+
 
 class MST(nn.Module):
     """Single-stage U-shaped spectral transformer, ``(N, C, H, W)`` → ``(N, C, H, W)``;
     H and W must be multiples of ``2**levels``."""
+
+    #: Pixels per row strip of the decoder's up-sampling and fusion at inference.
+    chunk_pixels: int = mstpp_lean.STRIP_PIXELS
 
     def __init__(self, dim: int, levels: int, num_blocks: Sequence[int]):
         super().__init__()
@@ -200,6 +247,10 @@ class MST(nn.Module):
         self.apply(_init_weights)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if mstpp_lean.lean_allowed((self, MST)) and all(
+                type(up) is nn.ConvTranspose2d and _convs(nn.Sequential(fuse), 0) == [(1, 0)]
+                for up, fuse, _ in self.decoder):
+            return self._lean_forward(x)
         fea = self.embedding(x)
         skips = []
         for msab, down in self.encoder:
@@ -210,6 +261,29 @@ class MST(nn.Module):
         for (up, fuse, msab), skip in zip(self.decoder, skips[::-1]):
             fea = msab(fuse(torch.cat([up(fea), skip], dim=1)))
         return self.mapping(fea) + x
+
+    def _lean_forward(self, x: torch.Tensor) -> torch.Tensor:
+        # the plain forward's steps; each skip and map is released as soon as it is used
+        def block(msab, fea):
+            # every input here is a fresh map of this forward's: the blocks overwrite it
+            return msab.lean_forward(fea, owned=True) if msab._strippable() else msab(fea)
+
+        def conv(c, t, add=None):
+            return conv2d_into(c, t, add=add, chunk_pixels=self.chunk_pixels)
+
+        fea = conv(self.embedding, x)
+        skips = []
+        for msab, down in self.encoder:
+            fea = block(msab, fea)
+            skips.append(fea)
+            fea = conv(down, fea)
+        fea = block(self.bottleneck, fea)
+        for up, fuse, msab in self.decoder:
+            # (the lower level's map is released before the block runs)
+            fea = mstpp_lean.up_fuse(up, fuse, fea, skips.pop(), self.chunk_pixels,
+                                     into_skip=True)
+            fea = block(msab, fea)
+        return conv(self.mapping, fea, add=x)
 
 
 def _init_weights(m: nn.Module) -> None:
@@ -229,6 +303,9 @@ class MSTPlusPlus2022(SSRNetwork):
     Parameters (``params``): ``stages`` (3), ``levels`` (2), ``num_blocks``
     (``(1, 1, 1)``, one count per level plus the bottleneck).
     """
+
+    #: Pixels per row strip of the full-resolution convolutions at inference.
+    chunk_pixels: int = mstpp_lean.STRIP_PIXELS
 
     PRESETS = {
         "full": dict(stages=3, levels=2, num_blocks=(1, 1, 1)),
@@ -258,6 +335,12 @@ class MSTPlusPlus2022(SSRNetwork):
         # the authors pad by reflection; reflection needs the pad to be smaller than the side
         mode = "reflect" if (pad_h < h and pad_w < w) else "replicate"
         x = F.pad(x, [0, pad_w, 0, pad_h], mode=mode)
-        x = self.conv_in(x)
-        out = self.conv_out(self.body_stages(x)) + x
+        if training_graph():
+            x = self.conv_in(x)
+            return (self.conv_out(self.body_stages(x)) + x)[..., :h, :w]
+        # inference: the full-resolution convolutions in row strips (no image-sized
+        # reorders) and the global residual added strip by strip
+        chunk = self.chunk_pixels
+        x = conv2d_into(self.conv_in, x, chunk_pixels=chunk)
+        out = conv2d_into(self.conv_out, self.body_stages(x), add=x, chunk_pixels=chunk)
         return out[..., :h, :w]
