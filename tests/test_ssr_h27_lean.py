@@ -147,3 +147,38 @@ def test_a_same_padded_or_hooked_convolution_runs_whole():
         for conv in (nn.Conv2d(3, 4, 3, padding="same"), nn.Conv2d(3, 4, 3, padding=1,
                                                                    padding_mode="reflect")):
             torch.testing.assert_close(conv2d_into(conv, x, chunk_pixels=6), conv(x))
+
+
+@pytest.mark.parametrize("arch,preset", [("hscnnd", "tiny"), ("hscnnd", "small"),
+                                         ("galliani", "tiny")])
+@pytest.mark.parametrize("rows", [1, 4])
+def test_hscnnd_and_galliani_strips_give_the_plain_graphs_numbers(arch, preset, rows):
+    # HSCNN-D's blocks (two 3×3 convolutions of the compressed map) and output
+    # convolution, Galliani's 1×1 head, in strips of one and of four rows
+    torch.manual_seed(6)
+    net = build_network(arch=arch, preset=preset).eval()
+    x = torch.rand(2, 3, 23, 17) * 5
+    _chunked(net, rows * 17 * 2)
+    lean, plain = _lean_and_plain(net, x)
+    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+
+
+def test_hscnnd_blocks_run_in_strips(monkeypatch):
+    # a whole-map block held its compression's reordered copy of up to 1056 channels
+    from mehs.ssr.net.hscnnd2018 import DenseFusionBlock
+
+    torch.manual_seed(0)
+    net = build_network(arch="hscnnd", preset="tiny").eval()
+    net.chunk_pixels = 32 * 4
+    rows = []
+    plain_forward = DenseFusionBlock.forward
+
+    def counting(self, x):
+        rows.append(x.shape[-2])
+        return plain_forward(self, x)
+
+    # (a forward hook would make the blocks not plain, and they would run whole)
+    monkeypatch.setattr(DenseFusionBlock, "forward", counting)
+    with torch.no_grad():
+        net(torch.rand(1, 3, 64, 32))
+    assert rows and max(rows) <= 4 + 2, rows           # a strip and its two context rows

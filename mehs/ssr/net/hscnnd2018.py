@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.layers import training_graph
+from mehs.ssr.net.layers import STRIP_PIXELS, _plain, conv2d_into, training_graph
 
 
 def _conv(c_in: int, c_out: int, k: int) -> nn.Conv2d:
@@ -61,11 +61,47 @@ class DenseFusionBlock(nn.Module):
         cat = torch.cat([u1, r(self.up2(u1)), d1, r(self.down2(d1))], dim=1)
         return r(self.fusion(cat))
 
+    def run_into(self, src: torch.Tensor, dst: torch.Tensor, chunk_pixels: int) -> None:
+        """Inference: ``dst[...] = self(src)`` in row strips of about ``chunk_pixels`` pixels.
+
+        Only the two 3×3 convolutions see neighbours (of the compressed map, zero-padded
+        at the image's edges), so a strip with one row of context either side gives the
+        whole call's sums. A whole-map call held the compression's oneDNN-reordered
+        copy of its input, up to 1056 channels in the full preset (issue 16).
+        """
+        n, _, h, w = src.shape
+        rows = max(1, chunk_pixels // max(1, n * w)) if chunk_pixels > 0 else h
+        if rows >= h or not _strippable(self):
+            dst[...] = self(src)
+            return
+        for r0 in range(0, h, rows):
+            r1 = min(h, r0 + rows)
+            a, b = max(0, r0 - 1), min(h, r1 + 1)
+            dst[:, :, r0:r1] = self(src[:, :, a:b])[:, :, r0 - a:r1 - a]
+
+
+def _strippable(block: "DenseFusionBlock") -> bool:
+    # exactly this block, 3×3 convolutions zero-padded by one and everything else 1×1
+    # (strips of one row of context), no hooks
+    if not _plain(block, DenseFusionBlock):
+        return False
+    for name in ("conv1", "up1", "up2", "down1", "down2", "fusion"):
+        c = getattr(block, name)
+        k = 3 if name in ("up1", "down1") else 1
+        if not (type(c) is nn.Conv2d and c.kernel_size == (k, k) and c.stride == (1, 1)
+                and c.dilation == (1, 1) and c.padding == (k // 2, k // 2)
+                and c.padding_mode == "zeros"):
+            return False
+    return type(block.relu) is nn.ReLU
+
 
 class HSCNND2018(SSRNetwork):
     """HSCNN-D. Parameters (``params``): ``n_blocks`` (30), ``head`` (32, per path conv),
     ``compress`` (128), ``path`` (32), ``path_out`` (16), ``fuse`` (32, channels each
     block adds)."""
+
+    #: Pixels per row strip of the blocks and the output convolution at inference.
+    chunk_pixels: int = STRIP_PIXELS
 
     PRESETS = {
         "full": dict(n_blocks=30, head=32, compress=128, path=32, path_out=16, fuse=32),
@@ -102,6 +138,6 @@ class HSCNND2018(SSRNetwork):
         buf[:, :self.c0] = feats
         c = self.c0
         for block in self.blocks:
-            buf[:, c:c + self.fuse] = block(buf[:, :c])
+            block.run_into(buf[:, :c], buf[:, c:c + self.fuse], self.chunk_pixels)
             c += self.fuse
-        return self.conv_out(buf)
+        return conv2d_into(self.conv_out, buf, chunk_pixels=self.chunk_pixels)
