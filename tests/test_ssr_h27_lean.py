@@ -182,3 +182,24 @@ def test_hscnnd_blocks_run_in_strips(monkeypatch):
     with torch.no_grad():
         net(torch.rand(1, 3, 64, 32))
     assert rows and max(rows) <= 4 + 2, rows           # a strip and its two context rows
+
+
+def test_the_probe_cache_key_follows_the_strip_helpers(monkeypatch):
+    # MST++'s memory per pixel is set by mstpp_lean's strips, a module defining none of
+    # its layers: a cached probe of an older version would plan with stale memory
+    from pathlib import Path
+
+    from mehs.ssr import probe_cache
+    from mehs.ssr.net import mstpp_lean
+
+    net = build_network(arch="mstpp", preset="tiny")
+    key = probe_cache.network_key(net)
+    lean = str(Path(mstpp_lean.__file__).resolve())
+    real = Path.read_bytes
+
+    def edited(self):
+        data = real(self)
+        return data + b"\n# edited\n" if str(Path(self).resolve()) == lean else data
+
+    monkeypatch.setattr(Path, "read_bytes", edited)
+    assert probe_cache.network_key(net) != key

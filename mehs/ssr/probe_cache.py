@@ -48,6 +48,9 @@ def _torch_module(cls: type) -> bool:
     return cls.__module__.startswith("torch.nn.modules")
 
 
+_NET_PACKAGE = Path(__file__).resolve().parent / "net"
+
+
 def network_key(network) -> str | None:
     """The cache key of a torch network, or None when it must not be cached (see module doc)."""
     import torch
@@ -70,6 +73,10 @@ def network_key(network) -> str | None:
     for m in mods:
         add(type(m).__qualname__, getattr(m, "chunk_pixels", None))
     files = {sys.modules[type(m).__module__].__file__ for m in mods if _mehs_module(type(m))}
+    # the network package whole: a network's inference also runs helpers of modules that
+    # define none of its layers (MST++'s strips in mstpp_lean, the strip convolutions in
+    # layers), whose changes move its memory per pixel
+    files |= {str(f) for f in _NET_PACKAGE.glob("*.py")}
     import mehs.ssr.net.pooling
     import mehs.ssr.tiling
     import mehs.ssr.tiling_grid
