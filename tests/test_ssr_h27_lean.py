@@ -203,3 +203,122 @@ def test_the_probe_cache_key_follows_the_strip_helpers(monkeypatch):
 
     monkeypatch.setattr(Path, "read_bytes", edited)
     assert probe_cache.network_key(net) != key
+
+
+# -- what an independent review of the strips found (session 27) ---------------------------
+def _mstpp(preset="tiny", **params):
+    torch.manual_seed(8)
+    net = build_network(arch="mstpp", preset=preset, params=params or None).eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if hasattr(m, "rescale"):
+                m.rescale.fill_(4.0)
+    _chunked(net, 3 * 24)
+    return net
+
+
+def _assert_lean_is_plain(net, x, tol=1e-5):
+    lean, plain = _lean_and_plain(net, x)
+    torch.testing.assert_close(lean, plain, rtol=tol, atol=tol * float(plain.abs().max()))
+
+
+def test_mst_strips_never_write_into_maps_they_do_not_own():
+    # an identity in place of a convolution returns its input, which the strips wrote
+    # into (MST's own input, MST++'s global residual); a block subclass that keeps its
+    # output (feature visualisation) had it overwritten by the decoder
+    from mehs.ssr.net.mstpp2022 import MSAB
+
+    net = _mstpp()
+    net.body_stages[0].embedding = nn.Identity()
+    _assert_lean_is_plain(net, torch.rand(1, 3, 24, 16) * 5)
+    mst = _mstpp().body_stages[0].eval()
+    x = torch.rand(1, 31, 24, 16)
+    before = x.clone()
+    with torch.no_grad():
+        mst(x)
+    assert torch.equal(x, before)
+
+    class Keeping(MSAB):
+        def forward(self, y):
+            self.kept = super().forward(y)
+            return self.kept
+
+    net = _mstpp()
+    stage = net.body_stages[0]
+    old = stage.encoder[0][0]
+    keep = Keeping(31, 31, 1, len(old.attn))
+    keep.load_state_dict(old.state_dict())
+    stage.encoder[0][0] = keep
+    x = torch.rand(1, 3, 24, 16) * 5
+    with torch.no_grad():
+        net(x)
+        kept = keep.kept.clone()
+    net(x.clone().requires_grad_())
+    torch.testing.assert_close(kept, keep.kept.detach(), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("change", ["identity bottleneck", "biased values", "biased keys",
+                                    "deeper positional term", "grouped fusion"])
+def test_changed_mstpp_parts_run_as_the_plain_graph(change):
+    net = _mstpp()
+    stage = net.body_stages[0]
+    msa = stage.encoder[0][0].attn[0]
+    if change == "identity bottleneck":
+        stage.bottleneck = nn.Identity()
+    elif change == "biased values":
+        msa.to_v = nn.Linear(31, 31, bias=True)
+    elif change == "biased keys":
+        msa.to_k = nn.Linear(31, 31, bias=True)
+    elif change == "deeper positional term":
+        msa.pos_emb.append(nn.Conv2d(31, 31, 3, 1, 1, groups=31, bias=False))
+    else:
+        up, fuse, block = stage.decoder[0]
+        stage.decoder[0][1] = nn.Conv2d(fuse.in_channels, fuse.out_channels, 1, groups=31)
+    _assert_lean_is_plain(net, torch.rand(1, 3, 24, 16) * 5)
+
+
+def test_a_module_in_place_of_an_hscnnd_block_runs():
+    torch.manual_seed(6)
+    net = build_network(arch="hscnnd", preset="tiny").eval()
+    net.blocks[1] = nn.Sequential(net.blocks[1])
+    _chunked(net, 17 * 2)
+    _assert_lean_is_plain(net, torch.rand(1, 3, 23, 17))
+
+
+def test_a_float64_mstpp_keeps_its_precision():
+    net = _mstpp().double()
+    x = torch.rand(1, 3, 24, 16, dtype=torch.float64) * 5
+    _assert_lean_is_plain(net, x, tol=1e-12)
+
+
+def test_autocast_gives_the_plain_graphs_dtype():
+    net = _mstpp()
+    x = torch.rand(1, 3, 24, 16)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        with torch.no_grad():
+            lean = net(x)
+        plain = net(x.clone().requires_grad_())
+    assert lean.dtype == plain.dtype
+
+
+def test_mst_refuses_a_size_off_its_grid_as_the_plain_graph_does():
+    mst = _mstpp().body_stages[0].eval()
+    x = torch.rand(1, 31, 9, 8)                  # one level: a multiple of 2 needed
+    with pytest.raises(RuntimeError):
+        mst(x.clone().requires_grad_())
+    with pytest.raises(RuntimeError), torch.no_grad():
+        mst(x)
+
+
+@pytest.mark.parametrize("arch", ["galliani", "hscnnd", "hdrssr"])
+def test_the_memory_probe_covers_images_of_several_strips(arch):
+    # the probes' own-chunk run was exactly one chunk large, where the strip
+    # convolutions run whole: images of several strips held 7.5 % more than predicted
+    from mehs.ssr.tiling_probes import _peak_tensor_bytes, torch_memory_probe
+
+    torch.manual_seed(0)
+    net = build_network(arch=arch, preset="small").eval()
+    model = torch_memory_probe(net)
+    for side in (300, 384):
+        counted, _ = _peak_tensor_bytes(net, side)
+        assert counted <= model["fixed_bytes"] + model["bytes_per_pixel"] * side * side

@@ -138,6 +138,9 @@ class HSCNND2018(SSRNetwork):
         buf[:, :self.c0] = feats
         c = self.c0
         for block in self.blocks:
-            block.run_into(buf[:, :c], buf[:, c:c + self.fuse], self.chunk_pixels)
+            if isinstance(block, DenseFusionBlock):
+                block.run_into(buf[:, :c], buf[:, c:c + self.fuse], self.chunk_pixels)
+            else:                               # a module put in its place runs as it is
+                buf[:, c:c + self.fuse] = block(buf[:, :c])
             c += self.fuse
         return conv2d_into(self.conv_out, buf, chunk_pixels=self.chunk_pixels)

@@ -147,6 +147,7 @@ class DenseLayer(nn.Sequential):
             # image's edges, where they are the conv's own zero padding
             y = conv(F.relu(bn(src[:, :, a:b]), inplace=True))
             dst[:, :, r0:r1] = y[:, :, r0 - a:r1 - a]
+            del y               # (else two strips are alive while the next is computed)
         for m in list(self)[3:]:
             if isinstance(m, ChannelAttention):
                 dst.mul_(m.weights(dst))
@@ -211,7 +212,13 @@ def training_graph() -> bool:
     """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`)
     or an exporter needs the plain concatenating graph."""
     return (torch.is_grad_enabled() or plain_graph_wanted() or torch.jit.is_tracing()
-            or torch.onnx.is_in_onnx_export())
+            or torch.onnx.is_in_onnx_export() or _autocast())
+
+
+def _autocast() -> bool:
+    # strips write into buffers of the input's dtype, where autocast's operators return
+    # lower precision: the plain graph keeps its dtypes
+    return any(torch.is_autocast_enabled(d) for d in ("cpu", "cuda"))
 
 
 class MaxPool2x2(nn.MaxPool2d):
@@ -287,7 +294,9 @@ def conv_transpose_into(up: nn.Module, x: torch.Tensor, dst: torch.Tensor,
     """
     n, h_out = x.shape[0], dst.shape[2]
     rows = max(1, chunk_pixels // max(1, n * dst.shape[3])) if chunk_pixels > 0 else h_out
-    if rows >= h_out or not _plain(up, nn.ConvTranspose2d) or dst.shape != conv_transpose_shape(up, x):
+    if (rows >= h_out or not _plain(up, nn.ConvTranspose2d) or dst.numel() == 0
+            or dst.shape != conv_transpose_shape(up, x)):
+        # (an empty or mismatched destination: the whole call, which raises as it would)
         dst[...] = up(x)
         return
     for o0 in range(0, h_out, rows):
@@ -364,6 +373,7 @@ def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = Non
         if add is not None:
             y += add[:, :, o0:o1]
         out[:, :, o0:o1] = y
+        del y                   # (else two strips are alive while the next is computed)
     return out
 
 

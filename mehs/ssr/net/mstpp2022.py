@@ -130,11 +130,13 @@ class SpectralMSA(nn.Module):
         total = torch.zeros(nh * d * (d + 2), dtype=torch.float64)
         # in row chunks: the owned part of a tile is a strided view, and a copy of all of
         # it (two maps of C channels) would add ~250 B/px to the tile's peak. Each chunk
-        # in float32 (half floats overflow a Gram matrix), the totals in float64 on the
-        # CPU (Apple's MPS devices have no float64)
+        # in float32 at least (half floats overflow a Gram matrix; a float64 network keeps
+        # its precision), the totals in float64 on the CPU (Apple's MPS devices have no
+        # float64)
+        dtype = torch.promote_types(k.dtype, torch.float32)
         for r in range(0, k.shape[0], rows):
-            kc = k[r:r + rows].reshape(-1, nh, d).transpose(0, 1).float()   # (heads, P, d)
-            qc = q[r:r + rows].reshape(-1, nh, d).transpose(0, 1).float()
+            kc = k[r:r + rows].reshape(-1, nh, d).transpose(0, 1).to(dtype)   # (heads, P, d)
+            qc = q[r:r + rows].reshape(-1, nh, d).transpose(0, 1).to(dtype)
             part = torch.cat([(kc.transpose(1, 2) @ qc).reshape(-1),
                               (kc * kc).sum(1).reshape(-1), (qc * qc).sum(1).reshape(-1)])
             total += part.to(device="cpu", dtype=torch.float64)
@@ -192,25 +194,34 @@ class MSAB(nn.Module):
         if not mstpp_lean.lean_allowed((self, MSAB)):
             return False
         for attn, norm, ff in zip(self.attn, self.norm, self.ff):
+            # the strips use the projections' weights (and proj's bias), two rows of
+            # context for the positional term and one for the feed-forward block: the
+            # parts as built, pointwise activations between the convolutions
             if not (type(attn) is SpectralMSA and type(norm) is nn.LayerNorm
-                    and type(ff) is FeedForward and len(ff.net) == 5
+                    and type(ff) is FeedForward
                     and all(type(m) is nn.Linear for m in (attn.to_q, attn.to_k, attn.to_v, attn.proj))
-                    and _convs(attn.pos_emb, 0, 2) == [(3, 1)] * 2
-                    and _convs(ff.net, 0, 2, 4) == [(1, 0), (3, 1), (1, 0)]):
+                    and all(m.bias is None for m in (attn.to_q, attn.to_k, attn.to_v))
+                    and _layout(attn.pos_emb) == [(3, 1), "act", (3, 1)]
+                    and _layout(ff.net) == [(1, 0), "act", (3, 1), "act", (1, 0)]):
                 return False
         return True
 
 
-def _convs(seq: nn.Sequential, *at: int) -> list | None:
-    """``(kernel, padding)`` of the square, stride-1 ``nn.Conv2d`` at positions ``at`` of ``seq``."""
+def _layout(seq: nn.Module) -> list | None:
+    """A ``Sequential`` of ``nn.Conv2d`` (as ``(kernel, padding)``: square, stride 1,
+    zero-padded) and ``nn.GELU`` (``"act"``); None if it holds anything else."""
+    if type(seq) is not nn.Sequential:
+        return None
     out = []
-    for i in at:
-        m = seq[i] if i < len(seq) else None
-        if not (type(m) is nn.Conv2d and m.stride == (1, 1) and m.dilation == (1, 1)
-                and m.padding_mode == "zeros" and isinstance(m.padding, tuple)
-                and len(set(m.kernel_size)) == 1 and len(set(m.padding)) == 1):
+    for m in seq:
+        if type(m) is nn.GELU:
+            out.append("act")
+        elif (type(m) is nn.Conv2d and m.stride == (1, 1) and m.dilation == (1, 1)
+              and m.padding_mode == "zeros" and isinstance(m.padding, tuple)
+              and len(set(m.kernel_size)) == 1 and len(set(m.padding)) == 1):
+            out.append((m.kernel_size[0], m.padding[0]))
+        else:
             return None
-        out.append((m.kernel_size[0], m.padding[0]))
     return out
 
 
@@ -247,9 +258,7 @@ class MST(nn.Module):
         self.apply(_init_weights)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if mstpp_lean.lean_allowed((self, MST)) and all(
-                type(up) is nn.ConvTranspose2d and _convs(nn.Sequential(fuse), 0) == [(1, 0)]
-                for up, fuse, _ in self.decoder):
+        if self._strippable(x):
             return self._lean_forward(x)
         fea = self.embedding(x)
         skips = []
@@ -261,6 +270,20 @@ class MST(nn.Module):
         for (up, fuse, msab), skip in zip(self.decoder, skips[::-1]):
             fea = msab(fuse(torch.cat([up(fea), skip], dim=1)))
         return self.mapping(fea) + x
+
+    def _strippable(self, x: torch.Tensor) -> bool:
+        """Whether :meth:`_lean_forward` may run: its parts as built (it writes into the
+        maps they return, which must be fresh) and a size the plain forward accepts."""
+        m = 2 ** self.depth
+        return (mstpp_lean.lean_allowed((self, MST)) and x.shape[-2] % m == 0
+                and x.shape[-1] % m == 0
+                and all(type(c) is nn.Conv2d for c in (self.embedding, self.mapping))
+                and type(self.bottleneck) is MSAB
+                and all(type(msab) is MSAB and type(down) is nn.Conv2d
+                        for msab, down in self.encoder)
+                and all(type(up) is nn.ConvTranspose2d and type(msab) is MSAB
+                        and _layout(nn.Sequential(fuse)) == [(1, 0)] and fuse.groups == 1
+                        for up, fuse, msab in self.decoder))
 
     def _lean_forward(self, x: torch.Tensor) -> torch.Tensor:
         # the plain forward's steps; each skip and map is released as soon as it is used

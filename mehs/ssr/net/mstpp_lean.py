@@ -77,6 +77,7 @@ def similarity_sums(msa, x: torch.Tensor, chunk_pixels: int = STRIP_PIXELS) -> t
         q = _pointwise(part, msa.to_q.weight)[0]
         s = msa._similarity_sums(k, q)
         total = s if total is None else total + s
+        del k, q
     return total
 
 
@@ -146,6 +147,8 @@ def msa_residual(msa, x: torch.Tensor, out: torch.Tensor, chunk_pixels: int = ST
         o += pos
         o += x[:, :, r0:r1]
         late.put(r0, r1, o)
+        # (the strip's temporaries would be alive while the next strip's are made)
+        del v, pos, core, o
     late.flush()
 
 
@@ -171,6 +174,7 @@ def ffn_residual_(norm: nn.LayerNorm, ff, y: torch.Tensor, chunk_pixels: int = S
         res = reduce(t)
         res += y[:, :, r0:r1]
         late.put(r0, r1, res)
+        del t, res
     late.flush()
 
 
@@ -193,4 +197,5 @@ def up_fuse(up: nn.ConvTranspose2d, fuse: nn.Conv2d, fea: torch.Tensor, skip: to
         # (the concatenation is a copy, so the strip of skip may be overwritten)
         out[:, :, r0:r1] = F.conv2d(torch.cat([u, skip[:, :, r0:r1]], dim=1), fuse.weight,
                                     fuse.bias)
+        del u
     return out
