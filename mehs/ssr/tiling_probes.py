@@ -186,10 +186,11 @@ def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> di
     else:
         fixed = max(0.0, p2 - slope * n2)
     if chunked:
-        # a run more than one of the modules' own chunks large: their full temporaries,
+        # a run more than two of the modules' own chunks large: their full temporaries,
         # and the buffers a call of several strips has (at exactly one chunk the strip
-        # convolutions run as one whole call: 8 MiB less than any larger image)
-        side = max(s2, math.isqrt(max(int(m.chunk_pixels) for m in chunked)) + 1)
+        # convolutions ran as one whole call, 8 MiB less than any larger image; in-place
+        # strips keep two finished strips until no later strip reads their rows)
+        side = max(s2, math.isqrt(2 * max(int(m.chunk_pixels) for m in chunked)) + 1)
         own, _ = _peak_tensor_bytes(network, side)
         fixed = max(fixed, own - slope * side * side)
     return {"bytes_per_pixel": slope, "fixed_bytes": fixed,

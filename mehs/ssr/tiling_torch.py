@@ -109,6 +109,11 @@ def tiled_torch_call(model, rgb: np.ndarray,
     # the margin probe needs the grid first: one measurement for both
     align = once(measure_align)
     fixed_margin = getattr(net, "TILING_MARGIN", None)
+    from mehs.ssr.net.base import SSRNetwork
+
+    if fixed_margin is None and isinstance(net, SSRNetwork) and net.receptive_radius is not None:
+        # a zoo network that declares itself purely local (HSCNN-D): its exact field
+        fixed_margin = net.receptive_radius
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
               "align": align}

@@ -154,17 +154,10 @@ class TorchSSRModel(SSRModel):
         rgb = np.asarray(rgb, dtype=np.float32)
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
-        from mehs.ssr.tiling_pad import size_multiple
-
-        if getattr(self.network, "receptive_radius", None) is not None and size_multiple(self) == 1:
-            # a purely local network: exact overlapping tiles bound the memory (model zoo)
-            from mehs.ssr.net.infer import predict_tiled
-
-            x = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))[None]).to(self.device)
-            y = predict_tiled(self.network, x, spectra=False)
-            return y[0].permute(1, 2, 0).cpu().numpy().astype(np.float32, copy=False)
-        # global operations (channel attention), or a size multiple to pad to: the whole
-        # image, or tiles with a margin when it would not fit in memory (mehs.ssr.tiling)
+        # the whole image, or tiles with a margin when it would not fit in memory
+        # (mehs.ssr.tiling; a purely local network's margin is its declared receptive
+        # radius). Local networks ran on fixed 512² tiles before, whatever the memory
+        # (HSCNN-D full: 2.7 GB for 1024×512 under a 1 GB cap) and the model's tiling
         from mehs.ssr.tiling_torch import tiled_torch_call
 
         return np.asarray(tiled_torch_call(self, rgb), dtype=np.float32)

@@ -34,7 +34,8 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.layers import STRIP_PIXELS, _plain, conv2d_into, training_graph
+from mehs.ssr.net.layers import (STRIP_PIXELS, _plain, channel_strip_rows, conv2d_into,
+                                 training_graph)
 
 
 def _conv(c_in: int, c_out: int, k: int) -> nn.Conv2d:
@@ -69,8 +70,9 @@ class DenseFusionBlock(nn.Module):
         whole call's sums. A whole-map call held the compression's oneDNN-reordered
         copy of its input, up to 1056 channels in the full preset (issue 16).
         """
-        n, _, h, w = src.shape
-        rows = max(1, chunk_pixels // max(1, n * w)) if chunk_pixels > 0 else h
+        n, c, h, w = src.shape
+        # (the strip of the block's input is copied and reordered: up to 1056 channels)
+        rows = channel_strip_rows(chunk_pixels, n, h, w, max(c, self.conv1.out_channels))
         if rows >= h or not _strippable(self):
             dst[...] = self(src)
             return

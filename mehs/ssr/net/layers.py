@@ -65,6 +65,23 @@ class ChannelAttention(nn.Module):
 STRIP_PIXELS = 65536
 
 
+#: Channels ``chunk_pixels`` pixels are counted for where a strip's temporaries have
+#: many more or fewer channels (:func:`channel_strip_rows`).
+STRIP_CHANNELS = 128
+
+
+def channel_strip_rows(chunk_pixels: int, n: int, h: int, w: int, channels: int) -> int:
+    """Rows per strip of an ``(n, ·, h, w)`` map whose strip temporaries have ``channels``
+    channels: ``chunk_pixels · min(1, STRIP_CHANNELS / channels)`` pixels, so that strips of
+    wide maps (an HSCNN-D block reading 1056 channels) hold no more than others (0: all
+    rows). Never more than ``chunk_pixels``: the memory probe sees every module in several
+    strips on a probe one chunk large (:func:`mehs.ssr.tiling_probes.torch_memory_probe`)."""
+    if chunk_pixels <= 0:
+        return h
+    pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, channels)
+    return max(1, min(h, pixels // max(1, n * w)))
+
+
 def _plain(module: nn.Module, *types: type) -> bool:
     """Whether ``module`` is exactly one of ``types`` (not a subclass, whose forward may
     differ) and neither it, its children nor the process carry forward hooks: the
@@ -355,7 +372,9 @@ def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = Non
         (k, kw), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
         h_out = (h + 2 * p - d * (k - 1) - 1) // s + 1
         w_out = (w + 2 * pw - dw * (kw - 1) - 1) // sw + 1
-        rows = max(1, chunk_pixels // max(1, n * w_out))
+        # (a strip's input and output, each reordered by oneDNN)
+        rows = channel_strip_rows(chunk_pixels, n, h_out, w_out,
+                                  max(conv.in_channels, conv.out_channels))
     if not plain or chunk_pixels <= 0 or rows >= h_out:
         # (one strip would be the whole call, with a padded copy of the input)
         y = conv(x)

@@ -33,7 +33,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.layers import STRIP_PIXELS, _plain, conv_transpose_rows, training_graph
+from mehs.ssr.net.layers import (STRIP_PIXELS, _plain, channel_strip_rows, conv_transpose_rows,
+                                 training_graph)
 from mehs.ssr.net.pooling import image_statistic
 
 
@@ -44,19 +45,13 @@ def lean_allowed(*modules: tuple[nn.Module, type]) -> bool:
     return not training_graph() and all(_plain(m, t) for m, t in modules)
 
 
-#: Channels of the temporaries ``chunk_pixels`` pixels are counted for: a strip of a
-#: map whose temporaries have ``c`` channels holds ``chunk_pixels · 128 / c`` pixels, so
-#: that the bottleneck's feed-forward strips (4 × 124 channels) are no larger than the
-#: first level's (4 × 31): a fixed pixel count made them 0.4 GB, the peak of MST++ full.
-STRIP_CHANNELS = 128
-
-
 def _rows(x: torch.Tensor, chunk_pixels: int, channels: int) -> int:
-    """Rows per strip of ``x`` ``(N, C, H, W)`` whose temporaries have ``channels`` channels."""
+    """Rows per strip of ``x`` ``(N, C, H, W)`` whose temporaries have ``channels`` channels
+    (:func:`~mehs.ssr.net.layers.channel_strip_rows`: the bottleneck's feed-forward strips,
+    4 × 124 channels, are no larger than the first level's, 4 × 31; a fixed pixel count
+    made them 0.4 GB, the peak of MST++ full)."""
     n, _, h, w = x.shape
-    if chunk_pixels <= 0:
-        return h
-    return max(1, min(h, chunk_pixels * STRIP_CHANNELS // max(1, channels * n * w)))
+    return channel_strip_rows(chunk_pixels, n, h, w, channels)
 
 
 def _pointwise(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
