@@ -20,7 +20,7 @@ temporaries of per-pixel work. Here
 - the decoder's up-sampling, concatenation with the skip and 1×1 fusion per strip.
 
 Only the stage's input, the block's buffer and a skip per level stay image-sized (MST++
-full at 2048×1024: 4.4 → ~1.9 GB peak). Sums run in
+full at 2048×1024: 4.4 → 1.7 GB peak). Sums run in
 another order than in the plain graph (chunks; ``proj ∘ A`` folded): the results agree
 to float32 rounding, not bit for bit.
 
@@ -76,13 +76,14 @@ def similarity_sums(msa, x: torch.Tensor, chunk_pixels: int = STRIP_PIXELS) -> t
     return total
 
 
-def _mixing(msa, x: torch.Tensor, chunk_pixels: int) -> torch.Tensor:
+def _mixing(msa, x: torch.Tensor, chunk_pixels: int, *, image_wide: bool) -> torch.Tensor:
     """``proj.weight · blockdiag(softmax(σ · K̂ Q̂ᵀ))`` of one image ``x`` ``(1, C, h, w)``:
-    the ``C × C`` map from a pixel's values to its attention output (before the bias)."""
+    the ``C × C`` map from a pixel's values to its attention output (before the bias).
+    ``image_wide``: the tiles' image-wide similarity where they run under image means."""
     def sums(part):
         return similarity_sums(msa, part, chunk_pixels)
 
-    stats = image_statistic(msa, (x,), sums, msa._cosines)
+    stats = image_statistic(msa, (x,), sums, msa._cosines) if image_wide else None
     if stats is None:
         stats = sums(x[0])
     cos = msa._cosines(stats).to(dtype=x.dtype, device=x.device)       # (1, heads, d, d)
@@ -127,8 +128,7 @@ def msa_residual(msa, x: torch.Tensor, out: torch.Tensor, chunk_pixels: int = ST
     halo = 2
     # a batch's images each have their own similarity (the tiles' image-wide one is
     # for a single image, as in the plain graph)
-    mix = ([_mixing(msa, x, chunk_pixels)] if n == 1
-           else [_mixing_own(msa, x[i:i + 1], chunk_pixels) for i in range(n)])
+    mix = [_mixing(msa, x[i:i + 1], chunk_pixels, image_wide=n == 1) for i in range(n)]
     late = _LateRows(out)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
@@ -145,11 +145,6 @@ def msa_residual(msa, x: torch.Tensor, out: torch.Tensor, chunk_pixels: int = ST
         # (the strip's temporaries would be alive while the next strip's are made)
         del v, pos, core, o
     late.flush()
-
-
-def _mixing_own(msa, x: torch.Tensor, chunk_pixels: int) -> torch.Tensor:
-    cos = msa._cosines(similarity_sums(msa, x[0], chunk_pixels)).to(dtype=x.dtype, device=x.device)
-    return msa.proj.weight @ torch.block_diag(*(cos * msa.rescale).softmax(dim=-1)[0])
 
 
 def ffn_residual_(norm: nn.LayerNorm, ff, y: torch.Tensor, chunk_pixels: int = STRIP_PIXELS) -> None:
