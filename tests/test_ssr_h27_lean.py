@@ -346,3 +346,35 @@ def test_a_local_zoo_network_tiles_within_the_memory_budget():
     assert model._tiling_last["summary"]["tiles"] > 1
     assert model._tiling_last["plan"].margin >= net.receptive_radius        # (on the grid)
     np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_declared_radius_is_not_trusted_over_the_measured_field(tmp_path, monkeypatch):
+    # a part replaced by a wider one leaves HSCNN-D's declared radius too small (5.7e-3
+    # off, silently); a declaration was also cached as the architecture's margin
+    from mehs.ssr.net.export import TorchSSRModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    torch.manual_seed(0)
+    net = build_network(arch="hscnnd", preset="tiny").eval()
+    old = net.blocks[1]
+    wide = nn.Conv2d(old.conv1.in_channels, net.fuse, 21, padding=10, bias=False)
+    net.blocks[1] = wide
+    model = TorchSSRModel(net)
+    rgb = (torch.rand(160, 160, 3) * 4).numpy()
+    model.tiling = "off"
+    whole = model.standard_spectrum(rgb)
+    model.tiling = {"bytes_per_pixel": 400.0, "max_bytes": 400 * 72 * 72}
+    tiled = model.standard_spectrum(rgb)
+    assert model._tiling_last["summary"]["tiles"] > 1
+    assert model._tiling_last["plan"].margin >= 12
+    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_probes_under_autocast_are_cached_apart():
+    from mehs.ssr.probe_cache import network_key
+
+    net = build_network(arch="hscnnd", preset="tiny")
+    key = network_key(net)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert network_key(net) != key
+    assert network_key(net) == key

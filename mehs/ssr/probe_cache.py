@@ -67,7 +67,10 @@ def network_key(network) -> str | None:
             h.update(str(p).encode())
             h.update(b"\0")
 
-    add(FORMAT, torch.__version__, repr(network))
+    from mehs.ssr.net.layers import autocast_state
+
+    # under autocast the networks run their plain graphs in lower precision: other memory
+    add(FORMAT, torch.__version__, repr(network), autocast_state())
     for name, t in [*network.named_parameters(), *network.named_buffers()]:
         add(name, tuple(t.shape), t.dtype, t.device.type)
     for m in mods:

@@ -108,12 +108,10 @@ def tiled_torch_call(model, rgb: np.ndarray,
 
     # the margin probe needs the grid first: one measurement for both
     align = once(measure_align)
+    # (a declared receptive_radius is not taken as the margin: the field is measured, on
+    # the grid, as for every network; a declaration is not in the probe cache's key and
+    # goes stale when a part is replaced)
     fixed_margin = getattr(net, "TILING_MARGIN", None)
-    from mehs.ssr.net.base import SSRNetwork
-
-    if fixed_margin is None and isinstance(net, SSRNetwork) and net.receptive_radius is not None:
-        # a zoo network that declares itself purely local (HSCNN-D): its exact field
-        fixed_margin = net.receptive_radius
     probes = {"bytes_per_pixel": memory,
               "margin": (lambda: int(fixed_margin)) if fixed_margin is not None else margin,
               "align": align}

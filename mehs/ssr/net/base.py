@@ -189,7 +189,9 @@ class SSRNetwork(nn.Module):
     Class attributes: ``receptive_radius`` — pixels of context one output pixel
     depends on when the network is purely local (then tiled inference with that
     much overlap is exact, :func:`mehs.ssr.net.infer.predict_tiled`), ``None`` when
-    it has image-wide operations (global pooling, attention over all pixels).
+    it has image-wide operations (global pooling, attention over all pixels). The
+    models' own tiling (:mod:`mehs.ssr.tiling`) measures the field instead of reading
+    it: a declaration goes stale when a part is replaced.
     """
 
     receptive_radius: int | None = None

@@ -154,10 +154,10 @@ class TorchSSRModel(SSRModel):
         rgb = np.asarray(rgb, dtype=np.float32)
         if not np.all(np.isfinite(rgb)):
             raise InputError(f"{self.name}: input RGB has NaN/inf values")
-        # the whole image, or tiles with a margin when it would not fit in memory
-        # (mehs.ssr.tiling; a purely local network's margin is its declared receptive
-        # radius). Local networks ran on fixed 512² tiles before, whatever the memory
-        # (HSCNN-D full: 2.7 GB for 1024×512 under a 1 GB cap) and the model's tiling
+        # the whole image, or tiles with a measured margin when it would not fit in
+        # memory (mehs.ssr.tiling); purely local networks too (HSCNN-D on fixed 512²
+        # tiles, whatever the memory and the model's tiling, held 2.7 GB for 1024×512
+        # under a 1 GB cap)
         from mehs.ssr.tiling_torch import tiled_torch_call
 
         return np.asarray(tiled_torch_call(self, rgb), dtype=np.float32)

@@ -14,7 +14,8 @@ blocks of HSCNN-D): every conv bias-free, ReLU after each.
 
 Purely local: one output pixel depends on the ``1 + n_blocks`` pixels around it
 (one 3×3 conv per block along each path), so tiled inference with that much
-overlap is exact (:func:`mehs.ssr.net.infer.predict_tiled`). Without gradients
+overlap is exact (:func:`mehs.ssr.net.infer.predict_tiled`; a model's tiles are planned
+from the memory budget with the field measured, :mod:`mehs.ssr.tiling`). Without gradients
 the dense features are written into one preallocated tensor instead of being
 re-concatenated after every block (the same numbers, linear instead of quadratic
 copying).

@@ -75,7 +75,7 @@ def channel_strip_rows(chunk_pixels: int, n: int, h: int, w: int, channels: int)
     channels: ``chunk_pixels · min(1, STRIP_CHANNELS / channels)`` pixels, so that strips of
     wide maps (an HSCNN-D block reading 1056 channels) hold no more than others (0: all
     rows). Never more than ``chunk_pixels``: the memory probe sees every module in several
-    strips on a probe one chunk large (:func:`mehs.ssr.tiling_probes.torch_memory_probe`)."""
+    strips on its probe two chunks large (:func:`mehs.ssr.tiling_probes.torch_memory_probe`)."""
     if chunk_pixels <= 0:
         return h
     pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, channels)
@@ -232,10 +232,26 @@ def training_graph() -> bool:
             or torch.onnx.is_in_onnx_export() or _autocast())
 
 
+#: Device types whose autocast state :func:`autocast_state` reads.
+AUTOCAST_DEVICES = ("cpu", "cuda", "mps", "xpu")
+
+
+def autocast_state() -> tuple:
+    """``(device type, dtype)`` of every autocast region active here."""
+    active = []
+    for d in AUTOCAST_DEVICES:
+        try:
+            if torch.is_autocast_enabled(d):
+                active.append((d, str(torch.get_autocast_dtype(d))))
+        except (RuntimeError, ValueError):       # a device type this build does not know
+            continue
+    return tuple(active)
+
+
 def _autocast() -> bool:
     # strips write into buffers of the input's dtype, where autocast's operators return
     # lower precision: the plain graph keeps its dtypes
-    return any(torch.is_autocast_enabled(d) for d in ("cpu", "cuda"))
+    return bool(autocast_state())
 
 
 class MaxPool2x2(nn.MaxPool2d):
