@@ -1,6 +1,7 @@
 """Lean inference, session 27 (issue 16): transposed convolutions in row strips."""
 
 import itertools
+import warnings
 
 import numpy as np
 
@@ -378,3 +379,29 @@ def test_probes_under_autocast_are_cached_apart():
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert network_key(net) != key
     assert network_key(net) == key
+
+
+@pytest.mark.parametrize("declared,want", [(20, 24), (65, 72)])
+def test_a_declared_radius_wider_than_measured_raises_the_margin(tmp_path, monkeypatch,
+                                                                 declared, want):
+    # a field probe sees only the paths its inputs open (HSCNN-D full: 24 px measured, 31
+    # by construction); the declaration raises the margin, on the grid (65, the global
+    # operations' marker, would have read as one), and is not cached with the probes
+    from mehs.ssr.net.export import TorchSSRModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    torch.manual_seed(0)
+    net = build_network(arch="hscnnd", preset="tiny").eval()
+    net.receptive_radius = declared
+    model = TorchSSRModel(net)
+    rgb = (torch.rand(200, 200, 3) * 4).numpy()
+    model.tiling = {"bytes_per_pixel": 100.0, "max_bytes": 100 * 190 * 190, "statistics": "tile"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        model.standard_spectrum(rgb)
+    assert model._tiling_last["plan"].margin == want
+    plain = build_network(arch="hscnnd", preset="tiny").eval()
+    other = TorchSSRModel(plain)
+    other.tiling = dict(model.tiling)
+    other.standard_spectrum(rgb)
+    assert other._tiling_last["plan"].margin < want

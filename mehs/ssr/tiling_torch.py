@@ -121,13 +121,33 @@ def tiled_torch_call(model, rgb: np.ndarray,
                                      ("align", "align"))}
         # the margin probe reads the grid through the store too
         align = probes["align"] = once(probes["align"])
-    probes["margin"] = margin_or_bound(model, probes["margin"])
+    probes["margin"] = _with_declared_radius(net, margin_or_bound(model, probes["margin"]),
+                                             lambda: grid(align(), k))
     from mehs.ssr.probe_cache import network_key
 
     # a user's network is checked on a probe image (mehs's own are, in the test suite)
     user = network_key(net) is None
     probes["check_tiles"] = lambda record: user
     return tiled_network_call(model, run, rgb, probes, image_means=_image_means_stitcher(model))
+
+
+def _with_declared_radius(net, margin: Callable[[], int], align: Callable[[], int]):
+    """The margin probe, raised to a zoo network's declared ``receptive_radius`` (on the
+    grid) where that is wider: a field probe sees only the paths its inputs open (HSCNN-D
+    full: 24 px measured, 31 by construction). The declaration is read per call, never
+    cached with the architecture's probes, and never lowers what was measured (a part
+    replaced by a wider one leaves it stale); a global operation stays global."""
+    from mehs.ssr.net.base import SSRNetwork
+
+    def raised() -> int:
+        m = margin()
+        declared = getattr(net, "receptive_radius", None) if isinstance(net, SSRNetwork) else None
+        if m == GLOBAL_MARGIN or not isinstance(declared, int) or declared <= 0:
+            return m
+        a = max(1, int(align()))
+        return max(int(m), -(-declared // a) * a)
+
+    return raised
 
 
 def _image_means_stitcher(model) -> Callable[..., np.ndarray]:
