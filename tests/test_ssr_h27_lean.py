@@ -13,7 +13,7 @@ torch.set_num_threads(1)
 from torch import nn  # noqa: E402
 
 from mehs.ssr.net import build_network  # noqa: E402
-from mehs.ssr.net.layers import conv_transpose_into  # noqa: E402
+from mehs.ssr.net.strips import conv_transpose_into  # noqa: E402
 
 
 CONFIGS = [(k, s, p, d, op) for k, s, p, d, op in itertools.product(
@@ -123,7 +123,7 @@ CONV_CONFIGS = [(k, s, p, d) for k, s, p, d in itertools.product((1, 2, 3, 4), (
 
 @pytest.mark.parametrize("k,s,p,d", CONV_CONFIGS)
 def test_strips_of_a_convolution_are_the_whole_call(k, s, p, d):
-    from mehs.ssr.net.layers import conv2d_into
+    from mehs.ssr.net.strips import conv2d_into
 
     torch.manual_seed(k + 7 * s + 31 * p)
     conv = nn.Conv2d(3, 4, k, stride=s, padding=p, dilation=d)
@@ -143,7 +143,7 @@ def test_strips_of_a_convolution_are_the_whole_call(k, s, p, d):
 
 
 def test_a_same_padded_or_hooked_convolution_runs_whole():
-    from mehs.ssr.net.layers import conv2d_into
+    from mehs.ssr.net.strips import conv2d_into
 
     x = torch.randn(1, 3, 9, 6)
     with torch.no_grad():

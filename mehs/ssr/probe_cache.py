@@ -67,7 +67,7 @@ def network_key(network) -> str | None:
             h.update(str(p).encode())
             h.update(b"\0")
 
-    from mehs.ssr.net.layers import autocast_state
+    from mehs.ssr.net.strips import autocast_state
 
     # under autocast the networks run their plain graphs in lower precision: other memory
     add(FORMAT, torch.__version__, repr(network), autocast_state())

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.layers import STRIP_PIXELS, conv2d_into, training_graph
+from mehs.ssr.net.strips import STRIP_PIXELS, conv2d_into, training_graph
 from mehs.ssr.net.mikamoto import (FC_DENSENET56, FC_DENSENET_SMALL, FC_DENSENET_TINY,
                                    fcdensenet_from_params)
 

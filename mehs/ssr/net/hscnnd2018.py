@@ -35,7 +35,7 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.layers import (STRIP_PIXELS, _plain, channel_strip_rows, conv2d_into,
+from mehs.ssr.net.strips import (STRIP_PIXELS, _plain, channel_strip_rows, conv2d_into,
                                  training_graph)
 
 

@@ -25,7 +25,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.pooling import plain_graph_wanted, pooled_mean
+from mehs.ssr.net.pooling import pooled_mean
+from mehs.ssr.net.strips import STRIP_PIXELS, _plain, conv_transpose_into, training_graph
 
 
 class ChannelAttention(nn.Module):
@@ -56,41 +57,6 @@ class ChannelAttention(nn.Module):
         # (the image-wide mean when tiles run under mehs.ssr.net.pooling.ImageMeans)
         s = pooled_mean(self, x)
         return torch.sigmoid(self.excite(F.relu(self.squeeze(s))))
-
-
-#: Pixels per row strip in which inference runs a dense layer's or a transition's
-#: per-pixel work (their ``chunk_pixels``; 0: whole maps). A strip's normalised input
-#: and oneDNN's reordered copy of it stay in cache instead of costing two image-sized
-#: temporaries, which set the peak memory of a large image (issue 16).
-STRIP_PIXELS = 65536
-
-
-#: Channels ``chunk_pixels`` pixels are counted for where a strip's temporaries have
-#: many more or fewer channels (:func:`channel_strip_rows`).
-STRIP_CHANNELS = 128
-
-
-def channel_strip_rows(chunk_pixels: int, n: int, h: int, w: int, channels: int) -> int:
-    """Rows per strip of an ``(n, ·, h, w)`` map whose strip temporaries have ``channels``
-    channels: ``chunk_pixels · min(1, STRIP_CHANNELS / channels)`` pixels, so that strips of
-    wide maps (an HSCNN-D block reading 1056 channels) hold no more than others (0: all
-    rows). Never more than ``chunk_pixels``: the memory probe sees every module in several
-    strips on its probe two chunks large (:func:`mehs.ssr.tiling_probes.torch_memory_probe`)."""
-    if chunk_pixels <= 0:
-        return h
-    pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, channels)
-    return max(1, min(h, pixels // max(1, n * w)))
-
-
-def _plain(module: nn.Module, *types: type) -> bool:
-    """Whether ``module`` is exactly one of ``types`` (not a subclass, whose forward may
-    differ) and neither it, its children nor the process carry forward hooks: the
-    strips call its parts' functions directly, past hooks and overridden forwards."""
-    from torch.nn.modules import module as _m
-
-    if type(module) not in types or _m._global_forward_hooks or _m._global_forward_pre_hooks:
-        return False
-    return not any(m._forward_hooks or m._forward_pre_hooks for m in module.modules())
 
 
 def _inference_bn(bn: nn.Module) -> bool:
@@ -225,35 +191,6 @@ class DenseBlock(nn.Module):
         return like.new_empty(n, in_channels + self.new_channels, h, w)
 
 
-def training_graph() -> bool:
-    """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`)
-    or an exporter needs the plain concatenating graph."""
-    return (torch.is_grad_enabled() or plain_graph_wanted() or torch.jit.is_tracing()
-            or torch.onnx.is_in_onnx_export() or _autocast())
-
-
-#: Device types whose autocast state :func:`autocast_state` reads.
-AUTOCAST_DEVICES = ("cpu", "cuda", "mps", "xpu")
-
-
-def autocast_state() -> tuple:
-    """``(device type, dtype)`` of every autocast region active here."""
-    active = []
-    for d in AUTOCAST_DEVICES:
-        try:
-            if torch.is_autocast_enabled(d):
-                active.append((d, str(torch.get_autocast_dtype(d))))
-        except (RuntimeError, ValueError):       # a device type this build does not know
-            continue
-    return tuple(active)
-
-
-def _autocast() -> bool:
-    # strips write into buffers of the input's dtype, where autocast's operators return
-    # lower precision: the plain graph keeps its dtypes
-    return bool(autocast_state())
-
-
 class MaxPool2x2(nn.MaxPool2d):
     """``nn.MaxPool2d(2)``; at inference the maximum of the four strided quarter views.
 
@@ -312,125 +249,6 @@ class TransitionDown(nn.Sequential):
             r1 = min(h // 2 * 2, r0 + rows)
             out[:, :, r0 // 2:r1 // 2] = super().forward(x[:, :, r0:r1])
         return out
-
-
-def conv_transpose_into(up: nn.Module, x: torch.Tensor, dst: torch.Tensor,
-                        chunk_pixels: int = STRIP_PIXELS) -> None:
-    """Inference: ``dst[...] = up(x)`` for an ``nn.ConvTranspose2d`` ``up``, in row strips
-    of about ``chunk_pixels`` output pixels (:func:`conv_transpose_rows`).
-
-    CPU transposed convolutions gather through a column buffer of ``C_out·k²`` values
-    per *input* pixel (0.9 GB for FC-DenseNet56's last up-sampling at 2048×1024, the
-    peak of its whole-image inference, issue 16); a strip's is a few MB. A module that
-    is not plain (a subclass, hooks) runs whole, as does a ``dst`` not of the call's
-    shape (which then raises as the plain assignment would).
-    """
-    n, h_out = x.shape[0], dst.shape[2]
-    rows = max(1, chunk_pixels // max(1, n * dst.shape[3])) if chunk_pixels > 0 else h_out
-    if (rows >= h_out or not _plain(up, nn.ConvTranspose2d) or dst.numel() == 0
-            or dst.shape != conv_transpose_shape(up, x)):
-        # (an empty or mismatched destination: the whole call, which raises as it would)
-        dst[...] = up(x)
-        return
-    for o0 in range(0, h_out, rows):
-        o1 = min(h_out, o0 + rows)
-        dst[:, :, o0:o1] = conv_transpose_rows(up, x, o0, o1)
-
-
-def conv_transpose_shape(up: nn.ConvTranspose2d, x: torch.Tensor) -> torch.Size:
-    """The shape of ``up(x)`` (no ``output_size``)."""
-    h, w = (
-        (x.shape[2 + i] - 1) * up.stride[i] - 2 * up.padding[i]
-        + up.dilation[i] * (up.kernel_size[i] - 1) + up.output_padding[i] + 1 for i in (0, 1))
-    return torch.Size((x.shape[0], up.out_channels, h, w))
-
-
-def conv_transpose_rows(up: nn.ConvTranspose2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
-    """Rows ``o0:o1`` of ``up(x)`` (``x`` ``(N, C, h, w)``), from the input rows that reach them.
-
-    Output row ``o`` receives input row ``i`` where ``o = i·s − p + j·d`` (``j < k``): the
-    strip's products are exactly the whole call's; rows no input row reaches hold the
-    bias, as in the whole call.
-    """
-    (k, _), (s, sw), (p, pw), (d, dw) = up.kernel_size, up.stride, up.padding, up.dilation
-    h_in = x.shape[2]
-    a = max(0, -(-(o0 + p - (k - 1) * d) // s))                # ceil
-    b = min(h_in - 1, (o1 - 1 + p) // s)
-    shape = conv_transpose_shape(up, x[:, :, :1])
-    out_shape = (shape[0], shape[1], o1 - o0, shape[3])
-    if a > b:                                                  # no input row reaches them
-        return _bias_rows(up, x, out_shape)
-    y = F.conv_transpose2d(x[:, :, a:b + 1], up.weight, up.bias, (s, sw), (0, pw),
-                           (0, up.output_padding[1]), up.groups, (d, dw))
-    top = a * s - p                            # the global row of the strip's local row 0
-    lo, hi = max(o0, top), min(o1, top + y.shape[2])
-    if lo == o0 and hi == o1:
-        return y[:, :, o0 - top:o1 - top]
-    out = _bias_rows(up, x, out_shape)
-    if hi > lo:
-        out[:, :, lo - o0:hi - o0] = y[:, :, lo - top:hi - top]
-    return out
-
-
-def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = None, *,
-                add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
-    """Inference: ``conv(x)`` (``+ add``) in row strips of about ``chunk_pixels`` output
-    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory).
-
-    A whole-map CPU convolution reorders its input into oneDNN's blocked layout and its
-    output back: one more image-sized map at the call (0.26 GB for 31 channels at
-    2048×1024); a strip's stays in cache. A convolution that is not a plain zero-padded
-    ``nn.Conv2d`` runs whole.
-    """
-    n, _, h, w = x.shape
-    plain = _plain(conv, nn.Conv2d) and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
-    if plain and chunk_pixels > 0:
-        (k, kw), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
-        h_out = (h + 2 * p - d * (k - 1) - 1) // s + 1
-        w_out = (w + 2 * pw - dw * (kw - 1) - 1) // sw + 1
-        # (a strip's input and output, each reordered by oneDNN)
-        rows = channel_strip_rows(chunk_pixels, n, h_out, w_out,
-                                  max(conv.in_channels, conv.out_channels))
-    if not plain or chunk_pixels <= 0 or rows >= h_out:
-        # (one strip would be the whole call, with a padded copy of the input)
-        y = conv(x)
-        if add is not None:
-            y = y + add
-        if out is None:
-            return y
-        out[...] = y
-        return out
-    if out is None:
-        out = x.new_empty(n, conv.out_channels, h_out, w_out)
-    for o0 in range(0, h_out, rows):
-        o1 = min(h_out, o0 + rows)
-        y = conv2d_rows(conv, x, o0, o1)
-        if add is not None:
-            y += add[:, :, o0:o1]
-        out[:, :, o0:o1] = y
-        del y                   # (else two strips are alive while the next is computed)
-    return out
-
-
-def conv2d_rows(conv: nn.Conv2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
-    """Rows ``o0:o1`` of a zero-padded ``conv(x)``: the input rows they read, zero rows
-    where those lie beyond the image (the convolution's own padding)."""
-    (k, _), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
-    h = x.shape[2]
-    lo, hi = o0 * s - p, (o1 - 1) * s - p + d * (k - 1) + 1          # input rows read
-    a = min(h, max(0, lo))
-    part = x[:, :, a:max(a, min(h, hi))]
-    top, bottom = max(0, min(hi, 0) - lo), max(0, hi - max(lo, h))
-    if top or bottom:
-        part = F.pad(part, (0, 0, top, bottom))
-    return F.conv2d(part, conv.weight, conv.bias, (s, sw), (0, pw), (d, dw), conv.groups)
-
-
-def _bias_rows(up: nn.ConvTranspose2d, x: torch.Tensor, shape) -> torch.Tensor:
-    out = x.new_zeros(shape)
-    if up.bias is not None:
-        out += up.bias.view(1, -1, 1, 1)
-    return out
 
 
 class FCDenseNet(nn.Module):

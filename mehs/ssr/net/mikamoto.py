@@ -25,7 +25,8 @@ from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net.basis import MexicanHatBranch, SigmoidBasisBranch
-from mehs.ssr.net.layers import FCDenseNet, _plain, training_graph
+from mehs.ssr.net.layers import FCDenseNet
+from mehs.ssr.net.strips import _plain, training_graph
 
 #: Jégou et al.'s FC-DenseNet56: 48 first filters, 5 levels of 4 layers, bottleneck 4,
 #: growth 12 (published: 1.5 M parameters with a 1×1 classifier).

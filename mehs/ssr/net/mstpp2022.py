@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from mehs.errors import InputError
 from mehs.ssr.net import mstpp_lean
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.layers import conv2d_into, training_graph
+from mehs.ssr.net.strips import conv2d_into, training_graph
 from mehs.ssr.net.pooling import image_statistic, statistics_detached
 
 

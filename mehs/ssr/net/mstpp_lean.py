@@ -33,7 +33,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.layers import (STRIP_PIXELS, _plain, channel_strip_rows, conv_transpose_rows,
+from mehs.ssr.net.strips import (STRIP_PIXELS, _plain, channel_strip_rows, conv_transpose_rows,
                                  training_graph)
 from mehs.ssr.net.pooling import image_statistic
 
@@ -47,7 +47,7 @@ def lean_allowed(*modules: tuple[nn.Module, type]) -> bool:
 
 def _rows(x: torch.Tensor, chunk_pixels: int, channels: int) -> int:
     """Rows per strip of ``x`` ``(N, C, H, W)`` whose temporaries have ``channels`` channels
-    (:func:`~mehs.ssr.net.layers.channel_strip_rows`: the bottleneck's feed-forward strips,
+    (:func:`~mehs.ssr.net.strips.channel_strip_rows`: the bottleneck's feed-forward strips,
     4 × 124 channels, are no larger than the first level's, 4 × 31; a fixed pixel count
     made them 0.4 GB, the peak of MST++ full)."""
     n, _, h, w = x.shape
