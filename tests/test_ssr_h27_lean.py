@@ -330,45 +330,40 @@ def test_the_memory_probe_covers_images_of_several_strips(arch):
         assert counted <= 1.02 * (model["fixed_bytes"] + model["bytes_per_pixel"] * side * side)
 
 
-def test_a_local_zoo_network_tiles_within_the_memory_budget():
-    # HSCNN-D ran on fixed 512² tiles whatever the memory (2.7 GB for 1024×512 under a
-    # 1 GB cap) and whatever the model's tiling; it now tiles as every network does,
-    # with its declared receptive radius as the margin
+def _tiled_and_whole(net, side, tile):
+    """A torch SSR model of ``net``: whole, then in tiles of about ``tile``² pixels."""
     from mehs.ssr.net.export import TorchSSRModel
 
-    torch.manual_seed(0)
-    net = build_network(arch="hscnnd", preset="tiny").eval()
     model = TorchSSRModel(net)
-    rgb = (torch.rand(96, 80, 3) * 4).numpy()
+    rgb = (torch.rand(side, side - 16, 3) * 4).numpy()
     model.tiling = "off"
     whole = model.standard_spectrum(rgb)
-    model.tiling = {"bytes_per_pixel": 400.0, "max_bytes": 400 * 40 * 40}
+    model.tiling = {"bytes_per_pixel": 400.0, "max_bytes": 400 * tile * tile}
     tiled = model.standard_spectrum(rgb)
     assert model._tiling_last["summary"]["tiles"] > 1
-    assert model._tiling_last["plan"].margin >= net.receptive_radius        # (on the grid)
     np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+    return model._tiling_last["plan"]
+
+
+def test_a_local_zoo_network_tiles_within_the_memory_budget(tmp_path, monkeypatch):
+    # HSCNN-D ran on fixed 512² tiles whatever the memory (2.7 GB for 1024×512 under a
+    # 1 GB cap) and whatever the model's tiling; it now tiles as every network does
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    torch.manual_seed(0)
+    net = build_network(arch="hscnnd", preset="tiny").eval()
+    plan = _tiled_and_whole(net, 96, 40)
+    assert plan.margin >= net.receptive_radius                        # (on the grid)
 
 
 def test_a_declared_radius_is_not_trusted_over_the_measured_field(tmp_path, monkeypatch):
     # a part replaced by a wider one leaves HSCNN-D's declared radius too small (5.7e-3
     # off, silently); a declaration was also cached as the architecture's margin
-    from mehs.ssr.net.export import TorchSSRModel
-
     monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
     torch.manual_seed(0)
     net = build_network(arch="hscnnd", preset="tiny").eval()
-    old = net.blocks[1]
-    wide = nn.Conv2d(old.conv1.in_channels, net.fuse, 21, padding=10, bias=False)
-    net.blocks[1] = wide
-    model = TorchSSRModel(net)
-    rgb = (torch.rand(160, 160, 3) * 4).numpy()
-    model.tiling = "off"
-    whole = model.standard_spectrum(rgb)
-    model.tiling = {"bytes_per_pixel": 400.0, "max_bytes": 400 * 72 * 72}
-    tiled = model.standard_spectrum(rgb)
-    assert model._tiling_last["summary"]["tiles"] > 1
-    assert model._tiling_last["plan"].margin >= 12
-    np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+    net.blocks[1] = nn.Conv2d(net.blocks[1].conv1.in_channels, net.fuse, 21, padding=10,
+                              bias=False)
+    assert _tiled_and_whole(net, 160, 72).margin >= 12
 
 
 def test_probes_under_autocast_are_cached_apart():
