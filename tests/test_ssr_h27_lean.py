@@ -400,3 +400,19 @@ def test_a_declared_radius_wider_than_measured_raises_the_margin(tmp_path, monke
     other.tiling = dict(model.tiling)
     other.standard_spectrum(rgb)
     assert other._tiling_last["plan"].margin < want
+
+
+def test_a_model_converts_under_autocast():
+    # under CPU bfloat16 autocast every conversion failed ("unsupported ScalarType
+    # BFloat16": numpy has no bfloat16); the spectra come back as float32
+    from mehs.ssr.net.export import TorchSSRModel
+
+    torch.manual_seed(0)
+    model = TorchSSRModel(build_network(arch="hdrssr", preset="tiny").eval())
+    rgb = (torch.rand(64, 48, 3) * 2).numpy()
+    plain = model.standard_spectrum(rgb)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = model.standard_spectrum(rgb)
+    assert low.dtype == np.float32
+    # (bfloat16 keeps 8 bits of mantissa)
+    np.testing.assert_allclose(low, plain, rtol=0, atol=0.1 * np.abs(plain).max())

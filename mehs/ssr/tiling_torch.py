@@ -45,7 +45,9 @@ def tiled_torch_call(model, rgb: np.ndarray,
         def whole(x: np.ndarray) -> np.ndarray:
             t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None]).to(model.device)
             with torch.no_grad():
-                return model.network(t)[0].permute(1, 2, 0).cpu().numpy()
+                y = model.network(t)[0].permute(1, 2, 0)
+            # (under autocast a network returns half floats, which numpy has no bfloat16 for)
+            return y.to(device="cpu", dtype=torch.float32).numpy()
 
     run = padded(whole, k, getattr(model, "name", "model"))
     net = model.network
