@@ -51,15 +51,20 @@ def _torch_module(cls: type) -> bool:
 _NET_PACKAGE = Path(__file__).resolve().parent / "net"
 
 
+def cacheable(network) -> bool:
+    """Whether a torch network's probes may be cached: a mehs network built only of mehs
+    and torch modules (any other code could change what the probes measure unseen)."""
+    return _mehs_module(type(network)) and all(
+        _mehs_module(type(m)) or _torch_module(type(m)) for m in network.modules())
+
+
 def network_key(network) -> str | None:
     """The cache key of a torch network, or None when it must not be cached (see module doc)."""
     import torch
 
+    if not cacheable(network):
+        return None
     mods = list(network.modules())
-    if not _mehs_module(type(network)):
-        return None
-    if any(not (_mehs_module(type(m)) or _torch_module(type(m))) for m in mods):
-        return None
     h = hashlib.sha256()
 
     def add(*parts: Any) -> None:
