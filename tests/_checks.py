@@ -220,3 +220,40 @@ def colour_srgb(cube):
     from mehs.rgb import XYZ_TO_SRGB
 
     return np.maximum(xyz @ XYZ_TO_SRGB.T, 0.0)
+
+
+def peak_live_bytes(fn) -> int:
+    """Peak bytes of live torch tensor storages while ``fn()`` runs, its result dropped
+    (counted here, independently of mehs's own memory probe)."""
+    import weakref
+
+    import torch  # noqa: F401
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_leaves
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.live = self.peak = 0
+            self.seen = set()
+
+        def _gone(self, key, n):
+            self.live -= n
+            self.seen.discard(key)
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            for t in tree_leaves(out):
+                if isinstance(t, torch.Tensor):
+                    s = t.untyped_storage()
+                    if id(s) not in self.seen:
+                        self.seen.add(id(s))
+                        self.live += s.nbytes()
+                        weakref.finalize(s, self._gone, id(s), s.nbytes())
+            self.peak = max(self.peak, self.live)
+            return out
+
+    with Count() as c:
+        y = fn()
+        del y
+    return c.peak

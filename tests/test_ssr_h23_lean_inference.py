@@ -5,7 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
-from _checks import contrast_rgb
+from _checks import contrast_rgb, peak_live_bytes
 
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
@@ -57,39 +57,8 @@ def test_row_strips_give_the_training_graphs_numbers(arch, n):
 
 
 def _peak_live_bytes(net, x):
-    """Peak bytes of live tensor storages during ``net(x)`` (counted here, independently
-    of mehs's own memory probe)."""
-    import weakref
-
-    from torch.utils._python_dispatch import TorchDispatchMode
-    from torch.utils._pytree import tree_leaves
-
-    class Count(TorchDispatchMode):
-        def __init__(self):
-            super().__init__()
-            self.live = self.peak = 0
-            self.seen = set()
-
-        def _gone(self, key, n):
-            self.live -= n
-            self.seen.discard(key)
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            out = func(*args, **(kwargs or {}))
-            for t in tree_leaves(out):
-                if isinstance(t, torch.Tensor):
-                    s = t.untyped_storage()
-                    if id(s) not in self.seen:
-                        self.seen.add(id(s))
-                        self.live += s.nbytes()
-                        weakref.finalize(s, self._gone, id(s), s.nbytes())
-            self.peak = max(self.peak, self.live)
-            return out
-
-    with torch.no_grad(), Count() as c:
-        y = net(x)
-        del y
-    return c.peak
+    with torch.no_grad():
+        return peak_live_bytes(lambda: net(x))
 
 
 def test_inference_holds_about_two_full_resolution_maps_not_five():

@@ -20,7 +20,8 @@ import torch
 from torch import nn
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
-from mehs.ssr.net.strips import STRIP_PIXELS, conv2d_into, training_graph
+from mehs.ssr.net import fcdensenet_lean
+from mehs.ssr.net.strips import STRIP_PIXELS, _plain, conv2d_into, training_graph
 from mehs.ssr.net.mikamoto import (FC_DENSENET56, FC_DENSENET_SMALL, FC_DENSENET_TINY,
                                    fcdensenet_from_params)
 
@@ -45,9 +46,13 @@ class Galliani2017(SSRNetwork):
     chunk_pixels: int = STRIP_PIXELS
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
-        f = self.features(x)
         if training_graph():
-            return self.head(f)
+            return self.head(self.features(x))
         # inference: a whole-map 1×1 convolution held a reordered copy of the 192
-        # feature channels (4.3 GB resident for FC-DenseNet56 at 2048×1024, issue 16)
-        return conv2d_into(self.head, f, chunk_pixels=self.chunk_pixels)
+        # feature channels (4.3 GB resident for FC-DenseNet56 at 2048×1024, issue 16);
+        # in strips it reads the features a strip at a time, never concatenated
+        f, h, w = fcdensenet_lean.features(self.features, x)
+        per_pixel = (_plain(self.head, nn.Conv2d) and self.head.kernel_size == (1, 1)
+                     and self.head.stride == (1, 1) and self.head.padding == (0, 0))
+        out = f.output_buffer(self.head.out_channels) if per_pixel else None
+        return conv2d_into(self.head, f, out, chunk_pixels=self.chunk_pixels)[..., :h, :w]

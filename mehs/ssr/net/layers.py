@@ -26,7 +26,8 @@ from torch import nn
 import torch.nn.functional as F
 
 from mehs.ssr.net.pooling import pooled_mean
-from mehs.ssr.net.strips import STRIP_PIXELS, _plain, conv_transpose_into, training_graph
+from mehs.ssr.net.strips import (STRIP_PIXELS, RowGroups, _plain, conv_transpose_into,
+                                 training_graph)
 
 
 class ChannelAttention(nn.Module):
@@ -108,18 +109,20 @@ class DenseLayer(nn.Sequential):
                 and 2 * conv.padding[0] == conv.kernel_size[0] - 1
                 and all(type(m) in (ChannelAttention, nn.Dropout) for m in list(self)[3:]))
 
-    def run_into(self, src: torch.Tensor, dst: torch.Tensor) -> None:
-        """Inference: this layer on ``src`` ``(N, c, H, W)``, written into ``dst`` ``(N, g, H, W)``.
+    def run_into(self, src: torch.Tensor | RowGroups, dst: torch.Tensor) -> None:
+        """Inference: this layer on ``src`` ``(N, c, H, W)`` (a tensor or
+        :class:`~mehs.ssr.net.strips.RowGroups`), written into ``dst`` ``(N, g, H, W)``.
 
         BN → ReLU → conv run in row strips of about ``chunk_pixels`` pixels, each with
         the convolution's rows of context on either side (zeros beyond the image, as
         the convolution's own padding): the same sums per output pixel. The channel
         attention then scales ``dst`` in place.
         """
-        rows = _strip_rows(self.chunk_pixels, src)
-        h = src.shape[2]
+        groups = src if isinstance(src, RowGroups) else RowGroups.of(src)
+        rows = _strip_rows(self.chunk_pixels, groups)
+        h = groups.shape[2]
         if rows >= h or not self._strippable():
-            dst[...] = self(src)
+            dst[...] = self(groups.whole())
             return
         bn, conv = self[0], self[2]
         k = conv.padding[0]
@@ -128,7 +131,7 @@ class DenseLayer(nn.Sequential):
             a, b = max(0, r0 - k), min(h, r1 + k)
             # rows the conv pads beyond the strip's context are discarded, except at the
             # image's edges, where they are the conv's own zero padding
-            y = conv(F.relu(bn(src[:, :, a:b]), inplace=True))
+            y = conv(groups.normalized(bn, a, b))
             dst[:, :, r0:r1] = y[:, :, r0 - a:r1 - a]
             del y               # (else two strips are alive while the next is computed)
         for m in list(self)[3:]:
@@ -236,18 +239,27 @@ class TransitionDown(nn.Sequential):
                 and conv.padding == (0, 0) and type(self[-1]) is MaxPool2x2
                 and all(type(m) is nn.Dropout for m in list(self)[3:-1]))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if training_graph() or x.dim() != 4 or not self._strippable():
+    def forward(self, x: torch.Tensor | RowGroups) -> torch.Tensor:
+        """``x``: a tensor, or (at inference) :class:`~mehs.ssr.net.strips.RowGroups`."""
+        groups = x if isinstance(x, RowGroups) else None
+        if groups is not None and not self._strippable():
+            x, groups = groups.whole(), None
+        if groups is None and (training_graph() or x.dim() != 4 or not self._strippable()):
             return super().forward(x)
-        rows = _strip_rows(self.chunk_pixels, x, multiple=2)
-        conv = self[2]
-        if rows >= x.shape[2]:
+        src = groups or RowGroups.of(x)
+        rows = _strip_rows(self.chunk_pixels, src, multiple=2)
+        if rows >= src.shape[2] and groups is None:
             return super().forward(x)
-        n, _, h, w = x.shape
-        out = x.new_empty(n, conv.out_channels, h // 2, w // 2)
+        bn, conv, rest = self[0], self[2], list(self)[3:]     # (dropouts, the pooling)
+        n, _, h, w = src.shape
+        out = torch.empty((n, conv.out_channels, h // 2, w // 2), dtype=src.dtype,
+                          device=src.device)
         for r0 in range(0, h // 2 * 2, rows):
             r1 = min(h // 2 * 2, r0 + rows)
-            out[:, :, r0 // 2:r1 // 2] = super().forward(x[:, :, r0:r1])
+            y = conv(src.normalized(bn, r0, r1))
+            for m in rest:
+                y = m(y)
+            out[:, :, r0 // 2:r1 // 2] = y
         return out
 
 
@@ -331,20 +343,27 @@ class FCDenseNet(nn.Module):
                 x = block(torch.cat([up(x), skip], dim=1))
             return x[..., :h, :w]
         for up, block in zip(self.trans_up, self.up_blocks):
-            if not _plain(block, DenseBlock):
-                # a subclass or a forward hook sees (and may replace) the block's call
-                x = block(torch.cat([up(x), skips.pop()], dim=1))
-                continue
-            # the skip, then the up-sampled features, go straight into the block's buffer
-            # and each is released before the next is made (a concatenation, and a skip
-            # kept to the end, held ~200 B/px more at full resolution)
-            skip = skips.pop()
-            c_up, c_skip = up.out_channels, skip.shape[1]
-            buf = block.empty_buffer(skip, c_up + c_skip)
-            buf[:, c_up:c_up + c_skip] = skip
-            del skip
-            conv_transpose_into(up, x, buf[:, :c_up], self.chunk_pixels)
+            held = [x]
             del x
-            x = block.fill(buf)
-            del buf                    # (x is a copy of its new channels, or all of it)
+            x = self.up_step(up, block, held, skips)
         return x[..., :h, :w]
+
+    def up_step(self, up: nn.Module, block: nn.Module, held: list, skips: list) -> torch.Tensor:
+        """Inference: one level of the decoder on the features in ``held`` and the last
+        of ``skips``, both popped (so that the caller holds neither while it runs)."""
+        x = held.pop()
+        if not _plain(block, DenseBlock):
+            # a subclass or a forward hook sees (and may replace) the block's call
+            return block(torch.cat([up(x), skips.pop()], dim=1))
+        # the skip, then the up-sampled features, go straight into the block's buffer
+        # and each is released before the next is made (a concatenation, and a skip
+        # kept to the end, held ~200 B/px more at full resolution)
+        skip = skips.pop()
+        c_up, c_skip = up.out_channels, skip.shape[1]
+        buf = block.empty_buffer(skip, c_up + c_skip)
+        buf[:, c_up:c_up + c_skip] = skip
+        del skip
+        conv_transpose_into(up, x, buf[:, :c_up], self.chunk_pixels)
+        del x
+        # (the result is a copy of the new channels, or all of the buffer)
+        return block.fill(buf)

@@ -26,6 +26,7 @@ from torch import nn
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net.basis import MexicanHatBranch, SigmoidBasisBranch
 from mehs.ssr.net.layers import FCDenseNet
+from mehs.ssr.net import fcdensenet_lean
 from mehs.ssr.net.strips import _plain, training_graph
 
 #: Jégou et al.'s FC-DenseNet56: 48 first filters, 5 levels of 4 layers, bottleneck 4,
@@ -77,28 +78,34 @@ class TwoBranchFCDenseNet(SSRNetwork):
         self.fusion = nn.Conv2d(2 * self.n_bands, self.n_bands, kernel_size=1)
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
-        f = self.features(x)
         # (with a subclass or a forward hook on a part, that part sees, and may replace,
         # one whole-map call)
         if training_graph() or not (_plain(self.sigmoid_branch, SigmoidBasisBranch)
                                     and _plain(self.hat_branch, MexicanHatBranch)
-                                    and _plain(self.fusion, nn.Conv2d)):
+                                    and _plain(self.fusion, nn.Conv2d)
+                                    and self.fusion.kernel_size == (1, 1)):
+            f = self.features(x)
             return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
         # inference: the head is per pixel, so it runs in row strips of about
-        # chunk_pixels pixels (the branches' own strips) straight into the output; only
-        # the features and the output are image-sized (the branches' outputs side by
-        # side and the fusion's were 62 more channels at the head's peak, issue 16)
+        # chunk_pixels pixels (the branches' own strips) straight into the output; the
+        # features are read a strip at a time, never concatenated (the branches' outputs
+        # side by side and the fusion's were 62 more channels at the head's peak, and
+        # the features one 192-channel map, issue 16)
+        f, h0, w0 = fcdensenet_lean.features(self.features, x)
         n, _, h, w = f.shape
         L = self.n_bands
-        out = f.new_empty(n, L, h, w)
+        out = f.output_buffer(L)      # (rows are written after they are read)
+        if out is None:
+            out = torch.empty((n, L, h, w), dtype=f.dtype, device=f.device)
         rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
         for r0 in range(0, h, rows):
-            part = f[:, :, r0:r0 + rows]
+            part = f.rows(r0, min(h, r0 + rows))
             both = part.new_empty(n, 2 * L, part.shape[2], w)
             self.sigmoid_branch(part, out=both[:, :L])
             self.hat_branch(part, out=both[:, L:])
+            del part
             out[:, :, r0:r0 + rows] = self.fusion(both)
-        return out
+        return out[..., :h0, :w0]
 
 
 class MikamotoTwoBranch(TwoBranchFCDenseNet):

@@ -142,10 +142,11 @@ def conv_transpose_rows(up: nn.ConvTranspose2d, x: torch.Tensor, o0: int, o1: in
     return out
 
 
-def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = None, *,
-                add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
+def conv2d_into(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", out: torch.Tensor | None = None,
+                *, add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
     """Inference: ``conv(x)`` (``+ add``) in row strips of about ``chunk_pixels`` output
-    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory).
+    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory, except one
+    :meth:`RowGroups.output_buffer` for a 1×1 convolution).
 
     A whole-map CPU convolution reorders its input into oneDNN's blocked layout and its
     output back: one more image-sized map at the call (0.26 GB for 31 channels at
@@ -163,7 +164,7 @@ def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = Non
                                   max(conv.in_channels, conv.out_channels))
     if not plain or chunk_pixels <= 0 or rows >= h_out:
         # (one strip would be the whole call, with a padded copy of the input)
-        y = conv(x)
+        y = conv(x.whole() if isinstance(x, RowGroups) else x)
         if add is not None:
             y = y + add
         if out is None:
@@ -171,7 +172,7 @@ def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = Non
         out[...] = y
         return out
     if out is None:
-        out = x.new_empty(n, conv.out_channels, h_out, w_out)
+        out = torch.empty((n, conv.out_channels, h_out, w_out), dtype=x.dtype, device=x.device)
     for o0 in range(0, h_out, rows):
         o1 = min(h_out, o0 + rows)
         y = conv2d_rows(conv, x, o0, o1)
@@ -182,18 +183,122 @@ def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = Non
     return out
 
 
-def conv2d_rows(conv: nn.Conv2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
+def conv2d_rows(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", o0: int, o1: int) -> torch.Tensor:
     """Rows ``o0:o1`` of a zero-padded ``conv(x)``: the input rows they read, zero rows
     where those lie beyond the image (the convolution's own padding)."""
     (k, _), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
     h = x.shape[2]
     lo, hi = o0 * s - p, (o1 - 1) * s - p + d * (k - 1) + 1          # input rows read
     a = min(h, max(0, lo))
-    part = x[:, :, a:max(a, min(h, hi))]
+    part = (x.rows if isinstance(x, RowGroups) else _row_slice(x))(a, max(a, min(h, hi)))
     top, bottom = max(0, min(hi, 0) - lo), max(0, hi - max(lo, h))
     if top or bottom:
         part = F.pad(part, (0, 0, top, bottom))
     return F.conv2d(part, conv.weight, conv.bias, (s, sw), (0, pw), (d, dw), conv.groups)
+
+
+def _row_slice(x: torch.Tensor):
+    return lambda a, b: x[:, :, a:b]
+
+
+class RowGroups:
+    """An ``(N, C, H, W)`` map held as channel groups, each stored (a tensor ``(N, c, H, W)``)
+    or computed for the rows asked (``f(a, b) -> (N, c, b - a, W)``, e.g. a cheap first
+    convolution): read a row strip at a time, it costs a strip, not an image-sized
+    concatenation (issue 16: FC-DenseNet56's last block held 192 full-resolution
+    channels, of which 96 were its skip and 48 its first convolution's).
+
+    ``owned`` marks stored groups no one else holds: :meth:`output_buffer` may hand one
+    to a per-pixel consumer of this map to write its result into.
+    """
+
+    def __init__(self, groups, like: torch.Tensor, height: int, width: int, *, owned=()):
+        self.groups = [(int(c), g) for c, g in groups]
+        self.channels = sum(c for c, _ in self.groups)
+        self.shape = torch.Size((like.shape[0], self.channels, height, width))
+        self.dtype, self.device = like.dtype, like.device
+        self._owned = tuple(owned)
+
+    @classmethod
+    def of(cls, x: torch.Tensor) -> "RowGroups":
+        """One stored group: ``x`` itself."""
+        return cls([(x.shape[1], x)], x, x.shape[2], x.shape[3])
+
+    def prefix(self, channels: int) -> "RowGroups":
+        """The first ``channels`` channels (a computed group is taken whole or not at all)."""
+        kept, c = [], 0
+        for ch, g in self.groups:
+            if c >= channels:
+                break
+            take = min(ch, channels - c)
+            if take < ch:
+                if callable(g):
+                    raise ValueError(f"a prefix of {channels} channels cuts a computed group")
+                g = g[:, :take]
+            kept.append((take, g))
+            c += take
+        if c < channels:
+            raise ValueError(f"a prefix of {channels} channels of a map of {self.channels}")
+        return RowGroups(kept, self._like(), self.shape[2], self.shape[3], owned=self._owned)
+
+    def _like(self) -> torch.Tensor:
+        return torch.empty((self.shape[0], 0, 0, 0), dtype=self.dtype, device=self.device)
+
+    def _part(self, g, a: int, b: int) -> torch.Tensor:
+        return g(a, b) if callable(g) else g[:, :, a:b]
+
+    def rows(self, a: int, b: int) -> torch.Tensor:
+        """Rows ``a:b`` of the whole map ``(N, C, b - a, W)`` (a view for one stored group)."""
+        if len(self.groups) == 1:
+            return self._part(self.groups[0][1], a, b)
+        out = torch.empty((self.shape[0], self.channels, b - a, self.shape[3]),
+                          dtype=self.dtype, device=self.device)
+        c = 0
+        for ch, g in self.groups:
+            out[:, c:c + ch] = self._part(g, a, b)
+            c += ch
+        return out
+
+    def whole(self) -> torch.Tensor:
+        return self.rows(0, self.shape[2])
+
+    def normalized(self, bn: nn.BatchNorm2d, a: int, b: int) -> torch.Tensor:
+        """``relu(bn(rows(a, b)))`` for an inference batch norm (running statistics),
+        each group normalised straight into its channels of one strip tensor."""
+        if len(self.groups) == 1:
+            return F.relu(bn(self.rows(a, b)), inplace=True)
+        # batch norm at inference is x·α + β per channel, α = γ/√(σ² + ε), β = b − μα
+        # (as torch computes it); the strip's concatenation would be one more pass.
+        # (inference only: out= takes no tensors that require gradients)
+        alpha = torch.rsqrt(bn.running_var + bn.eps)
+        if bn.weight is not None:
+            alpha = alpha * bn.weight.detach()
+        beta = -bn.running_mean * alpha
+        if bn.bias is not None:
+            beta = beta + bn.bias.detach()
+        out = torch.empty((self.shape[0], self.channels, b - a, self.shape[3]),
+                          dtype=self.dtype, device=self.device)
+        c = 0
+        for ch, g in self.groups:
+            torch.addcmul(beta[c:c + ch].view(1, -1, 1, 1), self._part(g, a, b),
+                          alpha[c:c + ch].view(1, -1, 1, 1), out=out[:, c:c + ch])
+            c += ch
+        return out.relu_()
+
+    def output_buffer(self, channels: int) -> torch.Tensor | None:
+        """``(1, channels, H, W)`` in the memory of a stored group this map owns, or None.
+
+        Only for a consumer that is per pixel and writes a strip of rows after reading
+        every group's same rows (a 1×1 head): those rows are never read again. The
+        result then needs no image-sized allocation of its own.
+        """
+        if self.shape[0] != 1:
+            return None          # (a channel slice of a batch is not contiguous)
+        for ch, g in self.groups:
+            if (not callable(g) and any(g is o for o in self._owned) and ch >= channels
+                    and g.is_contiguous()):
+                return g[:, :channels]
+        return None
 
 
 def _bias_rows(up: nn.ConvTranspose2d, x: torch.Tensor, shape) -> torch.Tensor:

@@ -1,0 +1,104 @@
+"""FC-DenseNet features for a per-pixel head at inference, without the full-resolution
+concatenation (issue 16).
+
+The last dense block's map ``[up-sampled, skip = [first conv, level-0 layers], new layers]``
+was one full-resolution buffer (192 channels, 1.61 GB for FC-DenseNet56 at 2048×1024), and
+at its allocation the level-0 skip was alive beside it: 288 channels. Here the first
+convolution (3 input channels: cheaper to recompute for each strip than to hold) is
+computed for the rows each consumer reads, and every other group is stored once, where
+it is made: the level-0 layers' outputs, the up-sampling's and the last block's own.
+Consumers read them a row strip at a time (:class:`~mehs.ssr.net.strips.RowGroups`):
+the dense layers and the level-0 transition normalise each group straight into one
+strip, and the head (per pixel) reads strips and writes its result into the
+up-sampling's memory, rows it has already read.
+
+Each output pixel gets the same products as the plain graph; batch norm is evaluated as
+``x·α + β`` per channel (torch's own formula) and convolutions on strips may sum in
+another order: equal to float32 rounding.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from mehs.ssr.allocator import trim_heap
+from mehs.ssr.net.layers import DenseBlock, DenseLayer, FCDenseNet, TransitionDown
+from mehs.ssr.net.strips import (RowGroups, _plain, conv2d_rows, conv_transpose_into,
+                                 conv_transpose_shape, training_graph)
+
+
+def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
+    """``net``'s features of ``x`` ``(N, 3, h, w)`` as row groups of the padded size,
+    and ``(h, w)``: a per-pixel consumer crops its result to them.
+
+    Networks this module cannot run exactly as their forward would (hooks, replaced
+    parts, autograd, export) get their forward's tensor as one group.
+    """
+    h, w = x.shape[-2], x.shape[-1]
+    if training_graph() or x.dim() != 4 or not lean(net):
+        return RowGroups.of(net(x)), h, w
+    m = 2 ** net.depth
+    xp = F.pad(x, (0, (-w) % m, 0, (-h) % m), mode="replicate")
+    n, _, hp, wp = xp.shape
+    first = (net.first.out_channels, lambda a, b: conv2d_rows(net.first, xp, a, b))
+
+    block = net.down_blocks[0]
+    level0 = xp.new_empty(n, block.new_channels, hp, wp)
+    skip = RowGroups([first, (block.new_channels, level0)], xp, hp, wp)
+    _fill(block, skip)
+    y = net.trans_down[0](skip)
+    skips = []
+    for block, down in zip(net.down_blocks[1:], net.trans_down[1:]):
+        y = block(y)
+        skips.append(y)
+        y = down(y)
+    y = net.bottleneck(y)
+    for up, block in zip(net.trans_up[:-1], net.up_blocks[:-1]):
+        held = [y]
+        del y
+        trim_heap()
+        y = net.up_step(up, block, held, skips)
+
+    # the coarser levels' tensors and strips were freed to the C heap, which keeps them
+    # resident (0.48 GB of the full paper network's 2.23 GB peak at 2048×1024): returned
+    # before the last level's three full-resolution maps are made
+    trim_heap()
+    up, block = net.trans_up[-1], net.up_blocks[-1]
+    upsampled = y.new_empty(conv_transpose_shape(up, y))
+    conv_transpose_into(up, y, upsampled, net.chunk_pixels)
+    del y
+    new = xp.new_empty(n, block.new_channels, hp, wp)
+    out = RowGroups([(up.out_channels, upsampled), first, (level0.shape[1], level0),
+                     (block.new_channels, new)], xp, hp, wp, owned=(upsampled,))
+    _fill(block, out)
+    return out, h, w
+
+
+def _fill(block: DenseBlock, groups: RowGroups) -> None:
+    """Run ``block``'s layers on ``groups``, whose last group receives the new channels."""
+    new = groups.groups[-1][1]
+    c = groups.channels - block.new_channels
+    for i, layer in enumerate(block.layers):
+        g = block.growth
+        layer.run_into(groups.prefix(c + i * g), new[:, i * g:(i + 1) * g])
+
+
+def lean(net: FCDenseNet) -> bool:
+    """Whether :func:`features` runs ``net`` in row groups: every part it calls directly
+    is exactly the stock module, without hooks, and runs in strips at inference."""
+    if not (_plain(net, FCDenseNet) and net.depth >= 1 and not net.training):
+        return False
+    first = net.first
+    if not (type(first) is nn.Conv2d and first.padding_mode == "zeros"
+            and isinstance(first.padding, tuple) and first.stride == (1, 1)
+            and all(2 * p == d * (k - 1) for p, d, k in
+                    zip(first.padding, first.dilation, first.kernel_size))):
+        return False        # (the first convolution must keep the image's size)
+    blocks = (net.down_blocks[0], net.up_blocks[-1])
+    return (all(type(b) is DenseBlock and b.keep_input
+                and all(type(layer) is DenseLayer and layer._strippable() for layer in b.layers)
+                for b in blocks)
+            and type(net.trans_down[0]) is TransitionDown and net.trans_down[0]._strippable()
+            and type(net.trans_up[-1]) is nn.ConvTranspose2d)
