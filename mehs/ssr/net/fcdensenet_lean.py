@@ -40,7 +40,9 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
     if training_graph() or x.dim() != 4 or not lean(net):
         return RowGroups.of(net(x)), h, w
     m = 2 ** net.depth
-    xp = F.pad(x, (0, (-w) % m, 0, (-h) % m), mode="replicate")
+    pad_h, pad_w = (-h) % m, (-w) % m
+    # (nothing writes into xp: an image on the grid is not copied)
+    xp = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate") if pad_h or pad_w else x
     n, _, hp, wp = xp.shape
     first = (net.first.out_channels, lambda a, b: conv2d_rows(net.first, xp, a, b))
 
@@ -73,6 +75,7 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
     out = RowGroups([(up.out_channels, upsampled), first, (level0.shape[1], level0),
                      (block.new_channels, new)], xp, hp, wp, owned=(upsampled,))
     _fill(block, out)
+    trim_heap()                 # (the last block's strips, before the head's)
     return out, h, w
 
 
@@ -83,6 +86,7 @@ def _fill(block: DenseBlock, groups: RowGroups) -> None:
     for i, layer in enumerate(block.layers):
         g = block.growth
         layer.run_into(groups.prefix(c + i * g), new[:, i * g:(i + 1) * g])
+        trim_heap()
 
 
 def lean(net: FCDenseNet) -> bool:

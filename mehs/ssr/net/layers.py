@@ -26,8 +26,8 @@ from torch import nn
 import torch.nn.functional as F
 
 from mehs.ssr.net.pooling import pooled_mean
-from mehs.ssr.net.strips import (STRIP_PIXELS, RowGroups, _plain, conv_transpose_into,
-                                 training_graph)
+from mehs.ssr.net.strips import (STRIP_CHANNELS, STRIP_PIXELS, RowGroups, _plain,
+                                 conv_transpose_into, training_graph)
 
 
 class ChannelAttention(nn.Module):
@@ -79,11 +79,14 @@ def _strippable_conv(seq: nn.Sequential, cls: type) -> nn.Conv2d | None:
 
 
 def _strip_rows(chunk_pixels: int, x: torch.Tensor, multiple: int = 1) -> int:
-    """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more: no strips."""
-    n, _, h, w = x.shape
+    """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more:
+    no strips. A map of more than :data:`STRIP_CHANNELS` channels gets proportionally fewer
+    pixels per strip (a strip's normalised copy and oneDNN's reorder of it are ``C`` wide)."""
+    n, c, h, w = x.shape
     if chunk_pixels <= 0:
         return h
-    return max(multiple, chunk_pixels // max(1, n * w) // multiple * multiple)
+    pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, c)
+    return max(multiple, pixels // max(1, n * w) // multiple * multiple)
 
 
 class DenseLayer(nn.Sequential):
@@ -126,12 +129,13 @@ class DenseLayer(nn.Sequential):
             return
         bn, conv = self[0], self[2]
         k = conv.padding[0]
+        scratch = groups.scratch(rows + 2 * k)
         for r0 in range(0, h, rows):
             r1 = min(h, r0 + rows)
             a, b = max(0, r0 - k), min(h, r1 + k)
             # rows the conv pads beyond the strip's context are discarded, except at the
             # image's edges, where they are the conv's own zero padding
-            y = conv(groups.normalized(bn, a, b))
+            y = conv(groups.normalized(bn, a, b, scratch))
             dst[:, :, r0:r1] = y[:, :, r0 - a:r1 - a]
             del y               # (else two strips are alive while the next is computed)
         for m in list(self)[3:]:
@@ -254,9 +258,10 @@ class TransitionDown(nn.Sequential):
         n, _, h, w = src.shape
         out = torch.empty((n, conv.out_channels, h // 2, w // 2), dtype=src.dtype,
                           device=src.device)
+        scratch = src.scratch(rows)
         for r0 in range(0, h // 2 * 2, rows):
             r1 = min(h // 2 * 2, r0 + rows)
-            y = conv(src.normalized(bn, r0, r1))
+            y = conv(src.normalized(bn, r0, r1, scratch))
             for m in rest:
                 y = m(y)
             out[:, :, r0 // 2:r1 // 2] = y

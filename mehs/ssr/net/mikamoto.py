@@ -98,9 +98,13 @@ class TwoBranchFCDenseNet(SSRNetwork):
         if out is None:
             out = torch.empty((n, L, h, w), dtype=f.dtype, device=f.device)
         rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
+        # one block each for every strip's features and branch outputs (fresh ones left
+        # the C heap a fragment per strip)
+        scratch = f.scratch(rows)
+        both_memory = torch.empty(n * 2 * L * min(rows, h) * w, dtype=f.dtype, device=f.device)
         for r0 in range(0, h, rows):
-            part = f.rows(r0, min(h, r0 + rows))
-            both = part.new_empty(n, 2 * L, part.shape[2], w)
+            part = f.rows(r0, min(h, r0 + rows), scratch)
+            both = both_memory[:n * 2 * L * part.shape[2] * w].view(n, 2 * L, part.shape[2], w)
             self.sigmoid_branch(part, out=both[:, :L])
             self.hat_branch(part, out=both[:, L:])
             del part
