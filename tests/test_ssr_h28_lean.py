@@ -99,8 +99,30 @@ def test_the_head_writes_into_the_upsamplings_memory(arch):
                                       bottleneck_layers=2)).eval()
     assert net.features.trans_up[-1].out_channels == 32
     _chunked(net, 200)
-    lean, plain = _lean_and_plain(net, torch.rand(1, 3, 32, 24))
-    assert lean.untyped_storage().nbytes() == 32 * 32 * 24 * 4
+    for shape in [(32, 24), (29, 21)]:                 # on the grid, and cropped
+        lean, plain = _lean_and_plain(net, torch.rand(1, 3, *shape))
+        torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+        # the caller gets a compact result: a view would hold the up-sampling's 32
+        # channels of the padded size for 31, and not be contiguous when cropped
+        assert lean.is_contiguous()
+        assert lean.untyped_storage().nbytes() == lean.numel() * 4
+
+
+def test_a_replaced_or_hooked_galliani_head_sees_the_cropped_features():
+    # the row groups are of the padded size; only a plain 1×1 head may run on them
+    torch.manual_seed(7)
+    net = _trained_like(build_network(arch="galliani", preset="tiny")).eval()
+    x = torch.rand(1, 3, 17, 23)
+    c = net.head.in_channels
+    net.head = nn.Conv2d(c, 31, 3, padding=1)
+    lean, plain = _lean_and_plain(net, x)
+    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+
+    net.head = nn.Conv2d(c, 31, 1)
+    seen = []
+    net.head.register_forward_hook(lambda m, i, o: seen.append(tuple(i[0].shape)))
+    lean, plain = _lean_and_plain(net, x)
+    assert seen == [(1, c, 17, 23)] * 2
     torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
 
 

@@ -60,13 +60,16 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
     for up, block in zip(net.trans_up[:-1], net.up_blocks[:-1]):
         held = [y]
         del y
-        trim_heap()
+        if _large(level0):
+            trim_heap()
         y = net.up_step(up, block, held, skips)
 
     # the coarser levels' tensors and strips were freed to the C heap, which keeps them
     # resident (0.48 GB of the full paper network's 2.23 GB peak at 2048×1024): returned
     # before the last level's three full-resolution maps are made
-    trim_heap()
+    large = _large(level0)
+    if large:
+        trim_heap()
     up, block = net.trans_up[-1], net.up_blocks[-1]
     upsampled = y.new_empty(conv_transpose_shape(up, y))
     conv_transpose_into(up, y, upsampled, net.chunk_pixels)
@@ -74,19 +77,60 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
     new = xp.new_empty(n, block.new_channels, hp, wp)
     out = RowGroups([(up.out_channels, upsampled), first, (level0.shape[1], level0),
                      (block.new_channels, new)], xp, hp, wp, owned=(upsampled,))
-    _fill(block, out)
-    trim_heap()                 # (the last block's strips, before the head's)
+    _fill(block, out, trim=large)
     return out, h, w
 
 
-def _fill(block: DenseBlock, groups: RowGroups) -> None:
-    """Run ``block``'s layers on ``groups``, whose last group receives the new channels."""
+#: Bytes of a full-resolution group from which freed heap is returned between stages:
+#: ``malloc_trim`` costs milliseconds per call, which small images (tiles, probes) would
+#: pay for memory that does not matter at their size.
+TRIM_BYTES = 64 << 20
+
+
+def _large(t: torch.Tensor) -> bool:
+    return t.numel() * t.element_size() >= TRIM_BYTES
+
+
+def _fill(block: DenseBlock, groups: RowGroups, trim: bool = False) -> None:
+    """Run ``block``'s layers on ``groups``, whose last group receives the new channels;
+    ``trim``: return the freed heap after each layer (its strips' fragments stayed
+    resident: 0.1–0.2 GB at FC-DenseNet56's last level at 2048×1024)."""
     new = groups.groups[-1][1]
     c = groups.channels - block.new_channels
     for i, layer in enumerate(block.layers):
         g = block.growth
         layer.run_into(groups.prefix(c + i * g), new[:, i * g:(i + 1) * g])
-        trim_heap()
+        if trim:
+            trim_heap()
+
+
+def head(net: FCDenseNet, x: torch.Tensor, channels: int, chunk_pixels: int, strip) -> torch.Tensor:
+    """A per-pixel head on ``net``'s features of ``x``: ``strip(part, dst)`` writes the
+    head's ``(N, channels, r, w)`` result for features ``part`` ``(N, C, r, w)`` into
+    ``dst``, strip by strip of about ``chunk_pixels`` pixels (0: one strip). Returns
+    ``(N, channels, h, w)``, contiguous and owning its memory.
+
+    The strips are of the cropped image, as the plain graph's head sees it (an image of
+    one strip gets its numbers bit for bit); while the groups are alive the result lives
+    in the up-sampling's memory
+    (:meth:`~mehs.ssr.net.strips.RowGroups.output_buffer`) and is copied out after.
+    """
+    f, h, w = features(net, x)
+    n = f.shape[0]
+    borrowed = f.output_buffer(channels)
+    out = (torch.empty((n, channels, h, w), dtype=f.dtype, device=f.device)
+           if borrowed is None else borrowed[..., :h, :w])
+    rows = max(1, chunk_pixels // max(1, n * w)) if chunk_pixels > 0 else h
+    scratch = f.scratch(rows)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        strip(f.rows(r0, r1, scratch)[..., :w], out[:, :, r0:r1])
+    if borrowed is None:
+        return out
+    del f, scratch, borrowed      # (the groups: the stored features but the output's)
+    # a view of a wider map would hold its 48 channels for 31 as long as the caller
+    # keeps the result, and is not contiguous for a cropped image
+    return out.clone(memory_format=torch.contiguous_format)
 
 
 def lean(net: FCDenseNet) -> bool:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+import torch.nn.functional as F
 
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net import fcdensenet_lean
@@ -46,13 +47,19 @@ class Galliani2017(SSRNetwork):
     chunk_pixels: int = STRIP_PIXELS
 
     def body(self, x: torch.Tensor) -> torch.Tensor:
+        head = self.head
         if training_graph():
-            return self.head(self.features(x))
+            return head(self.features(x))
+        if not (_plain(head, nn.Conv2d) and head.kernel_size == (1, 1) and head.stride == (1, 1)
+                and head.padding == (0, 0) and head.dilation == (1, 1)):
+            # (a replaced or hooked head sees the cropped features, in one call)
+            return conv2d_into(head, self.features(x), chunk_pixels=self.chunk_pixels)
         # inference: a whole-map 1×1 convolution held a reordered copy of the 192
         # feature channels (4.3 GB resident for FC-DenseNet56 at 2048×1024, issue 16);
         # in strips it reads the features a strip at a time, never concatenated
-        f, h, w = fcdensenet_lean.features(self.features, x)
-        per_pixel = (_plain(self.head, nn.Conv2d) and self.head.kernel_size == (1, 1)
-                     and self.head.stride == (1, 1) and self.head.padding == (0, 0))
-        out = f.output_buffer(self.head.out_channels) if per_pixel else None
-        return conv2d_into(self.head, f, out, chunk_pixels=self.chunk_pixels)[..., :h, :w]
+
+        def strip(part: torch.Tensor, dst: torch.Tensor) -> None:
+            dst[...] = F.conv2d(part, head.weight, head.bias, groups=head.groups)
+
+        return fcdensenet_lean.head(self.features, x, head.out_channels, self.chunk_pixels,
+                                    strip)

@@ -124,9 +124,11 @@ class DenseLayer(nn.Sequential):
         groups = src if isinstance(src, RowGroups) else RowGroups.of(src)
         rows = _strip_rows(self.chunk_pixels, groups)
         h = groups.shape[2]
-        if rows >= h or not self._strippable():
+        # (row groups run as one strip rather than be concatenated for the whole call)
+        if not self._strippable() or (rows >= h and len(groups.groups) == 1):
             dst[...] = self(groups.whole())
             return
+        rows = min(rows, h)
         bn, conv = self[0], self[2]
         k = conv.padding[0]
         scratch = groups.scratch(rows + 2 * k)

@@ -83,7 +83,9 @@ class TwoBranchFCDenseNet(SSRNetwork):
         if training_graph() or not (_plain(self.sigmoid_branch, SigmoidBasisBranch)
                                     and _plain(self.hat_branch, MexicanHatBranch)
                                     and _plain(self.fusion, nn.Conv2d)
-                                    and self.fusion.kernel_size == (1, 1)):
+                                    and self.fusion.kernel_size == (1, 1)
+                                    and self.fusion.stride == (1, 1)
+                                    and self.fusion.padding == (0, 0)):
             f = self.features(x)
             return self.fusion(torch.cat([self.sigmoid_branch(f), self.hat_branch(f)], dim=1))
         # inference: the head is per pixel, so it runs in row strips of about
@@ -91,25 +93,19 @@ class TwoBranchFCDenseNet(SSRNetwork):
         # features are read a strip at a time, never concatenated (the branches' outputs
         # side by side and the fusion's were 62 more channels at the head's peak, and
         # the features one 192-channel map, issue 16)
-        f, h0, w0 = fcdensenet_lean.features(self.features, x)
-        n, _, h, w = f.shape
         L = self.n_bands
-        out = f.output_buffer(L)      # (rows are written after they are read)
-        if out is None:
-            out = torch.empty((n, L, h, w), dtype=f.dtype, device=f.device)
-        rows = max(1, self.chunk_pixels // max(1, n * w)) if self.chunk_pixels > 0 else h
-        # one block each for every strip's features and branch outputs (fresh ones left
-        # the C heap a fragment per strip)
-        scratch = f.scratch(rows)
-        both_memory = torch.empty(n * 2 * L * min(rows, h) * w, dtype=f.dtype, device=f.device)
-        for r0 in range(0, h, rows):
-            part = f.rows(r0, min(h, r0 + rows), scratch)
-            both = both_memory[:n * 2 * L * part.shape[2] * w].view(n, 2 * L, part.shape[2], w)
+        both_memory = []        # (one block for every strip's branch outputs)
+
+        def strip(part: torch.Tensor, dst: torch.Tensor) -> None:
+            n, _, r, w = part.shape
+            if not both_memory or both_memory[0].numel() < n * 2 * L * r * w:
+                both_memory[:] = [part.new_empty(n * 2 * L * r * w)]
+            both = both_memory[0][:n * 2 * L * r * w].view(n, 2 * L, r, w)
             self.sigmoid_branch(part, out=both[:, :L])
             self.hat_branch(part, out=both[:, L:])
-            del part
-            out[:, :, r0:r0 + rows] = self.fusion(both)
-        return out[..., :h0, :w0]
+            dst[...] = self.fusion(both)
+
+        return fcdensenet_lean.head(self.features, x, L, self.chunk_pixels, strip)
 
 
 class MikamotoTwoBranch(TwoBranchFCDenseNet):

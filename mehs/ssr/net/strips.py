@@ -142,11 +142,10 @@ def conv_transpose_rows(up: nn.ConvTranspose2d, x: torch.Tensor, o0: int, o1: in
     return out
 
 
-def conv2d_into(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", out: torch.Tensor | None = None,
-                *, add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
+def conv2d_into(conv: nn.Conv2d, x: torch.Tensor, out: torch.Tensor | None = None, *,
+                add: torch.Tensor | None = None, chunk_pixels: int = STRIP_PIXELS) -> torch.Tensor:
     """Inference: ``conv(x)`` (``+ add``) in row strips of about ``chunk_pixels`` output
-    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory, except one
-    :meth:`RowGroups.output_buffer` for a 1×1 convolution).
+    pixels (:func:`conv2d_rows`), into ``out`` if given (not ``x``'s memory).
 
     A whole-map CPU convolution reorders its input into oneDNN's blocked layout and its
     output back: one more image-sized map at the call (0.26 GB for 31 channels at
@@ -164,7 +163,7 @@ def conv2d_into(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", out: torch.Tenso
                                   max(conv.in_channels, conv.out_channels))
     if not plain or chunk_pixels <= 0 or rows >= h_out:
         # (one strip would be the whole call, with a padded copy of the input)
-        y = conv(x.whole() if isinstance(x, RowGroups) else x)
+        y = conv(x)
         if add is not None:
             y = y + add
         if out is None:
@@ -172,12 +171,10 @@ def conv2d_into(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", out: torch.Tenso
         out[...] = y
         return out
     if out is None:
-        out = torch.empty((n, conv.out_channels, h_out, w_out), dtype=x.dtype, device=x.device)
-    scratch = (x.scratch((rows - 1) * s + d * (k - 1) + 1) if isinstance(x, RowGroups)
-               else None)
+        out = x.new_empty(n, conv.out_channels, h_out, w_out)
     for o0 in range(0, h_out, rows):
         o1 = min(h_out, o0 + rows)
-        y = conv2d_rows(conv, x, o0, o1, scratch)
+        y = conv2d_rows(conv, x, o0, o1)
         if add is not None:
             y += add[:, :, o0:o1]
         out[:, :, o0:o1] = y
@@ -185,17 +182,14 @@ def conv2d_into(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", out: torch.Tenso
     return out
 
 
-def conv2d_rows(conv: nn.Conv2d, x: "torch.Tensor | RowGroups", o0: int, o1: int,
-                scratch: torch.Tensor | None = None) -> torch.Tensor:
+def conv2d_rows(conv: nn.Conv2d, x: torch.Tensor, o0: int, o1: int) -> torch.Tensor:
     """Rows ``o0:o1`` of a zero-padded ``conv(x)``: the input rows they read, zero rows
-    where those lie beyond the image (the convolution's own padding); ``scratch``: see
-    :meth:`RowGroups.rows`."""
+    where those lie beyond the image (the convolution's own padding)."""
     (k, _), (s, sw), (p, pw), (d, dw) = conv.kernel_size, conv.stride, conv.padding, conv.dilation
     h = x.shape[2]
     lo, hi = o0 * s - p, (o1 - 1) * s - p + d * (k - 1) + 1          # input rows read
     a = min(h, max(0, lo))
-    b = max(a, min(h, hi))
-    part = x.rows(a, b, scratch) if isinstance(x, RowGroups) else x[:, :, a:b]
+    part = x[:, :, a:max(a, min(h, hi))]
     top, bottom = max(0, min(hi, 0) - lo), max(0, hi - max(lo, h))
     if top or bottom:
         part = F.pad(part, (0, 0, top, bottom))
@@ -287,20 +281,24 @@ class RowGroups:
         ``scratch`` as for :meth:`rows`)."""
         if len(self.groups) == 1:
             return F.relu(bn(self.rows(a, b)), inplace=True)
-        # batch norm at inference is x·α + β per channel, α = γ/√(σ² + ε), β = b − μα
-        # (as torch computes it); the strip's concatenation would be one more pass.
-        # (inference only: out= takes no tensors that require gradients)
-        alpha = torch.rsqrt(bn.running_var + bn.eps)
-        if bn.weight is not None:
-            alpha = alpha * bn.weight.detach()
-        beta = -bn.running_mean * alpha
-        if bn.bias is not None:
-            beta = beta + bn.bias.detach()
+        # each group through torch's own batch norm (the plain graph's numbers bit for
+        # bit), written straight into its channels of the strip where they are contiguous
+        # (N = 1); the strip's concatenation would be one more pass
         out = self._strip(b - a, scratch)
+        none = torch.empty(0, dtype=self.dtype, device=self.device)
         c = 0
         for ch, g in self.groups:
-            torch.addcmul(beta[c:c + ch].view(1, -1, 1, 1), self._part(g, a, b),
-                          alpha[c:c + ch].view(1, -1, 1, 1), out=out[:, c:c + ch])
+            sl = slice(c, c + ch)
+            w = None if bn.weight is None else bn.weight.detach()[sl]
+            bias = None if bn.bias is None else bn.bias.detach()[sl]
+            part, mean, var = self._part(g, a, b), bn.running_mean[sl], bn.running_var[sl]
+            dst = out[:, sl]
+            if dst.is_contiguous():
+                torch.ops.aten.native_batch_norm.out(part, w, bias, mean, var, False, 0.0,
+                                                     bn.eps, out=dst, save_mean=none,
+                                                     save_invstd=none)
+            else:
+                dst.copy_(F.batch_norm(part, mean, var, w, bias, False, 0.0, bn.eps))
             c += ch
         return out.relu_()
 
@@ -309,7 +307,8 @@ class RowGroups:
 
         Only for a consumer that is per pixel and writes a strip of rows after reading
         every group's same rows (a 1×1 head): those rows are never read again. The
-        result then needs no image-sized allocation of its own.
+        result then needs no image-sized allocation while the groups are alive (its
+        consumer copies it out once they are freed: :func:`~mehs.ssr.net.fcdensenet_lean.head`).
         """
         if self.shape[0] != 1:
             return None          # (a channel slice of a batch is not contiguous)
