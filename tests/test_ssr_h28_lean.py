@@ -175,3 +175,47 @@ def test_fc_densenet56_holds_three_full_resolution_maps_of_48_channels():
         peak = peak_live_bytes(lambda: net(torch.rand(1, 3, side, side)))
     channels = peak / (side * side * 4)
     assert channels < 175, channels
+
+
+@pytest.mark.parametrize("arch", ["hdrssr", "galliani"])
+@pytest.mark.parametrize("how", ["input", "network"])
+def test_channels_last_inputs_and_networks_give_the_plain_numbers(arch, how):
+    # an HWC image seen as NCHW has channels-last strides, and so has the per-strip first
+    # convolution of it: torch's batch norm wrote that layout into the NCHW strip
+    torch.manual_seed(8)
+    net = _trained_like(build_network(arch=arch, preset="tiny")).eval()
+    _chunked(net, 150)
+    x = torch.rand(1, 13, 21, 3).permute(0, 3, 1, 2) * 4
+    if how == "network":
+        net = net.to(memory_format=torch.channels_last)
+        x = x.contiguous()
+    lean, plain = _lean_and_plain(net, x)
+    torch.testing.assert_close(lean, plain, rtol=1e-5, atol=1e-5 * float(plain.abs().max()))
+
+
+def test_a_bfloat16_network_with_float32_batch_norms_runs():
+    torch.manual_seed(9)
+    net = _trained_like(build_network(arch="hdrssr", preset="tiny")).eval().bfloat16()
+    for m in net.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.float()
+    _chunked(net, 150)
+    x = (torch.rand(1, 3, 16, 16) * 4).bfloat16()
+    lean, plain = _lean_and_plain(net, x)
+    assert lean.dtype == plain.dtype == torch.bfloat16
+    torch.testing.assert_close(lean.float(), plain.float(), rtol=2e-2,
+                               atol=2e-2 * float(plain.float().abs().max()))
+
+
+@pytest.mark.parametrize("arch", ["galliani", "hdrssr"])
+def test_an_image_of_one_strip_holds_no_second_output_or_feature_copy(arch):
+    # one strip: the head's result is the output (not copied into another of its size)
+    # and the features are concatenated once, for that strip (counted here: 536 and 1716
+    # B/px before the row groups, 696 and 1908 with a copied output and a strip of the
+    # features next to a whole-image one)
+    torch.manual_seed(0)
+    net = build_network(arch=arch, preset="small").eval()
+    side = 96
+    with torch.no_grad():
+        per_pixel = peak_live_bytes(lambda: net(torch.rand(1, 3, side, side))) / side ** 2
+    assert per_pixel < {"galliani": 650, "hdrssr": 1850}[arch], per_pixel

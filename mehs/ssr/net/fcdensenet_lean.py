@@ -25,8 +25,8 @@ import torch.nn.functional as F
 
 from mehs.ssr.allocator import trim_heap
 from mehs.ssr.net.layers import DenseBlock, DenseLayer, FCDenseNet, TransitionDown
-from mehs.ssr.net.strips import (RowGroups, _plain, conv2d_rows, conv_transpose_into,
-                                 conv_transpose_shape, training_graph)
+from mehs.ssr.net.strips import (RowGroups, _plain, channel_strip_rows, conv2d_rows,
+                                 conv_transpose_into, conv_transpose_shape, training_graph)
 
 
 def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
@@ -105,10 +105,10 @@ def _fill(block: DenseBlock, groups: RowGroups, trim: bool = False) -> None:
 
 
 def head(net: FCDenseNet, x: torch.Tensor, channels: int, chunk_pixels: int, strip) -> torch.Tensor:
-    """A per-pixel head on ``net``'s features of ``x``: ``strip(part, dst)`` writes the
-    head's ``(N, channels, r, w)`` result for features ``part`` ``(N, C, r, w)`` into
-    ``dst``, strip by strip of about ``chunk_pixels`` pixels (0: one strip). Returns
-    ``(N, channels, h, w)``, contiguous and owning its memory.
+    """A per-pixel head on ``net``'s features of ``x``: ``strip(part)`` gives the head's
+    ``(N, channels, r, w)`` result for features ``part`` ``(N, C, r, w)``, strip by strip
+    of about ``chunk_pixels`` pixels (fewer for more than ``STRIP_CHANNELS`` channels;
+    0: one strip). Returns ``(N, channels, h, w)``, contiguous and owning its memory.
 
     The strips are of the cropped image, as the plain graph's head sees it (an image of
     one strip gets its numbers bit for bit); while the groups are alive the result lives
@@ -117,14 +117,17 @@ def head(net: FCDenseNet, x: torch.Tensor, channels: int, chunk_pixels: int, str
     """
     f, h, w = features(net, x)
     n = f.shape[0]
+    rows = channel_strip_rows(chunk_pixels, n, h, w, f.channels)
     borrowed = f.output_buffer(channels)
+    if rows >= h and borrowed is None:
+        # (one strip: its result is the output, not copied into another of its size)
+        return strip(f.rows(0, h)[..., :w]).contiguous()
     out = (torch.empty((n, channels, h, w), dtype=f.dtype, device=f.device)
            if borrowed is None else borrowed[..., :h, :w])
-    rows = max(1, chunk_pixels // max(1, n * w)) if chunk_pixels > 0 else h
     scratch = f.scratch(rows)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        strip(f.rows(r0, r1, scratch)[..., :w], out[:, :, r0:r1])
+        out[:, :, r0:r1] = strip(f.rows(r0, r1, scratch)[..., :w])
     if borrowed is None:
         return out
     del f, scratch, borrowed      # (the groups: the stored features but the output's)

@@ -58,8 +58,8 @@ class Galliani2017(SSRNetwork):
         # feature channels (4.3 GB resident for FC-DenseNet56 at 2048×1024, issue 16);
         # in strips it reads the features a strip at a time, never concatenated
 
-        def strip(part: torch.Tensor, dst: torch.Tensor) -> None:
-            dst[...] = F.conv2d(part, head.weight, head.bias, groups=head.groups)
+        def strip(part: torch.Tensor) -> torch.Tensor:
+            return F.conv2d(part, head.weight, head.bias, groups=head.groups)
 
         return fcdensenet_lean.head(self.features, x, head.out_channels, self.chunk_pixels,
                                     strip)

@@ -96,14 +96,14 @@ class TwoBranchFCDenseNet(SSRNetwork):
         L = self.n_bands
         both_memory = []        # (one block for every strip's branch outputs)
 
-        def strip(part: torch.Tensor, dst: torch.Tensor) -> None:
+        def strip(part: torch.Tensor) -> torch.Tensor:
             n, _, r, w = part.shape
             if not both_memory or both_memory[0].numel() < n * 2 * L * r * w:
                 both_memory[:] = [part.new_empty(n * 2 * L * r * w)]
             both = both_memory[0][:n * 2 * L * r * w].view(n, 2 * L, r, w)
             self.sigmoid_branch(part, out=both[:, :L])
             self.hat_branch(part, out=both[:, L:])
-            dst[...] = self.fusion(both)
+            return self.fusion(both)
 
         return fcdensenet_lean.head(self.features, x, L, self.chunk_pixels, strip)
 
