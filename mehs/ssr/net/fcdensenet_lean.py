@@ -12,9 +12,10 @@ the dense layers and the level-0 transition normalise each group straight into o
 strip, and the head (per pixel) reads strips and writes its result into the
 up-sampling's memory, rows it has already read.
 
-Each output pixel gets the same products as the plain graph; batch norm is evaluated as
-``x·α + β`` per channel (torch's own formula) and convolutions on strips may sum in
-another order: equal to float32 rounding.
+Each output pixel gets the same products as the plain graph: batch norm runs torch's own
+kernel on each group, and only convolutions on strips of other shapes may sum in another
+order (equal to float32 rounding; an image of one strip gets the plain graph's numbers
+bit for bit).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
 
     block = net.down_blocks[0]
     level0 = xp.new_empty(n, block.new_channels, hp, wp)
+    large = _large(level0)
     skip = RowGroups([first, (block.new_channels, level0)], xp, hp, wp)
     _fill(block, skip)
     y = net.trans_down[0](skip)
@@ -60,14 +62,13 @@ def features(net: FCDenseNet, x: torch.Tensor) -> tuple[RowGroups, int, int]:
     for up, block in zip(net.trans_up[:-1], net.up_blocks[:-1]):
         held = [y]
         del y
-        if _large(level0):
+        if large:
             trim_heap()
         y = net.up_step(up, block, held, skips)
 
     # the coarser levels' tensors and strips were freed to the C heap, which keeps them
     # resident (0.48 GB of the full paper network's 2.23 GB peak at 2048×1024): returned
     # before the last level's three full-resolution maps are made
-    large = _large(level0)
     if large:
         trim_heap()
     up, block = net.trans_up[-1], net.up_blocks[-1]
