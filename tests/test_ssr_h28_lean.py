@@ -219,3 +219,16 @@ def test_an_image_of_one_strip_holds_no_second_output_or_feature_copy(arch):
     with torch.no_grad():
         per_pixel = peak_live_bytes(lambda: net(torch.rand(1, 3, side, side))) / side ** 2
     assert per_pixel < {"galliani": 650, "hdrssr": 1850}[arch], per_pixel
+
+
+def test_probes_of_a_network_in_training_mode_are_cached_apart():
+    # its batch norms use batch statistics and take no strips: the full paper network's
+    # memory probe gives twice the eval figure, which must not be read for eval runs
+    from mehs.ssr.probe_cache import network_key
+
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    key = network_key(net)
+    net.features.down_blocks[0].layers[0][0].train()
+    assert network_key(net) != key
+    net.eval()
+    assert network_key(net) == key

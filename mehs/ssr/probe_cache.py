@@ -79,7 +79,9 @@ def network_key(network) -> str | None:
     for name, t in [*network.named_parameters(), *network.named_buffers()]:
         add(name, tuple(t.shape), t.dtype, t.device.type)
     for m in mods:
-        add(type(m).__qualname__, getattr(m, "chunk_pixels", None))
+        # (a module in training mode runs other code: batch norms on batch statistics
+        # take no strips, and a network probed so would store twice its eval memory)
+        add(type(m).__qualname__, getattr(m, "chunk_pixels", None), m.training)
     files = {sys.modules[type(m).__module__].__file__ for m in mods if _mehs_module(type(m))}
     # the network package whole: a network's inference also runs helpers of modules that
     # define none of its layers (MST++'s strips in mstpp_lean, the strip convolutions in
