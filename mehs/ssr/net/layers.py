@@ -26,8 +26,8 @@ from torch import nn
 import torch.nn.functional as F
 
 from mehs.ssr.net.pooling import pooled_mean
-from mehs.ssr.net.strips import (STRIP_CHANNELS, STRIP_PIXELS, RowGroups, _plain,
-                                 conv_transpose_into, training_graph)
+from mehs.ssr.net.strips import (STRIP_PIXELS, RowGroups, _plain, conv_transpose_into,
+                                 strip_pixels, training_graph)
 
 
 class ChannelAttention(nn.Module):
@@ -80,13 +80,12 @@ def _strippable_conv(seq: nn.Sequential, cls: type) -> nn.Conv2d | None:
 
 def _strip_rows(chunk_pixels: int, x: torch.Tensor, multiple: int = 1) -> int:
     """Rows per strip of ``x`` ``(N, C, H, W)`` (a multiple of ``multiple``); ``H`` or more:
-    no strips. A map of more than :data:`STRIP_CHANNELS` channels gets proportionally fewer
-    pixels per strip (a strip's normalised copy and oneDNN's reorder of it are ``C`` wide)."""
+    no strips. Wide maps get fewer pixels per strip (:func:`~mehs.ssr.net.strips.strip_pixels`:
+    a strip's normalised copy and oneDNN's reorder of it are ``C`` wide)."""
     n, c, h, w = x.shape
     if chunk_pixels <= 0:
         return h
-    pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, c)
-    return max(multiple, pixels // max(1, n * w) // multiple * multiple)
+    return max(multiple, strip_pixels(chunk_pixels, c) // max(1, n * w) // multiple * multiple)
 
 
 class DenseLayer(nn.Sequential):

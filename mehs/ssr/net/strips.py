@@ -32,6 +32,12 @@ STRIP_PIXELS = 65536
 STRIP_CHANNELS = 128
 
 
+def strip_pixels(chunk_pixels: int, channels: int) -> int:
+    """Pixels per strip whose temporaries have ``channels`` channels:
+    ``chunk_pixels · min(1, STRIP_CHANNELS / channels)``."""
+    return chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, channels)
+
+
 def channel_strip_rows(chunk_pixels: int, n: int, h: int, w: int, channels: int) -> int:
     """Rows per strip of an ``(n, ·, h, w)`` map whose strip temporaries have ``channels``
     channels: ``chunk_pixels · min(1, STRIP_CHANNELS / channels)`` pixels, so that strips of
@@ -40,8 +46,7 @@ def channel_strip_rows(chunk_pixels: int, n: int, h: int, w: int, channels: int)
     strips on its probe two chunks large (:func:`mehs.ssr.tiling_probes.torch_memory_probe`)."""
     if chunk_pixels <= 0:
         return h
-    pixels = chunk_pixels * STRIP_CHANNELS // max(STRIP_CHANNELS, channels)
-    return max(1, min(h, pixels // max(1, n * w)))
+    return max(1, min(h, strip_pixels(chunk_pixels, channels) // max(1, n * w)))
 
 
 def _plain(module: nn.Module, *types: type) -> bool:
