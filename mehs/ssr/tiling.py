@@ -15,7 +15,8 @@ pools ``depth`` times, so each tile's pooling windows are the whole image's),
 and the margin covers the receptive field of every phase on that grid.
 
 Memory. A call's memory is modelled as ``fixed + bytes_per_pixel × pixels``,
-measured on two small probes (:func:`torch_memory_probe`). By default the
+measured on two small probes (:func:`torch_memory_probe`; ``+ bytes_per_column ×
+width`` for a network that streams its rows, as HSCNN-D does). By default the
 process is to stay under :data:`DEFAULT_MAX_RSS` of resident memory: what it
 already holds and the stitched output are taken off, the rest (at most
 :data:`AVAILABLE_SHARE` of the available memory) is the tile's. Images whose
@@ -139,11 +140,13 @@ def probe_budget(opts: dict) -> int:
 def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
                blend: int = DEFAULT_BLEND, align: int = 8, max_bytes: int | None = None,
                fixed_bytes: float = 0.0, out_bytes: float = 0.0,
-               overhead: Callable[[float], float] | None = None) -> TilingPlan:
+               overhead: Callable[[float], float] | None = None,
+               column_bytes: float = 0.0) -> TilingPlan:
     """The tile shape that computes the fewest pixels within the memory budget.
 
-    One call on ``n`` pixels is taken to need ``fixed_bytes + bytes_per_pixel × n``,
-    times ``overhead(n)`` if given (see :func:`allocator_overhead`).
+    One call on ``rows × cols`` pixels is taken to need ``fixed_bytes +
+    bytes_per_pixel × rows·cols + column_bytes × cols``, times ``overhead(rows·cols)`` if
+    given (see :func:`allocator_overhead`).
     The image runs whole if that fits ``max_bytes``; otherwise tiles must fit
     ``max_bytes − out_bytes`` (the stitched output is held while they run).
     Every tile recomputes its neighbours' overlap (``2 margin + blend``), so the
@@ -156,8 +159,9 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
     ----------
     shape
         ``(H, W)`` of the image.
-    bytes_per_pixel, fixed_bytes
-        Memory model of one call (see :func:`torch_memory_probe`).
+    bytes_per_pixel, fixed_bytes, column_bytes
+        Memory model of one call (see :func:`torch_memory_probe`; ``column_bytes``: a
+        network streaming its rows, whose window is as wide as its input).
     margin, blend, align
         See :class:`TilingPlan`.
     max_bytes
@@ -176,22 +180,23 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
         max_bytes = default_budget()
     h, w = shape
 
-    def memory(n: float) -> float:
-        return (fixed_bytes + bytes_per_pixel * n) * (1.0 if overhead is None else overhead(n))
+    def memory(rows: float, cols: float) -> float:
+        n = rows * cols
+        return ((fixed_bytes + bytes_per_pixel * n + column_bytes * cols)
+                * (1.0 if overhead is None else overhead(n)))
 
-    if memory(h * w) <= max_bytes:
+    if memory(h, w) <= max_bytes:
         return TilingPlan(None, margin, blend, align)
-    lo, hi = 0.0, float(h * w)                 # the most pixels a tile may have (memory grows)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if memory(mid) + out_bytes <= max_bytes else (lo, mid)
-    max_px = lo
+
+    def fits(rows: int, cols: int) -> bool:
+        return memory(rows, min(cols, w)) + out_bytes <= max_bytes
+
     overlap = 2 * margin + blend
     # a tile must keep some weighted core beyond its two margins and the ramp
     smallest = _round_up(overlap + align, align)
     # (an axis shorter than that is one tile long: no overlap along it)
-    if min(smallest, h) * min(smallest, w) > max_px:
-        need = memory(min(smallest, h) * min(smallest, w)) + out_bytes
+    if not fits(min(smallest, h), min(smallest, w)):
+        need = memory(min(smallest, h), min(smallest, w)) + out_bytes
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
                          f"{need / 2**20:.0f} MiB with the output, more than the "
                          f"{max_bytes / 2**20:.0f} MiB budget; give a smaller margin or "
@@ -205,9 +210,8 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
     best, top = None, max(_round_up(w, align), smallest)
     for th in range(smallest, max(_round_up(h, align), smallest) + 1, align):
         rows = min(th, h)
-        fit = int(max_px // rows)
         # a tile as wide as the image needs only its w columns, whatever the grid
-        limit = top if fit >= w else min(fit // align * align, top)
+        limit = top if fits(rows, w) else min(_widest(fits, rows, w) // align * align, top)
         if limit < smallest:
             break
         cov_w, n_w, tw = best_w[(limit - smallest) // align]
@@ -219,6 +223,16 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
             break
     _, th, tw = best
     return TilingPlan(th, margin, blend, align, tw)
+
+
+def _widest(fits: Callable[[int, int], bool], rows: int, w: int) -> int:
+    """The most columns (under ``w``, which does not fit) a tile of ``rows`` rows may have
+    (memory grows with its columns)."""
+    lo, hi = 0, w
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if fits(rows, mid) else (lo, mid)
+    return lo
 
 
 def plan_summary(shape: tuple[int, int], plan: TilingPlan) -> dict:
@@ -317,6 +331,8 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     bpp = float(memory["bytes_per_pixel"])
     fixed = float(opts.pop("fixed_bytes", memory.get("fixed_bytes", 0.0)))
     h, w = rgb.shape[:2]
+    # (a network streaming its rows holds a window as wide as its input)
+    column = float(memory.get("bytes_per_column", 0.0))
     if tile_budget is not None:
         budget, out_bytes = int(tile_budget), 0.0
     else:
@@ -325,7 +341,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     record = {"budget": budget, "out_bytes": out_bytes, "max_rss": max_rss}
     model.__dict__["_tiling_last"] = record
     overhead = allocator_overhead if memory.get("allocator") == "heap" else None
-    if (fixed + bpp * h * w) * (1.0 if overhead is None else overhead(h * w)) <= budget:
+    if (fixed + bpp * h * w + column * w) * (1.0 if overhead is None else overhead(h * w)) <= budget:
         record.update(plan=None, summary=plan_summary((h, w), TilingPlan(None, 0, 0, 1)),
                       probe_seconds=time.perf_counter() - t0)
         return fn(rgb)
@@ -354,13 +370,14 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     if reuse:
         try:
             plan = plan_tiles((h, w), bpp, margin=margin, align=align, max_bytes=budget,
-                              fixed_bytes=fixed, out_bytes=out_bytes,
+                              fixed_bytes=fixed, out_bytes=out_bytes, column_bytes=column,
                               overhead=heap_reuse_overhead, **opts)
         except InputError:
             reuse = False
     if plan is None:
         plan = plan_tiles((h, w), bpp, margin=margin, align=align, max_bytes=budget,
-                          fixed_bytes=fixed, out_bytes=out_bytes, overhead=overhead, **opts)
+                          fixed_bytes=fixed, out_bytes=out_bytes, column_bytes=column,
+                          overhead=overhead, **opts)
     record.update(budget=budget, plan=plan, summary=plan_summary((h, w), plan),
                   heap_reuse=reuse, probe_seconds=time.perf_counter() - t0)
     record["statistics"] = "tile"

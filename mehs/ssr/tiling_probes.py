@@ -115,15 +115,17 @@ def _peak_mode(reorders: bool = True):
     return Peak()
 
 
-def _peak_tensor_bytes(network, side: int) -> tuple[int, int]:
+def _peak_tensor_bytes(network, side: int, width: int | None = None) -> tuple[int, int]:
     """Peak bytes of live tensors (plus convolution reorders, :func:`_peak_mode`) of one
-    ``side²`` call, the input included; bytes per pixel of its output."""
+    ``side × width`` call (``width``: ``side``), the input included; bytes per pixel of
+    its output."""
     import torch
 
     param = next(network.parameters(), None)
     device = param.device if param is not None else "cpu"
+    width = side if width is None else int(width)
     with torch.no_grad(), _peak_mode() as mode:
-        y = network(torch.rand(1, 3, side, side, device=device, generator=_generator(device)))
+        y = network(torch.rand(1, 3, side, width, device=device, generator=_generator(device)))
         bands = int(y.shape[1]) * y.element_size()
         del y
     return mode.peak, bands
@@ -173,11 +175,15 @@ def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> di
     -------
     ``{"bytes_per_pixel", "fixed_bytes", "out_bytes_per_pixel", "allocator"}``:
     the counted model, the bytes per image pixel of the stitched output
-    (bands × 4) and ``"heap"`` (apply :func:`allocator_overhead`).
+    (bands × 4) and ``"heap"`` (apply :func:`allocator_overhead`); with
+    ``"bytes_per_column"`` (per pixel of the image's width) for a network that
+    streams its rows (:func:`_streamed_memory_probe`).
     """
     s1, s2 = sorted(int(s) for s in sizes)
     n1, n2 = s1 * s1, s2 * s2
     chunked = _chunked_modules(network)
+    if _streamed_modules(network):
+        return _streamed_memory_probe(network, chunked, s1, s2)
     with _probe_chunks(chunked, max(256, int(PROBE_CHUNK_SHARE * n1))):
         (p1, bands), (p2, _) = _peak_tensor_bytes(network, s1), _peak_tensor_bytes(network, s2)
     slope = (p2 - p1) / (n2 - n1) if n2 > n1 else 0.0
@@ -194,6 +200,53 @@ def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> di
         own, _ = _peak_tensor_bytes(network, side)
         fixed = max(fixed, own - slope * side * side)
     return {"bytes_per_pixel": slope, "fixed_bytes": fixed,
+            "out_bytes_per_pixel": float(bands), "allocator": "heap"}
+
+
+def _streamed_modules(network) -> list:
+    """Modules that sweep an image down its rows keeping a window of rows alive
+    (``stream_window_rows(width) -> rows``, 0 where they do not): their memory grows
+    with the image's width, not its pixels (HSCNN-D, :mod:`mehs.ssr.net.hscnnd_stream`)."""
+    return [m for m in network.modules()
+            if callable(getattr(m, "stream_window_rows", None))]
+
+
+def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
+    """:func:`torch_memory_probe` of a network with streamed modules:
+    ``fixed + per pixel × pixels + per column × width``.
+
+    A window of rows as wide as the image is ``per column``: square probes cannot tell
+    it from ``per pixel`` (a line through 96² and 128² put the full HSCNN-D at 2.6 GB
+    for 2048×1024, which holds 0.6 GB of window). Three probes taller than the window
+    part the terms: two heights at one width (per pixel), two widths at one height
+    (per column). The line is then raised to cover a square run with the modules' own
+    chunks, as for any chunked network.
+    """
+    w1, w2 = max(8, s1 // 3), 2 * max(8, s1 // 3)
+    chunk = max(256, int(PROBE_CHUNK_SHARE * s1 * s1))
+    with _probe_chunks(chunked, chunk):
+        win = max(int(m.stream_window_rows(w)) for m in _streamed_modules(network)
+                  for w in (w1, w2))
+        h1 = max(s1, 2 * win + 2)
+        h2 = 2 * h1
+        (p1, bands) = _peak_tensor_bytes(network, h1, w1)
+        p2, _ = _peak_tensor_bytes(network, h2, w1)
+        p3, _ = _peak_tensor_bytes(network, h1, w2)
+    slope = (p2 - p1) / ((h2 - h1) * w1)
+    if slope <= 0:                    # no growth seen: the taller probe's mean
+        slope, column, fixed = p2 / (h2 * w1), 0.0, 0.0
+    else:
+        column = max(0.0, (p3 - p1) / (w2 - w1) - slope * h1)
+        fixed = max(0.0, p1 - slope * h1 * w1 - column * w1)
+    streamed = _streamed_modules(network)
+    others = [m for m in chunked if not any(m is s for s in streamed)]
+    if others:
+        # (a streamed module's steps are rows, not chunks: the square run of the others'
+        # own chunks costs 5 s for HSCNN-D full, and only for them)
+        side = max(s2, h1, math.isqrt(2 * max(int(m.chunk_pixels) for m in others)) + 1)
+        own, _ = _peak_tensor_bytes(network, side)
+        fixed = max(fixed, own - slope * side * side - column * side)
+    return {"bytes_per_pixel": slope, "fixed_bytes": fixed, "bytes_per_column": column,
             "out_bytes_per_pixel": float(bands), "allocator": "heap"}
 
 

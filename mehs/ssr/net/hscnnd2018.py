@@ -16,9 +16,11 @@ Purely local: one output pixel depends on the ``1 + n_blocks`` pixels around it
 (one 3×3 conv per block along each path), so tiled inference with that much
 overlap is exact (:func:`mehs.ssr.net.infer.predict_tiled`; a model's tiles are planned
 from the memory budget with the field measured, :mod:`mehs.ssr.tiling`). Without gradients
-the dense features are written into one preallocated tensor instead of being
-re-concatenated after every block (the same numbers, linear instead of quadratic
-copying).
+the image is swept down its rows as a wavefront (:mod:`~mehs.ssr.net.hscnnd_stream`:
+every feature row computed once, a window of rows alive, memory growing with the
+width only). A network with parts of its own (a subclass, hooks) writes its dense
+features into one preallocated tensor instead of re-concatenating them after every
+block (the same numbers, linear instead of quadratic copying).
 
 Full preset: 30 blocks, 4.65 M parameters (the MST++ paper's table, "HSCNN+").
 
@@ -34,6 +36,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from mehs.ssr.net import hscnnd_stream
 from mehs.ssr.net.base import NetConfig, SSRNetwork
 from mehs.ssr.net.strips import (STRIP_PIXELS, _plain, channel_strip_rows, conv2d_into,
                                  training_graph)
@@ -127,7 +130,14 @@ class HSCNND2018(SSRNetwork):
         self.conv_out = _conv(c0 + n_blocks * fuse, self.n_bands, 1)
         self.receptive_radius = 1 + n_blocks
 
+    def stream_window_rows(self, width: int) -> int:
+        """Rows of all feature channels inference keeps alive (fewer in an image not as
+        tall: :mod:`~mehs.ssr.net.hscnnd_stream`); 0 where it keeps the dense features."""
+        return hscnnd_stream.window_rows(self) if hscnnd_stream.streamable(self) else 0
+
     def body(self, x: torch.Tensor) -> torch.Tensor:
+        if not training_graph() and hscnnd_stream.wanted(self, x):
+            return hscnnd_stream.forward(self, x)
         r = self.relu
         u1, d1 = r(self.up1(x)), r(self.down1(x))
         feats = torch.cat([u1, r(self.up2(u1)), d1, r(self.down2(d1))], dim=1)
