@@ -11,8 +11,9 @@ ten images): Smits 0.788 s, ours 16.3 s, Mikamoto 14.8 s, Galliani 6.3 s, HSCNN-
 (pre-processing and, in the similarity mode, luminance restoration included),
 best of ``--repeat`` after a warm-up on a small crop. Weights are random: the time
 does not depend on them. Networks with image-wide operations run on the whole
-image, as their authors run them; HSCNN-D (purely local) runs in exact tiles of
-``--tile`` pixels (its 1088 dense channels would need ~9 GB in one piece). AWAN
+image, as their authors run them; HSCNN-D too, streamed down its rows (session 29:
+a window of 63 rows of its 1088 dense channels, 0.56 GB, where the image's needed
+~9 GB and was cut into exact tiles of ``--tile`` pixels). AWAN
 cannot run whole at 2048×1024 (its non-local affinity has 2.7·10¹¹ entries per
 quadrant, ~1 TB): it runs in ``--tile`` tiles, each an image of its own (at 512 the
 size its authors ran it at, 482×512), marked "approx." (``--approx`` names the
@@ -67,15 +68,19 @@ def main(argv=None) -> int:
         torch.manual_seed(0)
         net = ARCHITECTURES[name](args.preset).eval()
 
+        # (a network streaming its rows holds a window, not the image: whole)
+        streams = bool(getattr(net, "stream_window_rows", lambda width: 0)(w))
+        tile = max(h, w) if streams else args.tile
+
         @torch.no_grad()
-        def run(x, net=net, approx=name in args.approx.split(",")):
+        def run(x, net=net, approx=name in args.approx.split(","), tile=tile):
             t = torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1))[None])
-            return predict_tiled(net, t, tile=args.tile, approximate=approx)[0] \
+            return predict_tiled(net, t, tile=tile, approximate=approx)[0] \
                 .permute(1, 2, 0).numpy()
 
         approx = name in args.approx.split(",")
         label = f"{name} ({args.preset}, {count_parameters(net) / 1e6:.2f} M)"
-        if max(h, w) > args.tile and (net.receptive_radius is not None or approx):
+        if max(h, w) > tile and (net.receptive_radius is not None or approx):
             label += f", tiles {args.tile}" + (" approx." if net.receptive_radius is None else "")
         rows.append((name, label, best_time(run, rgb, args.repeat)))
         print(f"  {label}: {rows[-1][2]:.2f} s", flush=True)

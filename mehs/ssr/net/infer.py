@@ -3,8 +3,9 @@
 A network whose output pixel depends only on the ``R = receptive_radius`` pixels
 around it (HSCNN-D) gives *exactly* the whole-image result when the image is cut
 into tiles that overlap by ``R`` on every side and only the tile centres are kept;
-memory then grows with the tile, not the image (a 2048×1024 HSCNN-D needs ~9 GB
-for its 1088 dense feature channels in one piece). Networks with image-wide
+memory then grows with the tile, not the image (HSCNN-D's 1088 dense feature channels
+took ~9 GB for a 2048×1024 image in one piece; its inference now streams the rows and
+holds a window of them, :mod:`mehs.ssr.net.hscnnd_stream`). Networks with image-wide
 operations (attention over all pixels, global pooling, pooling pyramids) have
 ``receptive_radius = None`` and are run whole unless the caller asks for
 ``approximate=True`` (plain tiles without overlap: each tile is then treated as an
