@@ -97,7 +97,10 @@ def restore_luminance(S: np.ndarray, rgb: np.ndarray, wavelengths: np.ndarray, *
     if not good.all():
         flat_sum = _xyz_sum_vector(wavelengths).sum()
         fill = (np.where(np.isfinite(target), target, 0.0) / flat_sum).astype(dtype)
-        out = np.where(good[..., None], out, fill[..., None])
+        # (out is fresh, or the caller's to overwrite: filled where it is, not through
+        # one more image-sized array)
+        bad = ~good
+        out[bad] = fill[bad][..., None]
     if return_fallback:
         # black input pixels (X+Y+Z = 0) come out black either way: not a substitution
         fell = ~good & (np.abs(np.nan_to_num(target)) > 0)
