@@ -178,3 +178,64 @@ def test_the_library_runs_a_tall_image_whole_within_the_budget(tmp_path, monkeyp
     tiled = model.standard_spectrum(rgb)
     assert model._tiling_last["summary"]["tiles"] > 1
     np.testing.assert_allclose(tiled, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
+def test_a_hooked_network_gets_its_own_memory_model(tmp_path, monkeypatch):
+    # a hook turns streaming off (the dense features, many times the window): the plain
+    # network's cached memory model planned a hooked one to run whole, 2.4x over budget
+    from mehs.ssr.net.export import TorchSSRModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    rgb = (torch.rand(600, 40, 3) * 4).numpy()
+    plain = TorchSSRModel(_net("small"))
+    plain.tiling = {"max_bytes": 10**12}
+    plain.standard_spectrum(rgb)
+    hooked_net = _net("small")
+    hooked_net.blocks[0].register_forward_hook(lambda m, i, o: None)
+    hooked = TorchSSRModel(hooked_net)
+    hooked.tiling = {"max_bytes": 10**12}
+    hooked.standard_spectrum(rgb)
+    per_pixel = hooked._tiling_probe["bytes_per_pixel"]
+    assert per_pixel > 4 * plain._tiling_probe["bytes_per_pixel"]
+    # the same model object, hooked after its first call, is probed again
+    handle = plain.network.blocks[1].register_forward_hook(lambda m, i, o: None)
+    plain.standard_spectrum(rgb)
+    assert plain._tiling_probe["bytes_per_pixel"] == per_pixel
+    handle.remove()
+    plain.standard_spectrum(rgb)
+    assert plain._tiling_probe["bytes_per_pixel"] < per_pixel / 4
+
+
+def test_a_grouped_convolution_in_a_block_is_run_by_its_module():
+    net = _net("tiny")
+    b = net.blocks[1]
+    b.up1 = nn.Conv2d(b.up1.in_channels, b.up1.out_channels, 3, padding=1, groups=2,
+                      bias=False)
+    assert not hscnnd_stream.streamable(net)
+    x = torch.rand(1, 3, 40, 9)
+    with torch.no_grad():
+        _close(net(x), _plain(net, x))
+
+
+def test_the_column_term_can_be_given_as_a_tiling_option():
+    from mehs.ssr.net.export import TorchSSRModel
+
+    model = TorchSSRModel(_net("tiny"))
+    rgb = (torch.rand(300, 200, 3) * 4).numpy()
+    model.tiling = {"bytes_per_pixel": 200.0, "column_bytes": 20000.0,
+                    "max_bytes": 200 * 300 * 200, "statistics": "tile"}
+    model.standard_spectrum(rgb)
+    assert model._tiling_last["summary"]["tiles"] > 1
+
+
+def test_export_with_a_dynamic_height_takes_the_plain_graph():
+    # torch.export under no_grad traced the streaming's row loop for one height
+    from torch.export import Dim, export
+
+    net = _net("tiny")
+    with torch.no_grad():
+        ep = export(net, (torch.rand(1, 3, 80, 16),),
+                    dynamic_shapes=({2: Dim("h", min=2, max=4096),
+                                     3: Dim("w", min=2, max=4096)},))
+    x = torch.rand(1, 3, 123, 20)
+    _close(ep.module()(x), _plain(net, x))

@@ -52,17 +52,37 @@ _NET_PACKAGE = Path(__file__).resolve().parent / "net"
 
 
 def cacheable(network) -> bool:
-    """Whether a torch network's probes may be cached: a mehs network built only of mehs
-    and torch modules (any other code could change what the probes measure unseen)."""
+    """Whether a torch network is mehs's own: a mehs network built only of mehs and torch
+    modules (any other code could change what the probes measure unseen). Its probes
+    are cached unless it carries hooks (:func:`network_key`)."""
     return _mehs_module(type(network)) and all(
         _mehs_module(type(m)) or _torch_module(type(m)) for m in network.modules())
+
+
+def hooked(network) -> bool:
+    """Whether a forward hook (the process's or one of ``network``'s modules') is set."""
+    from torch.nn.modules import module as _m
+
+    return bool(_m._global_forward_hooks or _m._global_forward_pre_hooks) or any(
+        m._forward_hooks or m._forward_pre_hooks for m in network.modules())
+
+
+def graph_signature(network) -> tuple:
+    """What decides which inference path a network takes beyond its modules' types:
+    its hooks and the row windows of modules that stream (a model's probes measured
+    under another signature describe another memory)."""
+    windows = tuple(int(m.stream_window_rows(64)) for m in network.modules()
+                    if callable(getattr(m, "stream_window_rows", None)))
+    return (hooked(network), windows)
 
 
 def network_key(network) -> str | None:
     """The cache key of a torch network, or None when it must not be cached (see module doc)."""
     import torch
 
-    if not cacheable(network):
+    if not cacheable(network) or hooked(network):
+        # (a hook turns the lean inference paths off: a hooked HSCNN-D holds its dense
+        # features, 30x the streamed memory of the full preset, under the same key)
         return None
     mods = list(network.modules())
     h = hashlib.sha256()

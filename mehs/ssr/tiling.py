@@ -191,11 +191,23 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
     def fits(rows: int, cols: int) -> bool:
         return memory(rows, min(cols, w)) + out_bytes <= max_bytes
 
+    if column_bytes:
+        def widest(rows: int) -> int:
+            return w if fits(rows, w) else _widest(fits, rows, w)
+    else:
+        # memory a function of the pixels alone: the most a tile may have, once
+        lo, hi = 0.0, float(h * w)
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if memory(mid, 1.0) + out_bytes <= max_bytes else (lo, mid)
+
+        def widest(rows: int, max_px: float = lo) -> int:
+            return int(max_px // rows)
     overlap = 2 * margin + blend
     # a tile must keep some weighted core beyond its two margins and the ramp
     smallest = _round_up(overlap + align, align)
     # (an axis shorter than that is one tile long: no overlap along it)
-    if not fits(min(smallest, h), min(smallest, w)):
+    if widest(min(smallest, h)) < min(smallest, w):
         need = memory(min(smallest, h), min(smallest, w)) + out_bytes
         raise InputError(f"a {smallest}-pixel tile (margin {margin}) needs "
                          f"{need / 2**20:.0f} MiB with the output, more than the "
@@ -210,8 +222,9 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
     best, top = None, max(_round_up(w, align), smallest)
     for th in range(smallest, max(_round_up(h, align), smallest) + 1, align):
         rows = min(th, h)
+        fit = widest(rows)
         # a tile as wide as the image needs only its w columns, whatever the grid
-        limit = top if fits(rows, w) else min(_widest(fits, rows, w) // align * align, top)
+        limit = top if fit >= w else min(fit // align * align, top)
         if limit < smallest:
             break
         cov_w, n_w, tw = best_w[(limit - smallest) // align]
@@ -332,7 +345,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     fixed = float(opts.pop("fixed_bytes", memory.get("fixed_bytes", 0.0)))
     h, w = rgb.shape[:2]
     # (a network streaming its rows holds a window as wide as its input)
-    column = float(memory.get("bytes_per_column", 0.0))
+    column = float(opts.pop("column_bytes", memory.get("bytes_per_column", 0.0)))
     if tile_budget is not None:
         budget, out_bytes = int(tile_budget), 0.0
     else:

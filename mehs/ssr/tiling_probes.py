@@ -208,7 +208,7 @@ def _streamed_modules(network) -> list:
     (``stream_window_rows(width) -> rows``, 0 where they do not): their memory grows
     with the image's width, not its pixels (HSCNN-D, :mod:`mehs.ssr.net.hscnnd_stream`)."""
     return [m for m in network.modules()
-            if callable(getattr(m, "stream_window_rows", None))]
+            if callable(getattr(m, "stream_window_rows", None)) and m.stream_window_rows(64)]
 
 
 def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
@@ -253,9 +253,12 @@ def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
 def torch_bytes_per_pixel(network, *, probe: int = MEMORY_PROBES[0]) -> float:
     """Memory per pixel of a torch network's inference (probes of ``probe`` and 1.5 × ``probe``).
 
-    See :func:`torch_memory_probe` (this is its ``bytes_per_pixel``, as counted).
+    See :func:`torch_memory_probe` (this is its ``bytes_per_pixel``, as counted; for a
+    network streaming its rows, with its memory per column spread over a ``probe``-pixel
+    tall square's pixels, which is more than a taller image's per pixel).
     """
-    return torch_memory_probe(network, sizes=(probe, probe * 3 // 2))["bytes_per_pixel"]
+    m = torch_memory_probe(network, sizes=(probe, probe * 3 // 2))
+    return m["bytes_per_pixel"] + m.get("bytes_per_column", 0.0) / probe
 
 
 #: Margin used when a network's gradient reaches the whole probe (a global

@@ -57,6 +57,16 @@ def tiled_torch_call(model, rgb: np.ndarray,
     given = getattr(model, "tiling", None)
     opts = given if isinstance(given, dict) else {}
     cached = model.__dict__.get("_tiling_probe", {})
+    from mehs.ssr.probe_cache import graph_signature
+
+    signature = graph_signature(net)
+    if cached.get("graph", signature) != signature:
+        # a hook set (or a part changed) since the memory was probed: another inference
+        # path (a hooked HSCNN-D holds its dense features, not a window of rows)
+        for name in ("bytes_per_pixel", "fixed_bytes", "bytes_per_column",
+                     "out_bytes_per_pixel", "allocator"):
+            cached.pop(name, None)
+    model.__dict__.setdefault("_tiling_probe", cached)["graph"] = signature
     if cached.pop("margin_bound", False):
         # a lower bound is this call's answer only: a later budget may measure the field
         cached.pop("margin", None)

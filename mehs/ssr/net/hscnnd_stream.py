@@ -39,8 +39,13 @@ def streamable(net: nn.Module) -> bool:
 
     if not _plain(net, HSCNND2018) or type(net.relu) is not nn.ReLU:
         return False
-    if not all(isinstance(b, DenseFusionBlock) and _strippable(b) for b in net.blocks):
-        return False
+    # (the blocks' convolutions are called by their weights: a grouped one put in place
+    # of one, which the dense path's strips would run by its module, is not streamed)
+    for b in net.blocks:
+        if not (isinstance(b, DenseFusionBlock) and _strippable(b)
+                and all(getattr(b, name).groups == 1
+                        for name in ("conv1", "up1", "up2", "down1", "down2", "fusion"))):
+            return False
     convs = ((net.up1, 3), (net.down1, 3), (net.up2, 1), (net.down2, 1), (net.conv_out, 1))
     return all(_plain_conv(c, k) for c, k in convs)
 

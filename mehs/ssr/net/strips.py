@@ -61,10 +61,17 @@ def _plain(module: nn.Module, *types: type) -> bool:
 
 
 def training_graph() -> bool:
-    """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`)
-    or an exporter needs the plain concatenating graph."""
+    """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`),
+    an exporter or a compiler needs the plain concatenating graph (``torch.export`` and
+    ``torch.compile`` would unroll the strips' Python loops for one image size)."""
     return (torch.is_grad_enabled() or plain_graph_wanted() or torch.jit.is_tracing()
-            or torch.onnx.is_in_onnx_export() or _autocast())
+            or torch.onnx.is_in_onnx_export() or _compiling() or _autocast())
+
+
+def _compiling() -> bool:
+    compiler = getattr(torch, "compiler", None)
+    return bool(compiler is not None and hasattr(compiler, "is_compiling")
+                and compiler.is_compiling())
 
 
 #: Device types whose autocast state :func:`autocast_state` reads.
