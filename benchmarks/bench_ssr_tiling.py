@@ -192,7 +192,9 @@ def main(argv=None) -> int:
             f"{summary['computed']:.3f}× px"
             + (", tiles on the reused C heap" if t["last"].get("heap_reuse") else "")
             + (f", {t['last']['image_runs']} runs for image-wide means"
-               if t["last"].get("image_runs") else ""))
+               if t["last"].get("image_runs") else "")
+            + (f", heap returned before {t['last']['heap_trims']} tiles (budget short)"
+               if t["last"].get("heap_trims") else ""))
     budget = t["last"].get("budget")
     print(f"{'mode':<6} {'seconds':>8} {'× whole':>8} {'CPU s':>7} {'× whole':>8} "
           f"{'peak RSS GB':>12} {'before GB':>10} {'probes s':>9}  "
