@@ -5,6 +5,7 @@ as the heap's holes grew over the tiles)."""
 import itertools
 
 import numpy as np
+import pytest
 
 from mehs.ssr import tiling
 
@@ -43,9 +44,27 @@ def test_tiles_under_a_short_budget_run_guarded(monkeypatch):
     # (the process grows by 1 MiB at each look: far past a 0.2 MB tile budget)
     grown = itertools.count()
     monkeypatch.setattr(tiling, "_rss", lambda: next(grown) * 2**20)
-    model = SimpleNamespace(tiling={"bytes_per_pixel": 100.0, "max_bytes": 100 * 48 * 48,
-                                    "statistics": "tile"}, name="m")
-    probes = {"margin": lambda: 4, "align": lambda: 8}
+    model = SimpleNamespace(tiling={"max_bytes": 200 * 48 * 48, "statistics": "tile"}, name="m")
+    # (memory on the C heap: the tiles run on the heap kept for reuse, where trims act)
+    probes = {"bytes_per_pixel": lambda: {"bytes_per_pixel": 100.0, "allocator": "heap"},
+              "margin": lambda: 4, "align": lambda: 8}
     out = tiling.tiled_network_call(model, fn, rgb, probes)
     np.testing.assert_allclose(out, np.repeat(rgb[..., :1], 4, axis=2) * 2.0, rtol=1e-6)
+    if not model._tiling_last["heap_reuse"]:
+        pytest.skip("no glibc heap to keep for reuse here")
     assert len(calls) > 1 and model._tiling_last["heap_trims"] == len(trims) == len(calls)
+
+
+def test_without_a_way_to_read_the_resident_memory_tiles_run_unguarded(monkeypatch):
+    from types import SimpleNamespace
+
+    def no_proc():
+        raise FileNotFoundError("/proc/self/statm")
+
+    monkeypatch.setattr(tiling, "_rss", no_proc)
+    rgb = np.random.default_rng(0).random((64, 96, 3), dtype=np.float32)
+    model = SimpleNamespace(tiling={"max_bytes": 200 * 48 * 48, "statistics": "tile"}, name="m")
+    probes = {"bytes_per_pixel": lambda: {"bytes_per_pixel": 100.0, "allocator": "heap"},
+              "margin": lambda: 4, "align": lambda: 8}
+    out = tiling.tiled_network_call(model, lambda x: x * 2.0, rgb, probes)
+    np.testing.assert_allclose(out, rgb * 2.0, rtol=1e-6)

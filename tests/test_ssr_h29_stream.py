@@ -239,3 +239,33 @@ def test_export_with_a_dynamic_height_takes_the_plain_graph():
                                      3: Dim("w", min=2, max=4096)},))
     x = torch.rand(1, 3, 123, 20)
     _close(ep.module()(x), _plain(net, x))
+
+
+def test_a_model_under_autocast_or_hooked_later_is_probed_again(tmp_path, monkeypatch):
+    # the streamed memory model kept by a model object planned its autocast call (the
+    # plain dense graph) to run whole 1.6x over budget; a hook added later kept the
+    # margin measured without it
+    from mehs.ssr import tiling_torch
+    from mehs.ssr.net.export import TorchSSRModel
+
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    model = TorchSSRModel(_net("small"))
+    rgb = (torch.rand(600, 40, 3) * 4).numpy()
+    model.tiling = {"max_bytes": 10**12}
+    model.standard_spectrum(rgb)
+    streamed = model._tiling_probe["bytes_per_pixel"]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        model.standard_spectrum(rgb)
+    assert model._tiling_probe["bytes_per_pixel"] > 4 * streamed
+    margins = []
+    real = tiling_torch.torch_receptive_radius
+    monkeypatch.setattr(tiling_torch, "torch_receptive_radius",
+                        lambda *a, **k: margins.append(1) or real(*a, **k))
+    model.tiling = {"bytes_per_pixel": 400.0, "max_bytes": 400 * 160 * 40}
+    model.standard_spectrum(rgb)
+    assert len(margins) == 1 and model._tiling_last["summary"]["tiles"] > 1
+    model.standard_spectrum(rgb)
+    assert len(margins) == 1                       # kept while nothing changed
+    model.network.blocks[0].register_forward_hook(lambda m, i, o: None)
+    model.standard_spectrum(rgb)
+    assert len(margins) == 2

@@ -69,11 +69,16 @@ def hooked(network) -> bool:
 
 def graph_signature(network) -> tuple:
     """What decides which inference path a network takes beyond its modules' types:
-    its hooks and the row windows of modules that stream (a model's probes measured
-    under another signature describe another memory)."""
+    its hooks, autocast and the plain-graph context (the plain graphs), the strips' sizes
+    and the row windows of modules that stream (a model's probes measured under another
+    signature describe another memory, and a hook may widen the field)."""
+    from mehs.ssr.net.pooling import plain_graph_wanted
+    from mehs.ssr.net.strips import autocast_state
+
     windows = tuple(int(m.stream_window_rows(64)) for m in network.modules()
                     if callable(getattr(m, "stream_window_rows", None)))
-    return (hooked(network), windows)
+    chunks = tuple(getattr(m, "chunk_pixels", None) for m in network.modules())
+    return (hooked(network), autocast_state(), bool(plain_graph_wanted()), chunks, windows)
 
 
 def network_key(network) -> str | None:

@@ -399,13 +399,16 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
                          "model file (a bare function's poolings cannot be reached); use "
                          "statistics 'tile'")
     tiles = fn
-    if plan.tile is not None:
+    if plan.tile is not None and reuse:
+        # (only the heap kept for reuse holds what a trim returns)
         th, tw = min(plan.tile, h), min(plan.width, w)
-        factor = heap_reuse_overhead if reuse else overhead
-        need = (fixed + bpp * th * tw + column * tw) * (1.0 if factor is None else factor(th * tw))
+        need = (fixed + bpp * th * tw + column * tw) * heap_reuse_overhead(th * tw)
         # (a budget for one tile leaves the stitched output out: the process holds it too)
         held = 0.0 if tile_budget is None else float(memory.get("out_bytes_per_pixel", 0.0)) * h * w
-        tiles = _heap_guard(fn, _rss() + budget + held, need, record)
+        try:
+            tiles = _heap_guard(fn, _rss() + budget + held, need, record)
+        except OSError:                 # no way to read the resident memory here: unguarded
+            pass
     with reused_heap(reuse):
         if wide:
             out = image_means(tiles, rgb, plan, statistics == "image")
@@ -442,7 +445,11 @@ def _heap_guard(fn: Callable[[np.ndarray], np.ndarray], limit: float, need: floa
     record["heap_trims"] = 0
 
     def guarded(x: np.ndarray) -> np.ndarray:
-        if _rss() + need > limit:
+        try:
+            over = _rss() + need > limit
+        except OSError:
+            over = False
+        if over:
             _trim_heap()
             record["heap_trims"] += 1
         return fn(x)

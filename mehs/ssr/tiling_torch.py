@@ -61,11 +61,10 @@ def tiled_torch_call(model, rgb: np.ndarray,
 
     signature = graph_signature(net)
     if cached.get("graph", signature) != signature:
-        # a hook set (or a part changed) since the memory was probed: another inference
-        # path (a hooked HSCNN-D holds its dense features, not a window of rows)
-        for name in ("bytes_per_pixel", "fixed_bytes", "bytes_per_column",
-                     "out_bytes_per_pixel", "allocator"):
-            cached.pop(name, None)
+        # a hook set, autocast entered, strips resized since the probes ran: another
+        # inference path (a hooked HSCNN-D holds its dense features, not a window of
+        # rows) and, for a hook, maybe another field: every probe is stale
+        cached.clear()
     model.__dict__.setdefault("_tiling_probe", cached)["graph"] = signature
     if cached.pop("margin_bound", False):
         # a lower bound is this call's answer only: a later budget may measure the field
