@@ -59,21 +59,13 @@ def cacheable(network) -> bool:
         _mehs_module(type(m)) or _torch_module(type(m)) for m in network.modules())
 
 
-def hooked(network) -> bool:
-    """Whether a forward hook (the process's or one of ``network``'s modules') is set."""
-    from torch.nn.modules import module as _m
-
-    return bool(_m._global_forward_hooks or _m._global_forward_pre_hooks) or any(
-        m._forward_hooks or m._forward_pre_hooks for m in network.modules())
-
-
 def graph_signature(network) -> tuple:
     """What decides which inference path a network takes beyond its modules' types:
     its hooks, autocast and the plain-graph context (the plain graphs), the strips' sizes
     and the row windows of modules that stream (a model's probes measured under another
     signature describe another memory, and a hook may widen the field)."""
     from mehs.ssr.net.pooling import plain_graph_wanted
-    from mehs.ssr.net.strips import autocast_state
+    from mehs.ssr.net.strips import autocast_state, hooked
 
     windows = tuple(int(m.stream_window_rows(64)) for m in network.modules()
                     if callable(getattr(m, "stream_window_rows", None)))
@@ -84,6 +76,8 @@ def graph_signature(network) -> tuple:
 def network_key(network) -> str | None:
     """The cache key of a torch network, or None when it must not be cached (see module doc)."""
     import torch
+
+    from mehs.ssr.net.strips import hooked
 
     if not cacheable(network) or hooked(network):
         # (a hook turns the lean inference paths off: a hooked HSCNN-D holds its dense

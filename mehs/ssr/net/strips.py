@@ -53,11 +53,15 @@ def _plain(module: nn.Module, *types: type) -> bool:
     """Whether ``module`` is exactly one of ``types`` (not a subclass, whose forward may
     differ) and neither it, its children nor the process carry forward hooks: the
     strips call its parts' functions directly, past hooks and overridden forwards."""
+    return type(module) in types and not hooked(module)
+
+
+def hooked(module: nn.Module) -> bool:
+    """Whether a forward hook (the process's, or one of ``module``'s or its children's) is set."""
     from torch.nn.modules import module as _m
 
-    if type(module) not in types or _m._global_forward_hooks or _m._global_forward_pre_hooks:
-        return False
-    return not any(m._forward_hooks or m._forward_pre_hooks for m in module.modules())
+    return bool(_m._global_forward_hooks or _m._global_forward_pre_hooks) or any(
+        m._forward_hooks or m._forward_pre_hooks for m in module.modules())
 
 
 def training_graph() -> bool:
