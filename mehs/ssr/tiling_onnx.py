@@ -224,6 +224,7 @@ def predict_tiled_onnx_image_means(means: OnnxImageMeans, rgb: np.ndarray, plan:
             owned, last = here["span"]
             return means.run(tile, owned, last, given, sums, counts)
 
+        out = None                    # (one stitched output alive, as in tiling_global)
         out = predict_tiled(fn, rgb, plan, on_tile=on_tile)
         new = _finite_means(sums, counts)
         change = max(float(np.abs(a - b).max()) / (float(np.abs(a).max()) or 1.0)
