@@ -181,9 +181,7 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
     h, w = shape
 
     def memory(rows: float, cols: float) -> float:
-        n = rows * cols
-        return ((fixed_bytes + bytes_per_pixel * n + column_bytes * cols)
-                * (1.0 if overhead is None else overhead(n)))
+        return call_bytes(rows, cols, bytes_per_pixel, fixed_bytes, column_bytes, overhead)
 
     if memory(h, w) <= max_bytes:
         return TilingPlan(None, margin, blend, align)
@@ -236,6 +234,15 @@ def plan_tiles(shape: tuple[int, int], bytes_per_pixel: float, *, margin: int,
             break
     _, th, tw = best
     return TilingPlan(th, margin, blend, align, tw)
+
+
+def call_bytes(rows: float, cols: float, bytes_per_pixel: float, fixed_bytes: float = 0.0,
+               column_bytes: float = 0.0,
+               overhead: Callable[[float], float] | None = None) -> float:
+    """The memory model of one call on ``rows × cols`` pixels (see :func:`plan_tiles`)."""
+    n = rows * cols
+    return ((fixed_bytes + bytes_per_pixel * n + column_bytes * cols)
+            * (1.0 if overhead is None else overhead(n)))
 
 
 def _widest(fits: Callable[[int, int], bool], rows: int, w: int) -> int:
@@ -354,7 +361,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     record = {"budget": budget, "out_bytes": out_bytes, "max_rss": max_rss}
     model.__dict__["_tiling_last"] = record
     overhead = allocator_overhead if memory.get("allocator") == "heap" else None
-    if (fixed + bpp * h * w + column * w) * (1.0 if overhead is None else overhead(h * w)) <= budget:
+    if call_bytes(h, w, bpp, fixed, column, overhead) <= budget:
         record.update(plan=None, summary=plan_summary((h, w), TilingPlan(None, 0, 0, 1)),
                       probe_seconds=time.perf_counter() - t0)
         return fn(rgb)
@@ -402,7 +409,7 @@ def tiled_network_call(model, fn: Callable[[np.ndarray], np.ndarray], rgb: np.nd
     if plan.tile is not None and reuse:
         # (only the heap kept for reuse holds what a trim returns)
         th, tw = min(plan.tile, h), min(plan.width, w)
-        need = (fixed + bpp * th * tw + column * tw) * heap_reuse_overhead(th * tw)
+        need = call_bytes(th, tw, bpp, fixed, column, heap_reuse_overhead)
         # (a budget for one tile leaves the stitched output out: the process holds it too)
         held = 0.0 if tile_budget is None else float(memory.get("out_bytes_per_pixel", 0.0)) * h * w
         try:

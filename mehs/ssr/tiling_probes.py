@@ -182,8 +182,9 @@ def torch_memory_probe(network, *, sizes: tuple[int, int] = MEMORY_PROBES) -> di
     s1, s2 = sorted(int(s) for s in sizes)
     n1, n2 = s1 * s1, s2 * s2
     chunked = _chunked_modules(network)
-    if _streamed_modules(network):
-        return _streamed_memory_probe(network, chunked, s1, s2)
+    streamed = _streamed_modules(network)
+    if streamed:
+        return _streamed_memory_probe(network, chunked, streamed, s1, s2)
     with _probe_chunks(chunked, max(256, int(PROBE_CHUNK_SHARE * n1))):
         (p1, bands), (p2, _) = _peak_tensor_bytes(network, s1), _peak_tensor_bytes(network, s2)
     slope = (p2 - p1) / (n2 - n1) if n2 > n1 else 0.0
@@ -211,7 +212,7 @@ def _streamed_modules(network) -> list:
             if callable(getattr(m, "stream_window_rows", None)) and m.stream_window_rows(64)]
 
 
-def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
+def _streamed_memory_probe(network, chunked, streamed, s1: int, s2: int) -> dict:
     """:func:`torch_memory_probe` of a network with streamed modules:
     ``fixed + per pixel × pixels + per column × width``.
 
@@ -225,8 +226,7 @@ def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
     w1, w2 = max(8, s1 // 3), 2 * max(8, s1 // 3)
     chunk = max(256, int(PROBE_CHUNK_SHARE * s1 * s1))
     with _probe_chunks(chunked, chunk):
-        win = max(int(m.stream_window_rows(w)) for m in _streamed_modules(network)
-                  for w in (w1, w2))
+        win = max(int(m.stream_window_rows(w)) for m in streamed for w in (w1, w2))
         h1 = max(s1, 2 * win + 2)
         h2 = 2 * h1
         (p1, bands) = _peak_tensor_bytes(network, h1, w1)
@@ -238,7 +238,6 @@ def _streamed_memory_probe(network, chunked, s1: int, s2: int) -> dict:
     else:
         column = max(0.0, (p3 - p1) / (w2 - w1) - slope * h1)
         fixed = max(0.0, p1 - slope * h1 * w1 - column * w1)
-    streamed = _streamed_modules(network)
     others = [m for m in chunked if not any(m is s for s in streamed)]
     if others:
         # (a streamed module's steps are rows, not chunks: the square run of the others'

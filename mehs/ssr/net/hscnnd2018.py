@@ -91,14 +91,22 @@ def _strippable(block: "DenseFusionBlock") -> bool:
     # (strips of one row of context), no hooks
     if not _plain(block, DenseFusionBlock):
         return False
-    for name in ("conv1", "up1", "up2", "down1", "down2", "fusion"):
-        c = getattr(block, name)
-        k = 3 if name in ("up1", "down1") else 1
-        if not (type(c) is nn.Conv2d and c.kernel_size == (k, k) and c.stride == (1, 1)
-                and c.dilation == (1, 1) and c.padding == (k // 2, k // 2)
-                and c.padding_mode == "zeros"):
+    for name in BLOCK_CONVS:
+        if not plain_conv(getattr(block, name), 3 if name in ("up1", "down1") else 1):
             return False
     return type(block.relu) is nn.ReLU
+
+
+#: A dense fusion block's convolutions.
+BLOCK_CONVS = ("conv1", "up1", "up2", "down1", "down2", "fusion")
+
+
+def plain_conv(c: nn.Module, k: int) -> bool:
+    """Exactly an ``nn.Conv2d`` of a ``k × k`` kernel, stride and dilation 1, zero-padded
+    by ``k // 2`` (its output rows are its input's, read with ``k // 2`` rows of context)."""
+    return (type(c) is nn.Conv2d and c.kernel_size == (k, k) and c.stride == (1, 1)
+            and c.dilation == (1, 1) and c.padding == (k // 2, k // 2)
+            and c.padding_mode == "zeros")
 
 
 class HSCNND2018(SSRNetwork):

@@ -35,25 +35,19 @@ from mehs.ssr.net.strips import _plain
 
 def streamable(net: nn.Module) -> bool:
     """Whether ``net`` is exactly an HSCNN-D of plain parts (see the module's doc)."""
-    from mehs.ssr.net.hscnnd2018 import HSCNND2018, DenseFusionBlock, _strippable
+    from mehs.ssr.net.hscnnd2018 import (BLOCK_CONVS, HSCNND2018, DenseFusionBlock,
+                                         _strippable, plain_conv)
 
     if not _plain(net, HSCNND2018) or type(net.relu) is not nn.ReLU:
         return False
-    # (the blocks' convolutions are called by their weights: a grouped one put in place
-    # of one, which the dense path's strips would run by its module, is not streamed)
+    # (the convolutions are called by their weights: a grouped one put in place of one,
+    # which the dense path's strips would run by its module, is not streamed)
     for b in net.blocks:
         if not (isinstance(b, DenseFusionBlock) and _strippable(b)
-                and all(getattr(b, name).groups == 1
-                        for name in ("conv1", "up1", "up2", "down1", "down2", "fusion"))):
+                and all(getattr(b, name).groups == 1 for name in BLOCK_CONVS)):
             return False
     convs = ((net.up1, 3), (net.down1, 3), (net.up2, 1), (net.down2, 1), (net.conv_out, 1))
-    return all(_plain_conv(c, k) for c, k in convs)
-
-
-def _plain_conv(c: nn.Module, k: int) -> bool:
-    return (type(c) is nn.Conv2d and c.kernel_size == (k, k) and c.stride == (1, 1)
-            and c.dilation == (1, 1) and c.padding == (k // 2, k // 2) and c.groups == 1
-            and c.padding_mode == "zeros")
+    return all(plain_conv(c, k) and c.groups == 1 for c, k in convs)
 
 
 #: Least output rows per step: the compressed maps' two context rows, computed again
