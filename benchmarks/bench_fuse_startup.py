@@ -60,10 +60,10 @@ def wall(cmd: list[str], env: dict) -> float:
 def wait_for_children(cache: Path) -> float:
     """Seconds until no process holds a ``<entry>.building`` lock in ``cache`` (a child
     compiling an entry point, :func:`mehs.synthesis._native.build_in_background`)."""
-    from mehs.synthesis._native import _locked_elsewhere
+    from mehs.synthesis._native_child import locked_elsewhere
 
     t0 = time.perf_counter()
-    while any(_locked_elsewhere(m) for m in (cache / "kernels").glob("*.building")):
+    while any(locked_elsewhere(m) for m in (cache / "kernels").glob("*.building")):
         time.sleep(0.05)
     return time.perf_counter() - t0
 

@@ -42,6 +42,7 @@ from typing import Callable
 
 import numpy as np
 
+from mehs.synthesis import _native_child
 from mehs.synthesis._native_specs import KERNELS
 
 #: Bumped when the stored layout or the entry points' C signatures change.
@@ -63,6 +64,7 @@ _children: dict[tuple, subprocess.Popen] = {}    # entries compiling in a child 
 _loaded: dict[tuple, Callable | None] = {}
 _engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
+_in_child = False           # this process is a child compiling one entry (_child_build)
 _sources_digest: dict[tuple, str] = {}
 
 
@@ -89,13 +91,15 @@ def _base_key() -> dict:
             "cpu": ll.get_host_cpu_name(), "features": ll.get_host_cpu_features().flatten(),
             "env": {k: os.environ.get(k, "") for k in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES",
                                                         "NUMBA_OPT", "NUMBA_BOUNDSCHECK")},
+            # the features the entries are compiled with beyond the host's (a child's)
+            "tuning": _native_child.tuning(),
         }
     return _key_base
 
 
 def _sources(kind: str) -> str:
     """SHA-256 of the kernel's source files, of this module and of the specs."""
-    names = KERNELS[kind].sources + ("_native.py", "_native_specs.py")
+    names = KERNELS[kind].sources + ("_native.py", "_native_specs.py", "_native_child.py")
     if names not in _sources_digest:
         here = Path(__file__).resolve().parent
         h = hashlib.sha256()
@@ -185,30 +189,29 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
     meta, marker = files
     if meta.is_file() or not _writable(meta.parent):
         return False        # stored (checked when loaded), or nowhere to store it
-    if _locked_elsewhere(marker):
+    if _native_child.locked_elsewhere(marker):
         return False        # another process's child is compiling it
-    # at a lower priority: the parent's own work (the merge kernel's compilation on a
-    # first-ever run) comes first on a machine with few cores
-    code = ("import os, sys; os.nice(10); sys.path.insert(0, sys.argv[4]); "
-            "import numpy as np; from mehs.synthesis import _native; "
-            "_native._build_as_child(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]), "
-            "sys.argv[5])")
-    root = str(Path(__file__).resolve().parents[2])
     with _memo_lock:        # (one child per entry, whichever thread asks)
         if memo in _loaded or memo in _children:
             return False
         try:
-            _children[memo] = subprocess.Popen(
-                [sys.executable, "-c", code, kind, dtype.name, str(P), root, str(marker)],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            # at a lower priority: the parent's own work (the merge kernel's compilation
+            # on a first-ever run) comes first on a machine with few cores
+            _children[memo] = _native_child.start(kind, dtype.name, P, marker, _base_key(),
+                                                  background=True)
         except OSError:
             return False
     return True
 
 
-def _build_as_child(kind: str, dtype: np.dtype, P: int, marker: str) -> None:
-    """The child process of :func:`build_in_background`: compile and store the entry
-    under an exclusive lock on ``marker`` (none taken: another child has it)."""
+def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, base_key: dict, *,
+                 wait: bool) -> None:
+    """A child process of :mod:`._native_child`: compile and store the entry under
+    the parent's key, holding an exclusive lock on ``marker``. Another child holding
+    it: a background child leaves; a waiting one waits, then loads what that one
+    stored (or compiles it, if that one failed)."""
+    global _key_base, _in_child
+    _key_base, _in_child = base_key, True
     try:
         import fcntl
     except ImportError:     # not POSIX: no marker
@@ -216,26 +219,10 @@ def _build_as_child(kind: str, dtype: np.dtype, P: int, marker: str) -> None:
         return
     fd = os.open(marker, os.O_CREAT | os.O_RDWR, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
     except OSError:
         return              # another child is compiling it
     native_kernel(kind, dtype, P)       # (the lock goes with the process)
-
-
-def _locked_elsewhere(marker: Path) -> bool:
-    """Whether a process holds ``marker``'s lock (:func:`_build_as_child`)."""
-    try:
-        import fcntl
-        fd = os.open(marker, os.O_RDONLY)
-    except (ImportError, OSError):
-        return False        # not POSIX, or no child ever started
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        return True
-    finally:
-        os.close(fd)        # (releases the probe's own lock)
-    return False
 
 
 def building(kind: str, dtype, P: int = 0) -> bool:
@@ -251,7 +238,8 @@ def building(kind: str, dtype, P: int = 0) -> bool:
     if child is not None and child.poll() is None:
         return True
     files = _entry_files(kind, dtype, P) if supported(kind, dtype, P) else None
-    return files is not None and not files[0].is_file() and _locked_elsewhere(files[1])
+    return (files is not None and not files[0].is_file()
+            and _native_child.locked_elsewhere(files[1]))
 
 
 def _entry_files(kind: str, dtype: np.dtype, P: int) -> tuple[Path, Path] | None:
@@ -429,6 +417,8 @@ def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
 
     # a first-ever run compiles for seconds: say so instead of looking hung
     notice_compiling("the synthesis kernels")
+    if _base_key()["tuning"] and not _in_child:
+        return _build_in_child(kind, dtype, P)
     try:
         key, stem = _key(kind, dtype, P)
         obj, symbol, undefined = _compile(kind, dtype, P)
@@ -439,6 +429,26 @@ def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
                           {"key": key, "symbol": symbol, "undefined": undefined,
                            "sha256": hashlib.sha256(obj).hexdigest()})
     except Exception:       # noqa: BLE001 - anything: the numba kernel does the work
+        return None
+    return _load(kind, dtype, P)
+
+
+def _build_in_child(kind: str, dtype: np.dtype, P: int) -> Callable | None:
+    """Compile the entry with the features of :func:`._native_child.tuning` in a child
+    process (numba's features are fixed for a whole process), wait, load it."""
+    files = _entry_files(kind, dtype, P)
+    if files is None:
+        return None
+    try:
+        child = _native_child.start(kind, dtype.name, P, files[1], _base_key(),
+                                    background=False)
+    except OSError:
+        return None
+    try:
+        child.wait(timeout=600)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
         return None
     return _load(kind, dtype, P)
 

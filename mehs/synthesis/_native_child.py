@@ -1,0 +1,84 @@
+"""Compiling the stored kernels in a child process, and the vector width they use.
+
+:mod:`mehs.synthesis._native` keeps the one-pass kernels' machine code. numba compiles
+for the CPU it runs on with LLVM's tuning of that CPU, and LLVM tunes Intel's AVX-512
+cores (Skylake-SP through Sapphire Rapids, the client cores since Ice Lake) to prefer
+256-bit vectors: mixed code on them loses clock speed in 512-bit instructions. The merge
+kernels are long runs of float arithmetic over 16 samples, bound by the vector units
+(docs/performance.md): on such a core (LLVM's ``rocketlake`` / ``sapphirerapids``,
+2026-12-06) 512-bit vectors made the default merge 13–19 % faster and the radiance-only
+one 17–25 % (``benchmarks/RESULTS.md``, "Issue 16, session 30"); AMD's Zen 4 gets them
+by default. The width does not change a number: without ``fastmath`` LLVM vectorises
+each sample's arithmetic as written, so the stored kernel gives numba's bits either way
+(tested).
+
+numba takes the width from its CPU features (``NUMBA_CPU_FEATURES``), read once per
+process for all its code, so the stored kernels are compiled in a child process given
+those features: the parent's numba and a user's own numba code keep LLVM's choice.
+``MEHS_KERNEL_VECTORS=256`` keeps LLVM's choice for the stored kernels too; a user's own
+``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES`` is left as it is.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+
+def tuning() -> str:
+    """The LLVM features the stored kernels add to the host's ('' for none)."""
+    if os.environ.get("MEHS_KERNEL_VECTORS", "").strip() == "256":
+        return ""
+    if os.environ.get("NUMBA_CPU_NAME") or os.environ.get("NUMBA_CPU_FEATURES"):
+        return ""           # the user chose numba's target: the child compiles for it
+    import llvmlite.binding as ll
+
+    return "-prefer-256-bit" if ll.get_host_cpu_features().get("avx512f") else ""
+
+
+def start(kind: str, dtype_name: str, P: int, marker: Path, base_key: dict, *,
+          background: bool) -> subprocess.Popen:
+    """Start a child process that compiles and stores one entry point.
+
+    It stores the entry under ``base_key`` (the parent's: the child's own environment
+    differs by the features it is given) and holds ``marker``'s lock while compiling. A
+    ``background`` child runs at a lower priority and leaves when another child holds
+    the lock; otherwise it waits for that child and loads what it stored. Raises
+    ``OSError`` if the process cannot start.
+    """
+    code = ("import os, sys, json; sys.path.insert(0, sys.argv[4]); "
+            "os.nice(10) if sys.argv[7] == '1' else None; "
+            "import numpy as np; from mehs.synthesis import _native; "
+            "_native._child_build(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]), "
+            "sys.argv[5], json.loads(sys.argv[6]), wait=sys.argv[7] == '0')")
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ)
+    extra = base_key.get("tuning", "")
+    if extra:
+        import llvmlite.binding as ll
+
+        env["NUMBA_CPU_FEATURES"] = ll.get_host_cpu_features().flatten() + "," + extra
+    return subprocess.Popen(
+        [sys.executable, "-c", code, kind, dtype_name, str(P), root, str(marker),
+         json.dumps(base_key), "1" if background else "0"],
+        env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL)
+
+
+def locked_elsewhere(marker: Path) -> bool:
+    """Whether a process holds ``marker``'s lock (a child compiling its entry)."""
+    try:
+        import fcntl
+        fd = os.open(marker, os.O_RDONLY)
+    except (ImportError, OSError):
+        return False        # not POSIX, or no child ever started
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)        # (releases the probe's own lock)
+    return False
