@@ -26,6 +26,7 @@ from torch import nn
 import torch.nn.functional as F
 
 from mehs.ssr.net.pooling import plain_graph_wanted
+from mehs.ssr.net.strips import compiling
 
 #: Wavelength range mapped to [0, 1] before the basis functions are evaluated.
 LAMBDA_RANGE_NM = (400.0, 700.0)
@@ -97,7 +98,10 @@ class _BasisBranch(nn.Module):
     def forward(self, x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
         """``(N, C, H, W)`` features → ``(N, L, H, W)``; into ``out`` (that shape) if given."""
         n, _, h, w = x.shape
-        if (self.chunk_pixels <= 0 or (torch.is_grad_enabled() and x.requires_grad)
+        # (a compiler first: dynamo folds its test, and would break its graph at the
+        # ContextVar read and unroll the strips for one image size)
+        if (self.chunk_pixels <= 0 or compiling()
+                or (torch.is_grad_enabled() and x.requires_grad)
                 or plain_graph_wanted() or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()):
             # training: autograd keeps every strip's temporaries anyway, strips only add work
             y = self._evaluate(x)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import threading
 
 import numpy as np
 import torch
@@ -37,11 +38,44 @@ import torch
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import owned_cells
 
-_ACTIVE: contextvars.ContextVar["ImageMeans | None"] = contextvars.ContextVar(
-    "mehs_image_means", default=None)
-_DETACHED: contextvars.ContextVar[bool] = contextvars.ContextVar(
-    "mehs_statistics_detached", default=False)
-_PLAIN: contextvars.ContextVar[bool] = contextvars.ContextVar("mehs_plain_graph", default=False)
+class _Scoped:
+    """A value set for a context (a ``ContextVar``: per thread and task) that reads as its
+    default without touching the ``ContextVar`` while no context anywhere has set it.
+
+    ``torch.compile`` (dynamo) cannot trace ``ContextVar.get``: every layer reading one
+    broke the compiled graph there, although outside tiled inference and the probes none
+    is ever set. A process-wide count of the contexts that set it, an attribute dynamo
+    guards on, keeps the common case in one graph; where some context has set it, the
+    read goes to the ``ContextVar`` (a graph break, and this context's own value).
+    """
+
+    def __init__(self, name: str, default):
+        self._var = contextvars.ContextVar(name, default=default)
+        self._default = default
+        self.users = 0
+        self._lock = threading.Lock()
+
+    def get(self):
+        # (a thread's own setting counts before it sets: another thread's count can
+        # only send this one to its own ContextVar, which holds its own value)
+        return self._default if self.users == 0 else self._var.get()
+
+    @contextlib.contextmanager
+    def set(self, value):
+        with self._lock:
+            self.users += 1
+        token = self._var.set(value)
+        try:
+            yield
+        finally:
+            self._var.reset(token)
+            with self._lock:
+                self.users -= 1
+
+
+_ACTIVE = _Scoped("mehs_image_means", None)            # the ImageMeans in use
+_DETACHED = _Scoped("mehs_statistics_detached", False)
+_PLAIN = _Scoped("mehs_plain_graph", False)
 
 
 def pooled_mean(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
@@ -89,11 +123,8 @@ def detached_statistics():
     :func:`statistics_detached`) are detached from autograd, so that a gradient
     probe (:func:`mehs.ssr.tiling_probes.torch_receptive_radius`) measures the
     network's local field only."""
-    token = _DETACHED.set(True)
-    try:
+    with _DETACHED.set(True):
         yield
-    finally:
-        _DETACHED.reset(token)
 
 
 def plain_graph_wanted() -> bool:
@@ -108,11 +139,8 @@ def plain_graph():
     Forward-mode differentiation (the field probe's Jacobian-vector product,
     :func:`mehs.ssr.tiling_probes.torch_receptive_radius`) has no derivative for
     ``out=`` operators, and needs no autograd graph."""
-    token = _PLAIN.set(True)
-    try:
+    with _PLAIN.set(True):
         yield
-    finally:
-        _PLAIN.reset(token)
 
 
 def _channel_sums(part: torch.Tensor) -> torch.Tensor:
@@ -158,11 +186,8 @@ class ImageMeans:
 
     @contextlib.contextmanager
     def active(self):
-        token = _ACTIVE.set(self)
-        try:
+        with _ACTIVE.set(self):
             yield self
-        finally:
-            _ACTIVE.reset(token)
 
     def enter(self, y: tuple[int, int], x: tuple[int, int], own_y: tuple[int, int],
               own_x: tuple[int, int], last_y: bool, last_x: bool, *,

@@ -68,11 +68,14 @@ def training_graph() -> bool:
     """True where autograd, forward-mode differentiation (:func:`mehs.ssr.net.pooling.plain_graph`),
     an exporter or a compiler needs the plain concatenating graph (``torch.export`` and
     ``torch.compile`` would unroll the strips' Python loops for one image size)."""
-    return (torch.is_grad_enabled() or plain_graph_wanted() or torch.jit.is_tracing()
-            or torch.onnx.is_in_onnx_export() or _compiling() or _autocast())
+    # the compiler's test first: dynamo folds it to a constant, and reading the plain
+    # graph's ContextVar while compiling is a graph break at every call
+    return (compiling() or torch.is_grad_enabled() or plain_graph_wanted()
+            or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or _autocast())
 
 
-def _compiling() -> bool:
+def compiling() -> bool:
+    """Whether ``torch.compile`` (dynamo) is tracing this call."""
     compiler = getattr(torch, "compiler", None)
     return bool(compiler is not None and hasattr(compiler, "is_compiling")
                 and compiler.is_compiling())
