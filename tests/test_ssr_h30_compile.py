@@ -9,6 +9,7 @@ set it; a context that has still reaches the compiled code (dynamo guards the co
 
 from __future__ import annotations
 
+import contextvars
 import threading
 
 import pytest
@@ -81,3 +82,20 @@ def test_the_count_returns_to_zero_when_the_context_raises():
         with pooling.detached_statistics():
             raise RuntimeError("inside")
     assert pooling._DETACHED.users == 0 and not pooling.statistics_detached()
+
+
+def test_a_context_copied_inside_the_with_keeps_its_value_after_it():
+    """(an asyncio task started inside and outliving it, found by the review)"""
+    with pooling.plain_graph():
+        copied = contextvars.copy_context()
+    assert pooling._PLAIN.users == 0
+    assert copied.run(pooling.plain_graph_wanted) is True
+    assert pooling.plain_graph_wanted() is False
+
+
+def test_the_count_returns_to_zero_when_the_variable_cannot_be_reset():
+    cm = pooling.plain_graph()
+    contextvars.copy_context().run(cm.__enter__)       # entered in another Context
+    with pytest.raises(ValueError):
+        cm.__exit__(None, None, None)
+    assert pooling._PLAIN.users == 0

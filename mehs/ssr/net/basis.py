@@ -25,8 +25,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.pooling import plain_graph_wanted
-from mehs.ssr.net.strips import compiling
+from mehs.ssr.net.pooling import compiling, plain_graph_wanted
 
 #: Wavelength range mapped to [0, 1] before the basis functions are evaluated.
 LAMBDA_RANGE_NM = (400.0, 700.0)

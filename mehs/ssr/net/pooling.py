@@ -38,15 +38,26 @@ import torch
 from mehs.errors import InputError
 from mehs.ssr.tiling_blend import owned_cells
 
+def compiling() -> bool:
+    """Whether ``torch.compile`` (dynamo) is tracing this call."""
+    compiler = getattr(torch, "compiler", None)
+    return bool(compiler is not None and hasattr(compiler, "is_compiling")
+                and compiler.is_compiling())
+
+
 class _Scoped:
-    """A value set for a context (a ``ContextVar``: per thread and task) that reads as its
-    default without touching the ``ContextVar`` while no context anywhere has set it.
+    """A value set for a context (a ``ContextVar``: per thread and task) that a compiled
+    graph reads as its default while no context anywhere has set it.
 
     ``torch.compile`` (dynamo) cannot trace ``ContextVar.get``: every layer reading one
     broke the compiled graph there, although outside tiled inference and the probes none
-    is ever set. A process-wide count of the contexts that set it, an attribute dynamo
-    guards on, keeps the common case in one graph; where some context has set it, the
-    read goes to the ``ContextVar`` (a graph break, and this context's own value).
+    is ever set. While dynamo traces, a process-wide count of the contexts that set it
+    (an attribute dynamo guards on) stands in for the read when it is 0: the common case
+    compiles to one graph, and a context entered later recompiles. Anywhere else, and
+    while some context (in any thread) has set it, the ``ContextVar`` is read: a graph
+    break when compiling, and always this context's own value — also in a context
+    copied inside the ``with`` that outlives it (an asyncio task), which the count
+    cannot see.
     """
 
     def __init__(self, name: str, default):
@@ -56,19 +67,21 @@ class _Scoped:
         self._lock = threading.Lock()
 
     def get(self):
-        # (a thread's own setting counts before it sets: another thread's count can
-        # only send this one to its own ContextVar, which holds its own value)
-        return self._default if self.users == 0 else self._var.get()
+        if self.users == 0 and compiling():
+            return self._default
+        return self._var.get()
 
     @contextlib.contextmanager
     def set(self, value):
         with self._lock:
             self.users += 1
-        token = self._var.set(value)
         try:
-            yield
+            token = self._var.set(value)
+            try:
+                yield
+            finally:
+                self._var.reset(token)      # (raises if left from another Context)
         finally:
-            self._var.reset(token)
             with self._lock:
                 self.users -= 1
 

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from mehs.ssr.net.pooling import plain_graph_wanted
+from mehs.ssr.net.pooling import compiling, plain_graph_wanted
 
 
 #: Pixels per row strip in which inference runs a dense layer's or a transition's
@@ -72,13 +72,6 @@ def training_graph() -> bool:
     # graph's ContextVar while compiling is a graph break at every call
     return (compiling() or torch.is_grad_enabled() or plain_graph_wanted()
             or torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or _autocast())
-
-
-def compiling() -> bool:
-    """Whether ``torch.compile`` (dynamo) is tracing this call."""
-    compiler = getattr(torch, "compiler", None)
-    return bool(compiler is not None and hasattr(compiler, "is_compiling")
-                and compiler.is_compiling())
 
 
 #: Device types whose autocast state :func:`autocast_state` reads.
