@@ -91,7 +91,7 @@ def test_the_child_is_given_the_features_and_the_parents_key(fresh, monkeypatch,
             seen.update(argv=argv, env=env)
 
     monkeypatch.setattr(subprocess, "Popen", Popen)
-    key = _native._base_key()
+    key = _native._key("poisson_linear", np.dtype(np.uint16), 3)[0]
     _native_child.start("poisson_linear", "uint16", 3, fresh / "x.building", key,
                         background=False)
     features = seen["env"].get("NUMBA_CPU_FEATURES")
@@ -138,3 +138,87 @@ def test_a_build_waits_for_another_childs_lock_then_loads(fresh, monkeypatch):
     finally:
         release.join()
     assert fn is not None
+
+
+def test_a_failed_child_is_not_started_again_in_this_process(fresh, monkeypatch):
+    """(review) each merge started a new child after one failed: seconds a merge"""
+    _fake_host(monkeypatch, True)
+    started = []
+
+    class Failed:
+        def wait(self, timeout=None):
+            return 1
+
+    monkeypatch.setattr(_native_child, "start",
+                        lambda *a, **k: started.append(a) or Failed())
+    for _ in range(3):
+        assert _native.native_kernel("poisson_linear", np.uint16, 3) is None
+    assert len(started) == 1
+
+
+def test_a_key_that_cannot_be_made_leaves_the_merge_to_numba(fresh, monkeypatch):
+    """(review) llvmlite may raise reading the host's features: no entry, no error"""
+    import llvmlite.binding as ll
+
+    def broken(*a):
+        raise RuntimeError("failed to get host cpu features")
+
+    monkeypatch.setattr(ll, "get_host_cpu_features", broken)
+    assert _native.native_kernel("poisson_linear", np.uint16, 3) is None
+    stack, t, darks = _bracket()
+    merge_bracket(stack, t, darks=darks)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="the child's lock is POSIX")
+@pytest.mark.parametrize("wait", [True, False])
+def test_a_stuck_lock_holder_is_waited_for_a_bounded_time(fresh, monkeypatch, wait):
+    """(review) a foreground child waited for the lock without limit"""
+    import fcntl
+    import time
+
+    monkeypatch.setattr(_native, "_in_child", False)
+    key, stem = _native._key("poisson_linear", np.dtype(np.uint16), 3)
+    monkeypatch.setattr(_native, "_key_base", None)
+    monkeypatch.setattr(_native, "LOCK_WAIT_S", 0.3)
+    built = []
+    monkeypatch.setattr(_native, "native_kernel", lambda *a, **k: built.append(a))
+    fresh.mkdir(parents=True, exist_ok=True)
+    marker = fresh / f"{stem}.building"
+    fd = os.open(marker, os.O_CREAT | os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX)                  # held "elsewhere", never released
+    try:
+        t0 = time.monotonic()
+        _native._child_build("poisson_linear", np.dtype(np.uint16), 3, str(marker), key,
+                             wait=wait)
+        waited = time.monotonic() - t0
+    finally:
+        os.close(fd)
+    assert built == ([("poisson_linear", np.dtype(np.uint16), 3)] if wait else [])
+    assert waited >= (0.3 if wait else 0.0) and waited < 5.0
+
+
+def test_a_child_builds_nothing_when_the_sources_changed_since_the_parent_read_them(
+        fresh, monkeypatch):
+    """(review) the child stored under its own key, which the parent never read"""
+    monkeypatch.setattr(_native, "_in_child", False)
+    key, _ = _native._key("poisson_linear", np.dtype(np.uint16), 3)
+    monkeypatch.setattr(_native, "_key_base", None)
+    built = []
+    monkeypatch.setattr(_native, "native_kernel", lambda *a, **k: built.append(a))
+    stale = dict(key, sources="0" * 64)
+    _native._child_build("poisson_linear", np.dtype(np.uint16), 3,
+                         str(fresh / "x.building"), stale, wait=False)
+    assert built == []
+
+
+def test_a_child_does_not_import_from_the_working_folder(fresh, monkeypatch, tmp_path):
+    """(review) ``python -c`` puts the working folder first on the child's path"""
+    work = tmp_path / "work"
+    work.mkdir()
+    ran = tmp_path / "ran"
+    (work / "json.py").write_text(f"open({str(ran)!r}, 'w').close()\n"
+                                  "raise ImportError('shadowed')\n")
+    monkeypatch.chdir(work)
+    assert _native.build_in_background("ptc_pass", np.float32)
+    assert _native.native_kernel("ptc_pass", np.float32, build=False) is not None
+    assert not ran.exists()

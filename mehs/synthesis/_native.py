@@ -62,6 +62,7 @@ _build_locks: dict[tuple, threading.Lock] = {}   # one builder per entry point
 _link_lock = threading.Lock()       # LLVM's global context is not thread-safe
 _children: dict[tuple, subprocess.Popen] = {}    # entries compiling in a child process
 _loaded: dict[tuple, Callable | None] = {}
+_failed: set[tuple] = set()  # entries whose compile failed here: numba's kernel from then on
 _engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
 _in_child = False           # this process is a child compiling one entry (_child_build)
@@ -142,7 +143,7 @@ def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callab
         return None
     memo = (kind, dtype.name, P, str(_folder()))
     with _memo_lock:
-        if memo in _loaded and (_loaded[memo] is not None or not build):
+        if memo in _loaded and (_loaded[memo] is not None or not build or memo in _failed):
             return _loaded[memo]
         child = _children.pop(memo, None)
         build_lock = _build_locks.setdefault(memo, threading.Lock())
@@ -155,14 +156,19 @@ def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callab
     # builds in a child process)
     with build_lock:
         with _memo_lock:
-            if memo in _loaded and (_loaded[memo] is not None or not build):
+            if memo in _loaded and (_loaded[memo] is not None or not build
+                                    or memo in _failed):
                 return _loaded[memo]
         fn = _load(kind, dtype, P)
+        failed = False
         if fn is None and build:
-            fn = _build(kind, dtype, P)
+            fn, failed = _build(kind, dtype, P)
         with _memo_lock:
             if fn is not None or build:
                 _loaded[memo] = fn
+            if failed:
+                # not again in this process: a compile takes seconds (a child's too)
+                _failed.add(memo)
         return fn
 
 
@@ -197,31 +203,51 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
         try:
             # at a lower priority: the parent's own work (the merge kernel's compilation
             # on a first-ever run) comes first on a machine with few cores
-            _children[memo] = _native_child.start(kind, dtype.name, P, marker, _base_key(),
-                                                  background=True)
+            _children[memo] = _native_child.start(kind, dtype.name, P, marker,
+                                                  _key(kind, dtype, P)[0], background=True)
         except OSError:
             return False
     return True
 
 
-def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, base_key: dict, *,
+#: Seconds a foreground child waits for another process's child to finish the same
+#: entry (a compile takes seconds); then it compiles regardless (writes are atomic).
+LOCK_WAIT_S = 120.0
+
+
+def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, key: dict, *,
                  wait: bool) -> None:
-    """A child process of :mod:`._native_child`: compile and store the entry under
-    the parent's key, holding an exclusive lock on ``marker``. Another child holding
-    it: a background child leaves; a waiting one waits, then loads what that one
-    stored (or compiles it, if that one failed)."""
+    """A child process of :mod:`._native_child`: compile and store the entry under the
+    parent's ``key``, holding an exclusive lock on ``marker``. Another child holding it:
+    a background child leaves; a waiting one waits (at most :data:`LOCK_WAIT_S`), then
+    loads what that one stored, or compiles it. Nothing is built when the sources on
+    disk are no longer those the parent keyed (changed since it read them): the parent's
+    kernel arguments might not be this code's."""
     global _key_base, _in_child
-    _key_base, _in_child = base_key, True
+    _key_base = {k: v for k, v in key.items()
+                 if k not in ("sources", "kernel", "dtype", "exposures")}
+    _in_child = True
+    if _key(kind, dtype, P)[0] != key:
+        return
     try:
         import fcntl
     except ImportError:     # not POSIX: no marker
         native_kernel(kind, dtype, P)
         return
+    import time
+
     fd = os.open(marker, os.O_CREAT | os.O_RDWR, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
-    except OSError:
-        return              # another child is compiling it
+    deadline = time.monotonic() + (LOCK_WAIT_S if wait else 0.0)
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except OSError:
+            if time.monotonic() >= deadline:
+                if not wait:
+                    return          # another child is compiling it
+                break               # stuck elsewhere: compile without the lock
+            time.sleep(0.05)
     native_kernel(kind, dtype, P)       # (the lock goes with the process)
 
 
@@ -403,24 +429,26 @@ def _writable(folder: Path) -> bool:
     return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
 
 
-def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
+def _build(kind: str, dtype: np.dtype, P: int) -> tuple[Callable | None, bool]:
     """Compile the C entry point with numba, store its object code, load it.
 
-    Nothing is compiled when the cache folder cannot take the entry: every process
-    would pay for a compile it cannot keep (the numba kernel runs instead, cached by
-    numba where it can be).
+    Returns ``(entry or None, whether a compile was tried and failed)``. Nothing is
+    compiled when the cache folder cannot take the entry: every process would pay for
+    a compile it cannot keep (the numba kernel runs instead, cached by numba where it
+    can be).
     """
     folder = _folder()
     if folder is None or not _writable(folder):
-        return None
+        return None, False
     from mehs.synthesis._numba_cache import notice_compiling
 
     # a first-ever run compiles for seconds: say so instead of looking hung
     notice_compiling("the synthesis kernels")
-    if _base_key()["tuning"] and not _in_child:
-        return _build_in_child(kind, dtype, P)
     try:
         key, stem = _key(kind, dtype, P)
+        if key["tuning"] and not _in_child:
+            fn = _build_in_child(kind, dtype, P, key)
+            return fn, fn is None
         obj, symbol, undefined = _compile(kind, dtype, P)
         from mehs.io.atomic import write_bytes_atomic, write_json_atomic
 
@@ -429,19 +457,19 @@ def _build(kind: str, dtype: np.dtype, P: int) -> Callable | None:
                           {"key": key, "symbol": symbol, "undefined": undefined,
                            "sha256": hashlib.sha256(obj).hexdigest()})
     except Exception:       # noqa: BLE001 - anything: the numba kernel does the work
-        return None
-    return _load(kind, dtype, P)
+        return None, True
+    fn = _load(kind, dtype, P)
+    return fn, fn is None
 
 
-def _build_in_child(kind: str, dtype: np.dtype, P: int) -> Callable | None:
+def _build_in_child(kind: str, dtype: np.dtype, P: int, key: dict) -> Callable | None:
     """Compile the entry with the features of :func:`._native_child.tuning` in a child
     process (numba's features are fixed for a whole process), wait, load it."""
     files = _entry_files(kind, dtype, P)
     if files is None:
         return None
     try:
-        child = _native_child.start(kind, dtype.name, P, files[1], _base_key(),
-                                    background=False)
+        child = _native_child.start(kind, dtype.name, P, files[1], key, background=False)
     except OSError:
         return None
     try:

@@ -6,8 +6,8 @@ cores (Skylake-SP through Sapphire Rapids, the client cores since Ice Lake) to p
 256-bit vectors: mixed code on them loses clock speed in 512-bit instructions. The merge
 kernels are long runs of float arithmetic over 16 samples, bound by the vector units
 (docs/performance.md): on such a core (LLVM's ``rocketlake`` / ``sapphirerapids``,
-2026-12-06) 512-bit vectors made the default merge 13–19 % faster and the radiance-only
-one 17–25 % (``benchmarks/RESULTS.md``, "Issue 16, session 30"); AMD's Zen 4 gets them
+2026-12-06) 512-bit vectors made the default merge 15–18 % faster and the radiance-only
+one 18–23 % (``benchmarks/RESULTS.md``, "Issue 16, session 30"); AMD's Zen 4 gets them
 by default. The width does not change a number: without ``fastmath`` LLVM vectorises
 each sample's arithmetic as written, so the stored kernel gives numba's bits either way
 (tested).
@@ -39,31 +39,36 @@ def tuning() -> str:
     return "-prefer-256-bit" if ll.get_host_cpu_features().get("avx512f") else ""
 
 
-def start(kind: str, dtype_name: str, P: int, marker: Path, base_key: dict, *,
+def start(kind: str, dtype_name: str, P: int, marker: Path, key: dict, *,
           background: bool) -> subprocess.Popen:
     """Start a child process that compiles and stores one entry point.
 
-    It stores the entry under ``base_key`` (the parent's: the child's own environment
-    differs by the features it is given) and holds ``marker``'s lock while compiling. A
-    ``background`` child runs at a lower priority and leaves when another child holds
-    the lock; otherwise it waits for that child and loads what it stored. Raises
-    ``OSError`` if the process cannot start.
+    It stores the entry under ``key`` (the parent's: the child's own environment
+    differs by the features it is given), if its own sources still give that key, and
+    holds ``marker``'s lock while compiling. A ``background`` child runs at a lower
+    priority and leaves when another child holds the lock; otherwise it waits for that
+    child and loads what it stored. Raises ``OSError`` if the process cannot start.
     """
-    code = ("import os, sys, json; sys.path.insert(0, sys.argv[4]); "
+    # the working folder off the import path first: a json.py or numpy/ there would run
+    # in the child (mehs's own folder goes first instead)
+    code = ("import os, sys; sys.path[:] = [sys.argv[4]] + [p for p in sys.path "
+            "if p not in ('', '.', os.getcwd())]; import json; "
             "os.nice(10) if sys.argv[7] == '1' else None; "
             "import numpy as np; from mehs.synthesis import _native; "
             "_native._child_build(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]), "
             "sys.argv[5], json.loads(sys.argv[6]), wait=sys.argv[7] == '0')")
+    if not sys.executable:          # an embedding application: no interpreter to start
+        raise OSError("no Python executable to start a child process with")
     root = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ)
-    extra = base_key.get("tuning", "")
+    extra = key.get("tuning", "")
     if extra:
         import llvmlite.binding as ll
 
         env["NUMBA_CPU_FEATURES"] = ll.get_host_cpu_features().flatten() + "," + extra
     return subprocess.Popen(
         [sys.executable, "-c", code, kind, dtype_name, str(P), root, str(marker),
-         json.dumps(base_key), "1" if background else "0"],
+         json.dumps(key), "1" if background else "0"],
         env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)
 
