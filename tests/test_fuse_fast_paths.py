@@ -204,3 +204,21 @@ def test_a_warm_fuse_starts_no_numba(tmp_path):
     assert kernels == ["poisson_linear", "ptc_pass"]
     assert "NUMBA False" in runs[1].stdout, runs[1].stdout + runs[1].stderr
     assert "photon transfer" in runs[1].stdout          # the statistics ran, natively
+
+
+def test_cell_groups_from_sorted_cells_equal_the_counted_table():
+    """(session 30) the table from the sorted cells is the counted one, ties and all"""
+    from mehs.synthesis._ptc_groups import _cell_groups, _group_table
+
+    rng = np.random.default_rng(7)
+    cases = [rng.integers(-70000, 70000, 40000), rng.integers(5, 9, 3000),
+             np.full(17, 123), rng.integers(0, 3, 5), np.array([4]),
+             np.concatenate([rng.integers(-50, 50, 1000), np.full(5000, 7)])]
+    cases += [rng.integers(-2 ** rng.integers(1, 17), 2 ** 17, rng.integers(1, 5000))
+              for _ in range(200)]
+    for cells in cases:
+        cells = cells.astype(np.int32)
+        for groups in (1, 2, 7, 48):
+            lo, table = _cell_groups(cells, groups)
+            assert lo == int(cells.min())
+            np.testing.assert_array_equal(table, _group_table(np.bincount(cells - lo), groups))

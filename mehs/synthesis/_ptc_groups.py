@@ -72,6 +72,28 @@ def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
     return np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
 
 
+def _cell_groups(cells: np.ndarray, groups: int) -> tuple[int, np.ndarray]:
+    """``(lo, table)``: :func:`_group_table` of the good samples' ``cells`` (non-empty),
+    from the cells sorted instead of counted, and its first cell ``lo``.
+
+    The same table: the cell holding target rank ``t`` is that of the ``⌈t⌉``-th
+    smallest sample, and the counts below and up to it are two binary searches. A
+    probe's cells span ~140 k values for ~40 k samples (an instrument that crosses zero
+    spans every tiny float magnitude between), so counting them cost 1–2.5 ms a pair.
+    """
+    srt = np.sort(cells)
+    lo, n = int(srt[0]), srt.size
+    target = np.arange(1, groups) * (n / groups)
+    at = srt[np.ceil(target).astype(np.int64) - 1]          # the cell of each target rank
+    before = np.searchsorted(srt, at, side="left")         # samples in earlier cells
+    upto = np.searchsorted(srt, at, side="right")
+    last = at.astype(np.int64) - lo
+    # (as _group_table: the group ends after that cell, or before it when nearer)
+    last = np.where(target - before < upto - target, last - 1, last)
+    bounds = np.concatenate(([0], last + 1, [int(srt[-1]) - lo + 1]))
+    return lo, np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
+
+
 #: The per-group median and MAD that set the 5σ clip come from about this many samples a
 #: group; a group with few samples in that subset uses all of its own. The MAD's error,
 #: ~3.6 % of σ at 1024 Gaussian samples, moves the clip by 0.2σ: it then drops < 2e-5 of
@@ -316,8 +338,7 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     good = cells_s[~bad_s]
     if good.size == 0:
         return None
-    lo = int(good.min())
-    table = _group_table(np.bincount(good - lo), groups)     # (good samples: not None)
+    lo, table = _cell_groups(good, groups)
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
