@@ -12,9 +12,15 @@ from pathlib import Path
 
 
 def cache_dir() -> Path | None:
-    """The mehs cache folder, or None when ``MEHS_CACHE_DIR`` is set empty."""
+    """The mehs cache folder, or None when ``MEHS_CACHE_DIR`` is set empty or there is
+    no home folder to put it in (a container's user without one): nothing is kept."""
     env = os.environ.get("MEHS_CACHE_DIR")
     if env is not None:
         return Path(env).expanduser() if env.strip() else None
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    base = os.environ.get("XDG_CACHE_HOME")
+    if not base:
+        try:
+            base = str(Path.home() / ".cache")
+        except (RuntimeError, KeyError, OSError):
+            return None
     return Path(base) / "mehs"

@@ -222,3 +222,81 @@ def test_a_child_does_not_import_from_the_working_folder(fresh, monkeypatch, tmp
     assert _native.build_in_background("ptc_pass", np.float32)
     assert _native.native_kernel("ptc_pass", np.float32, build=False) is not None
     assert not ran.exists()
+
+
+def test_no_home_folder_means_no_cache_not_an_error(monkeypatch):
+    """(review) Path.home() raises for a container user without one"""
+    from pathlib import Path
+
+    from mehs._cache import cache_dir
+
+    for k in ("MEHS_CACHE_DIR", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(k, raising=False)
+
+    def no_home():
+        raise RuntimeError("Could not determine home directory.")
+
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    assert cache_dir() is None
+    assert _native.native_kernel("poisson_linear", np.uint16, 3) is None
+    stack, t, darks = _bracket()
+    merge_bracket(stack, t, darks=darks)
+
+
+def test_a_cache_folder_that_cannot_be_entered_is_no_error(fresh, monkeypatch):
+    """(review) is_file() raised PermissionError out of building()/build_in_background()"""
+    from pathlib import Path
+
+    def denied(self):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "is_file", denied)
+    assert _native.building("ptc_pass", np.float32) is False
+    assert _native.build_in_background("ptc_pass", np.float32) is False
+
+
+def test_a_process_that_cannot_link_compiles_nothing(fresh, monkeypatch):
+    """(review) Windows: ctypes.CDLL(None) fails, so every process compiled an entry it
+    could never load"""
+    import ctypes
+
+    def no_process_library(name, *a, **k):
+        raise TypeError("expected str, bytes or os.PathLike object, not NoneType")
+
+    monkeypatch.setattr(_native, "_linkable", None)
+    monkeypatch.setattr(ctypes, "CDLL", no_process_library)
+    compiled = []
+    monkeypatch.setattr(_native, "_compile", lambda *a: compiled.append(a))
+    monkeypatch.setattr(_native_child, "start", lambda *a, **k: compiled.append(a))
+    assert not _native.supported("poisson_linear", np.uint16, 3)
+    assert _native.native_kernel("poisson_linear", np.uint16, 3) is None
+    assert compiled == [] and not fresh.exists()
+    monkeypatch.setattr(_native, "_linkable", None)
+
+
+def test_a_child_with_another_numba_than_its_key_builds_nothing(fresh, monkeypatch):
+    """(review) the child took the parent's versions on trust"""
+    monkeypatch.setattr(_native, "_in_child", False)
+    key, _ = _native._key("poisson_linear", np.dtype(np.uint16), 3)
+    monkeypatch.setattr(_native, "_key_base", None)
+    built = []
+    monkeypatch.setattr(_native, "native_kernel", lambda *a, **k: built.append(a))
+    fresh.mkdir(parents=True, exist_ok=True)
+    _native._child_build("poisson_linear", np.dtype(np.uint16), 3,
+                         str(fresh / "x.building"), dict(key, numba="0.0.0"), wait=False)
+    assert built == []
+    _native._child_build("poisson_linear", np.dtype(np.uint16), 3,
+                         str(fresh / "x.building"), key, wait=False)
+    assert built == [("poisson_linear", np.dtype(np.uint16), 3)]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="a deleted working folder is POSIX")
+def test_a_child_started_from_a_deleted_working_folder_still_builds(fresh, monkeypatch,
+                                                                     tmp_path):
+    """(review) the child's path rewrite called os.getcwd(), which raised there"""
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    monkeypatch.chdir(gone)
+    gone.rmdir()
+    assert _native.build_in_background("ptc_pass", np.float32)
+    assert _native.native_kernel("ptc_pass", np.float32, build=False) is not None

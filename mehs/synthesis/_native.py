@@ -66,6 +66,7 @@ _failed: set[tuple] = set()  # entries whose compile failed here: numba's kernel
 _engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
 _in_child = False           # this process is a child compiling one entry (_child_build)
+_linkable: bool | None = None   # _can_link's answer
 _sources_digest: dict[tuple, str] = {}
 
 
@@ -126,7 +127,22 @@ def supported(kind: str, dtype, P: int = 0) -> bool:
     if kind not in KERNELS:
         return False
     ok_P = 2 <= P <= _MAX_EXPOSURES if KERNELS[kind].per_exposure else P == 0
-    return ok_P and dtype.name in _DTYPES and dtype.isnative and _folder() is not None
+    return (ok_P and dtype.name in _DTYPES and dtype.isnative and _folder() is not None
+            and _can_link())
+
+
+def _can_link() -> bool:
+    """Whether this process can bind a stored entry's symbols (the process's own, through
+    ``ctypes.CDLL(None)``: not on Windows). Where it cannot, every process would compile
+    an entry it can never load."""
+    global _linkable
+    if _linkable is None:
+        try:
+            ctypes.CDLL(None)
+            _linkable = True
+        except (OSError, TypeError):
+            _linkable = False
+    return _linkable
 
 
 def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callable | None:
@@ -193,8 +209,11 @@ def build_in_background(kind: str, dtype, P: int = 0) -> bool:
     if files is None:
         return False        # no llvmlite: nothing to build
     meta, marker = files
-    if meta.is_file() or not _writable(meta.parent):
-        return False        # stored (checked when loaded), or nowhere to store it
+    try:
+        if meta.is_file() or not _writable(meta.parent):
+            return False    # stored (checked when loaded), or nowhere to store it
+    except OSError:         # a cache folder this user cannot enter
+        return False
     if _native_child.locked_elsewhere(marker):
         return False        # another process's child is compiling it
     with _memo_lock:        # (one child per entry, whichever thread asks)
@@ -224,6 +243,11 @@ def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, key: dict, *,
     disk are no longer those the parent keyed (changed since it read them): the parent's
     kernel arguments might not be this code's."""
     global _key_base, _in_child
+    # its own numba, llvmlite, Python and host must be those the key names (a child may
+    # import another numba than its parent); its features and environment differ by design
+    own = _base_key()
+    if any(own.get(k) != key.get(k) for k in own if k not in ("env", "tuning")):
+        return
     _key_base = {k: v for k, v in key.items()
                  if k not in ("sources", "kernel", "dtype", "exposures")}
     _in_child = True
@@ -264,8 +288,11 @@ def building(kind: str, dtype, P: int = 0) -> bool:
     if child is not None and child.poll() is None:
         return True
     files = _entry_files(kind, dtype, P) if supported(kind, dtype, P) else None
-    return (files is not None and not files[0].is_file()
-            and _native_child.locked_elsewhere(files[1]))
+    try:
+        return (files is not None and not files[0].is_file()
+                and _native_child.locked_elsewhere(files[1]))
+    except OSError:         # a cache folder this user cannot enter
+        return False
 
 
 def _entry_files(kind: str, dtype: np.dtype, P: int) -> tuple[Path, Path] | None:

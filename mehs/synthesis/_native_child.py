@@ -49,11 +49,12 @@ def start(kind: str, dtype_name: str, P: int, marker: Path, key: dict, *,
     priority and leaves when another child holds the lock; otherwise it waits for that
     child and loads what it stored. Raises ``OSError`` if the process cannot start.
     """
-    # the working folder off the import path first: a json.py or numpy/ there would run
-    # in the child (mehs's own folder goes first instead)
-    code = ("import os, sys; sys.path[:] = [sys.argv[4]] + [p for p in sys.path "
-            "if p not in ('', '.', os.getcwd())]; import json; "
-            "os.nice(10) if sys.argv[7] == '1' else None; "
+    # the working folder off the import path first (``-c`` puts it first: a json.py or
+    # numpy/ there ran in the child); mehs's own folder last, behind the standard
+    # library; no os.nice on Windows
+    code = ("import os, sys; sys.path[:] = [p for p in sys.path if p not in ('', '.')] "
+            "+ [sys.argv[4]]; import json; "
+            "getattr(os, 'nice', abs)(10) if sys.argv[7] == '1' else None; "
             "import numpy as np; from mehs.synthesis import _native; "
             "_native._child_build(sys.argv[1], np.dtype(sys.argv[2]), int(sys.argv[3]), "
             "sys.argv[5], json.loads(sys.argv[6]), wait=sys.argv[7] == '0')")

@@ -55,9 +55,9 @@ class _Scoped:
     (an attribute dynamo guards on) stands in for the read when it is 0: the common case
     compiles to one graph, and a context entered later recompiles. Anywhere else, and
     while some context (in any thread) has set it, the ``ContextVar`` is read: a graph
-    break when compiling, and always this context's own value — also in a context
-    copied inside the ``with`` that outlives it (an asyncio task), which the count
-    cannot see.
+    break when compiling, and always this context's own value. The count cannot see a
+    context copied inside the ``with`` that outlives it (an asyncio task started there):
+    eager code in it reads its value, compiled code the default.
     """
 
     def __init__(self, name: str, default):
