@@ -99,3 +99,41 @@ def test_the_count_returns_to_zero_when_the_variable_cannot_be_reset():
     with pytest.raises(ValueError):
         cm.__exit__(None, None, None)
     assert pooling._PLAIN.users == 0
+
+
+def test_tiles_with_image_wide_means_through_a_compiled_network_match_eager():
+    """A network compiled outside any context, then run over tiles with the whole
+    image's pooling means: the contexts reach the compiled code, the numbers are the
+    eager run's (the means' bookkeeping runs outside the compiled graph)."""
+    import numpy as np
+
+    from mehs.ssr.tiling_blend import TilingPlan
+    from mehs.ssr.tiling_global import predict_tiled_image_means
+
+    torch.manual_seed(0)
+    net = build_network(arch="hdrssr", preset="tiny").eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    dynamo.reset()
+    compiled = torch.compile(net, backend="eager")
+
+    def run(model):
+        def fn(rgb):
+            with torch.no_grad():
+                t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None]
+                return model(t)[0].permute(1, 2, 0).numpy()
+        return fn
+
+    rng = np.random.default_rng(1)
+    rgb = (rng.random((48, 64, 3), dtype=np.float32)
+           * np.linspace(0.2, 1.5, 64, dtype=np.float32)[None, :, None])
+    run(compiled)(rgb[:32, :32])                 # compiled outside any context first
+    plan = TilingPlan(tile=32, margin=4, blend=4, align=8)
+    eager = predict_tiled_image_means(run(net), rgb, plan)
+    got = predict_tiled_image_means(run(compiled), rgb, plan)
+    whole = run(net)(rgb)
+    scale = float(np.abs(whole).max())
+    assert np.abs(got - eager).max() <= 1e-6 * scale
+    assert np.abs(got - whole).max() <= np.abs(eager - whole).max() + 1e-6 * scale
+    dynamo.reset()

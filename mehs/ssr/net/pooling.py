@@ -243,6 +243,10 @@ class ImageMeans:
             self._last = self._previous
         self._calls = {}
 
+    # run as written under torch.compile: its bookkeeping (a count per module, the
+    # collected sums) is Python state that dynamo recompiled for at every call, up to
+    # its recompile limit
+    @torch.compiler.disable
     def statistic(self, module: torch.nn.Module, maps: tuple[torch.Tensor, ...],
                   reduce, compared=None) -> torch.Tensor | None:
         """See :func:`image_statistic`: collect the owned part of this call's statistic;
