@@ -10,7 +10,9 @@ kernel (``numba.cfunc``), keeps its object code in ``<cache>/kernels/`` and late
 processes load it straight into LLVM's JIT linker through llvmlite (tens of ms) and
 call it through ctypes, which releases the GIL as the numba kernel did. The
 numbers are the numba kernel's: it is the same compiled code (tested to the bit).
-The kernels and their parameters are listed in :mod:`mehs.synthesis._native_specs`.
+The kernels and their parameters are listed in :mod:`mehs.synthesis._native_specs`;
+linking and calling an entry is :mod:`._native_link`, compiling it in a child process
+(the host's widest vectors) :mod:`._native_child`.
 
 The key of a stored object covers every input of the compilation: the source of
 the kernel modules, of this one and of the specs, the numba and llvmlite versions, the
@@ -29,7 +31,6 @@ stored objects, numba's dispatchers run as before).
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import hashlib
 import json
@@ -43,27 +44,21 @@ from typing import Callable
 import numpy as np
 
 from mehs.synthesis import _native_child
+from mehs.synthesis._native_link import flat_params, link
 from mehs.synthesis._native_specs import KERNELS
 
 #: Bumped when the stored layout or the entry points' C signatures change.
 FORMAT = "mehs-native-kernel/2"
 
-#: numba's error-path helpers (see the module docstring)
-_DEAD_SYMBOLS = frozenset({
-    "NRT_Free", "NRT_MemInfo_call_dtor", "NRT_decref", "NRT_incref", "numba_do_raise",
-    "numba_gil_ensure", "numba_gil_release", "numba_runtime_build_excinfo_struct",
-    "numba_unpickle"})
 #: raw dtypes with a stored entry point (others run the numba kernel)
 _DTYPES = ("uint8", "uint16", "int16", "int32", "uint32", "float32", "float64")
 _MAX_EXPOSURES = 16
 
 _memo_lock = threading.Lock()       # guards the dicts below
 _build_locks: dict[tuple, threading.Lock] = {}   # one builder per entry point
-_link_lock = threading.Lock()       # LLVM's global context is not thread-safe
 _children: dict[tuple, subprocess.Popen] = {}    # entries compiling in a child process
 _loaded: dict[tuple, Callable | None] = {}
 _failed: set[tuple] = set()  # entries whose compile failed here: numba's kernel from then on
-_engines: list = []          # the JIT engines own the loaded code: kept for the process
 _key_base: dict | None = None
 _in_child = False           # this process is a child compiling one entry (_child_build)
 _linkable: bool | None = None   # _can_link's answer
@@ -101,7 +96,8 @@ def _base_key() -> dict:
 
 def _sources(kind: str) -> str:
     """SHA-256 of the kernel's source files, of this module and of the specs."""
-    names = KERNELS[kind].sources + ("_native.py", "_native_specs.py", "_native_child.py")
+    names = KERNELS[kind].sources + ("_native.py", "_native_specs.py", "_native_child.py",
+                                     "_native_link.py")
     if names not in _sources_digest:
         here = Path(__file__).resolve().parent
         h = hashlib.sha256()
@@ -331,118 +327,9 @@ def _load(kind: str, dtype: np.dtype, P: int) -> Callable | None:
             or not isinstance(meta.get("undefined"), list)):
         return None
     try:
-        return _link(kind, dtype, P, obj, meta["symbol"], meta["undefined"])
+        return link(kind, dtype, P, obj, meta["symbol"], meta["undefined"])
     except Exception:       # noqa: BLE001 - no ctypes libc, an llvmlite error: use numba
         return None
-
-
-def _abort_address() -> int:
-    return ctypes.cast(ctypes.CDLL(None).abort, ctypes.c_void_p).value
-
-
-def _link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
-          undefined: list) -> Callable | None:
-    # LLVM's global context is not thread-safe: where numba is loaded (a recovered
-    # curve's kernels may be compiling on another thread) link under its compiler lock
-    # (read off the module, never imported here: another thread may be importing numba
-    # this moment, and importing its modules from two threads deadlocks; before that
-    # module has made its lock, nothing can be compiling with numba)
-    lock = getattr(sys.modules.get("numba.core.compiler_lock"), "global_compiler_lock", None)
-    with lock or contextlib.nullcontext(), _link_lock:
-        return _link_locked(kind, dtype, P, obj, symbol, undefined)
-
-
-def _link_locked(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
-                 undefined: list) -> Callable | None:
-    import llvmlite.binding as ll
-
-    ll.initialize_native_target()
-    ll.initialize_native_asmprinter()
-    process = ctypes.CDLL(None)
-    for name in undefined:
-        if not isinstance(name, str):
-            return None
-        if ll.address_of_symbol(name):
-            continue
-        try:        # the process's own symbols (libm's sqrtf, the Python C API)
-            address = ctypes.cast(getattr(process, name), ctypes.c_void_p).value
-        except AttributeError:
-            address = None
-        if address:
-            ll.add_symbol(name, address)
-        elif name in _DEAD_SYMBOLS:
-            ll.add_symbol(name, _abort_address())
-        else:
-            # LLVM's linker would end the process on an unresolved symbol: do not load
-            return None
-    target = ll.Target.from_default_triple()
-    tm = target.create_target_machine(cpu=ll.get_host_cpu_name(),
-                                      features=ll.get_host_cpu_features().flatten(),
-                                      opt=3, codemodel="jitdefault")
-    engine = ll.create_mcjit_compiler(ll.parse_assembly(""), tm)
-    engine.add_object_file(ll.ObjectFileRef.from_data(obj))
-    engine.finalize_object()
-    address = engine.get_function_address(symbol)
-    if not address:
-        return None
-    _engines.append(engine)
-    return _wrap(kind, dtype, P, address)
-
-
-_CTYPES = {"f4": ctypes.c_float, "f8": ctypes.c_double, "i8": ctypes.c_int64,
-           "b1": ctypes.c_bool}
-_NP = {"f4": np.float32, "f8": np.float64, "i4": np.int32, "i8": np.int64, "u1": np.uint8,
-       "u2": np.uint16}
-
-
-def _flat_params(kind: str, P: int) -> list[tuple[str, str, int]]:
-    """The entry point's parameters: ``(name, type, ndim)``, ``ndim > 0`` for an array (its
-    pointer, then ``ndim`` int64 extents), 0 for a scalar; a merge's exposures one by one."""
-    out = []
-    for name, t in KERNELS[kind].params:
-        base, _, nd = t.partition(":")
-        if base == "zs":
-            out += [(f"exposure {j}", "raw", int(nd)) for j in range(P)]
-        else:
-            out.append((name, base, int(nd or 0)))
-    return out
-
-
-def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
-    """A callable with the numba kernel's arguments over the C entry point at ``address``."""
-    spec = KERNELS[kind]
-    flat = _flat_params(kind, P)
-    argtypes = []
-    for _, t, nd in flat:
-        argtypes += [ctypes.c_void_p] + [ctypes.c_int64] * nd if nd else [_CTYPES[t]]
-    # CFUNCTYPE (not PYFUNCTYPE): the call releases the GIL, as the nogil kernel did
-    entry = ctypes.CFUNCTYPE(None, *argtypes)(address)
-    dtype = np.dtype(dtype.name)          # native byte order (see supported)
-    label = "merge" if spec.per_exposure else kind
-    n_params = len(spec.params)
-
-    def call(*args):
-        if len(args) != n_params:
-            raise TypeError(f"native {label} kernel: {n_params} arguments expected")
-        if spec.per_exposure and len(args[0]) != P:
-            raise TypeError(f"native merge kernel: {P} exposures and 7 outputs expected")
-        values = list(args[0]) + list(args[1:]) if spec.per_exposure else list(args)
-        c_args = []
-        for (name, t, nd), a in zip(flat, values):
-            if not nd:
-                c_args.append(int(a) if t == "i8" else bool(a) if t == "b1" else float(a))
-                continue
-            want = dtype if t == "raw" else np.dtype(_NP[t])
-            if not (isinstance(a, np.ndarray) and a.dtype == want and a.flags.c_contiguous
-                    and a.ndim == nd):
-                raise TypeError(f"native {label} kernel: {name} must be a C-contiguous "
-                                f"{want} array of {nd} dimension(s)")
-            c_args += [a.ctypes.data, *a.shape]
-        spec.check(P, args)
-        entry(*c_args)         # (the arrays stay referenced by the caller meanwhile)
-
-    call.kind, call.exposures = kind, P
-    return call
 
 
 # -- building ---------------------------------------------------------------------
@@ -523,7 +410,7 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
            "u1": types.uint8, "u2": types.uint16, "b1": types.boolean,
            "raw": getattr(types, dtype.name)}
     sig, c_names, k_args = [], [], []
-    for i, (_, t, nd) in enumerate(_flat_params(kind, P)):
+    for i, (_, t, nd) in enumerate(flat_params(kind, P)):
         # an array: its pointer and extents in, a carray over them to the kernel
         dims = [f"a{i}_{d}" for d in range(nd)]
         c_names += [f"a{i}", *dims]
