@@ -33,7 +33,7 @@ def tuning() -> str:
     if os.environ.get("MEHS_KERNEL_VECTORS", "").strip() == "256":
         return ""
     if os.environ.get("NUMBA_CPU_NAME") or os.environ.get("NUMBA_CPU_FEATURES"):
-        return ""           # the user chose numba's target: the child compiles for it
+        return ""           # the user chose numba's target: compiled in-process, for it
     import llvmlite.binding as ll
 
     return "-prefer-256-bit" if ll.get_host_cpu_features().get("avx512f") else ""
