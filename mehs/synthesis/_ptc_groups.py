@@ -40,16 +40,16 @@ def _instrument(y: np.ndarray) -> np.ndarray:
     return idx
 
 
-#: Bits of the float32 order key that name a cell of :func:`_group_table`.
+#: Bits of the float32 order key that name a cell of :func:`_cell_groups`.
 CELL_BITS = 18
 
 
-def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
-    """uint16: the group (0 … ``groups − 1``) of each of a run of consecutive cells of the
-    instrument's value (:func:`mehs.synthesis._ptc_kernels._row_cells`), from the number
-    of good samples in each (``good``: every cell from the lowest to the highest one in
-    use, counted over the even subset of :func:`group_statistics`); None without good
-    samples.
+def _cell_groups(cells: np.ndarray, groups: int) -> tuple[int, np.ndarray]:
+    """``(lo, table)``: table uint16, the group (0 … ``groups − 1``) of each of the run of
+    consecutive cells of the instrument's value
+    (:func:`mehs.synthesis._ptc_kernels._row_cells`) from ``lo``, the lowest of the good
+    samples' ``cells`` (those of the even subset of :func:`group_statistics`;
+    non-empty), to the highest.
 
     Groups are ranges of the instrument holding about equal numbers of good samples,
     bounded at the cell edges nearest to the quantiles ``k/groups``: a sample's group is
@@ -57,29 +57,12 @@ def _group_table(good: np.ndarray, groups: int) -> np.ndarray | None:
     search per value. Like quantile edges they depend on the instrument only; a cell's
     worth of tied values (one integer level of a dark scene) stays in one group, as
     equal quantiles would leave it (a group may then span no cell).
-    """
-    cum = np.cumsum(good)                        # good samples in cells up to each
-    n = int(cum[-1])
-    if n == 0:
-        return None
-    target = np.arange(1, groups) * (n / groups)
-    last = np.searchsorted(cum, target)          # the cell holding each target rank
-    before = np.where(last > 0, cum[np.maximum(last - 1, 0)], 0)
-    # the group ends after that cell, or before it when that is nearer the target
-    # (non-decreasing: a later target moves the end no earlier)
-    last = np.where(target - before < cum[last] - target, last - 1, last)
-    bounds = np.concatenate(([0], last + 1, [good.size]))
-    return np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
 
-
-def _cell_groups(cells: np.ndarray, groups: int) -> tuple[int, np.ndarray]:
-    """``(lo, table)``: :func:`_group_table` of the good samples' ``cells`` (non-empty),
-    from the cells sorted instead of counted, and its first cell ``lo``.
-
-    The same table: the cell holding target rank ``t`` is that of the ``⌈t⌉``-th
-    smallest sample, and the counts below and up to it are two binary searches. A
-    probe's cells span ~140 k values for ~40 k samples (an instrument that crosses zero
-    spans every tiny float magnitude between), so counting them cost 1–2.5 ms a pair.
+    From the cells sorted, not counted: the cell holding target rank ``t`` is that of the
+    ``⌈t⌉``-th smallest sample, and the samples below and up to it are two binary
+    searches. A probe's cells span ~140 k values for ~40 k samples (an instrument that
+    crosses zero spans every tiny float magnitude between), so counting them cost
+    1–2.5 ms a pair.
     """
     srt = np.sort(cells)
     lo, n = int(srt[0]), srt.size
@@ -88,7 +71,8 @@ def _cell_groups(cells: np.ndarray, groups: int) -> tuple[int, np.ndarray]:
     before = np.searchsorted(srt, at, side="left")         # samples in earlier cells
     upto = np.searchsorted(srt, at, side="right")
     last = at.astype(np.int64) - lo
-    # (as _group_table: the group ends after that cell, or before it when nearer)
+    # the group ends after that cell, or before it when that is nearer the target
+    # (non-decreasing: a later target moves the end no earlier)
     last = np.where(target - before < upto - target, last - 1, last)
     bounds = np.concatenate(([0], last + 1, [int(srt[-1]) - lo + 1]))
     return lo, np.repeat(np.arange(groups, dtype=np.uint16), np.diff(bounds))
