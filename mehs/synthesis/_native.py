@@ -154,8 +154,13 @@ def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callab
     if not supported(kind, dtype, P):
         return None
     memo = (kind, dtype.name, P, str(_folder()))
+
+    def settled() -> bool:
+        # loaded, or tried here: a None from a build=False call does not stop a build
+        return memo in _loaded and (_loaded[memo] is not None or not build or memo in _failed)
+
     with _memo_lock:
-        if memo in _loaded and (_loaded[memo] is not None or not build or memo in _failed):
+        if settled():
             return _loaded[memo]
         child = _children.pop(memo, None)
         build_lock = _build_locks.setdefault(memo, threading.Lock())
@@ -168,8 +173,7 @@ def native_kernel(kind: str, dtype, P: int = 0, *, build: bool = True) -> Callab
     # builds in a child process)
     with build_lock:
         with _memo_lock:
-            if memo in _loaded and (_loaded[memo] is not None or not build
-                                    or memo in _failed):
+            if settled():
                 return _loaded[memo]
         fn = _load(kind, dtype, P)
         failed = False
@@ -235,20 +239,20 @@ def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, key: dict, *,
     """A child process of :mod:`._native_child`: compile and store the entry under the
     parent's ``key``, holding an exclusive lock on ``marker``. Another child holding it:
     a background child leaves; a waiting one waits (at most :data:`LOCK_WAIT_S`), then
-    loads what that one stored, or compiles it. Nothing is built when the sources on
-    disk are no longer those the parent keyed (changed since it read them): the parent's
-    kernel arguments might not be this code's."""
+    loads what that one stored, or compiles it. Nothing is built when this process's
+    own key differs from the parent's but for its environment and tuning (another
+    numba, sources changed since the parent read them): the parent's kernel arguments
+    might not be this code's."""
     global _key_base, _in_child
-    # its own numba, llvmlite, Python and host must be those the key names (a child may
-    # import another numba than its parent); its features and environment differ by design
-    own = _base_key()
+    # its own numba, llvmlite, Python, host and sources must be those the key names (a
+    # child may import another numba than its parent); its features and environment
+    # differ by design
+    own, _ = _key(kind, dtype, P)
     if any(own.get(k) != key.get(k) for k in own if k not in ("env", "tuning")):
         return
     _key_base = {k: v for k, v in key.items()
                  if k not in ("sources", "kernel", "dtype", "exposures")}
     _in_child = True
-    if _key(kind, dtype, P)[0] != key:
-        return
     try:
         import fcntl
     except ImportError:     # not POSIX: no marker
