@@ -48,7 +48,7 @@ def test_the_field_probe_sees_mst_as_local_once_its_similarity_is_detached():
 
 
 @pytest.mark.parametrize("shape,budget", [((64, 400), 64 * 208),       # strips
-                                          ((161, 203), 104 * 136)])     # a grid, odd sizes
+                                          ((161, 203), 136 * 136)])     # a grid, odd sizes
 def test_mst_tiles_with_the_image_similarity_equal_the_whole_image(shape, budget):
     net = _sharp_mst()
     margin = torch_receptive_radius(net, align=8)
@@ -60,6 +60,10 @@ def test_mst_tiles_with_the_image_similarity_equal_the_whole_image(shape, budget
         warnings.simplefilter("error", RuntimeWarning)        # the statistics settle
         image, m2 = _run(net, rgb, **opts)                     # the default: "auto"
     assert m2._tiling_last["summary"]["tiles"] >= 3
+    if shape == (64, 400):
+        assert m2._tiling_last["summary"]["tile"][0] == shape[0]           # strips
+    else:
+        assert all(np.less(m2._tiling_last["summary"]["tile"], shape))     # a 2-D grid
     assert m2._tiling_last["statistics"] == "image" and m1._tiling_last["statistics"] == "tile"
     scale = np.abs(whole).max()
     assert np.abs(per_tile - whole).max() > 1e-3 * scale       # what the image's are for
