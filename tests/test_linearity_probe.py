@@ -70,6 +70,23 @@ def test_group_medians_equal_numpys(seed):
         assert med[gi] == pytest.approx(np.median(dv), rel=1e-6, abs=1e-30)
 
 
+def test_order_keys_sort_like_the_float32_values():
+    # every class of float32: ±0, subnormals, the extremes, ±inf; keys below 2**32
+    tiny = np.finfo(np.float32).smallest_subnormal
+    big = np.finfo(np.float32).max
+    v = np.concatenate((np.array([0.0, -0.0, tiny, -tiny, 2 * tiny, big, -big, np.inf,
+                                  -np.inf, 1.0, -1.0], np.float32),
+                        (np.random.default_rng(4).normal(0, 1, 4000)
+                         * 10.0 ** np.linspace(-44, 38, 4000)).astype(np.float32)))
+    k = G._order_keys(v)
+    assert k.dtype == np.uint64 and k.max() < 2 ** 32
+    order = np.argsort(k, kind="stable")
+    assert np.all(v[order][1:] >= v[order][:-1])             # sorted like the values
+    assert np.unique(k).size == np.unique(v.view(np.uint32)).size     # one key a value
+    assert G._order_keys(np.array([-0.0], np.float32))[0] < G._order_keys(
+        np.array([0.0], np.float32))[0]
+
+
 def test_even_and_odd_group_sizes():
     v = np.array([3.0, 1.0, 2.0, 10.0, 4.0, 1.0, 2.0])
     g = np.array([0, 0, 0, 1, 1, 1, 1])

@@ -96,9 +96,12 @@ def _stride(n: int, m: int, bands: int) -> int:
 
 
 def _order_keys(x: np.ndarray) -> np.ndarray:
-    """uint64 keys (below 2**32) of float32-rounded ``x`` that sort like the values."""
-    b = np.ascontiguousarray(x, dtype=np.float32).view(np.uint32).astype(np.uint64)
-    return np.where(b >> 31 != 0, b ^ np.uint64(0xFFFFFFFF), b | np.uint64(0x80000000))
+    """uint64 keys (below 2**32) of float32-rounded ``x`` that sort like the values: the
+    bits of a negative value all flipped, of a positive one the sign bit set — by one
+    exclusive or with its sign bit spread (``b >> 31``: all ones or none) on 32-bit
+    integers (a ``where`` over 64-bit ones took 3–4× as long, three times a pair)."""
+    b = np.ascontiguousarray(x, dtype=np.float32).view(np.int32)
+    return (b ^ ((b >> 31) | np.int32(-2 ** 31))).view(np.uint32).astype(np.uint64)
 
 
 def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
@@ -108,7 +111,9 @@ def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
     the groups, and the sort releases the GIL, so that the exposure pairs' statistics
     run side by side on threads (a loop of ``np.median`` calls held it for 3–7 ms a
     pair, issue 16)."""
-    keys = (g.astype(np.uint64) << np.uint64(32)) | _order_keys(v)
+    keys = g.astype(np.uint64)
+    keys <<= np.uint64(32)
+    keys |= _order_keys(v)
     count = np.bincount(g, minlength=groups)
     start = np.cumsum(count) - count
     has = count > 0
