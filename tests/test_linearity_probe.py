@@ -85,6 +85,18 @@ def test_order_keys_sort_like_the_float32_values():
     assert np.unique(k).size == np.unique(v.view(np.uint32)).size     # one key a value
     assert G._order_keys(np.array([-0.0], np.float32))[0] < G._order_keys(
         np.array([0.0], np.float32))[0]
+    # the keys themselves, for any input the medians pass (float64 rounded to float32 —
+    # subnormal, zero or inf there —, NaNs, other byte orders, strides): the flip of
+    # the float32 bits written out as a reference
+    x = np.concatenate((v.astype(np.float64), [np.nan, -np.nan, 1e-320, -1e-320, 1e39,
+                                               -1e39, 3.4e38]))
+    x = np.concatenate((x, np.random.default_rng(5).normal(0, 1, 3000)
+                        * 10.0 ** np.linspace(-320, 300, 3000)))
+    with np.errstate(over="ignore"):            # values beyond float32 round to ±inf
+        for inp in (x, x.astype(">f8"), x.astype(np.float32).astype(">f4"), x[::-3]):
+            b = np.asarray(inp, np.float32).astype(np.float32).view(np.uint32).astype(np.uint64)
+            ref = np.where(b >= 2 ** 31, b ^ np.uint64(0xFFFFFFFF), b | np.uint64(2 ** 31))
+            np.testing.assert_array_equal(G._order_keys(inp), ref)
 
 
 def test_even_and_odd_group_sizes():
