@@ -62,3 +62,38 @@ def test_three_bands_measure_the_gain_as_many_do():
         assert "fallback" not in info, info
         err.append(model.gain / sen.gain_dn_per_e - 1)
     assert max(abs(e) for e in err) < 0.04, err
+
+
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+@pytest.mark.parametrize("lines", [1, 5, 64])
+def test_the_probe_holds_exactly_its_lines_of_every_exposure(threads, lines, monkeypatch,
+                                                             tmp_path):
+    # each exposure read in parts on threads (one part for one line): every probed line
+    # of every exposure in its place, from an in-memory (L, S, B) cube and from a BIL
+    # memmap (Specim's layout, transposed in memory)
+    import sys
+
+    if "numba" in sys.modules:
+        import numba
+
+        monkeypatch.setattr(numba, "get_num_threads", lambda: int(threads))
+    monkeypatch.setenv("NUMBA_NUM_THREADS", threads)
+    rng = np.random.default_rng(lines)
+    ns, nb = 700, 17
+    wl = SPECIM_IQ_WAVELENGTHS[:nb]
+    cubes = [rng.integers(0, 4096, (lines, ns, nb)).astype(np.uint16) for _ in range(3)]
+    bil = []
+    for j, c in enumerate(cubes):
+        path = tmp_path / f"e{j}.raw"
+        np.ascontiguousarray(c.transpose(0, 2, 1)).tofile(path)
+        bil.append(np.memmap(path, np.uint16, "r", shape=(lines, nb, ns)).transpose(0, 2, 1))
+    darks = [np.full((ns, nb), 60.0 + j, np.float32) for j in range(3)]
+    for data in (cubes, bil):
+        b = Bracket([SpectralCube(d, wl) for d in data], darks, [None] * 3,
+                    np.array([1.0, 4.0, 16.0]), wl, bit_depth=12)
+        probe = N.probe_bracket(b, np.full(nb, 4013, np.float32), max_pixels=2 * ns)
+        assert probe.lines.size >= 1 and probe.raw.dtype == np.float32
+        for j in range(3):
+            want = cubes[j][probe.lines].reshape(-1, nb).astype(np.float32)
+            np.testing.assert_array_equal(probe.raw[j], want)
+            np.testing.assert_array_equal(probe.dark[j], darks[j])

@@ -131,20 +131,27 @@ def probe_bracket(bracket, saturation: np.ndarray,
     raw = np.empty((P, lines.size * ns, nb), dtype=np.float32)
     dark = np.zeros((P, ns, nb), dtype=np.float32)       # per column: a line's darks
 
-    def read(j0: int, j1: int) -> None:
-        for j in range(j0, j1):
+    from mehs.synthesis._ranges import run_ranges, thread_count
+
+    # each exposure's lines in as many parts as threads: three exposures on two threads
+    # left one thread idle for a third of the read
+    parts = max(1, min(thread_count(), lines.size))
+
+    def read(k0: int, k1: int) -> None:
+        for k in range(k0, k1):
+            j, part = divmod(k, parts)
+            at = slice(part * lines.size // parts, (part + 1) * lines.size // parts)
             a = np.asarray(bracket.exposures[j].data)
             bil = a.transpose(0, 2, 1)
             # a BIL file (Specim's): gather whole lines as stored, transpose them in memory
-            block = bil[lines].transpose(0, 2, 1) if bil.flags.c_contiguous else a[lines]
-            raw[j].reshape(lines.size, ns, nb)[...] = block
-            if bracket.darks[j] is not None:
+            block = (bil[lines[at]].transpose(0, 2, 1) if bil.flags.c_contiguous
+                     else a[lines[at]])
+            raw[j].reshape(lines.size, ns, nb)[at] = block
+            if part == 0 and bracket.darks[j] is not None:
                 dark[j] = bracket.darks[j]
 
-    from mehs.synthesis._ranges import run_ranges
-
-    # the exposures on threads: numpy's gather and converting copy release the GIL
-    run_ranges(P, read, max_step=1, name="mehs-probe")
+    # on threads: numpy's gather and converting copy release the GIL
+    run_ranges(P * parts, read, max_step=1, name="mehs-probe")
     integer = all(np.issubdtype(np.asarray(e.data).dtype, np.integer) for e in bracket.exposures)
     return ProbeSamples(raw, dark, np.asarray(bracket.times_ms, dtype=np.float64),
                         np.broadcast_to(np.asarray(saturation, np.float32), (nb,)).copy(), lines,
