@@ -34,7 +34,7 @@ def _abort_address() -> int:
 
 
 def link(kind: str, dtype: np.dtype, P: int, obj: bytes, symbol: str,
-          undefined: list) -> Callable | None:
+         undefined: list) -> Callable | None:
     # LLVM's global context is not thread-safe: where numba is loaded (a recovered
     # curve's kernels may be compiling on another thread) link under its compiler lock
     # (read off the module, never imported here: another thread may be importing numba
