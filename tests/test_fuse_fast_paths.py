@@ -178,8 +178,8 @@ def test_warm_merge_kernel_for_a_recovered_curve_prepares_the_stage_kernel():
 
 def test_a_warm_fuse_starts_no_numba(tmp_path):
     """With the kernels stored in the mehs cache, ``mehs fuse`` loads their machine code
-    (the merge's and the photon-transfer passes') without importing numba; a first run
-    stores them, compiling the photon-transfer passes in a child process."""
+    (the merge's and the photon-transfer pass and subset) without importing numba; a first
+    run stores them, compiling the photon-transfer kernels in child processes."""
     scene = _scene(tmp_path)
     code = ("import sys\n"
             "from mehs.synthesis.bracket import load_bracket\n"
@@ -198,11 +198,12 @@ def test_a_warm_fuse_starts_no_numba(tmp_path):
     runs = [run()]
     # the first run used numpy's passes and left the child to finish storing them
     deadline = time.monotonic() + 600
-    while not list(folder.glob("ptc_pass-*.json")) and time.monotonic() < deadline:
+    while (not (list(folder.glob("ptc_pass-*.json")) and list(folder.glob("ptc_subset-*.json")))
+           and time.monotonic() < deadline):
         time.sleep(0.2)
     runs.append(run())
     kernels = sorted(p.name.split("-")[0] for p in folder.glob("*.o"))
-    assert kernels == ["poisson_linear", "ptc_pass"]
+    assert kernels == ["poisson_linear", "ptc_pass", "ptc_subset"]
     assert "NUMBA False" in runs[1].stdout, runs[1].stdout + runs[1].stderr
     assert "photon transfer" in runs[1].stdout          # the statistics ran, natively
 

@@ -200,3 +200,92 @@ def test_the_stored_entry_point_checks_its_arrays(tmp_path, monkeypatch):
         kernel(y, y, y, y, sat, nbr, 18, *rows, 2.0, (1 << 18) - 2, *group[2:], *sums)
     with pytest.raises(TypeError, match="raw_j must be a C-contiguous float32"):
         kernel(y, y, y.astype(np.float64), y, sat, nbr, 18, *rows, *group, *sums)
+
+
+def _subset_reference(y_j, y_k, raw_j, raw_k, sat, step, r):
+    """The even subset written out sample by sample from its definition."""
+    from _ptc_reference import cells_of
+
+    n, nb = y_j.shape
+    nbr = np.arange(nb) ^ 1
+    nbr[nbr >= nb] = nb - 2
+    out = ([], [], [], [])
+    for at in range(0, n * nb, step):
+        p, b = divmod(at, nb)
+        c = nbr[b]
+        if raw_k[p, b] >= sat[b] or raw_k[p, c] >= sat[c] or raw_j[p, b] >= sat[b]:
+            continue
+        inst = np.float32(y_j[p, c] + y_k[p, c])
+        a, k = float(y_j[p, b]), float(y_k[p, b])
+        for lst, v in zip(out, (int(cells_of(np.array([inst]))[0]), k - r * a, r * (k + a), p)):
+            lst.append(v)
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("nb, step", [(7, 1), (7, 5), (31, 11), (2, 3)])
+def test_the_subset_kernel_gathers_the_unsaturated_samples_of_every_step(path, dtype, nb,
+                                                                        step):
+    """(issue 16) the subset the groups and clips come from, gathered by one compiled
+    loop: each path equals the samples written out one by one — the instrument of an
+    odd probe's last band the band before it, the saturation of either exposure and of the
+    instrument's longer one, −0.0 as +0.0, negative values."""
+    from mehs.synthesis import _native
+
+    rng = np.random.default_rng(nb * 100 + step)
+    n = 40
+    y_j = rng.normal(50, 80, (n, nb)).astype(dtype)
+    y_k = (3.5 * y_j + rng.normal(0, 20, (n, nb))).astype(dtype)
+    y_j[0, :] = -0.0
+    y_k[0, :] = 0.0
+    raw_j = np.clip(y_j + 64, 0, None).astype(np.float32)
+    raw_k = np.clip(y_k + 64, 0, None).astype(np.float32)
+    sat = rng.uniform(200, 400, nb).astype(np.float32)
+    r = 3.5
+    nbr = G._instrument(y_j).astype(np.int64)
+    m = -(-(n * nb) // step)
+    outs = (np.full(m, -7, np.int32), np.full(m, np.nan), np.full(m, np.nan),
+            np.full(m, -7, np.int64), np.zeros(1, np.int64))
+    G._kernel(np.dtype(dtype), "ptc_subset")(y_j, y_k, raw_j, raw_k, sat, nbr, G.CELL_BITS,
+                                              step, r, *outs)
+    assert _native.is_stored("ptc_subset", dtype) == (path == "stored")
+    ref = _subset_reference(y_j, y_k, raw_j, raw_k, sat, step, r)
+    k = int(outs[4][0])
+    assert 0 < k == len(ref[0]) < m                      # some kept, some saturated
+    for got, want, t in zip(outs[:4], ref, (np.int32, np.float64, np.float64, np.int64)):
+        np.testing.assert_array_equal(got[:k], np.asarray(want, t))
+    assert (outs[0][k:] == -7).all()                    # nothing written past the count
+
+
+def test_the_stored_subset_entry_point_checks_its_arrays(tmp_path, monkeypatch):
+    from mehs.synthesis import _native
+
+    monkeypatch.setattr(_native, "_loaded", {})
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))
+    kernel = G._kernel(np.dtype(np.float32), "ptc_subset")
+    assert _native.is_stored("ptc_subset", np.float32)
+    n, nb, step = 10, 6, 4
+    y = np.zeros((n, nb), np.float32)
+    sat = np.full(nb, 4000, np.float32)
+    nbr = (np.arange(nb) ^ 1).astype(np.int64)
+    m = -(-(n * nb) // step)
+
+    def outs(size=m, count=1):
+        return (np.empty(size, np.int32), np.empty(size), np.empty(size),
+                np.empty(size, np.int64), np.zeros(count, np.int64))
+
+    o = outs()
+    kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *o)
+    assert o[4][0] == m and (o[3] == np.arange(0, n * nb, step) // nb).all()
+    with pytest.raises(TypeError, match="raw_k"):
+        kernel(y, y, y, y[:5], sat, nbr, 18, step, 2.0, *outs())
+    with pytest.raises(TypeError, match="nbr"):
+        kernel(y, y, y, y, sat, nbr - 1, 18, step, 2.0, *outs())
+    with pytest.raises(TypeError, match="step"):
+        kernel(y, y, y, y, sat, nbr, 18, 0, 2.0, *outs())
+    with pytest.raises(TypeError, match=f"hold {m} samples"):
+        kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *outs(m - 1))
+    with pytest.raises(TypeError, match="the count one"):
+        kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *outs(count=2))
+    with pytest.raises(TypeError, match="cells must be a C-contiguous int32"):
+        kernel(y, y, y, y, sat, nbr, 18, step, 2.0, np.empty(m, np.int64), *outs()[1:])

@@ -75,6 +75,25 @@ def _check_ptc_pass(P, args) -> None:
         raise TypeError(what + "the cell table names unknown groups")
 
 
+def _check_ptc_subset(P, args) -> None:
+    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_subset` assumes."""
+    (y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, step, r, *outs) = args
+    what = "native photon-transfer subset kernel: "
+    n, nb = y_j.shape
+    for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
+        if a.shape != (n, nb):
+            raise TypeError(what + f"{name} must have shape {(n, nb)}")
+    if sat.shape != (nb,) or nbr.shape != (nb,) or (nb and not (0 <= nbr.min() and nbr.max() < nb)):
+        raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
+    if not 1 <= int(cell_bits) <= 24:
+        raise TypeError(what + "cell_bits must lie in 1..24")
+    if int(step) < 1:
+        raise TypeError(what + "step must be at least 1")
+    m = -(-(n * nb) // int(step))
+    if any(a.shape[0] < m for a in outs[:4]) or outs[4].shape != (1,):
+        raise TypeError(what + f"the outputs must hold {m} samples, the count one")
+
+
 @dataclass(frozen=True)
 class Spec:
     """A kernel with a stored entry point: where it lives, its parameters, the source
@@ -110,4 +129,9 @@ KERNELS = {
                         ("lim", "f8:1"), ("nall", "f8:1"), ("nbad", "f8:1"), ("nt", "f8:1"),
                         ("se", "f8:1"), ("se2", "f8:1"), ("syj", "f8:1")),
                      _PTC_SOURCES, _check_ptc_pass, per_exposure=False),
+    "ptc_subset": Spec("mehs.synthesis._ptc_kernels", "ptc_subset",
+                       _PTC_COMMON[:7]
+                       + (("step", "i8"), ("r", "f8"), ("cells", "i4:1"), ("ds", "f8:1"),
+                          ("qs", "f8:1"), ("pix", "i8:1"), ("count", "i8:1")),
+                       _PTC_SOURCES, _check_ptc_subset, per_exposure=False),
 }

@@ -266,32 +266,38 @@ def _pass_split(kernel: Callable, arrays: tuple, keep: np.ndarray, rest: tuple,
 
 
 def build_kernels_in_background() -> bool:
-    """Where the photon-transfer passes' machine code is not stored yet (a first-ever
-    run), start compiling it in a child process (:func:`mehs.synthesis._native.
+    """Where the photon-transfer kernels' machine code is not stored yet (a first-ever
+    run), start compiling it in child processes (:func:`mehs.synthesis._native.
     build_in_background`); True if one was started. Meanwhile :func:`_kernel` gives
-    numpy's pass: the child's entry is for the next process."""
+    numpy's: the children's entries are for the next process."""
     from mehs.synthesis import _native
 
-    return _native.build_in_background("ptc_pass", np.float32)
+    started = [_native.build_in_background(kind, np.float32) for kind in _KINDS]
+    return any(started)
 
 
-def _kernel(dtype: np.dtype) -> Callable:
-    """:func:`mehs.synthesis._ptc_kernels.ptc_pass` for linearised samples of ``dtype``:
-    its stored machine code (:mod:`mehs.synthesis._native`: no numba start-up in a warm
-    ``mehs fuse``), else numba's dispatcher; while a child process compiles that entry
-    (a first-ever run), the same pass in numpy (:mod:`mehs.synthesis._ptc_numpy`, same
-    bits, tens of ms a pair), which beats waiting 3–5 s for the child."""
+#: The stored photon-transfer kernels (:mod:`mehs.synthesis._ptc_kernels`).
+_KINDS = ("ptc_pass", "ptc_subset")
+
+
+def _kernel(dtype: np.dtype, kind: str = "ptc_pass") -> Callable:
+    """:func:`mehs.synthesis._ptc_kernels.ptc_pass` (or ``kind``'s kernel there) for
+    linearised samples of ``dtype``: its stored machine code (:mod:`mehs.synthesis.
+    _native`: no numba start-up in a warm ``mehs fuse``), else numba's dispatcher; while
+    a child process compiles that entry (a first-ever run), the same kernel in numpy
+    (:mod:`mehs.synthesis._ptc_numpy`, same bits, tens of ms a pair), which beats
+    waiting 3–5 s for the child."""
     from mehs.synthesis import _native
 
-    if _native.building("ptc_pass", dtype):
-        from mehs.synthesis._ptc_numpy import ptc_pass
+    if _native.building(kind, dtype):
+        from mehs.synthesis import _ptc_numpy
 
-        return ptc_pass
-    entry = _native.native_kernel("ptc_pass", dtype)
+        return getattr(_ptc_numpy, kind)
+    entry = _native.native_kernel(kind, dtype)
     if entry is None:
-        from mehs.synthesis._ptc_kernels import ptc_pass
+        from mehs.synthesis import _ptc_kernels
 
-        return ptc_pass
+        return getattr(_ptc_kernels, kind)
     return entry
 
 
@@ -316,24 +322,28 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # as a cell of its float32 value, and whether it is saturated in either exposure or
     # in the instrument's longer one; the groups (quantiles of the instrument) and each
     # group's median and MAD, which set the clip, from an even subset of the samples
+    # (the unsaturated ones of every step-th, gathered by one compiled loop)
     from mehs.synthesis._ptc_numpy import cells_flags
 
     nbr = _instrument(y_j).astype(np.int64)
     rj, rk = np.ascontiguousarray(raw_j), np.ascontiguousarray(raw_k)
     sat = np.ascontiguousarray(saturation, dtype=np.float32)
     step = _stride(n * nb, groups * CLIP_SAMPLES, nb)
-    index = np.arange(0, n * nb, step)
-    cells_s, bad_s = cells_flags(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, index)
-    good = cells_s[~bad_s]
-    if good.size == 0:
+    m = -(-(n * nb) // step)
+    good, ds, q_s, pix_s = (np.empty(m, np.int32), np.empty(m), np.empty(m),
+                            np.empty(m, np.int64))
+    count = np.zeros(1, np.int64)
+    _kernel(y_j.dtype, "ptc_subset")(y_j, y_k, rj, rk, sat, nbr, CELL_BITS, step, r,
+                                      good, ds, q_s, pix_s, count)
+    k = int(count[0])
+    if k == 0:
         return None
+    good, ds, q_s, pix_s = good[:k], ds[:k], q_s[:k], pix_s[:k]
     lo, table = _cell_groups(good, groups)
     # robust centre and spread per group (median, MAD): samples beyond 5σ — a
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
     g_s = np.take(table, good - lo)
-    yj_s, yk_s = y_j.ravel()[index][~bad_s], y_k.ravel()[index][~bad_s]
-    ds, q_s = yk_s - r * yj_s, _own_level(yj_s, yk_s, r)
     med, sig = _group_median_mad(ds, g_s, groups)
     # The clip's σ. A group (one range of the instrument) can hold samples of very
     # different own levels — few, widely spaced bands, whose neighbour follows another
@@ -345,7 +355,7 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # brightest sample: for noise that is flat, or the same across a group, as before.
     a, c = _noise_curve(ds - np.take(med, g_s), q_s, g_s, groups, sig, nb)
     madz, qmax, far = _group_clip(ds - np.take(med, g_s), q_s, g_s, groups, a, c)
-    far_pix = index[~bad_s][far] // nb       # pixels with a sample beyond it (below)
+    far_pix = pix_s[far]                     # pixels with a sample beyond it (below)
     # A group without a sample in the subset is left out: it spans no cell or only
     # cells between tied values (integer levels of a dark scene), where the whole probe
     # holds about `step` times fewer samples than a statistic needs (min_group)
@@ -368,7 +378,7 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # whole: the 5σ clip kept those of its samples within 5σ, whose spread added to
     # the noise's at the levels it crossed (the gain came out ×1.4–2.3)
     moving = _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, (madz, a, c),
-                            (picked > 0) & (madz > 0), index, bad_s, ds, g_s, q_s)
+                            (picked > 0) & (madz > 0), step > 1, pix_s, ds, g_s, q_s)
     # and those with a sample beyond 5σ of the noise at its own level: the clip of the
     # pass is one per group, set by its brightest inlier, and let a dim sample's outlier
     # (a moving object's, across few bands the score above cannot see) through. Where

@@ -5,9 +5,10 @@ probed lines, the mean and variance of ``d = y_k − r·y_j`` per signal level: 
 model and the linearity test of every ``mehs fuse`` rest on it. As whole-array numpy
 steps it took ~30 full passes over a pair's samples (0.15 s for a 512² scene, more than
 the merge). The groups (cells of the instrument's value → group) and each group's
-median and MAD come from an even subset of the samples (numpy, in ``_ptc_groups``); what
-needs every sample is one loop, :func:`ptc_pass`: each sample's group, its saturation,
-and the clipped sums ``n``, ``Σe``, ``Σe²``, ``Σy_j`` per group.
+median and MAD come from an even subset of the samples (numpy, in ``_ptc_groups``), which
+:func:`ptc_subset` gathers; what needs every sample is one loop, :func:`ptc_pass`: each
+sample's group, its saturation, and the clipped sums ``n``, ``Σe``, ``Σe²``, ``Σy_j`` per
+group.
 
 The arithmetic and the order of every sum are numpy's (``bincount`` adds its float64
 weights in sample order), so the statistics are the same to the bit as the numpy
@@ -85,3 +86,41 @@ def ptc_pass(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row, 
                 se[g] += e
                 se2[g] += e * e
                 syj[g] += yjb
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def ptc_subset(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, step, r, cells, ds, qs, pix,
+               count):
+    """The even subset of the samples: those at the flat pixel-major positions ``0, step,
+    2·step, …`` that no exposure saturated (the flags of :func:`_row_cells`), packed to
+    the front of the outputs in that order: ``cells`` (int32) the cell of each one's
+    instrument (:func:`_row_cells`), ``ds`` its ``y_k − r·y_j`` and ``qs`` its own level
+    ``r·(y_k + y_j)`` (float64, as :func:`mehs.synthesis._ptc_groups._own_level`),
+    ``pix`` (int64) its pixel; ``count[0]`` how many.
+
+    Arguments as :func:`ptc_pass`; ``step`` ≥ 1, the outputs at least as long as the
+    positions (``⌈n·bands / step⌉``). One loop instead of ~15 numpy gathers and masks
+    over the subset, which held the GIL while the other exposure pair's statistics
+    waited for it (issue 16).
+    """
+    n, nb = y_j.shape
+    shift = 32 - cell_bits
+    half = 1 << (cell_bits - 1)
+    k = 0
+    for at in range(0, n * nb, step):
+        p = at // nb
+        b = at - p * nb
+        c = nbr[b]
+        s_b = sat[b]
+        if raw_k[p, b] >= s_b or raw_k[p, c] >= sat[c] or raw_j[p, b] >= s_b:
+            continue
+        bits = f32_bits(np.float32(y_j[p, c] + y_k[p, c]))
+        m = bits >> 31
+        cells[k] = np.int32(((((bits & 0x7FFFFFFF) ^ m) - m) >> shift) + half)
+        yjb = np.float64(y_j[p, b])
+        ykb = np.float64(y_k[p, b])
+        ds[k] = ykb - r * yjb
+        qs[k] = r * (ykb + yjb)
+        pix[k] = p
+        k += 1
+    count[0] = k

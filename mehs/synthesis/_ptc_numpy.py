@@ -1,5 +1,5 @@
-"""The photon-transfer pass of :mod:`mehs.synthesis._ptc_kernels` as whole-array numpy,
-and the cells of a subset of samples.
+"""The photon-transfer pass and subset of :mod:`mehs.synthesis._ptc_kernels` as
+whole-array numpy, and the cells of a subset of samples.
 
 :func:`ptc_pass` takes the compiled pass's arguments and gives its outputs to the bit:
 the cells and flags are integer work, and ``np.bincount`` adds its float64 weights in
@@ -38,6 +38,23 @@ def cells_flags(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, index=None):
     s_b = sat[b]
     return (cell_keys(inst, cell_bits),
             (rk[index] >= s_b) | (rk[at_c] >= sat[c]) | (rj[index] >= s_b))
+
+
+def ptc_subset(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, step, r, cells, ds, qs, pix,
+               count):
+    """:func:`mehs.synthesis._ptc_kernels.ptc_subset`."""
+    n, nb = y_j.shape
+    index = np.arange(0, n * nb, step)
+    c, bad = cells_flags(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, index)
+    at = index[~bad]
+    k = at.size
+    cells[:k] = c[~bad]
+    yj = y_j.reshape(-1)[at].astype(np.float64)
+    yk = y_k.reshape(-1)[at].astype(np.float64)
+    ds[:k] = yk - np.float64(r) * yj
+    qs[:k] = np.float64(r) * (yk + yj)
+    pix[:k] = at // nb
+    count[0] = k
 
 
 def ptc_pass(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, key_row, cp, sat_row, bp,
