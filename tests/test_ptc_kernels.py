@@ -123,9 +123,9 @@ def test_groups_short_in_the_subset_use_all_their_samples(path, monkeypatch):
     sizes = []
     real = G._group_median_mad
 
-    def spy(v, g, groups):
+    def spy(v, g, groups, *order):
         sizes.append(v.size)
-        return real(v, g, groups)
+        return real(v, g, groups, *order)
 
     monkeypatch.setattr(G, "_group_median_mad", spy)
     # a dark of whole codes: the dark-subtracted samples (and so the instrument) are

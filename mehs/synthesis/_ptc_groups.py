@@ -104,20 +104,29 @@ def _order_keys(x: np.ndarray) -> np.ndarray:
     return (b ^ ((b >> 31) | np.int32(-2 ** 31))).view(np.uint32).astype(np.uint64)
 
 
-def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
+def _group_order(g: np.ndarray, groups: int) -> tuple:
+    """What :func:`_group_medians` needs of the groups ``g`` alone — the group half of its
+    sort keys (``group << 32``), where each group's middle ranks fall among the sorted
+    keys, which groups have samples — shared by its calls over one subset (three a
+    pair, each over the same groups)."""
+    keys = g.astype(np.uint64)
+    keys <<= np.uint64(32)
+    count = np.bincount(g, minlength=groups)
+    start = np.cumsum(count) - count
+    has = count > 0
+    return keys, (start + (count - 1) // 2)[has], (start + count // 2)[has], has
+
+
+def _group_medians(v: np.ndarray, g: np.ndarray, groups: int, order: tuple | None = None
+                   ) -> np.ndarray:
     """float64 (groups,) the median of the float32-rounded ``v`` of each group ``g`` (0 for
     an empty group), as ``np.median`` defines it (the mean of the two middle values of
     an even count), from one sort of ``group << 32 | value key``: no Python loop over
     the groups, and the sort releases the GIL, so that the exposure pairs' statistics
     run side by side on threads (a loop of ``np.median`` calls held it for 3–7 ms a
-    pair, issue 16)."""
-    keys = g.astype(np.uint64)
-    keys <<= np.uint64(32)
-    keys |= _order_keys(v)
-    count = np.bincount(g, minlength=groups)
-    start = np.cumsum(count) - count
-    has = count > 0
-    lo, hi = (start + (count - 1) // 2)[has], (start + count // 2)[has]
+    pair, issue 16). ``order``: :func:`_group_order` of ``g``, when at hand."""
+    group_keys, lo, hi, has = _group_order(g, groups) if order is None else order
+    keys = group_keys | _order_keys(v)
     # the keys order by group, then value: each group's middle ranks are the same
     # positions of the whole. A whole sort, not a partition at those ranks: numpy's
     # vectorised sort of integer keys took 0.2 ms for a pair's 49 k subset samples, a
@@ -135,10 +144,12 @@ def _group_medians(v: np.ndarray, g: np.ndarray, groups: int) -> np.ndarray:
     return out
 
 
-def _group_median_mad(v: np.ndarray, g: np.ndarray, groups: int) -> tuple[np.ndarray, np.ndarray]:
+def _group_median_mad(v: np.ndarray, g: np.ndarray, groups: int, order: tuple | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Per group of ``g``: the median of ``v`` and its MAD scaled to σ (``1.4826·MAD``)."""
-    med = _group_medians(v, g, groups)
-    return med, 1.4826 * _group_medians(np.abs(v - np.take(med, g)), g, groups)
+    order = _group_order(g, groups) if order is None else order
+    med = _group_medians(v, g, groups, order)
+    return med, 1.4826 * _group_medians(np.abs(v - np.take(med, g)), g, groups, order)
 
 
 def _own_level(y_j: np.ndarray, y_k: np.ndarray, r: float) -> np.ndarray:
@@ -211,23 +222,31 @@ def _noise_curve(e: np.ndarray, q: np.ndarray, g: np.ndarray, groups: int,
 
 
 def _group_clip(e: np.ndarray, q: np.ndarray, g: np.ndarray, groups: int, a: float,
-                c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                c: float, sd: np.ndarray | None = None, order: tuple | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per group of ``g``: ``madz``, the scaled MAD of ``z = e/σ(q)`` (``σ² = a·max(q, 0)
     + c``, :func:`_noise_curve`; ≈ 1 where the line holds), and the largest own level
     ``q`` among its samples within 5 of those σ (−inf for none); per sample whether it
-    lies beyond them (``far``).
+    lies beyond them (``far``). ``sd``: :func:`_noise_sd` of ``q``, ``order``:
+    :func:`_group_order` of ``g``, when at hand.
 
     A MAD, not an r.m.s. within the clip: a moving patch's samples inside it spread that
     by 8 % (51 bands, the simulator's window). The level is an inlier's: a moving
     object's samples, far beyond the noise at their own bright level, set the clip ×10
     too loose for a group of three bands."""
-    z = e / np.sqrt(a * np.maximum(q, 0.0) + c)
-    madz = 1.4826 * _group_medians(np.abs(z), g, groups)
+    z = e / (_noise_sd(q, a, c) if sd is None else sd)
+    madz = 1.4826 * _group_medians(np.abs(z), g, groups, order)
     mg = np.take(madz, g)
     far = (np.abs(z) > 5.0 * mg) & (mg > 0)         # a group without a spread: none
     qmax = np.full(groups, -np.inf)
     np.maximum.at(qmax, g[~far], q[~far])
     return madz, qmax, far
+
+
+def _noise_sd(q: np.ndarray, a: float, c: float) -> np.ndarray:
+    """float64: the noise σ of ``d`` at own levels ``q``, ``√(a·max(q, 0) + c)``
+    (:func:`_noise_curve`)."""
+    return np.sqrt(a * np.maximum(q, 0.0) + c)
 
 
 def _clip_sigma(sig: np.ndarray, madz: np.ndarray, qmax: np.ndarray, a: float,
@@ -344,7 +363,8 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # moving object, a hot pixel — are dropped; for Gaussian noise that loses
     # < 2e-5 of the variance, and symmetric trimming leaves the mean unbiased
     g_s = np.take(table, good - lo)
-    med, sig = _group_median_mad(ds, g_s, groups)
+    order = _group_order(g_s, groups)
+    med, sig = _group_median_mad(ds, g_s, groups, order)
     # The clip's σ. A group (one range of the instrument) can hold samples of very
     # different own levels — few, widely spaced bands, whose neighbour follows another
     # part of the spectrum (a sodium line beside its dark surround) — and so noise of
@@ -353,8 +373,10 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
     # deviation is measured in units of the noise at its own level (the photon-transfer
     # line of the subset, :func:`_noise_curve`) and the clip is 5 of those at the group's
     # brightest sample: for noise that is flat, or the same across a group, as before.
-    a, c = _noise_curve(ds - np.take(med, g_s), q_s, g_s, groups, sig, nb)
-    madz, qmax, far = _group_clip(ds - np.take(med, g_s), q_s, g_s, groups, a, c)
+    e_s = ds - np.take(med, g_s)
+    a, c = _noise_curve(e_s, q_s, g_s, groups, sig, nb)
+    sd_s = _noise_sd(q_s, a, c)
+    madz, qmax, far = _group_clip(e_s, q_s, g_s, groups, a, c, sd_s, order)
     far_pix = pix_s[far]                     # pixels with a sample beyond it (below)
     # A group without a sample in the subset is left out: it spans no cell or only
     # cells between tied values (integer levels of a dark scene), where the whole probe
@@ -374,11 +396,12 @@ def group_statistics(y_j: np.ndarray, y_k: np.ndarray, raw_j: np.ndarray, raw_k:
         madz, qmax = np.where(small, madz_s, madz), np.where(small, qmax_s, qmax)
         far_pix = np.concatenate((far_pix[~np.take(small, g_s[far])],
                                   np.flatnonzero(sel)[far_s] // nb))
+        e_s = ds - np.take(med, g_s)            # about the short groups' new medians
     # pixels that a moving object changed between the exposures leave the statistics
     # whole: the 5σ clip kept those of its samples within 5σ, whose spread added to
     # the noise's at the levels it crossed (the gain came out ×1.4–2.3)
     moving = _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, (madz, a, c),
-                            (picked > 0) & (madz > 0), step > 1, pix_s, ds, g_s, q_s)
+                            (picked > 0) & (madz > 0), step > 1, pix_s, e_s, g_s, sd_s)
     # and those with a sample beyond 5σ of the noise at its own level: the clip of the
     # pass is one per group, set by its brightest inlier, and let a dim sample's outlier
     # (a moving object's, across few bands the score above cannot see) through. Where

@@ -86,7 +86,7 @@ SCORE_BANDS = 64
 
 
 def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, scale, usable,
-                   subset, pix_s, ds, g_s, q_s) -> np.ndarray | None:
+                   subset, pix_s, e_s, g_s, sd_s) -> np.ndarray | None:
     """bool (n,): the pixels whose exposures disagree across their bands as no noise
     does (a moving object), or None when none does.
 
@@ -104,9 +104,9 @@ def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, scale, usable,
     that flags one are the pixels scored again on every band, or :data:`SCORE_BANDS`
     of more (the subset holds three samples a pixel of a 16384-pixel probe, or one of a
     3-band probe: too few to see a patch moving a few σ; every band of every pixel of
-    204 would double the statistics' time). The subset: each sample's ``d`` (``ds``), group
-    (``g_s``), own level (``q_s``) and pixel (``pix_s``); ``subset`` False where it is
-    every sample.
+    204 would double the statistics' time). The subset: each sample's ``d`` about its
+    group's median (``e_s``), group (``g_s``), noise σ at its own level (``sd_s``) and
+    pixel (``pix_s``); ``subset`` False where it is every sample.
     """
     from mehs.synthesis._ptc_groups import _own_level
 
@@ -119,7 +119,9 @@ def _moving_pixels(y_j, y_k, r, rj, rk, sat, nbr, table, lo, med, scale, usable,
         z = (d - np.take(med, g)) * np.take(inv, g) / np.sqrt(a * np.maximum(q, 0.0) + c)
         return np.clip(z, -5.0, 5.0)
 
-    moving = _moving_runs(*_pixel_sums(zscores(ds, g_s, q_s), pix_s, n))
+    # (d − med)·inv/σ, as zscores forms it, from the parts at hand
+    z_s = np.clip(e_s * np.take(inv, g_s) / sd_s, -5.0, 5.0)
+    moving = _moving_runs(*_pixel_sums(z_s, pix_s, n))
     if not moving.any():
         return None
     if subset:                              # a subset: score the pixels on more bands
