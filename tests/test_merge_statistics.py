@@ -77,3 +77,29 @@ def test_a_saturation_level_beyond_the_largest_code_is_refused():
         merge_bracket(z, [1.0, 4.0], bit_depth=12, saturation=5000)
     with pytest.raises(InputError, match="saturation"):
         merge_bracket(z, [1.0, 4.0], bit_depth=12, saturation=np.array([4000, 4000, np.nan, 4000]))
+
+
+@pytest.mark.parametrize("method", ["poisson", "debevec"])
+def test_per_band_levels_given_as_strided_views_merge_as_contiguous_ones(method, tmp_path,
+                                                                         monkeypatch):
+    """A per-band saturation or calibration that is a view of every other entry of a
+    longer array (a band subset, ``sat[::2]``) is a valid input: the stored kernels,
+    which take C-contiguous arrays only, refused it with a TypeError."""
+    from mehs.synthesis import _native
+
+    monkeypatch.setattr(_native, "_loaded", {})
+    monkeypatch.setenv("MEHS_CACHE_DIR", str(tmp_path))          # the stored kernels
+    rng = np.random.default_rng(3)
+    nb, t = 5, np.array([1.0, 4.0])
+    stack = [np.minimum(rng.poisson(300 * tj, (6, 7, nb)) + 32, 4095).astype(np.uint16)
+             for tj in t]
+    darks = [np.full((7, nb), 32.0, np.float32)] * 2
+    sat2 = np.repeat(np.linspace(3000, 4000, nb).astype(np.float32), 2)
+    cal2 = np.repeat(np.linspace(0.5, 2.0, nb).astype(np.float32), 2)
+    strided = merge_bracket(stack, t, method=method, darks=darks, saturation=sat2[::2],
+                            calibration=cal2[::2])
+    packed = merge_bracket(stack, t, method=method, darks=darks,
+                           saturation=np.ascontiguousarray(sat2[::2]),
+                           calibration=np.ascontiguousarray(cal2[::2]))
+    np.testing.assert_array_equal(np.asarray(strided.radiance), np.asarray(packed.radiance))
+    np.testing.assert_array_equal(strided.chi2, packed.chi2)

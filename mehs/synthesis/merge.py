@@ -307,6 +307,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     if cal.shape != (nb,) or not np.all(np.isfinite(cal) & (cal > 0)):
         raise InputError("calibration must be a positive scalar or one positive value per band",
                          source)
+    # the stored kernels take C-contiguous arrays only (a band subset's levels, sat[::2],
+    # are a strided view)
+    sat, cal = np.ascontiguousarray(sat), np.ascontiguousarray(cal)
 
     dk = np.zeros((P, ns, nb), dtype=np.float32)
     has_dark = np.zeros(P, dtype=bool)
