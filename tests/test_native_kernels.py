@@ -158,6 +158,22 @@ def test_the_entry_point_refuses_arrays_it_cannot_read_as_the_kernel_does(cache)
         call(zs[:2], *args, *outs)
     with pytest.raises(TypeError, match="exposure 0 must be a C-contiguous uint16"):
         call(tuple(z.astype(np.int16) for z in zs), *args, *outs)   # another raw type
+    ro = [o.copy() for o in outs]
+    ro[3].flags.writeable = False            # it would write through a read-only view
+    with pytest.raises(TypeError, match="output 3 must be writeable"):
+        call(zs, *args, *ro)
+    zs_ro = tuple(z.copy() for z in zs)
+    for z in zs_ro:
+        z.flags.writeable = False            # raw data of a read-only memory map: read only
+    call(zs_ro, *args, *outs)
+
+
+def test_every_array_a_kernel_writes_is_one_of_its_parameters():
+    from mehs.synthesis._native_specs import KERNELS
+
+    for kind, spec in KERNELS.items():
+        names = {name for name, t in spec.params if ":" in t}
+        assert spec.writes and set(spec.writes) <= names, kind
 
 
 def test_unsupported_raw_types_and_no_cache_use_numba(cache, monkeypatch):

@@ -1,8 +1,8 @@
-"""The photon-transfer statistics' compiled passes (issue 16) equal numpy's, bit for bit.
+"""The photon-transfer statistics' compiled kernels (issue 16) equal numpy's, bit for bit.
 
 The noise model and the linearity test of every ``mehs fuse`` rest on per-group means
-and variances of ``d = y_k − r·y_j``; :mod:`mehs.synthesis._ptc_kernels` computes them
-in two passes where numpy took ~30. The reference is the whole-array numpy formulation
+and variances of ``d = y_k − r·y_j``; :mod:`mehs.synthesis._ptc_kernels` gathers the
+subset that sets the groups and clips, and computes them in one pass, where numpy took ~30. The reference is the whole-array numpy formulation
 (``tests/_ptc_reference.py``), run on the same probe.
 """
 
@@ -120,14 +120,26 @@ def test_groups_short_in_the_subset_use_all_their_samples(path, monkeypatch):
     # leave their neighbours short of CLIP_SAMPLES / 2 in the even subset; those groups'
     # medians come from all their samples, a second call (a spy on the medians: the
     # subset is no longer gathered by cells_flags, whose spy saw every call as this one)
-    sizes = []
+    sizes, ds = [], []
     real = G._group_median_mad
 
     def spy(v, g, groups, *order):
         sizes.append(v.size)
+        if order:                          # the subset's d (the fallback's call: no order)
+            ds.append(v)
         return real(v, g, groups, *order)
 
+    real_moving = G._moving_pixels
+
+    def moving_spy(*a):
+        # the moving pixels' z-scores take d about the final medians, those of the short
+        # groups from all their samples (a stale e_s changed which pixels were scored)
+        med, e_s, g_s = a[9], a[14], a[15]
+        np.testing.assert_array_equal(e_s, ds[-1] - np.take(med, g_s))
+        return real_moving(*a)
+
     monkeypatch.setattr(G, "_group_median_mad", spy)
+    monkeypatch.setattr(G, "_moving_pixels", moving_spy)
     # a dark of whole codes: the dark-subtracted samples (and so the instrument) are
     # integers; d = y_k − r·y_j is not (r = 3.7), so a group's median from its subset
     # samples differs from that of all of them, and the statistics tell the two apart
@@ -236,8 +248,9 @@ def test_the_subset_kernel_gathers_the_unsaturated_samples_of_every_step(path, d
     n = 40
     y_j = rng.normal(50, 80, (n, nb)).astype(dtype)
     y_k = (3.5 * y_j + rng.normal(0, 20, (n, nb))).astype(dtype)
-    y_j[0, :] = -0.0
-    y_k[0, :] = 0.0
+    y_j[0, :] = -0.0                   # the instrument −0.0 + −0.0: the cell of +0.0
+    y_k[0, :] = -0.0
+    y_k[1, :] = 0.0
     raw_j = np.clip(y_j + 64, 0, None).astype(np.float32)
     raw_k = np.clip(y_k + 64, 0, None).astype(np.float32)
     sat = rng.uniform(200, 400, nb).astype(np.float32)
@@ -283,8 +296,29 @@ def test_the_stored_subset_entry_point_checks_its_arrays(tmp_path, monkeypatch):
         kernel(y, y, y, y, sat, nbr - 1, 18, step, 2.0, *outs())
     with pytest.raises(TypeError, match="step"):
         kernel(y, y, y, y, sat, nbr, 18, 0, 2.0, *outs())
-    with pytest.raises(TypeError, match=f"hold {m} samples"):
-        kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *outs(m - 1))
+    for i in range(4):                                 # each output too short alone
+        short = list(outs())
+        short[i] = short[i][:m - 1]
+        with pytest.raises(TypeError, match=f"hold {m} samples"):
+            kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *short)
+    with pytest.raises(TypeError, match="nbr"):
+        kernel(y, y, y, y, sat, nbr + 1, 18, step, 2.0, *outs())
+    with pytest.raises(TypeError, match="sat"):
+        kernel(y, y, y, y, sat[:-1], nbr, 18, step, 2.0, *outs())
+    with pytest.raises(TypeError, match="cell_bits"):
+        kernel(y, y, y, y, sat, nbr, 25, step, 2.0, *outs())
+    with pytest.raises(TypeError, match="step"):
+        kernel(y, y, y, y, sat, nbr, 18, n * nb + 1, 2.0, *outs())
+    # ctypes would pass 2**64 + step as step itself, past the check
+    with pytest.raises(TypeError, match="not an int64"):
+        kernel(y, y, y, y, sat, nbr, 18, 2 ** 64 + step, 2.0, *outs())
+    read_only = list(outs())
+    read_only[1].flags.writeable = False
+    with pytest.raises(TypeError, match="ds must be writeable"):
+        kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *read_only)
+    y_ro = y.copy()
+    y_ro.flags.writeable = False                        # inputs may be read-only
+    kernel(y_ro, y_ro, y_ro, y_ro, sat, nbr, 18, step, 2.0, *outs())
     with pytest.raises(TypeError, match="the count one"):
         kernel(y, y, y, y, sat, nbr, 18, step, 2.0, *outs(count=2))
     with pytest.raises(TypeError, match="cells must be a C-contiguous int32"):

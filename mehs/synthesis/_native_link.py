@@ -123,13 +123,22 @@ def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
         c_args = []
         for (name, t, nd), a in zip(flat, values):
             if not nd:
-                c_args.append(int(a) if t == "i8" else bool(a) if t == "b1" else float(a))
+                if t == "i8":
+                    # ctypes wraps an int64 silently (2**64 + 1 arrives as 1): a
+                    # checked step or index would not be the one the loop runs with
+                    a = int(a)
+                    if not -2 ** 63 <= a < 2 ** 63:
+                        raise TypeError(f"native {label} kernel: {name} = {a} is not an int64")
+                c_args.append(a if t == "i8" else bool(a) if t == "b1" else float(a))
                 continue
             want = dtype if t == "raw" else np.dtype(_NP[t])
             if not (isinstance(a, np.ndarray) and a.dtype == want and a.flags.c_contiguous
                     and a.ndim == nd):
                 raise TypeError(f"native {label} kernel: {name} must be a C-contiguous "
                                 f"{want} array of {nd} dimension(s)")
+            if name in spec.writes and not a.flags.writeable:
+                # (numba's dispatcher refuses a read-only array it writes to)
+                raise TypeError(f"native {label} kernel: {name} must be writeable")
             c_args += [a.ctypes.data, *a.shape]
         spec.check(P, args)
         entry(*c_args)         # (the arrays stay referenced by the caller meanwhile)

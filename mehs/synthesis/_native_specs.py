@@ -87,8 +87,8 @@ def _check_ptc_subset(P, args) -> None:
         raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
     if not 1 <= int(cell_bits) <= 24:
         raise TypeError(what + "cell_bits must lie in 1..24")
-    if int(step) < 1:
-        raise TypeError(what + "step must be at least 1")
+    if not 1 <= int(step) <= max(n * nb, 1):
+        raise TypeError(what + f"step must lie in 1..{max(n * nb, 1)}")
     m = -(-(n * nb) // int(step))
     if any(a.shape[0] < m for a in outs[:4]) or outs[4].shape != (1,):
         raise TypeError(what + f"the outputs must hold {m} samples, the count one")
@@ -97,7 +97,8 @@ def _check_ptc_subset(P, args) -> None:
 @dataclass(frozen=True)
 class Spec:
     """A kernel with a stored entry point: where it lives, its parameters, the source
-    files its machine code depends on (besides this module) and a shape check."""
+    files its machine code depends on (besides this module), a shape check and the
+    arrays it writes (which must be writeable)."""
 
     module: str
     function: str
@@ -105,6 +106,7 @@ class Spec:
     sources: tuple
     check: Callable
     per_exposure: bool = True      # takes one array per exposure (P ≥ 2)
+    writes: tuple = ()             # the arrays it writes (outputs and scratch)
 
     def dispatcher(self) -> Callable:
         """The numba kernel itself (imports its module, and so numba)."""
@@ -112,26 +114,30 @@ class Spec:
 
 
 _POISSON = _MERGE_HEAD + _MERGE_TAIL
+_MERGE_WRITES = tuple(f"output {i}" for i in range(7))
+_PTC_SCRATCH = ("key_row", "cp", "sat_row", "bp")
 KERNELS = {
     # each merge twice: with the χ² ghost statistic, and radiance-only ("_radiance")
     "poisson_linear": Spec("mehs.synthesis._merge_fused", "merge_chunk_poisson_linear",
-                           _POISSON, _MERGE_SOURCES, _check_merge),
+                           _POISSON, _MERGE_SOURCES, _check_merge, writes=_MERGE_WRITES),
     "poisson_linear_radiance": Spec("mehs.synthesis._merge_fused",
                                     "merge_chunk_poisson_linear_radiance", _POISSON,
-                                    _MERGE_SOURCES, _check_merge),
+                                    _MERGE_SOURCES, _check_merge, writes=_MERGE_WRITES),
     **{f"{m}_linear{v}": Spec("mehs.synthesis._merge_fused_weighted",
                               f"merge_chunk_{m}_linear{v}", _WEIGHTED, _MERGE_SOURCES,
-                              _check_merge)
+                              _check_merge, writes=_MERGE_WRITES)
        for m in ("debevec", "robertson", "invvar") for v in ("", "_radiance")},
     "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
                      _PTC_COMMON
                      + (("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),
                         ("lim", "f8:1"), ("nall", "f8:1"), ("nbad", "f8:1"), ("nt", "f8:1"),
                         ("se", "f8:1"), ("se2", "f8:1"), ("syj", "f8:1")),
-                     _PTC_SOURCES, _check_ptc_pass, per_exposure=False),
+                     _PTC_SOURCES, _check_ptc_pass, per_exposure=False,
+                     writes=_PTC_SCRATCH + ("nall", "nbad", "nt", "se", "se2", "syj")),
     "ptc_subset": Spec("mehs.synthesis._ptc_kernels", "ptc_subset",
                        _PTC_COMMON[:7]
                        + (("step", "i8"), ("r", "f8"), ("cells", "i4:1"), ("ds", "f8:1"),
                           ("qs", "f8:1"), ("pix", "i8:1"), ("count", "i8:1")),
-                       _PTC_SOURCES, _check_ptc_subset, per_exposure=False),
+                       _PTC_SOURCES, _check_ptc_subset, per_exposure=False,
+                       writes=("cells", "ds", "qs", "pix", "count")),
 }

@@ -1,11 +1,12 @@
 """The photon-transfer pass and subset of :mod:`mehs.synthesis._ptc_kernels` as
 whole-array numpy, and the cells of a subset of samples.
 
-:func:`ptc_pass` takes the compiled pass's arguments and gives its outputs to the bit:
-the cells and flags are integer work, and ``np.bincount`` adds its float64 weights in
-sample order, as the compiled loop does. It runs while the compiled pass is still being
-compiled in a child process (a first-ever ``mehs fuse``): ~20 numpy passes over a
-pair's samples take ~0.05 s, where waiting for that child took 3–5 s on two cores
+:func:`ptc_pass` and :func:`ptc_subset` take the compiled kernels' arguments and give
+their outputs to the bit: the cells and flags are integer work, the subset's ``d`` and
+own level the same float64 expressions, and ``np.bincount`` adds its float64 weights in
+sample order, as the compiled loop does. They run while the compiled kernels are still
+being compiled in child processes (a first-ever ``mehs fuse``): ~20 numpy passes over a
+pair's samples take ~0.05 s, where waiting for those children took 3–5 s on two cores
 shared with the merge kernel's own compilation (issue 16). No numba here.
 """
 

@@ -224,7 +224,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     if str(response) == "auto" or noise is None or (isinstance(noise, str) and noise == "auto"):
         from mehs.synthesis._ptc_groups import build_kernels_in_background
 
-        # a first-ever run: the photon-transfer passes compile in a child process
+        # a first-ever run: the photon-transfer kernels compile in child processes
         # while the merge kernel compiles here
         build_kernels_in_background()
     ghost_statistic = ghosts != "off"    # the merge's χ²: its own kernel, warmed here
