@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from typing import Any, Callable
 
 import numpy as np
@@ -59,6 +60,17 @@ from mehs.errors import DeviceDisconnected, DeviceError, DeviceTimeout, InputErr
 
 
 __all__ = ["Frame", "FrameStream", "GenicamCamera"]   # Frame, FrameStream: re-exported
+
+
+def _control_lost(camera: "weakref.ref[GenicamCamera]") -> Callable[..., None]:
+    """The "control-lost" handler of the camera ``camera`` refers to (weakly: see
+    :class:`GenicamCamera`); it runs on the device's heartbeat thread."""
+    def on_lost(*_a: Any) -> None:
+        cam = camera()
+        if cam is not None:
+            cam._control_lost = True
+
+    return on_lost
 
 
 class GenicamCamera(FeatureAccess):
@@ -121,8 +133,17 @@ class GenicamCamera(FeatureAccess):
                               "'mehs capture --list-cameras' lists the cameras Aravis finds",
                               self._name) from None
         self.dev = self.cam.get_device()
-        self.dev.connect("control-lost", self._on_control_lost)
-        self._configure()
+        # The handler holds this object weakly: a bound method made a cycle (device →
+        # handler → camera → device) that only Python's collector freed, on whatever
+        # thread it ran — the device's heartbeat thread too, when it called in with
+        # "control-lost"; finalising the device there joins that thread from itself, and
+        # GLib aborts the process ("Resource deadlock avoided").
+        self._lost_handler = self.dev.connect("control-lost", _control_lost(weakref.ref(self)))
+        try:
+            self._configure()
+        except BaseException:
+            self.close()        # release the device here, not at the collector's whim
+            raise
 
     # ------------------------------------------------------------ plumbing
     @classmethod
@@ -144,9 +165,6 @@ class GenicamCamera(FeatureAccess):
     @property
     def name(self) -> str:
         return self._name
-
-    def _on_control_lost(self, *_a) -> None:
-        self._control_lost = True
 
     def _configure(self) -> None:
         entries = self.dev.dup_available_enumeration_feature_values_as_strings
@@ -461,6 +479,9 @@ class GenicamCamera(FeatureAccess):
             self._stop(flush_s=0.0)
         except DeviceError:
             pass
+        if self.dev is not None and getattr(self, "_lost_handler", None) is not None:
+            self.dev.disconnect(self._lost_handler)
+            self._lost_handler = None
         held = [self._stream, self.dev, self.cam]
         self._stream = None
         self.cam = self.dev = None
