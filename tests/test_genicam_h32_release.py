@@ -1,13 +1,17 @@
-"""A GenICam camera's device is released on the thread that lets it go (Aravis 0.8).
+"""A GenICam camera's Aravis objects are released where no thread waits on itself (Aravis 0.8).
 
-``GenicamCamera`` listened for the device's "control-lost" signal with a bound method: the
-device held the camera object, the camera the device, a reference cycle. A camera refused
-while opening (no 12-bit pixel format) or dropped without ``close()`` then lived until
-Python's cycle collector ran — on whatever thread allocated at that moment, among them
-the device's own heartbeat thread, which calls into Python when it signals "control-lost"
-after the camera's simulator stopped. Finalising the device there joins the heartbeat
-thread from itself: GLib aborts the process (``g_system_thread_wait``: "Resource deadlock
-avoided", SIGTRAP), seen once in about 20 runs of the GigE Vision tests.
+A fresh-clone CI run died in the GigE Vision tests with GLib's abort
+(``g_system_thread_wait``: "Resource deadlock avoided", SIGTRAP), and a loop of those tests
+did once in two runs: an Aravis device finalised on its own heartbeat thread joins that
+thread from itself. ``GenicamCamera`` listened for the device's "control-lost" signal —
+emitted on the heartbeat thread, holding a reference to the device while its Python
+handler waits for the GIL — with a bound method: the device held the camera object, which
+held the device. A camera refused while opening (no 12-bit pixel format) kept its device,
+heartbeat and all, to the end of the process; one dropped without ``close()`` left it to
+whichever thread dropped it or ran the cycle collector. Now the handler holds the camera
+weakly, ``close()`` disconnects it and lets an emission under way finish before a lost
+device is dropped, a refused camera closes itself, and a camera dropped unclosed hands its
+Aravis objects to one release thread.
 """
 
 import gc
@@ -89,3 +93,37 @@ def test_control_lost_still_reaches_the_camera():
             assert cam._control_lost
         finally:
             cam.close()
+
+
+def test_the_device_of_a_camera_dropped_without_close_goes_on_the_release_thread():
+    """Not on the thread that dropped it (nor the collector's): the release thread
+    finalises it, which stops its heartbeat thread and leaves control."""
+    import threading
+    import time
+
+    from mehs.capture.genicam import GenicamCamera
+
+    with _sim() as dev:
+        cam = GenicamCamera.open(dev.camera_url)
+        where = []
+        keep = cam.dev.weak_ref(lambda: where.append(threading.current_thread().name))
+        del cam
+        deadline = time.monotonic() + 30
+        while not where and time.monotonic() < deadline:
+            time.sleep(0.05)
+        del keep
+    assert where == ["mehs-genicam-release"]
+
+
+def test_a_closed_camera_releases_its_device_before_close_returns():
+    import threading
+
+    from mehs.capture.genicam import GenicamCamera
+
+    with _sim() as dev:
+        cam = GenicamCamera.open(dev.camera_url)
+        where = []
+        keep = cam.dev.weak_ref(lambda: where.append(threading.current_thread().name))
+        cam.close()
+        assert where == [threading.current_thread().name]       # here, and done
+        del keep

@@ -44,6 +44,7 @@ https://aravisproject.github.io/aravis/.
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 import weakref
@@ -71,6 +72,37 @@ def _control_lost(camera: "weakref.ref[GenicamCamera]") -> Callable[..., None]:
             cam._control_lost = True
 
     return on_lost
+
+
+_releases: "queue.SimpleQueue[tuple[list, float]]" = queue.SimpleQueue()
+_release_lock = threading.Lock()
+_release_thread: threading.Thread | None = None
+
+
+def _release_elsewhere(held: list, delay_s: float = 0.0) -> None:
+    """Drop the Aravis objects ``held`` on one release thread of the process: finalising a
+    device stops (joins) its heartbeat thread and tells the camera over GVCP, which must
+    happen neither on that thread nor on a thread the camera waits for."""
+    global _release_thread
+    try:
+        with _release_lock:
+            if _release_thread is None or not _release_thread.is_alive():
+                _release_thread = threading.Thread(target=_release_loop, daemon=True,
+                                                   name="mehs-genicam-release")
+                _release_thread.start()
+        _releases.put((list(held), delay_s))
+    except Exception:      # noqa: BLE001 - interpreter shutdown: nothing left to protect
+        pass
+    held.clear()           # (the caller's references; the queue holds the objects now)
+
+
+def _release_loop() -> None:
+    while True:
+        held, delay_s = _releases.get()
+        if delay_s > 0:
+            time.sleep(delay_s)
+        held.clear()
+        del held
 
 
 class GenicamCamera(FeatureAccess):
@@ -482,15 +514,30 @@ class GenicamCamera(FeatureAccess):
         if self.dev is not None and getattr(self, "_lost_handler", None) is not None:
             self.dev.disconnect(self._lost_handler)
             self._lost_handler = None
+            # a "control-lost" emission already under way holds its own reference to the
+            # device while its handler waits for the GIL: let it run (it sets the flag)
+            time.sleep(0)
         held = [self._stream, self.dev, self.cam]
         self._stream = None
         self.cam = self.dev = None
         if self._control_lost:
-            # Releasing a vanished device waits out GVCP timeouts (~10 s); the last
-            # references go in a daemon thread so the error reaches the user at once.
-            threading.Thread(target=held.clear, daemon=True).start()
+            # Releasing a vanished device waits out GVCP timeouts (~10 s): the last
+            # references go on the release thread so the error reaches the user at
+            # once (after a pause that lets an emission in flight drop its reference
+            # first: the last one must not go on the heartbeat thread)
+            _release_elsewhere(held, delay_s=0.2)
         else:
             held.clear()
+
+    def __del__(self) -> None:
+        # Not closed: the Aravis objects go on the release thread, never on whatever
+        # thread dropped the last reference or ran the cycle collector (the device's
+        # heartbeat thread finalising it would join itself; the simulated camera's own
+        # thread would wait on its own replies).
+        held = [getattr(self, n, None) for n in ("_stream", "dev", "cam")]
+        if any(h is not None for h in held):
+            self._stream = self.dev = self.cam = None
+            _release_elsewhere(held)
 
     def __enter__(self):
         return self
