@@ -51,11 +51,9 @@ def _check_merge(P, args) -> None:
             raise TypeError(f"native merge kernel: output {k} must have shape {(nl, ns)}")
 
 
-def _check_ptc_pass(P, args) -> None:
-    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes."""
-    (y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:11]
-    (r, lo, table, med, lim, *sums) = args[11:]
-    what = "native photon-transfer kernel: "
+def _check_ptc_samples(what, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits) -> tuple[int, int]:
+    """``(n, bands)``: the checks the photon-transfer kernels share (their samples, the
+    bands' saturation and instruments, the cell bits)."""
     n, nb = y_j.shape
     for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
         if a.shape != (n, nb):
@@ -64,6 +62,15 @@ def _check_ptc_pass(P, args) -> None:
         raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
     if not 1 <= int(cell_bits) <= 24:
         raise TypeError(what + "cell_bits must lie in 1..24")
+    return n, nb
+
+
+def _check_ptc_pass(P, args) -> None:
+    """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_pass` assumes."""
+    (y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, *rows) = args[:11]
+    (r, lo, table, med, lim, *sums) = args[11:]
+    what = "native photon-transfer kernel: "
+    n, nb = _check_ptc_samples(what, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits)
     if any(a.shape != (nb,) for a in rows):
         raise TypeError(what + "scratch rows must have one entry per band")
     groups = med.shape[0]
@@ -79,14 +86,7 @@ def _check_ptc_subset(P, args) -> None:
     """The shapes :func:`mehs.synthesis._ptc_kernels.ptc_subset` assumes."""
     (y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, step, r, *outs) = args
     what = "native photon-transfer subset kernel: "
-    n, nb = y_j.shape
-    for name, a in (("y_k", y_k), ("raw_j", raw_j), ("raw_k", raw_k)):
-        if a.shape != (n, nb):
-            raise TypeError(what + f"{name} must have shape {(n, nb)}")
-    if sat.shape != (nb,) or nbr.shape != (nb,) or (nb and not (0 <= nbr.min() and nbr.max() < nb)):
-        raise TypeError(what + "sat and nbr must have one entry per band, nbr naming bands")
-    if not 1 <= int(cell_bits) <= 24:
-        raise TypeError(what + "cell_bits must lie in 1..24")
+    n, nb = _check_ptc_samples(what, y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits)
     if not 1 <= int(step) <= max(n * nb, 1):
         raise TypeError(what + f"step must lie in 1..{max(n * nb, 1)}")
     m = -(-(n * nb) // int(step))
