@@ -165,11 +165,12 @@ class GenicamCamera(FeatureAccess):
                               "'mehs capture --list-cameras' lists the cameras Aravis finds",
                               self._name) from None
         self.dev = self.cam.get_device()
-        # The handler holds this object weakly: a bound method made a cycle (device →
-        # handler → camera → device) that only Python's collector freed, on whatever
-        # thread it ran — the device's heartbeat thread too, when it called in with
-        # "control-lost"; finalising the device there joins that thread from itself, and
-        # GLib aborts the process ("Resource deadlock avoided").
+        # The handler holds this object weakly: with a bound method the device kept the
+        # camera and the camera the device, so a refused or unclosed camera kept its
+        # device and heartbeat thread for good, or left them to whichever thread let go
+        # last — finalised on its own heartbeat thread (where this handler runs) a
+        # device joins that thread from itself and GLib aborts the process ("Resource
+        # deadlock avoided"). See close() and __del__.
         self._lost_handler = self.dev.connect("control-lost", _control_lost(weakref.ref(self)))
         try:
             self._configure()
