@@ -103,3 +103,5 @@ def test_per_band_levels_given_as_strided_views_merge_as_contiguous_ones(method,
                            calibration=np.ascontiguousarray(cal2[::2]))
     np.testing.assert_array_equal(np.asarray(strided.radiance), np.asarray(packed.radiance))
     np.testing.assert_array_equal(strided.chi2, packed.chi2)
+    kind = "poisson_linear" if method == "poisson" else "debevec_linear"
+    assert _native.is_stored(kind, np.uint16, 2)          # the stored kernel ran them
