@@ -24,6 +24,16 @@ from mehs.synthesis._cephes import f32_bits
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _cell(v, shift, half):
+    """The int32 cell of the float32 ``v``: the top bits of a key that sorts like the
+    values (``−0.0`` and ``+0.0`` alike), ``shift = 32 − cell_bits``,
+    ``half = 2**(cell_bits − 1)`` (see :func:`_row_cells`)."""
+    bits = f32_bits(v)
+    m = bits >> 31                               # −1 for a negative value, else 0
+    return np.int32(((((bits & 0x7FFFFFFF) ^ m) - m) >> shift) + half)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _row_cells(yj, yk, rj, rk, sat, nbr, cell_bits, key_row, sat_row, cp, bp):
     """One pixel's row of samples: each band's cell ``cp`` (int32) and saturation flag
     ``bp`` (uint8). ``key_row``, ``sat_row``: scratch of the row's length.
@@ -40,9 +50,7 @@ def _row_cells(yj, yk, rj, rk, sat, nbr, cell_bits, key_row, sat_row, cp, bp):
     # the row's own keys first (a loop LLVM vectorises), then each band takes its
     # neighbour's
     for b in range(nb):
-        bits = f32_bits(np.float32(yj[b] + yk[b]))
-        m = bits >> 31                           # −1 for a negative value, else 0
-        key_row[b] = np.int32(((((bits & 0x7FFFFFFF) ^ m) - m) >> shift) + half)
+        key_row[b] = _cell(np.float32(yj[b] + yk[b]), shift, half)
         sat_row[b] = 1 if rk[b] >= sat[b] else 0
     for b in range(nb):
         c = nbr[b]
@@ -114,9 +122,7 @@ def ptc_subset(y_j, y_k, raw_j, raw_k, sat, nbr, cell_bits, step, r, cells, ds, 
         s_b = sat[b]
         if raw_k[p, b] >= s_b or raw_k[p, c] >= sat[c] or raw_j[p, b] >= s_b:
             continue
-        bits = f32_bits(np.float32(y_j[p, c] + y_k[p, c]))
-        m = bits >> 31
-        cells[k] = np.int32(((((bits & 0x7FFFFFFF) ^ m) - m) >> shift) + half)
+        cells[k] = _cell(np.float32(y_j[p, c] + y_k[p, c]), shift, half)
         yjb = np.float64(y_j[p, b])
         ykb = np.float64(y_k[p, b])
         ds[k] = ykb - r * yjb
