@@ -83,13 +83,21 @@ def test_a_camera_dropped_without_close_is_freed_by_its_last_reference():
 
 
 def test_control_lost_still_reaches_the_camera():
-    """The signal handler holds the camera weakly, and still marks it."""
+    """The signal handler holds the camera weakly, and still marks it — emitted, as Aravis
+    does, from another thread than the one that holds the camera."""
+    import threading
+
     from mehs.capture.genicam import GenicamCamera
 
     with _sim() as dev:
         cam = GenicamCamera.open(dev.camera_url)
         try:
-            cam.dev.emit("control-lost")
+            assert not cam._control_lost
+            heartbeat = threading.Thread(target=cam.dev.emit, args=("control-lost",),
+                                         name="heartbeat")
+            heartbeat.start()
+            heartbeat.join(10)
+            assert not heartbeat.is_alive()
             assert cam._control_lost
         finally:
             cam.close()
