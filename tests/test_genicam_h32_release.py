@@ -135,3 +135,42 @@ def test_a_closed_camera_releases_its_device_before_close_returns():
         cam.close()
         assert where == [threading.current_thread().name]       # here, and done
         del keep
+
+
+def test_a_camera_that_fails_while_starting_stops_serving_at_once(monkeypatch):
+    """A failure after the fake camera came up disposes it there and then — not when the
+    failure's traceback (whose frame still names it) goes — so the next simulator can serve
+    the GigE Vision port while the caller still holds the error."""
+    from mehs.capture.genicam_sim import GenicamSimCamera
+
+    def broken(*args):
+        raise RuntimeError("register write failed")
+
+    dev = _sim()
+    monkeypatch.setattr(GenicamSimCamera, "_write_double", staticmethod(broken))
+    try:
+        with pytest.raises(RuntimeError, match="register write failed") as failed:
+            dev.start()
+    finally:
+        dev.close()
+    monkeypatch.undo()
+    assert failed.tb is not None          # the traceback, with its frames, is still held
+    with _sim() as again:
+        assert again.camera._gv is not None and again.camera._gv.is_running()
+
+
+def test_a_stage_server_that_cannot_start_closes_the_camera(monkeypatch):
+    """``start()`` used as a context manager has no ``__exit__`` when it raises: the camera
+    it started must not keep the port (this process's next simulator would be refused)."""
+    dev = _sim()
+
+    def broken():
+        raise OSError("cannot start the stage's thread")
+
+    monkeypatch.setattr(dev.server, "start", broken)
+    with pytest.raises(OSError, match="stage's thread"):
+        with dev:
+            pass
+    assert dev.camera._gv is None
+    with _sim() as again:
+        assert again.camera._gv.is_running()

@@ -244,11 +244,28 @@ class GenicamSimCamera:
         # switch interval would make a busy host thread skip frames of the simulated camera.
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(min(self._switch, 0.0005))
-        gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial, str(self.xml_path))
-        if gv is None or not gv.is_running():
+        # The fake camera is held by the object alone, never by a local: stop() disposes it
+        # when anything below fails, and a local named by the failure's traceback kept it
+        # serving the GVCP port (a disposed GvFakeCamera closes its socket when finalised)
+        # for as long as the caller held the error: this process's next simulator was refused.
+        self._gv = self.Aravis.GvFakeCamera.new_full(self.interface, self.serial,
+                                                     str(self.xml_path))
+        if self._gv is None or not self._gv.is_running():
             raise DeviceError(f"cannot serve the simulated GigE Vision camera on {self.interface} "
                               "(no such interface?)", self.interface)
-        fc = gv.get_fake_camera()
+        self._fc = self._gv.get_fake_camera()
+        self._program(self._fc)
+        self._lib.arv_fake_camera_set_fill_pattern(_gobject_pointer(self._fc), self._cb, None)
+        if any(f.kind in ("incomplete", "late") for f in self.faults) or self.link_delay_s > 0:
+            from mehs.capture.gvrelay import StreamRelay
+
+            self._relay = StreamRelay(self._fc, drop=self._drop_frame,
+                                      hold=self._late.__contains__,
+                                      delay_s=self.link_delay_s).start()
+        return self
+
+    def _program(self, fc) -> None:
+        """The fake camera's registers: sensor, format, timing, wavelength polynomial, identity."""
         fc.set_trigger_frequency(TRIGGER_POLL_HZ)
         w = self.world
         reg = fc.write_register
@@ -268,14 +285,6 @@ class GenicamSimCamera:
             raw = text.encode("ascii")[:31] + b"\0"
             for i in range(0, len(raw), 4):
                 reg(off + i, struct.unpack(">I", raw[i:i + 4].ljust(4, b"\0"))[0])
-        self._fc, self._gv = fc, gv
-        self._lib.arv_fake_camera_set_fill_pattern(_gobject_pointer(fc), self._cb, None)
-        if any(f.kind in ("incomplete", "late") for f in self.faults) or self.link_delay_s > 0:
-            from mehs.capture.gvrelay import StreamRelay
-
-            self._relay = StreamRelay(fc, drop=self._drop_frame, hold=self._late.__contains__,
-                                      delay_s=self.link_delay_s).start()
-        return self
 
     def stop(self) -> None:
         """Stop serving (the camera is "unplugged"); safe to call twice."""
@@ -469,7 +478,13 @@ class SimGenicamDevices:
 
     def start(self) -> "SimGenicamDevices":
         self.camera.start()
-        self.server.start()
+        try:
+            self.server.start()
+        except BaseException:
+            # used as a context manager, a failed start has no __exit__: the started camera
+            # would keep this process's GVCP port, and every later simulator be refused
+            self.close()
+            raise
         self._serving = True
         return self
 
