@@ -44,7 +44,7 @@ from typing import Callable
 import numpy as np
 
 from mehs.synthesis import _native_child
-from mehs.synthesis._native_link import flat_params, link
+from mehs.synthesis._native_link import _TUPLES, flat_params, link
 from mehs.synthesis._native_specs import KERNELS
 
 #: Bumped when the stored layout or the entry points' C signatures change.
@@ -413,15 +413,19 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
     nbt = {"f4": types.float32, "f8": types.float64, "i4": types.int32, "i8": types.int64,
            "u1": types.uint8, "u2": types.uint16, "b1": types.boolean,
            "raw": getattr(types, dtype.name)}
-    sig, c_names, k_args = [], [], []
+    sig, c_names, flat_args = [], [], []
     for i, (_, t, nd) in enumerate(flat_params(kind, P)):
         # an array: its pointer and extents in, a carray over them to the kernel
         dims = [f"a{i}_{d}" for d in range(nd)]
         c_names += [f"a{i}", *dims]
         sig += [types.CPointer(nbt[t]) if nd else nbt[t]] + [types.int64] * nd
-        k_args.append(f"carray(a{i}, ({', '.join(dims)},))" if nd else f"a{i}")
-    if spec.per_exposure:
-        k_args = [f"({', '.join(k_args[:P])},)"] + k_args[P:]
+        flat_args.append(f"carray(a{i}, ({', '.join(dims)},))" if nd else f"a{i}")
+    k_args = []           # a tuple parameter's P arrays regrouped into its tuple
+    for _, t in spec.params:
+        n = P if t.partition(":")[0] in _TUPLES else 1
+        group, flat_args = flat_args[:n], flat_args[n:]
+        k_args.append(f"({', '.join(group)},)" if n == P and t.partition(":")[0] in _TUPLES
+                      else group[0])
     src = f"def entry({', '.join(c_names)}):\n    K({', '.join(k_args)})\n"
     ns_: dict = {"K": K, "carray": carray}
     exec(compile(src, f"<mehs native entry {kind}>", "exec"), ns_)   # noqa: S102

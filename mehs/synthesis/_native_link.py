@@ -88,17 +88,37 @@ _NP = {"f4": np.float32, "f8": np.float64, "i4": np.int32, "i8": np.int64, "u1":
        "u2": np.uint16}
 
 
+#: tuple parameters (one array per exposure) and their arrays' type
+_TUPLES = {"zs": "raw", "f4s": "f4"}
+
+
 def flat_params(kind: str, P: int) -> list[tuple[str, str, int]]:
     """The entry point's parameters: ``(name, type, ndim)``, ``ndim > 0`` for an array (its
-    pointer, then ``ndim`` int64 extents), 0 for a scalar; a merge's exposures one by one."""
+    pointer, then ``ndim`` int64 extents), 0 for a scalar; a tuple parameter's arrays (a
+    merge's exposures, its per-exposure scratch rows) one by one."""
     out = []
     for name, t in KERNELS[kind].params:
         base, _, nd = t.partition(":")
-        if base == "zs":
-            out += [(f"exposure {j}", "raw", int(nd)) for j in range(P)]
+        if base in _TUPLES:
+            what = "exposure" if base == "zs" else name
+            out += [(f"{what} {j}", _TUPLES[base], int(nd)) for j in range(P)]
         else:
             out.append((name, base, int(nd or 0)))
     return out
+
+
+def _flatten(spec, P: int, args, label: str) -> list:
+    """The kernel's arguments with each tuple parameter's P arrays spread out."""
+    values = []
+    for (name, t), a in zip(spec.params, args):
+        if t.partition(":")[0] in _TUPLES:
+            if len(a) != P:
+                what = "exposures" if name == "zs" else f"arrays in {name}"
+                raise TypeError(f"native {label} kernel: {P} {what} expected, got {len(a)}")
+            values += list(a)
+        else:
+            values.append(a)
+    return values
 
 
 def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
@@ -117,9 +137,7 @@ def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
     def call(*args):
         if len(args) != n_params:
             raise TypeError(f"native {label} kernel: {n_params} arguments expected")
-        if spec.per_exposure and len(args[0]) != P:
-            raise TypeError(f"native merge kernel: {P} exposures and 7 outputs expected")
-        values = list(args[0]) + list(args[1:]) if spec.per_exposure else list(args)
+        values = _flatten(spec, P, args, label)
         c_args = []
         for (name, t, nd), a in zip(flat, values):
             if not nd:
@@ -136,7 +154,8 @@ def _wrap(kind: str, dtype: np.dtype, P: int, address: int) -> Callable:
                     and a.ndim == nd):
                 raise TypeError(f"native {label} kernel: {name} must be a C-contiguous "
                                 f"{want} array of {nd} dimension(s)")
-            if name in spec.writes and not a.flags.writeable:
+            written = name in spec.writes or name.rsplit(" ", 1)[0] in spec.writes
+            if written and not a.flags.writeable:
                 # (numba's dispatcher refuses a read-only array it writes to)
                 raise TypeError(f"native {label} kernel: {name} must be writeable")
             c_args += [a.ctypes.data, *a.shape]

@@ -16,7 +16,8 @@ import numpy as np
 
 #: A kernel's parameters, in order: ``(name, type)``. Types: ``"zs:N"`` a tuple of
 #: ``P`` raw-dtype arrays of ``N`` dimensions (one per exposure); ``"raw:N"`` one
-#: raw-dtype array; ``"<numpy type>:N"`` (``f4``, ``f8``, ``i4``, ``i8``, ``u1``, ``u2``) an array
+#: raw-dtype array; ``"f4s:N"`` a tuple of ``P`` float32 arrays (per-exposure scratch);
+#: ``"<numpy type>:N"`` (``f4``, ``f8``, ``i4``, ``i8``, ``u1``, ``u2``) an array
 #: of ``N`` dimensions; ``"f4"``, ``"f8"``, ``"i8"``, ``"b1"`` scalars. An array reaches the
 #: C entry point as its data pointer followed by its shape.
 _MERGE_HEAD = (("zs", "zs:3"), ("darks", "f4:3"), ("sat", "f4:1"), ("times", "f4:1"))
@@ -25,7 +26,8 @@ _MERGE_TAIL = (("gain", "f8"), ("avar", "f4:1"), ("rel_var", "f8"), ("cal", "f4:
                ("output 2", "i4:2"), ("output 3", "f4:2"), ("output 4", "i4:2"),
                ("output 5", "i4:2"), ("output 6", "f4:2"))
 _WEIGHTED = _MERGE_HEAD + (("L", "i8"), ("floor", "f4")) + _MERGE_TAIL
-_MERGE_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_rows.py", "_cephes.py")
+_MERGE_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_binned.py",
+                  "_merge_rows.py", "_cephes.py")
 _PTC_COMMON = (("y_j", "raw:2"), ("y_k", "raw:2"), ("raw_j", "f4:2"), ("raw_k", "f4:2"),
                ("sat", "f4:1"), ("nbr", "i8:1"), ("cell_bits", "i8"), ("key_row", "i4:1"),
                ("cp", "i4:1"), ("sat_row", "u1:1"), ("bp", "u1:1"))
@@ -37,6 +39,23 @@ def _check_merge(P, args) -> None:
     zs, darks, sat, times = args[:4]
     out, *aux = args[-7:]
     avar, cal = args[-12], args[-10]
+    _check_merge_arrays(P, zs, darks, sat, times, avar, cal, out, aux)
+
+
+def _check_merge_binned(P, args) -> None:
+    """:func:`_check_merge`'s shapes, and the binned kernel's bin width and scratch."""
+    zs, darks, sat, times = args[:4]
+    out, *aux = args[-7:]
+    avar, cal, nbin, ysum, xps, bms = args[5], args[7], *args[10:14]
+    _check_merge_arrays(P, zs, darks, sat, times, avar, cal, out, aux)
+    ns = out.shape[2]
+    if int(nbin) < 1:
+        raise TypeError("native merge kernel: nbin must be at least 1")
+    if any(a.shape != (ns,) for a in (*ysum, xps, bms)):
+        raise TypeError(f"native merge kernel: the scratch rows must hold {ns} samples")
+
+
+def _check_merge_arrays(P, zs, darks, sat, times, avar, cal, out, aux) -> None:
     nl, nb, ns = out.shape
     for j, z in enumerate(zs):
         if z.shape != (nl, nb, ns):
@@ -114,6 +133,10 @@ class Spec:
 
 
 _POISSON = _MERGE_HEAD + _MERGE_TAIL
+# the binned statistic's kernel: its bin width and scratch rows before the outputs
+_POISSON_BINNED = (_MERGE_HEAD + _MERGE_TAIL[:6]
+                   + (("nbin", "i8"), ("ysum", "f4s:1"), ("xps", "f4:1"), ("bms", "i4:1"))
+                   + _MERGE_TAIL[6:])
 _MERGE_WRITES = tuple(f"output {i}" for i in range(7))
 _PTC_SCRATCH = ("key_row", "cp", "sat_row", "bp")
 KERNELS = {
@@ -123,6 +146,10 @@ KERNELS = {
     "poisson_linear_radiance": Spec("mehs.synthesis._merge_fused",
                                     "merge_chunk_poisson_linear_radiance", _POISSON,
                                     _MERGE_SOURCES, _check_merge, writes=_MERGE_WRITES),
+    "poisson_linear_binned": Spec("mehs.synthesis._merge_binned",
+                                  "merge_chunk_poisson_linear_binned", _POISSON_BINNED,
+                                  _MERGE_SOURCES, _check_merge_binned,
+                                  writes=_MERGE_WRITES + ("ysum", "xps", "bms")),
     **{f"{m}_linear{v}": Spec("mehs.synthesis._merge_fused_weighted",
                               f"merge_chunk_{m}_linear{v}", _WEIGHTED, _MERGE_SOURCES,
                               _check_merge, writes=_MERGE_WRITES)

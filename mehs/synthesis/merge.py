@@ -54,90 +54,19 @@ References
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
 from mehs.errors import InputError
+from mehs.synthesis.merge_types import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MergeResult,
+                                        NoiseModel)
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
-#: mask bits shared with the dataset format
-MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Noise of a dark-subtracted, linearised sample ``y`` (DN) of an exposure of ``t`` ms.
-
-    ``var(y) = gain·y + read_noise² + gain·dark_current·t + (relative·y)²``
-
-    ``gain`` is in DN per electron (shot noise), ``read_noise`` in DN (one
-    sigma at zero signal, after dark subtraction: read noise, quantisation and
-    the dark reference's own error), ``dark_current`` in DN/ms (its electrons
-    add shot noise although the dark subtraction removes their mean),
-    ``relative`` a systematic relative error between exposures (response-curve
-    error; 0 for a linear sensor, whose flat-field error is the same in every
-    exposure and cancels in the consistency test). :func:`mehs.synthesis.noise.estimate_noise_PTC`
-    measures all of them from a bracket.
-    """
-
-    gain: float = 1.0
-    read_noise: float = 2.0
-    relative: float = 0.01
-    dark_current: float = 0.0
-    source: str = "default"
-
-    def __post_init__(self) -> None:
-        for name in ("gain", "read_noise", "relative", "dark_current"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise InputError(f"noise model {name} must be finite and ≥ 0, got {v}")
-        if self.gain == 0 and self.read_noise == 0:
-            raise InputError("noise model needs gain > 0 or read_noise > 0")
-
-    def zero_signal_variance(self, times_ms) -> np.ndarray:
-        """float64 ``(P,)``: ``var(y)`` at zero signal for each exposure time."""
-        t = np.asarray(times_ms, dtype=np.float64)
-        return self.read_noise ** 2 + self.gain * self.dark_current * t
-
-    def as_dict(self) -> dict:
-        return {"gain_dn_per_e": self.gain, "read_noise_dn": self.read_noise,
-                "dark_current_dn_per_ms": self.dark_current, "relative": self.relative,
-                "source": self.source}
-
-
-@dataclass
-class MergeResult:
-    """What :func:`merge_bracket` returns.
-
-    Attributes
-    ----------
-    radiance
-        float32 ``(lines, samples, bands)`` (possibly a transposed view of a
-        band-interleaved buffer).
-    confidence
-        float32 ``(lines, samples)``: expected signal-to-noise ratio of the
-        merged radiance (noise model), averaged over bands; 0 where no sample was usable.
-    mask
-        uint8 ``(lines, samples)``: bit 1 some band saturated in every exposure,
-        bit 4 no usable sample in any band.
-    chi2, dof
-        float32 / int32 ``(lines, samples)``: Σ over bands and usable exposures of
-        the squared normalised residuals ``(y_j/t_j − X)²/var_j`` and its degrees
-        of freedom (Σ (usable − 1)); input of :func:`mehs.synthesis.ghost.detect_ghosts`.
-    mean_radiance
-        float32 ``(lines, samples)``: mean over bands of the radiance.
-    """
-
-    radiance: np.ndarray
-    confidence: np.ndarray
-    mask: np.ndarray
-    chi2: np.ndarray
-    dof: np.ndarray
-    mean_radiance: np.ndarray
-    info: dict[str, Any] = field(default_factory=dict)
-
+# the types live in merge_types; callers import them from here
+__all__ = ["MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
+           "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003",
+           "merge_bracket", "merge_inverse_variance", "warm_merge_kernel"]
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -180,7 +109,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                   noise_floor: float | None = None, weighting: str = "hat",
                   calibration: float | np.ndarray = 1.0, chunk_lines: int = 128,
                   dark_mode: str = "auto", consistency: bool = True,
-                  clip_negative: bool = True, source: Any = None) -> MergeResult:
+                  consistency_bins: int = 1, clip_negative: bool = True,
+                  source: Any = None) -> MergeResult:
     """Merge P exposures (shortest first or not) into a radiance cube.
 
     Parameters
@@ -224,6 +154,12 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     consistency
         Accumulate the per-pixel χ² consistency statistic (for ghost detection);
         ``False`` saves one pass over each row and leaves ``chi2`` at 0.
+    consistency_bins
+        Adjacent bands summed before the χ² statistic (1: per band). Bins of several
+        bands detect more of the weakly moving pixels, whose change keeps its sign
+        across neighbouring bands, and cost fewer divisions
+        (:mod:`mehs.synthesis._merge_binned`); ``dof`` then counts bins. Implemented for
+        the Poisson merge of a linear sensor.
     chunk_lines
         Most lines per kernel call. The kernel reads BIL inputs in place and writes
         straight into the output, so this bounds only the copy made for other
@@ -374,6 +310,17 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = "poisson_linear" if linear else None
     else:
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
+    nbin = int(consistency_bins) if isinstance(consistency_bins, (int, np.integer)) else 0
+    if nbin < 1 or isinstance(consistency_bins, bool):
+        raise InputError(f"consistency_bins must be a whole number of bands ≥ 1, "
+                         f"got {consistency_bins!r}", source)
+    if consistency and nbin > 1:
+        if kind != "poisson_linear":
+            raise InputError(f"consistency_bins={nbin} is implemented for the Poisson merge of "
+                             f"a linear sensor only (method {method!r}"
+                             + (", a recovered response curve)" if not linear else ")")
+                             + "; use consistency_bins=1", source)
+        kind = "poisson_linear_binned"
     if kind is not None and not consistency:
         kind += _RADIANCE
     native = None
@@ -387,6 +334,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
 
     fused_poisson = kind is not None and kind.startswith("poisson_linear")
+    binned = kind == "poisson_linear_binned"
 
     def work(l0: int, l1: int) -> None:
         parts = [np.asarray(v[l0:l1]) for v in views]
@@ -402,7 +350,13 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         parts = tuple(p if p.flags.c_contiguous else np.ascontiguousarray(p) for p in parts)
         outs = (out[l0:l1], chi2[l0:l1], dof[l0:l1], snr[l0:l1], nsat[l0:l1],
                 nvalid[l0:l1], msum[l0:l1])
-        if fused_poisson:
+        if binned:
+            # the bin's running sums, per chunk (each thread its own)
+            scratch = (tuple(np.empty(ns, np.float32) for _ in range(P)),
+                       np.empty(ns, np.float32), np.empty(ns, np.int32))
+            kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, True, bool(clip_negative),
+                   nbin, *scratch, *outs)
+        elif fused_poisson:
             kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, bool(consistency),
                    bool(clip_negative), *outs)
         elif kind is not None:               # a weighted method's one-pass kernel
@@ -448,6 +402,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                       "dark_current": noise.dark_current,
                       "relative": noise.relative, "floor": floor},
             "saturation_dn": sat.tolist() if np.unique(sat).size > 1 else float(sat[0]),
+            "consistency_bins": nbin if consistency else None,
             "bands_saturated_in_all": int(nsat.sum()), "nvalid": nvalid}
     return MergeResult(radiance, (snr / nb).astype(np.float32), mask, chi2, dof, msum, info)
 
@@ -455,7 +410,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                       method: str = "poisson", darks: Sequence[np.ndarray | None] | None = None,
                       bit_depth: int = 12, saturation: Any = None, linear: bool = True,
-                      consistency: bool = True):
+                      consistency: bool = True, consistency_bins: int = 1):
     """Start loading (or, on a first-ever run, compiling) the kernel a merge will need.
 
     Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
@@ -483,7 +438,7 @@ def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                 "warm-up")
             merge_bracket([a[:1] for a in arrays], times_ms, method=method, darks=darks,
                           bit_depth=bit_depth, saturation=saturation, response=curve,
-                          consistency=consistency)
+                          consistency=consistency, consistency_bins=consistency_bins)
         except Exception:   # noqa: BLE001 - the real merge reports it
             pass
 

@@ -1,0 +1,92 @@
+"""What a merge takes and gives besides the raws: the noise model and the result.
+
+Kept apart from :mod:`mehs.synthesis.merge` (which re-exports them) so that the merge's
+own module holds its algorithm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mehs.errors import InputError
+
+#: mask bits shared with the dataset format
+MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise of a dark-subtracted, linearised sample ``y`` (DN) of an exposure of ``t`` ms.
+
+    ``var(y) = gain·y + read_noise² + gain·dark_current·t + (relative·y)²``
+
+    ``gain`` is in DN per electron (shot noise), ``read_noise`` in DN (one
+    sigma at zero signal, after dark subtraction: read noise, quantisation and
+    the dark reference's own error), ``dark_current`` in DN/ms (its electrons
+    add shot noise although the dark subtraction removes their mean),
+    ``relative`` a systematic relative error between exposures (response-curve
+    error; 0 for a linear sensor, whose flat-field error is the same in every
+    exposure and cancels in the consistency test). :func:`mehs.synthesis.noise.estimate_noise_PTC`
+    measures all of them from a bracket.
+    """
+
+    gain: float = 1.0
+    read_noise: float = 2.0
+    relative: float = 0.01
+    dark_current: float = 0.0
+    source: str = "default"
+
+    def __post_init__(self) -> None:
+        for name in ("gain", "read_noise", "relative", "dark_current"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"noise model {name} must be finite and ≥ 0, got {v}")
+        if self.gain == 0 and self.read_noise == 0:
+            raise InputError("noise model needs gain > 0 or read_noise > 0")
+
+    def zero_signal_variance(self, times_ms) -> np.ndarray:
+        """float64 ``(P,)``: ``var(y)`` at zero signal for each exposure time."""
+        t = np.asarray(times_ms, dtype=np.float64)
+        return self.read_noise ** 2 + self.gain * self.dark_current * t
+
+    def as_dict(self) -> dict:
+        return {"gain_dn_per_e": self.gain, "read_noise_dn": self.read_noise,
+                "dark_current_dn_per_ms": self.dark_current, "relative": self.relative,
+                "source": self.source}
+
+
+@dataclass
+class MergeResult:
+    """What :func:`merge_bracket` returns.
+
+    Attributes
+    ----------
+    radiance
+        float32 ``(lines, samples, bands)`` (possibly a transposed view of a
+        band-interleaved buffer).
+    confidence
+        float32 ``(lines, samples)``: expected signal-to-noise ratio of the
+        merged radiance (noise model), averaged over bands; 0 where no sample was usable.
+    mask
+        uint8 ``(lines, samples)``: bit 1 some band saturated in every exposure,
+        bit 4 no usable sample in any band.
+    chi2, dof
+        float32 / int32 ``(lines, samples)``: Σ over bands and usable exposures of
+        the squared normalised residuals ``(y_j/t_j − X)²/var_j`` and its degrees
+        of freedom (Σ (usable − 1)) — over bins of adjacent bands, their levels summed,
+        with ``consistency_bins`` > 1 (``info["consistency_bins"]``); input of
+        :func:`mehs.synthesis.ghost.detect_ghosts`.
+    mean_radiance
+        float32 ``(lines, samples)``: mean over bands of the radiance.
+    """
+
+    radiance: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    mean_radiance: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
