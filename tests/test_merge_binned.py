@@ -26,7 +26,7 @@ def test_bins_of_one_band_give_the_per_band_kernels_numbers_to_the_bit(seed, P, 
     stack, t, darks = _stress_bracket(seed, P)
     kw = dict(darks=darks, bit_depth=12, clip_negative=bool(seed % 2),
               noise=NoiseModel(1.7, 3.0, relative=0.01 if seed % 2 else 0.0),
-              calibration=np.linspace(0.5, 2, stack[0].shape[2]))
+              calibration=np.linspace(0.5, 2, stack[0].shape[2]), consistency_bins=1)
     per_band = merge_bracket(stack, t, **kw)
     ns = stack[0].shape[1]
 
@@ -185,3 +185,24 @@ def test_the_stored_binned_kernel_gives_the_numba_kernels_bits(tmp_path, monkeyp
     ref = merge_bracket(stack, t, **kw)
     assert ref.dof.max() > 0
     assert_same_merge_bits(stored, ref)
+
+
+def test_auto_bins_a_dense_spectrum_of_the_default_merge_only():
+    """Bins of 4 for the Poisson merge of a linear sensor's cube of ≥ 100 bands; one band
+    per bin for a few broad bands (a change may flip its sign between them) and for the
+    merges without a binned kernel."""
+    from mehs.synthesis.merge import AUTO_BINS_MIN_BANDS, AUTO_CONSISTENCY_BINS
+
+    rng = np.random.default_rng(0)
+    t = [1.0, 4.0, 16.0]
+    for nb, want in ((AUTO_BINS_MIN_BANDS, AUTO_CONSISTENCY_BINS), (AUTO_BINS_MIN_BANDS - 1, 1)):
+        E = rng.uniform(5, 50, (3, 4, nb))
+        stack = [np.rint(E * tj + 60 + rng.normal(0, 2, E.shape)).astype(np.uint16) for tj in t]
+        darks = [np.full((4, nb), 60.0)] * 3
+        r = merge_bracket(stack, t, darks=darks, noise=NOISE)
+        assert r.info["consistency_bins"] == want
+        assert (r.dof == -(-nb // want) * 2).all()
+        assert merge_bracket(stack, t, darks=darks, noise=NOISE,
+                             method="robertson").info["consistency_bins"] == 1
+        assert merge_bracket(stack, t, darks=darks, consistency=False).info[
+            "consistency_bins"] is None

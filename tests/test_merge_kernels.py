@@ -149,9 +149,10 @@ def test_one_pass_poisson_kernel_equals_the_stage_kernel_to_the_bit(seed, P, con
     from mehs.synthesis.merge import NoiseModel, merge_bracket
 
     stack, t, darks = _stress_bracket(seed, P)
+    # (per band: the stage kernel has no binned statistic)
     kw = dict(darks=darks, bit_depth=12, consistency=consistency, clip_negative=clip,
               noise=NoiseModel(1.7, 3.0, relative=0.01 if seed % 2 else 0.0),
-              calibration=np.linspace(0.5, 2, stack[0].shape[2]))
+              calibration=np.linspace(0.5, 2, stack[0].shape[2]), consistency_bins=1)
     fused = merge_bracket(stack, t, **kw)
 
     def stage(zs, darks, sat, times, gain, avar, rel_var, cal, want_chi2, clip, *outs):

@@ -470,6 +470,8 @@ def _summary(mr, mask, bracket, curve, method, ghosts, ghost_fraction, gres, noi
         "valid_fraction": float(np.mean(mask == 0)),
         "ghosts": ghosts,
         "ghost_chi2_scale": None if gres is None else gres.scale,
+        # bands summed per bin of the χ² statistic (None: not computed)
+        "ghost_chi2_bins": mr.info.get("consistency_bins"),
         # the χ² over its expectation under the noise model (below 1: the model overstates
         # the noise; kept for the record, never divided out — see mehs.synthesis.ghost)
         "ghost_chi2_fit": (None if gres is None or not np.isfinite(gres.fit)

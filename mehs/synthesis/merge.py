@@ -64,9 +64,20 @@ from mehs.synthesis.merge_types import (MASK_GHOST, MASK_INVALID, MASK_SATURATED
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
 # the types live in merge_types; callers import them from here
-__all__ = ["MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
+__all__ = ["AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS", "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
            "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003",
            "merge_bracket", "merge_inverse_variance", "warm_merge_kernel"]
+
+#: the bands per bin of the χ² ghost statistic of ``consistency_bins="auto"`` where the
+#: merge has a binned statistic (benchmarks/bench_ghost_bands.py: bins of 4 flag 99.8 % of
+#: the pixels whose change is 10–30σ over all bands, the per-band statistic 93.5 %; ~15 %
+#: less merge time, benchmarks/RESULTS.md "Issue 16, session 33")
+AUTO_CONSISTENCY_BINS = 4
+#: ... for cubes of at least this many bands: a dense spectrum, whose neighbouring bands a
+#: moving object changes alike (a Specim IQ's 204 bands are 3 nm apart, an FX10's 224
+#: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
+#: change may flip its sign between them
+AUTO_BINS_MIN_BANDS = 100
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -109,7 +120,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                   noise_floor: float | None = None, weighting: str = "hat",
                   calibration: float | np.ndarray = 1.0, chunk_lines: int = 128,
                   dark_mode: str = "auto", consistency: bool = True,
-                  consistency_bins: int = 1, clip_negative: bool = True,
+                  consistency_bins: int | str = "auto", clip_negative: bool = True,
                   source: Any = None) -> MergeResult:
     """Merge P exposures (shortest first or not) into a radiance cube.
 
@@ -159,7 +170,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         bands detect more of the weakly moving pixels, whose change keeps its sign
         across neighbouring bands, and cost fewer divisions
         (:mod:`mehs.synthesis._merge_binned`); ``dof`` then counts bins. Implemented for
-        the Poisson merge of a linear sensor.
+        the Poisson merge of a linear sensor; ``"auto"`` (default) takes
+        :data:`AUTO_CONSISTENCY_BINS` there for cubes of at least
+        :data:`AUTO_BINS_MIN_BANDS` bands, and 1 otherwise (few broad bands, or the other
+        merges, whose kernels have no binned statistic yet). ``info["consistency_bins"]``
+        records the choice.
     chunk_lines
         Most lines per kernel call. The kernel reads BIL inputs in place and writes
         straight into the output, so this bounds only the copy made for other
@@ -310,10 +325,14 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = "poisson_linear" if linear else None
     else:
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
-    nbin = int(consistency_bins) if isinstance(consistency_bins, (int, np.integer)) else 0
-    if nbin < 1 or isinstance(consistency_bins, bool):
-        raise InputError(f"consistency_bins must be a whole number of bands ≥ 1, "
-                         f"got {consistency_bins!r}", source)
+    if isinstance(consistency_bins, str) and consistency_bins == "auto":
+        nbin = (AUTO_CONSISTENCY_BINS if kind == "poisson_linear" and nb >= AUTO_BINS_MIN_BANDS
+                else 1)
+    else:
+        nbin = int(consistency_bins) if isinstance(consistency_bins, (int, np.integer)) else 0
+        if nbin < 1 or isinstance(consistency_bins, bool):
+            raise InputError(f"consistency_bins must be 'auto' or a whole number of bands ≥ 1, "
+                             f"got {consistency_bins!r}", source)
     if consistency and nbin > 1:
         if kind != "poisson_linear":
             raise InputError(f"consistency_bins={nbin} is implemented for the Poisson merge of "
@@ -410,7 +429,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
 def warm_merge_kernel(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
                       method: str = "poisson", darks: Sequence[np.ndarray | None] | None = None,
                       bit_depth: int = 12, saturation: Any = None, linear: bool = True,
-                      consistency: bool = True, consistency_bins: int = 1):
+                      consistency: bool = True, consistency_bins: int | str = "auto"):
     """Start loading (or, on a first-ever run, compiling) the kernel a merge will need.
 
     Runs :func:`merge_bracket` on the first line of ``stack`` in a daemon thread and
