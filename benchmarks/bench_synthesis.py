@@ -163,11 +163,12 @@ def bench_merge(size: int, threads: int | None = None) -> list[tuple[str, float,
     # time slices to other processes, and best-of-2 varied by 2.5× between runs
     for method, consistency in (("poisson", True), ("poisson", False), ("debevec", True),
                                 ("debevec", False), ("robertson", True), ("robertson", False)):
-        t_m, _ = best(lambda: merge_bracket(stack, t, method=method, darks=[dark] * P,
-                                            consistency=consistency), 5)
+        t_m, res = best(lambda: merge_bracket(stack, t, method=method, darks=[dark] * P,
+                                              consistency=consistency), 5)
         mehs_t[method, consistency] = t_m
-        what = ("radiance + χ² ghost statistic + SNR + mask" if consistency
-                else "radiance (+ SNR, mask)")
+        k = res.info["consistency_bins"]
+        what = (f"radiance + χ² ghost statistic ({'bins of %d bands' % k if k > 1 else 'per band'})"
+                " + SNR + mask" if consistency else "radiance (+ SNR, mask)")
         rows.append((f"mehs {method} {nl}×{ns}×{nb}×{P}: {what}", t_m,
                      f"{t_m / t_read:.2f}× read pass"))
     tracemalloc.start()

@@ -49,7 +49,8 @@ def merge_chunk_poisson_linear_binned(zs, darks, sat, times, gain, avar, rel_var
     Arguments as :func:`mehs.synthesis._merge_fused.merge_chunk_poisson_linear`, plus
     ``nbin`` (≥ 1) and the scratch: ``ysum`` a tuple of ``P`` float32 rows of ``samples``
     values, ``xps`` float32 and ``bms`` int32 rows of ``samples`` values. ``want_chi2`` is
-    ignored (this kernel is the statistic's).
+    ignored (this kernel is the statistic's). At most 16 exposures: ``bms`` holds two of
+    their bit masks (the caller checks).
     """
     P = len(zs)
     nl, nb, ns = out.shape

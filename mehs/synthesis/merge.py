@@ -78,6 +78,8 @@ AUTO_CONSISTENCY_BINS = 4
 #: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
 #: change may flip its sign between them
 AUTO_BINS_MIN_BANDS = 100
+#: most exposures of a binned statistic (its kernel keeps two bit masks in an int32)
+_BINNED_MAX_EXPOSURES = 16
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -327,13 +329,18 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
     if isinstance(consistency_bins, str) and consistency_bins == "auto":
         nbin = (AUTO_CONSISTENCY_BINS if kind == "poisson_linear" and nb >= AUTO_BINS_MIN_BANDS
-                else 1)
+                and P <= _BINNED_MAX_EXPOSURES else 1)
     else:
         nbin = int(consistency_bins) if isinstance(consistency_bins, (int, np.integer)) else 0
         if nbin < 1 or isinstance(consistency_bins, bool):
             raise InputError(f"consistency_bins must be 'auto' or a whole number of bands ≥ 1, "
                              f"got {consistency_bins!r}", source)
+    nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
+        if P > _BINNED_MAX_EXPOSURES:
+            # the kernel packs two exposure masks into one int32 per sample
+            raise InputError(f"consistency_bins={nbin} takes at most {_BINNED_MAX_EXPOSURES} "
+                             f"exposures, got {P}; use consistency_bins=1", source)
         if kind != "poisson_linear":
             raise InputError(f"consistency_bins={nbin} is implemented for the Poisson merge of "
                              f"a linear sensor only (method {method!r}"
