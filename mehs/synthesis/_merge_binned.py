@@ -74,7 +74,10 @@ def merge_chunk_poisson_linear_binned(zs, darks, sat, times, gain, avar, rel_var
                 c_a = cal[a]
                 ol = ol_[a]
                 for i in range(ns):
-                    # -- choose the samples (merge_chunk_poisson_linear's loop)
+                    # -- choose the samples: merge_chunk_poisson_linear's expressions, repeated
+                    #    in place as _merge_fused_weighted repeats them (LLVM vectorises the
+                    #    loop only with a sample's state in locals: an inline helper returning
+                    #    it stopped that, see _merge_rows._usable)
                     sy = f0
                     st = f0
                     st2 = f0
