@@ -422,10 +422,10 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
         flat_args.append(f"carray(a{i}, ({', '.join(dims)},))" if nd else f"a{i}")
     k_args = []           # a tuple parameter's P arrays regrouped into its tuple
     for _, t in spec.params:
-        n = P if t.partition(":")[0] in _TUPLES else 1
+        is_tuple = t.partition(":")[0] in _TUPLES
+        n = P if is_tuple else 1
         group, flat_args = flat_args[:n], flat_args[n:]
-        k_args.append(f"({', '.join(group)},)" if n == P and t.partition(":")[0] in _TUPLES
-                      else group[0])
+        k_args.append(f"({', '.join(group)},)" if is_tuple else group[0])
     src = f"def entry({', '.join(c_names)}):\n    K({', '.join(k_args)})\n"
     ns_: dict = {"K": K, "carray": carray}
     exec(compile(src, f"<mehs native entry {kind}>", "exec"), ns_)   # noqa: S102
