@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import math
 import shutil
 import time
 import traceback
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -24,125 +23,19 @@ from mehs import __version__
 from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import report_stage
 from mehs.dataset.portable import portable_provenance, portable_summary
-from mehs.dataset.scene_list import SceneSource
-from mehs.errors import InputError, MehsError
+from mehs.errors import MehsError
 from mehs.io.atomic import sha256_file
 # re-exported: the library API (and tests) import them from here
 from mehs.dataset.cube_figures import (dynamic_range_stops, half_float_scale,  # noqa: F401
                                        luminance_low_end, to_31_bands)
 
+# what a scene is built from and keyed by (split from this module); re-exported
+from mehs.dataset.scene_task import (BuildParams, SceneTask, _params_for_key,  # noqa: F401
+                                     input_files)
+
 TMP_PREFIX = ".tmp-"
 
 
-@dataclass(frozen=True)
-class BuildParams:
-    """Parameters that change a scene's outputs (they enter the scene key).
-
-    Attributes
-    ----------
-    method
-        Merge estimator name (a key of ``mehs.synthesis.merge.MERGE_METHODS``).
-    response
-        Path of a response-curve file to use for every scene, or ``None`` to
-        recover one per scene.
-    ghosts
-        Ghost handling passed to ``fuse_bracket`` (``"detect"`` by default).
-    seed
-        Seed of every random choice (response sampling); also the split seed.
-    resample
-        Resampling method to 31 bands (``"gaussian"``, ``"linear"``, ``"box"``).
-    fwhm
-        Target band FWHM in nm for Gaussian/box resampling.
-    calibration
-        Path of a radiometric calibration (``mehs calibrate``): cubes in
-        radiance instead of DN/ms.
-    allow_partial
-        Fuse a scene whose capture did not finish from its complete exposures.
-    """
-
-    method: str = "poisson"
-    response: str | None = None
-    ghosts: str = "detect"
-    seed: int = 0
-    resample: str = "gaussian"
-    fwhm: float = 10.0
-    calibration: str | None = None
-    allow_partial: bool = False
-
-    def __post_init__(self):
-        # a bad value would otherwise fail every scene one by one and still
-        # write a dataset of failed scenes
-        from mehs.synthesis.resample import RESAMPLING_METHODS
-
-        if self.resample not in RESAMPLING_METHODS:
-            raise InputError(f"unknown resampling method {self.resample!r}; use one of "
-                             f"{sorted(RESAMPLING_METHODS)}")
-        if not (math.isfinite(self.fwhm) and self.fwhm > 0):
-            raise InputError(f"target FWHM must be a positive number of nm, got {self.fwhm}")
-
-
-@dataclass
-class SceneTask:
-    """Everything a worker needs to build one scene (picklable)."""
-
-    source: SceneSource
-    dataset: str
-    params: BuildParams
-    previous_key: str | None = None
-    response_sha256: str | None = None
-
-
-def input_files(source: SceneSource) -> dict[str, Path]:
-    """Files a scene is built from, by a stable relative name → absolute path.
-
-    Scene folders: ``scene.json`` and every file of the exposure folders that
-    ``scene.json`` lists as complete (not ``truth/``). Specim IQ folders: every
-    file, prefixed ``<k>/`` for the k-th folder. HS cubes: the header and data file.
-    """
-    out: dict[str, Path] = {}
-    if source.kind == "scene":
-        from mehs.capture.scenefolder import read_scene_json
-
-        root = Path(source.paths[0])
-        meta = read_scene_json(root)  # checks the structure: a damaged file is a named error
-        out["scene.json"] = root / "scene.json"
-        for exp in meta["exposures"]:
-            if exp.get("status") != "complete":
-                continue
-            folder = root / exp["folder"]
-            if not folder.is_dir():
-                raise InputError(f"exposure folder {exp['folder']} is missing", root)
-            for f in sorted(folder.rglob("*")):
-                if f.is_file():
-                    out[f.relative_to(root).as_posix()] = f
-    elif source.kind == "specim":
-        for k, folder in enumerate(source.paths):
-            for f in sorted(Path(folder).rglob("*")):
-                if f.is_file():
-                    out[f"{k}/{f.relative_to(folder).as_posix()}"] = f
-    else:
-        from mehs.io.envi import data_file_candidates
-
-        hdr = Path(source.paths[0])
-        out[hdr.name] = hdr
-        # every file the reader could take as the data (x.bin, x.RAW, ...): one it reads
-        # but the key leaves out would let a changed cube reuse its stale outputs
-        for data in data_file_candidates(hdr):
-            out[data.name] = data
-    return out
-
-
-def _params_for_key(task: SceneTask) -> dict[str, Any]:
-    p = asdict(task.params)
-    p["response"] = task.response_sha256  # the curve's content, not where it lives
-    if p.get("calibration"):
-        p["calibration"] = sha256_file(p["calibration"])
-    if not p.get("allow_partial"):
-        p.pop("allow_partial", None)  # keys of complete scenes stay what they were
-    if task.source.kind == "hs":
-        for k in ("method", "response", "ghosts"):
-            p.pop(k)
-    return p
 
 
 def build_scene(task: SceneTask) -> dict[str, Any]:
