@@ -160,7 +160,7 @@ def test_binned_bins_flag_more_of_a_dim_moving_patch_and_no_static_pixel():
 
 def test_bins_other_than_one_are_refused_where_not_implemented_and_when_not_whole():
     stack, t, darks = _stress_bracket(0, 3)
-    for bad in (0, -2, 2.5, True, "4"):
+    for bad in (0, -2, 2.5, True, "4.0", "four"):   # ("4", as a command line gives it: 4)
         with pytest.raises(InputError, match="consistency_bins"):
             merge_bracket(stack, t, darks=darks, consistency_bins=bad)
     with pytest.raises(InputError, match="Poisson merge of a linear sensor"):

@@ -34,6 +34,9 @@ def configure(parser):
                         help="merge estimator (default: poisson)")
     parser.add_argument("--ghosts", default="detect", choices=["detect", "deghost", "off"],
                         help="ghost handling (default: detect)")
+    parser.add_argument("--ghost-bins", default="auto", metavar="N",
+                        help="adjacent bands summed per term of the ghost test's χ² statistic "
+                             "(as mehs fuse --ghost-bins; default auto)")
     parser.add_argument("--resample", default="gaussian", choices=["gaussian", "linear", "box"],
                         help="resampling to 400..700 nm step 10 (default: gaussian)")
     parser.add_argument("--fwhm", type=float, default=10.0, help="target FWHM nm (default 10)")
@@ -98,6 +101,7 @@ def run(args):
         else:
             manifest = build_dataset(args.scenes, args.out, response=args.response,
                                      method=args.method, ghosts=args.ghosts,
+                                     ghost_bins=args.ghost_bins,
                                      calibration=args.calibration,
                                      allow_partial=args.allow_partial, **common)
     except KeyboardInterrupt:

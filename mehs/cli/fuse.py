@@ -27,6 +27,12 @@ def configure(parser):
     parser.add_argument("--ghosts", default="detect", choices=["detect", "off", "deghost"],
                         help="flag moving pixels (detect), also take them from one exposure "
                              "(deghost), or skip the test (off) (default: detect)")
+    parser.add_argument("--ghost-bins", default="auto", metavar="N",
+                        help="adjacent bands summed per term of the ghost test's χ² statistic: "
+                             "auto (default: 4 for the Poisson merge of a linear sensor's cube "
+                             "of ≥ 100 bands, else 1), or N ≥ 1; 1 tests every band alone "
+                             "(spectra whose moving features change sign within a few bands). "
+                             "N > 1 needs the Poisson merge")
     parser.add_argument("--reference", default="auto",
                         help="exposure index used for ghost pixels with --ghosts deghost (default "
                              "auto: the one with most usable samples there)")
@@ -95,6 +101,14 @@ def run(args) -> int:
 
     check_bracket_paths(args.scene)
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
+    from mehs.synthesis.merge_types import consistency_bins_value
+
+    args.ghost_bins = consistency_bins_value(args.ghost_bins, what="--ghost-bins")
+    if args.ghost_bins not in ("auto", 1) and args.method != "poisson" and args.ghosts != "off":
+        from mehs.errors import InputError
+
+        raise InputError(f"--ghost-bins {args.ghost_bins} needs --method poisson (the other "
+                         "merges test each band alone); use --ghost-bins 1 or auto")
     from mehs.cli._overwrite import refuse_existing
 
     if (Path(args.out) / "summary.json").exists():
@@ -140,7 +154,8 @@ def run(args) -> int:
                            ghosts=args.ghosts, smoothness=args.smoothness, samples=args.samples,
                            seed=args.seed, shared_response=not args.per_band,
                            calibration=cal, reference=ref, noise=args.noise,
-                           saturation=sat, clip_negative=args.clip_negative)
+                           saturation=sat, clip_negative=args.clip_negative,
+                           ghost_bins=args.ghost_bins)
     files = write_fusion(res, args.out)
     for w in res.summary.get("warnings", []):
         print(f"mehs: warning: {w}", file=sys.stderr)

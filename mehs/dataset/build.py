@@ -94,7 +94,8 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
                   fwhm: float = 10.0, scheduler: Any = None, progress: bool = True,
                   on_commit: Callable[[dict], None] | None = None,
                   calibration: str | Path | None = None, verify: bool = False,
-                  allow_partial: bool = False) -> dict[str, Any]:
+                  allow_partial: bool = False,
+                  ghost_bins: int | str = "auto") -> dict[str, Any]:
     """Build (or resume, or extend) the dataset folder ``out``.
 
     Parameters
@@ -112,7 +113,7 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         Rebuild scenes even when their key is unchanged.
     response
         A response-curve file to use instead of recovering one per scene.
-    method, ghosts, seed, resample, fwhm
+    method, ghosts, ghost_bins, seed, resample, fwhm
         See :class:`BuildParams`; ``seed`` also seeds the splits.
     splits
         Train/val/test fractions over the passing scenes.
@@ -158,7 +159,7 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
     params = BuildParams(method=method, response=str(Path(response).resolve()) if response else None,
                          ghosts=ghosts, seed=int(seed), resample=resample, fwhm=float(fwhm),
                          calibration=str(Path(calibration).resolve()) if calibration else None,
-                         allow_partial=bool(allow_partial))
+                         allow_partial=bool(allow_partial), ghost_bins=ghost_bins)
     radiometric = {"radiance_unit": "DN/ms (uncalibrated)", "calibration": None}
     if calibration:
         from mehs.calibration import Calibration

@@ -202,7 +202,8 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     report_stage(sid, "fuse")
     with _timed(run, "fuse"):
         result = fuse_bracket(bracket, method=p.method, response=p.response or "auto",
-                              ghosts=p.ghosts, seed=p.seed, calibration=p.calibration)
+                              ghosts=p.ghosts, seed=p.seed, calibration=p.calibration,
+                              ghost_bins=p.ghost_bins)
     from mehs.dataset.noisefloor_sat import record_saturation
 
     # where each exposure saturates (fusion.json): the noise model of what the merge used

@@ -41,6 +41,9 @@ class BuildParams:
         radiance instead of DN/ms.
     allow_partial
         Fuse a scene whose capture did not finish from its complete exposures.
+    ghost_bins
+        Adjacent bands summed per term of the merge's χ² ghost statistic
+        (``fuse_bracket``'s ``ghost_bins``): ``"auto"`` or a whole number ≥ 1.
     """
 
     method: str = "poisson"
@@ -51,6 +54,7 @@ class BuildParams:
     fwhm: float = 10.0
     calibration: str | None = None
     allow_partial: bool = False
+    ghost_bins: int | str = "auto"
 
     def __post_init__(self):
         # a bad value would otherwise fail every scene one by one and still
@@ -62,6 +66,16 @@ class BuildParams:
                              f"{sorted(RESAMPLING_METHODS)}")
         if not (math.isfinite(self.fwhm) and self.fwhm > 0):
             raise InputError(f"target FWHM must be a positive number of nm, got {self.fwhm}")
+        from mehs.synthesis.merge_types import consistency_bins_value
+
+        # "4" (a command line's) and 4 make the same key
+        object.__setattr__(self, "ghost_bins",
+                           consistency_bins_value(self.ghost_bins, what="ghost_bins"))
+        if self.ghost_bins not in ("auto", 1) and self.method != "poisson" \
+                and self.ghosts != "off":
+            raise InputError(f"ghost_bins={self.ghost_bins} (bands summed per χ² term) is "
+                             f"implemented for the Poisson merge only, not {self.method!r}; "
+                             "use 1 or 'auto'")
 
 
 @dataclass
@@ -122,7 +136,9 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
         p["calibration"] = sha256_file(p["calibration"])
     if not p.get("allow_partial"):
         p.pop("allow_partial", None)  # keys of complete scenes stay what they were
+    if p.get("ghost_bins") == "auto":
+        p.pop("ghost_bins", None)     # and those built before the option existed
     if task.source.kind == "hs":
-        for k in ("method", "response", "ghosts"):
-            p.pop(k)
+        for k in ("method", "response", "ghosts", "ghost_bins"):
+            p.pop(k, None)
     return p

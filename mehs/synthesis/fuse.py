@@ -21,6 +21,7 @@ from mehs.errors import InputError
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
                                   NoiseModel, merge_bracket, warm_merge_kernel)
+from mehs.synthesis.merge_types import consistency_bins_value
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -137,7 +138,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                  saturation: float | np.ndarray | None = None,
                  calibration: float | np.ndarray | None = None, ghost_alpha: float = 1e-4,
                  reference: int | str = "auto", chunk_lines: int = 128,
-                 check_response: bool = True, clip_negative: bool = False) -> FusionResult:
+                 check_response: bool = True, clip_negative: bool = False,
+                 ghost_bins: int | str = "auto") -> FusionResult:
     """Fuse a bracket into an HDR radiance cube.
 
     Parameters
@@ -175,6 +177,13 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         (×1.43 at 2–4 DN of signal; +2 % in a scene's darkest decile, more after band
         averaging). The RGB step clips, as the paper does, and HS environment maps clip
         on loading; summary ``negative_fraction`` counts the negative samples.
+    ghost_bins
+        Adjacent bands summed per term of the merge's χ² ghost statistic
+        (``consistency_bins`` of :func:`~mehs.synthesis.merge.merge_bracket`): ``"auto"``
+        (default: 4 for the Poisson merge of a linear sensor's cube of ≥ 100 bands, else
+        1) or a whole number; more than 1 only with the Poisson merge (a recovered,
+        non-linear curve refuses it at the merge). ``summary["ghost_chi2_bins"]``
+        records what was used.
     check_response
         After recovering a curve, run the self-consistency check of
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
@@ -197,6 +206,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         raise InputError(f"smoothness (lambda) must be finite and > 0, got {smoothness}")
     if samples is not None and int(samples) < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
+    ghost_bins = consistency_bins_value(ghost_bins, what="ghost_bins")
+    if ghost_bins != "auto" and ghost_bins > 1 and method != "poisson" and ghosts != "off":
+        # refused before the response work, not at the merge
+        raise InputError(f"ghost_bins={ghost_bins} (bands summed per χ² term) is implemented "
+                         f"for the Poisson merge only, not {method!r}; use 1 or 'auto'")
     n_exp = len(bracket.times_ms)
     if reference != "auto" and not (isinstance(reference, (int, np.integer))
                                     and 0 <= reference < n_exp):
@@ -231,7 +245,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     # numba's import and kernel load (or first-ever compile) overlap the checks below
     warm_merge_kernel([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                       darks=bracket.darks, bit_depth=bracket.bit_depth, saturation=sat,
-                      consistency=ghost_statistic)
+                      consistency=ghost_statistic, consistency_bins=ghost_bins)
     curve, auto_info, probe = choose_response(
         bracket, response, method=method, saturation=sat, smoothness=smoothness,
         samples=samples, seed=seed, shared=shared_response, check=check_response)
@@ -271,8 +285,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,
                        saturation=sat, noise=noise, calibration=cal, chunk_lines=chunk_lines,
-                       consistency=ghost_statistic, clip_negative=clip_negative,
-                       source=bracket.source)
+                       consistency=ghost_statistic, consistency_bins=ghost_bins,
+                       clip_negative=clip_negative, source=bracket.source)
     timings["merge_s"] = time.perf_counter() - t1
     mask = mr.mask
     radiance = mr.radiance

@@ -60,7 +60,7 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.synthesis.merge_types import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MergeResult,
-                                        NoiseModel)
+                                        NoiseModel, consistency_bins_value)
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
 # the types live in merge_types; callers import them from here
@@ -328,14 +328,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = "poisson_linear" if linear else None
     else:
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
-    if isinstance(consistency_bins, str) and consistency_bins == "auto":
+    nbin = consistency_bins_value(consistency_bins, source)
+    if nbin == "auto":
         nbin = (AUTO_CONSISTENCY_BINS if kind == "poisson_linear" and nb >= AUTO_BINS_MIN_BANDS
                 and P <= _BINNED_MAX_EXPOSURES else 1)
-    else:
-        nbin = int(consistency_bins) if isinstance(consistency_bins, (int, np.integer)) else 0
-        if nbin < 1 or isinstance(consistency_bins, bool):
-            raise InputError(f"consistency_bins must be 'auto' or a whole number of bands ≥ 1, "
-                             f"got {consistency_bins!r}", source)
     nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
         if P > _BINNED_MAX_EXPOSURES:

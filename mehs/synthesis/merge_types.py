@@ -90,3 +90,21 @@ class MergeResult:
     dof: np.ndarray
     mean_radiance: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+
+
+def consistency_bins_value(value: Any, source: Any = None,
+                           what: str = "consistency_bins") -> int | str:
+    """``"auto"`` or a whole number of bands ≥ 1 per bin of the χ² ghost statistic (an
+    int, or its decimal string as a command line gives it); anything else is an
+    :class:`~mehs.errors.InputError` naming ``what``."""
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text == "auto":
+            return "auto"
+        if text.isdecimal():
+            value = int(text)
+    if (isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+            and value >= 1):
+        return int(value)
+    raise InputError(f"{what} must be 'auto' or a whole number of bands ≥ 1, got {value!r}",
+                     source)

@@ -1,0 +1,139 @@
+"""The bin width of the ghost test's χ² statistic as a user sets it: `mehs fuse --ghost-bins`,
+`mehs build --ghost-bins`, ``fuse_bracket(ghost_bins=)`` (the merge's ``consistency_bins``).
+
+Bins of adjacent bands (the default for dense spectra) flag more weakly moving pixels but
+let a change whose sign flips within a bin cancel there; a lab imaging narrow spectral
+features that move across each other asks for 1. What it changes is the statistic only:
+the radiance is the same to the bit, and the scene key changes only when it is set.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mehs.errors import InputError
+from mehs.synthesis.merge_types import consistency_bins_value
+
+SIZE = 24
+TIMES_MS = (0.05, 0.4, 3.2)
+
+
+@pytest.fixture(scope="module")
+def moving_scene(tmp_path_factory):
+    """A small simulated scene of the camera's 204 bands with a moving object."""
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket, write_simulated_scene
+
+    scene = make_scene("colorchecker", SIZE, SIZE, motion=True, seed=7)
+    sim = simulate_bracket(scene, SensorModel(seed=3), TIMES_MS, seed=0)
+    return write_simulated_scene(sim, tmp_path_factory.mktemp("scene") / "mv", scene_id="mv")
+
+
+@pytest.mark.parametrize("given, expected", [("auto", "auto"), (" AUTO ", "auto"), ("4", 4),
+                                             (" 2 ", 2), (1, 1), (np.int64(8), 8)])
+def test_a_bin_width_is_auto_or_a_whole_number_of_bands(given, expected):
+    assert consistency_bins_value(given) == expected
+
+
+@pytest.mark.parametrize("bad", [0, -1, "0", "x", "4.0", "", 2.5, True, None, np.float64(4.0)])
+def test_anything_else_is_refused_naming_the_option(bad):
+    with pytest.raises(InputError, match="--ghost-bins must be 'auto' or a whole number"):
+        consistency_bins_value(bad, what="--ghost-bins")
+
+
+def test_fuse_records_the_width_and_the_radiance_does_not_change(moving_scene):
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    b = load_bracket(moving_scene)
+    assert b.shape[2] >= 100
+    auto = fuse_bracket(b, response="linear", noise="recorded")
+    one = fuse_bracket(b, response="linear", noise="recorded", ghost_bins=1)
+    eight = fuse_bracket(b, response="linear", noise="recorded", ghost_bins="8")
+    assert (auto.summary["ghost_chi2_bins"], one.summary["ghost_chi2_bins"],
+            eight.summary["ghost_chi2_bins"]) == (4, 1, 8)
+    for r in (one, eight):
+        assert np.array_equal(r.radiance.data, auto.radiance.data)
+    # the statistic is the one asked for: the moving object is found either way
+    assert auto.summary["ghost_fraction"] > 0 and one.summary["ghost_fraction"] > 0
+
+
+def test_fuse_refuses_bins_for_a_merge_without_them_before_any_work(moving_scene, monkeypatch):
+    from mehs.synthesis import fuse as fuse_mod
+    from mehs.synthesis.bracket import load_bracket
+
+    def no_work(*a, **k):
+        raise AssertionError("the response was chosen before the refusal")
+
+    monkeypatch.setattr(fuse_mod, "choose_response", no_work)
+    b = load_bracket(moving_scene)
+    with pytest.raises(InputError, match="Poisson merge only, not 'debevec'"):
+        fuse_mod.fuse_bracket(b, method="debevec", ghost_bins=4)
+    with pytest.raises(InputError, match="ghost_bins must be"):
+        fuse_mod.fuse_bracket(b, ghost_bins=0)
+
+
+def test_cli_fuse_takes_the_option(moving_scene, tmp_path, capsys):
+    from mehs.cli import main
+
+    out = tmp_path / "f1"
+    assert main(["fuse", str(moving_scene), "--out", str(out), "--ghost-bins", "1",
+                 "--response", "linear"]) == 0
+    assert json.loads((out / "summary.json").read_text())["ghost_chi2_bins"] == 1
+    for args, says in ((["--ghost-bins", "none"], "--ghost-bins must be 'auto' or a whole"),
+                       (["--ghost-bins", "4", "--method", "robertson"],
+                        "--ghost-bins 4 needs --method poisson")):
+        capsys.readouterr()
+        assert main(["fuse", str(moving_scene), "--out", str(tmp_path / "f2"), *args]) != 0
+        assert says in capsys.readouterr().err
+        assert not (tmp_path / "f2" / "summary.json").exists()
+
+
+def test_build_params_normalise_the_width_and_refuse_what_the_merge_cannot():
+    from mehs.dataset.scene_task import BuildParams
+
+    assert BuildParams(ghost_bins="4").ghost_bins == 4 == BuildParams(ghost_bins=4).ghost_bins
+    assert BuildParams().ghost_bins == "auto"
+    assert BuildParams(method="debevec", ghost_bins=1).ghost_bins == 1
+    assert BuildParams(method="debevec", ghost_bins=4, ghosts="off").ghost_bins == 4
+    with pytest.raises(InputError, match="Poisson merge only"):
+        BuildParams(method="debevec", ghost_bins=4)
+    with pytest.raises(InputError, match="ghost_bins must be"):
+        BuildParams(ghost_bins="wide")
+
+
+def test_the_scene_key_changes_only_when_the_width_is_set(moving_scene):
+    from mehs.dataset.scene_list import collect_scenes
+    from mehs.dataset.scene_task import BuildParams, SceneTask, _params_for_key
+
+    (src,) = collect_scenes([moving_scene])
+
+    def key_params(**kw):
+        return _params_for_key(SceneTask(src, "ds", BuildParams(**kw)))
+
+    # the default leaves the key of every scene built before the option existed
+    assert "ghost_bins" not in key_params()
+    assert key_params(ghost_bins=1)["ghost_bins"] == 1
+    assert key_params(ghost_bins="4") == key_params(ghost_bins=4) != key_params()
+
+
+def test_build_rebuilds_a_scene_with_the_width_it_is_given(moving_scene, tmp_path):
+    from mehs.dataset.build import build_dataset
+    from mehs.dataset.quality import QualityRules
+    from mehs.synthesis.response import ResponseCurve
+
+    curve = ResponseCurve.linear(12).save(tmp_path / "linear.json")
+    ds = tmp_path / "ds"
+    commits = []
+    kw = dict(workers=1, rules=QualityRules(), progress=False, response=curve,
+              on_commit=commits.append)
+    build_dataset([moving_scene], ds, **kw)
+    fusion = ds / "scenes" / "mv" / "fusion.json"
+    assert json.loads(fusion.read_text())["ghost_chi2_bins"] == 4
+    build_dataset([moving_scene], ds, ghost_bins="1", **kw)
+    assert [c["id"] for c in commits] == ["mv", "mv"]            # the key changed: rebuilt
+    assert json.loads(fusion.read_text())["ghost_chi2_bins"] == 1
