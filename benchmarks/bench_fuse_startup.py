@@ -7,7 +7,9 @@ Rows, each a fresh ``python -m mehs`` process (median of ``--repeat``):
 - ``python -c "import numpy"`` — the interpreter's own start-up (reference);
 - ``mehs fuse`` with warm caches (the usual case): the merge kernel's machine code in
   the mehs cache (``MEHS_CACHE_DIR``, here a folder of the benchmark's own, filled by
-  a first run), loaded without starting numba (:mod:`mehs.synthesis._native`);
+  a first run), loaded without starting numba (:mod:`mehs.synthesis._native`), and
+  Python's bytecode of mehs (written by that run, as in a user's shell, even where
+  ``PYTHONDONTWRITEBYTECODE`` is set);
 - ``mehs fuse`` with empty caches (``MEHS_CACHE_DIR`` and ``NUMBA_CACHE_DIR`` pointing
   at new folders: a first-ever run, which compiles the kernel), once (not with
   ``--skip-cold``), and how long the child process compiling the photon-transfer
@@ -90,8 +92,15 @@ def _bench(args, tmp: Path) -> int:
     size = args.size or (128 if args.quick else 512)
     scene = make_scene(tmp / "scene", size)
     env = dict(os.environ, PYTHONPATH=str(HERE.parent), MEHS_CACHE_DIR=str(tmp / "mehs_cache"))
+    # Python's bytecode cache is one of the caches a warm run has: a user's shell writes
+    # it, and a shell that forbids it (PYTHONDONTWRITEBYTECODE, set on the project's
+    # machine) had every "warm" run compile ~60 mehs modules from source again (0.09 s)
+    no_pyc = env.pop("PYTHONDONTWRITEBYTECODE", None)
     py = sys.executable
     print("before:", load_line(), flush=True)
+    if no_pyc:
+        print("(PYTHONDONTWRITEBYTECODE dropped for the runs below: their bytecode is cached "
+              "as in a user's shell)")
 
     def fuse(out: str, e=env) -> float:
         shutil.rmtree(tmp / out, ignore_errors=True)
