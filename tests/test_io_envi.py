@@ -79,6 +79,43 @@ def test_chunked_write_bit_exact(tmp_path, interleave, monkeypatch):
     np.testing.assert_array_equal(read_envi(hp).data, cube.data)
 
 
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+@pytest.mark.parametrize("interleave", ["bil", "bip", "bsq"])
+def test_the_digest_hashed_while_writing_is_the_files(tmp_path, interleave, dtype,
+                                                       monkeypatch):
+    """Chunks are hashed on a thread while they are written: the SHA-256 handed back is
+    that of the file's bytes (chunks in order, none twice), float data rounded into
+    integers included."""
+    import hashlib
+    import threading
+
+    monkeypatch.setattr(envi_write, "_CHUNK_BYTES", 997)
+    cube = _cube(np.float32, shape=(19, 11, 9))
+    cube.data[...] = np.abs(cube.data) * 10.3 % 60000.0
+    digests = {}
+    hp = write_envi(tmp_path / "c.hdr", cube, interleave=interleave, dtype=dtype,
+                    data_ext=".dat", sha256=digests)
+    data = hp.with_suffix(".dat")
+    assert digests[data.name] == hashlib.sha256(data.read_bytes()).hexdigest()
+    assert digests[hp.name] == hashlib.sha256(hp.read_bytes()).hexdigest()
+    assert not [t for t in threading.enumerate() if t.name.startswith("mehs-sha256")]
+
+
+def test_a_chunk_refused_midway_leaves_no_hashing_thread(tmp_path, monkeypatch):
+    import threading
+
+    from mehs.errors import InputError
+
+    monkeypatch.setattr(envi_write, "_CHUNK_BYTES", 997)
+    cube = _cube(np.float32, shape=(19, 11, 9))
+    cube.data[...] = np.abs(cube.data)
+    cube.data[15, 3, 2] = np.nan                     # in a late chunk: not an integer
+    with pytest.raises(InputError, match="NaN"):
+        write_envi(tmp_path / "c.hdr", cube, dtype=np.uint16, sha256={})
+    assert not [t for t in threading.enumerate() if t.name.startswith("mehs-sha256")]
+    assert not list(tmp_path.iterdir())              # nothing left as if complete
+
+
 @pytest.mark.parametrize("sync_file_range", [True, False])
 @pytest.mark.parametrize("interleave", ["bil", "bsq"])
 def test_large_write_drops_its_page_cache_and_keeps_every_byte(tmp_path, interleave,
