@@ -39,7 +39,8 @@ def test_a_bin_width_is_auto_or_a_whole_number_of_bands(given, expected):
     assert consistency_bins_value(given) == expected
 
 
-@pytest.mark.parametrize("bad", [0, -1, "0", "x", "4.0", "", 2.5, True, None, np.float64(4.0)])
+@pytest.mark.parametrize("bad", [0, -1, "0", "x", "4.0", "", 2.5, True, None, np.float64(4.0),
+                                 "٤", "４", "9" * 5000])
 def test_anything_else_is_refused_naming_the_option(bad):
     with pytest.raises(InputError, match="--ghost-bins must be 'auto' or a whole number"):
         consistency_bins_value(bad, what="--ghost-bins")
@@ -71,10 +72,33 @@ def test_fuse_refuses_bins_for_a_merge_without_them_before_any_work(moving_scene
 
     monkeypatch.setattr(fuse_mod, "choose_response", no_work)
     b = load_bracket(moving_scene)
-    with pytest.raises(InputError, match="Poisson merge only, not 'debevec'"):
+    with pytest.raises(InputError, match=r"--ghost-bins\) = 4 .*Poisson merge only, not 'debevec'"):
         fuse_mod.fuse_bracket(b, method="debevec", ghost_bins=4)
-    with pytest.raises(InputError, match="ghost_bins must be"):
+    with pytest.raises(InputError, match=r"--ghost-bins\) = 2 needs a linear sensor"):
+        fuse_mod.fuse_bracket(b, response="debevec", ghost_bins=2)
+    with pytest.raises(InputError, match=r"ghost_bins \(--ghost-bins\) must be"):
         fuse_mod.fuse_bracket(b, ghost_bins=0)
+
+
+def test_fuse_refuses_bins_once_the_response_proves_non_linear(moving_scene, monkeypatch):
+    """`auto` may recover a curve: then the merge has no binned statistic, said before it
+    runs, naming the option."""
+    from mehs.synthesis import fuse as fuse_mod
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.response import ResponseCurve
+
+    real = fuse_mod.choose_response
+    bent = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5)) * 1.01, 12, "debevec")
+
+    def recovered(*a, **k):
+        curve, info, probe = real(*a, **k)
+        return bent, info, probe
+
+    monkeypatch.setattr(fuse_mod, "choose_response", recovered)
+    monkeypatch.setattr(fuse_mod, "merge_bracket", lambda *a, **k: pytest.fail("merged"))
+    with pytest.raises(InputError, match="needs a linear sensor, and this bracket's response "
+                                         "is 'debevec'"):
+        fuse_mod.fuse_bracket(load_bracket(moving_scene), ghost_bins=4)
 
 
 def test_cli_fuse_takes_the_option(moving_scene, tmp_path, capsys):
@@ -100,10 +124,29 @@ def test_build_params_normalise_the_width_and_refuse_what_the_merge_cannot():
     assert BuildParams().ghost_bins == "auto"
     assert BuildParams(method="debevec", ghost_bins=1).ghost_bins == 1
     assert BuildParams(method="debevec", ghost_bins=4, ghosts="off").ghost_bins == 4
-    with pytest.raises(InputError, match="Poisson merge only"):
+    with pytest.raises(InputError, match=r"--ghost-bins\) = 4 .*Poisson merge only"):
         BuildParams(method="debevec", ghost_bins=4)
-    with pytest.raises(InputError, match="ghost_bins must be"):
+    with pytest.raises(InputError, match=r"ghost_bins \(--ghost-bins\) must be"):
         BuildParams(ghost_bins="wide")
+
+
+def test_cli_build_names_the_option_and_refuses_a_non_linear_curve_up_front(
+        moving_scene, tmp_path, capsys):
+    from mehs.cli import main
+    from mehs.synthesis.response import ResponseCurve
+
+    bent = ResponseCurve(np.log(np.maximum(np.arange(4096.0), 0.5)), 12, "debevec")
+    curve = bent.save(tmp_path / "bent.json")
+    for args, says in ((["--ghost-bins", "wide"], "--ghost-bins must be 'auto' or a whole"),
+                       (["--ghost-bins", "2", "--response", str(curve)],
+                        "--ghost-bins) = 2 needs a linear sensor and this response curve "
+                        "is 'debevec'"),
+                       (["--from-hs", "--ghost-bins", "x"], "--ghost-bins must be")):
+        capsys.readouterr()
+        assert main(["build", str(moving_scene), "--out", str(tmp_path / "ds"), "-q",
+                     *args]) != 0
+        assert says in capsys.readouterr().err
+        assert not (tmp_path / "ds" / "manifest.json").exists()
 
 
 def test_the_scene_key_changes_only_when_the_width_is_set(moving_scene):

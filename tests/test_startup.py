@@ -227,9 +227,19 @@ def test_the_stored_kernels_key_reads_numbas_version_without_scanning_distributi
 
     monkeypatch.setattr(metadata, "version", scanned)
     assert _native._numba_version() == expected
-    # a numba without versioneer's file (a source checkout): the metadata, as before
+    # a numba without versioneer's file, or a source checkout's (whose version comes from
+    # git; its literals say "0+unknown"), or a file recording an error: the metadata
     monkeypatch.setattr(metadata, "version", real)
     (tmp_path / "numba").mkdir()
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: SimpleNamespace(
         origin=str(tmp_path / "numba" / "__init__.py")))
     assert _native._numba_version() == expected
+    q = "'" * 3
+    for text in ('def get_versions():\n    return {"version": "0+unknown", "error": None}\n',
+                 f'version_json = {q}\n{{"error": "no git", "version": "9.9"}}\n{q}\n',
+                 f'version_json = {q}\n{{"error": null, "version": "0+untagged.1"}}\n{q}\n'):
+        (tmp_path / "numba" / "_version.py").write_text(text)
+        assert _native._numba_version() == expected, text
+    (tmp_path / "numba" / "_version.py").write_text(
+        f'version_json = {q}\n{{"error": null, "version": "9.9.9"}}\n{q}  # END\n')
+    assert _native._numba_version() == "9.9.9"

@@ -79,6 +79,10 @@ def run(args):
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers must be at least 1")
+    from mehs.synthesis.merge_types import consistency_bins_value
+
+    # checked for --from-hs too, whose cubes have no bracket to use it
+    args.ghost_bins = consistency_bins_value(args.ghost_bins, what="--ghost-bins")
     from mehs.cli._overwrite import check_writable, refuse_foreign_folder
 
     # an existing dataset is resumed or extended; any other folder with files is not one

@@ -32,7 +32,8 @@ def configure(parser):
                              "auto (default: 4 for the Poisson merge of a linear sensor's cube "
                              "of ≥ 100 bands, else 1), or N ≥ 1; 1 tests every band alone "
                              "(spectra whose moving features change sign within a few bands). "
-                             "N > 1 needs the Poisson merge")
+                             "N > 1 needs the Poisson merge of a linear sensor and at most 16 "
+                             "exposures (auto takes 1 otherwise)")
     parser.add_argument("--reference", default="auto",
                         help="exposure index used for ghost pixels with --ghosts deghost (default "
                              "auto: the one with most usable samples there)")

@@ -172,7 +172,15 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
             raise InputError("response curve file not found", response)
         from mehs.synthesis.response import ResponseCurve
 
-        ResponseCurve.load(response)  # an unreadable curve is one error, not one per scene
+        # an unreadable curve is one error, not one per scene
+        loaded = ResponseCurve.load(response)
+        if params.ghost_bins not in ("auto", 1) and params.ghosts != "off" \
+                and not loaded.is_linear:
+            from mehs.synthesis.merge_types import GHOST_BINS_NAME
+
+            raise InputError(f"{GHOST_BINS_NAME} = {params.ghost_bins} needs a linear sensor "
+                             f"and this response curve is {loaded.method!r}; use 1 or auto",
+                             response)
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,

@@ -102,9 +102,13 @@ def _numba_version() -> str:
     try:
         spec = importlib.util.find_spec("numba")
         text = Path(spec.origin).with_name("_version.py").read_text(encoding="utf-8")
-        found = re.search(r'"version":\s*"([^"]+)"', text)
-        if found:
-            return found.group(1)
+        # a release's file holds the JSON that versioneer wrote at build time; a source
+        # checkout's computes the version from git (its literals say "0+unknown")
+        block = re.search(r"^version_json = '{3}\n(.*?)'{3}", text, re.S | re.M)
+        got = json.loads(block.group(1)) if block else {}
+        found = got.get("version") if isinstance(got, dict) and not got.get("error") else None
+        if isinstance(found, str) and found and not found.startswith("0+"):
+            return found
     except (ImportError, AttributeError, TypeError, ValueError, OSError):
         pass
     from importlib.metadata import version

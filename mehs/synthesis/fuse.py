@@ -21,7 +21,8 @@ from mehs.errors import InputError
 from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
                                   NoiseModel, merge_bracket, warm_merge_kernel)
-from mehs.synthesis.merge_types import consistency_bins_value
+from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, GHOST_BINS_NAME,
+                                         consistency_bins_value)
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -206,11 +207,20 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         raise InputError(f"smoothness (lambda) must be finite and > 0, got {smoothness}")
     if samples is not None and int(samples) < 1:
         raise InputError(f"samples must be at least 1, got {samples}")
-    ghost_bins = consistency_bins_value(ghost_bins, what="ghost_bins")
-    if ghost_bins != "auto" and ghost_bins > 1 and method != "poisson" and ghosts != "off":
-        # refused before the response work, not at the merge
-        raise InputError(f"ghost_bins={ghost_bins} (bands summed per χ² term) is implemented "
-                         f"for the Poisson merge only, not {method!r}; use 1 or 'auto'")
+    ghost_bins = consistency_bins_value(ghost_bins, what=GHOST_BINS_NAME)
+    binned = ghost_bins not in ("auto", 1) and ghosts != "off"
+    # refused before the response work where it can be known, not at the merge
+    if binned and method != "poisson":
+        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} (bands summed per χ² term) is "
+                         f"implemented for the Poisson merge only, not {method!r}; use 1 or "
+                         "auto")
+    if binned and len(bracket.times_ms) > BINNED_MAX_EXPOSURES:
+        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} takes at most "
+                         f"{BINNED_MAX_EXPOSURES} exposures, this bracket has "
+                         f"{len(bracket.times_ms)}; use 1 or auto", bracket.source)
+    if binned and isinstance(response, str) and response == "debevec":
+        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor: a recovered "
+                         "(debevec) response curve has no binned statistic; use 1 or auto")
     n_exp = len(bracket.times_ms)
     if reference != "auto" and not (isinstance(reference, (int, np.integer))
                                     and 0 <= reference < n_exp):
@@ -281,6 +291,11 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                                      bit_depth=bracket.bit_depth, response=curve)
         calibration = None
     cal = 1.0 if calibration is None else calibration
+    if binned and not curve.is_linear:
+        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor, and this "
+                         f"bracket's response is {curve.method!r} (not linear): the merge of "
+                         "a non-linear curve has no binned statistic; use 1 or auto",
+                         bracket.source)
     t1 = time.perf_counter()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,

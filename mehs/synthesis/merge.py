@@ -60,7 +60,8 @@ import numpy as np
 
 from mehs.errors import InputError
 from mehs.synthesis.merge_types import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MergeResult,
-                                        NoiseModel, consistency_bins_value)
+                                        NoiseModel, BINNED_MAX_EXPOSURES,
+                                        consistency_bins_value)
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
 # the types live in merge_types; callers import them from here
@@ -80,7 +81,7 @@ AUTO_CONSISTENCY_BINS = 4
 #: change may flip its sign between them
 AUTO_BINS_MIN_BANDS = 100
 #: most exposures of a binned statistic (its kernel keeps two bit masks in an int32)
-_BINNED_MAX_EXPOSURES = 16
+_BINNED_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20

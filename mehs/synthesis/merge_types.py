@@ -16,6 +16,14 @@ from mehs.errors import InputError
 #: mask bits shared with the dataset format
 MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
 
+#: Most exposures of a binned χ² ghost statistic (its kernel keeps two bit masks of the
+#: exposures in an int32).
+BINNED_MAX_EXPOSURES = 16
+
+#: How the fusion and the build name the bin width in their messages: the library's
+#: argument and the command-line option.
+GHOST_BINS_NAME = "ghost_bins (--ghost-bins)"
+
 
 @dataclass(frozen=True)
 class NoiseModel:
@@ -101,7 +109,8 @@ def consistency_bins_value(value: Any, source: Any = None,
         text = value.strip().lower()
         if text == "auto":
             return "auto"
-        if text.isdecimal():
+        # ASCII digits only (str.isdecimal takes "٤" and "４"), and few enough for int()
+        if text.isascii() and text.isdigit() and len(text) <= 9:
             value = int(text)
     if (isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
             and value >= 1):
