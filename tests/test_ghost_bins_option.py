@@ -110,7 +110,8 @@ def test_cli_fuse_takes_the_option(moving_scene, tmp_path, capsys):
     assert json.loads((out / "summary.json").read_text())["ghost_chi2_bins"] == 1
     for args, says in ((["--ghost-bins", "none"], "--ghost-bins must be 'auto' or a whole"),
                        (["--ghost-bins", "4", "--method", "robertson"],
-                        "--ghost-bins 4 needs --method poisson")):
+                        "--ghost-bins) = 4 (bands summed per χ² term) is implemented for the "
+                        "Poisson merge only, not 'robertson'")):
         capsys.readouterr()
         assert main(["fuse", str(moving_scene), "--out", str(tmp_path / "f2"), *args]) != 0
         assert says in capsys.readouterr().err

@@ -102,14 +102,10 @@ def run(args) -> int:
 
     check_bracket_paths(args.scene)
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
-    from mehs.synthesis.merge_types import consistency_bins_value
+    from mehs.synthesis.merge_types import check_ghost_bins_method, consistency_bins_value
 
     args.ghost_bins = consistency_bins_value(args.ghost_bins, what="--ghost-bins")
-    if args.ghost_bins not in ("auto", 1) and args.method != "poisson" and args.ghosts != "off":
-        from mehs.errors import InputError
-
-        raise InputError(f"--ghost-bins {args.ghost_bins} needs --method poisson (the other "
-                         "merges test each band alone); use --ghost-bins 1 or auto")
+    check_ghost_bins_method(args.ghost_bins, args.method, args.ghosts)   # before any reading
     from mehs.cli._overwrite import refuse_existing
 
     if (Path(args.out) / "summary.json").exists():

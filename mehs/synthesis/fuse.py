@@ -22,7 +22,7 @@ from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
                                   NoiseModel, merge_bracket, warm_merge_kernel)
 from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, GHOST_BINS_NAME,
-                                         consistency_bins_value)
+                                         check_ghost_bins_method, consistency_bins_value)
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -210,10 +210,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_bins = consistency_bins_value(ghost_bins, what=GHOST_BINS_NAME)
     binned = ghost_bins not in ("auto", 1) and ghosts != "off"
     # refused before the response work where it can be known, not at the merge
-    if binned and method != "poisson":
-        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} (bands summed per χ² term) is "
-                         f"implemented for the Poisson merge only, not {method!r}; use 1 or "
-                         "auto")
+    check_ghost_bins_method(ghost_bins, method, ghosts)
     if binned and len(bracket.times_ms) > BINNED_MAX_EXPOSURES:
         raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} takes at most "
                          f"{BINNED_MAX_EXPOSURES} exposures, this bracket has "
