@@ -182,9 +182,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         Adjacent bands summed per term of the merge's χ² ghost statistic
         (``consistency_bins`` of :func:`~mehs.synthesis.merge.merge_bracket`): ``"auto"``
         (default: 4 for the Poisson merge of a linear sensor's cube of ≥ 100 bands, else
-        1) or a whole number; more than 1 only with the Poisson merge (a recovered,
-        non-linear curve refuses it at the merge). ``summary["ghost_chi2_bins"]``
-        records what was used.
+        1) or a whole number; more than 1 only with the Poisson merge of a linear
+        sensor and at most 16 exposures (else an ``InputError`` before the merge; a curve
+        that ``response="auto"`` recovers is refused right after it is chosen).
+        ``summary["ghost_chi2_bins"]`` records what was used.
     check_response
         After recovering a curve, run the self-consistency check of
         :mod:`mehs.synthesis.response_check` (three more solves): its figures go
@@ -211,14 +212,14 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     binned = ghost_bins not in ("auto", 1) and ghosts != "off"
     # refused before the response work where it can be known, not at the merge
     check_ghost_bins_method(ghost_bins, method, ghosts)
-    if binned and len(bracket.times_ms) > BINNED_MAX_EXPOSURES:
+    n_exp = len(bracket.times_ms)
+    if binned and n_exp > BINNED_MAX_EXPOSURES:
         raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} takes at most "
-                         f"{BINNED_MAX_EXPOSURES} exposures, this bracket has "
-                         f"{len(bracket.times_ms)}; use 1 or auto", bracket.source)
+                         f"{BINNED_MAX_EXPOSURES} exposures, this bracket has {n_exp}; use 1 "
+                         "or auto", bracket.source)
     if binned and isinstance(response, str) and response == "debevec":
         raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor: a recovered "
                          "(debevec) response curve has no binned statistic; use 1 or auto")
-    n_exp = len(bracket.times_ms)
     if reference != "auto" and not (isinstance(reference, (int, np.integer))
                                     and 0 <= reference < n_exp):
         raise InputError(f"reference must be 'auto' or an exposure index 0..{n_exp - 1}, "

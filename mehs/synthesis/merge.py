@@ -59,8 +59,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.synthesis.merge_types import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MergeResult,
-                                        NoiseModel, BINNED_MAX_EXPOSURES,
+from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, MASK_GHOST, MASK_INVALID,
+                                        MASK_SATURATED, MergeResult, NoiseModel,
                                         consistency_bins_value)
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
@@ -80,8 +80,6 @@ AUTO_CONSISTENCY_BINS = 4
 #: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
 #: change may flip its sign between them
 AUTO_BINS_MIN_BANDS = 100
-#: most exposures of a binned statistic (its kernel keeps two bit masks in an int32)
-_BINNED_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -332,12 +330,12 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     nbin = consistency_bins_value(consistency_bins, source)
     if nbin == "auto":
         nbin = (AUTO_CONSISTENCY_BINS if kind == "poisson_linear" and nb >= AUTO_BINS_MIN_BANDS
-                and P <= _BINNED_MAX_EXPOSURES else 1)
+                and P <= BINNED_MAX_EXPOSURES else 1)
     nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
-        if P > _BINNED_MAX_EXPOSURES:
+        if P > BINNED_MAX_EXPOSURES:
             # the kernel packs two exposure masks into one int32 per sample
-            raise InputError(f"consistency_bins={nbin} takes at most {_BINNED_MAX_EXPOSURES} "
+            raise InputError(f"consistency_bins={nbin} takes at most {BINNED_MAX_EXPOSURES} "
                              f"exposures, got {P}; use consistency_bins=1", source)
         if kind != "poisson_linear":
             raise InputError(f"consistency_bins={nbin} is implemented for the Poisson merge of "
