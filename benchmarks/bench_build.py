@@ -72,19 +72,20 @@ def stages_separately(scene: Path, out: Path, response: str) -> dict[str, float]
     import numpy as np
 
     from mehs.dataset.build import input_files, to_31_bands
-    from mehs.io.atomic import sha256_file, write_json_atomic
+    from mehs.io.atomic import sha256_files, write_json_atomic
     from mehs.io.envi import write_envi
     from mehs.io.exr import write_exr_rgb
     from mehs.preview import tonemap, write_png
     from mehs.rgb import WAVELENGTHS_31, hdr_rgb, ldr_rgb
     from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis._ranges import thread_count
     from mehs.synthesis.fuse import fuse_bracket
 
     t: dict[str, float] = {}
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    for f in input_files(_Src(scene)).values():
-        sha256_file(f)
+    # as the builder does: side by side on the merge's threads
+    sha256_files(input_files(_Src(scene)), threads=thread_count())
     t["hash"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -112,8 +113,9 @@ def stages_separately(scene: Path, out: Path, response: str) -> dict[str, float]
     prev = tonemap(hdr)
     t["rgb"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    written: dict[str, str] = {}        # the cube hashed as it is written, as the builder does
     write_envi(out / "hs.hdr", hs.with_data(data, metadata={}), dtype=np.float32,
-               data_ext=".dat")
+               data_ext=".dat", sha256=written)
     write_exr_rgb(out / "hdr_rgb.exr", hdr, half=True)
     write_png(out / "ldr_rgb.png", ldr)
     write_png(out / "mask.png", res.mask)
@@ -122,8 +124,8 @@ def stages_separately(scene: Path, out: Path, response: str) -> dict[str, float]
     write_json_atomic(out / "fusion.json", res.summary)
     t["write"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    for f in out.iterdir():
-        sha256_file(f)
+    sha256_files({f.name: f for f in out.iterdir() if f.name not in written},
+                 threads=thread_count())
     t["hash"] += time.perf_counter() - t0
     return t
 

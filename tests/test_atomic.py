@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from mehs.errors import InputError
-from mehs.io.atomic import atomic_path, sha256_file, write_json_atomic, write_text_atomic
+from mehs.io.atomic import (atomic_path, sha256_file, sha256_files, write_json_atomic,
+                            write_text_atomic)
 
 
 def test_atomic_write_leaves_no_temp_on_error(tmp_path):
@@ -46,6 +47,35 @@ def test_sha256_file_equals_hashlib(tmp_path, size, file_digest, monkeypatch):
     p = tmp_path / "f.raw"
     p.write_bytes(data)
     assert sha256_file(p) == hashlib.sha256(data).hexdigest()
+
+
+@pytest.mark.parametrize("threads", [None, 1, 2, 5])
+def test_sha256_files_names_each_files_digest(tmp_path, threads):
+    import hashlib
+
+    rng = np.random.default_rng(7)
+    sizes = {"b.raw": 3 << 19, "a.hdr": 10, "c/empty": 0, "d.dat": (1 << 18) + 3}
+    paths, want = {}, {}
+    for name, n in sizes.items():
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        p = tmp_path / name
+        p.parent.mkdir(exist_ok=True)
+        p.write_bytes(data)
+        paths[name], want[name] = p, hashlib.sha256(data).hexdigest()
+    got = sha256_files(paths, threads=threads)
+    assert got == want
+    assert list(got) == list(paths)                 # the caller's order, not the hashing's
+    assert sha256_files({}, threads=threads) == {}
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_sha256_files_raises_the_first_unreadable_file_in_order(tmp_path, threads):
+    big = tmp_path / "big.raw"
+    big.write_bytes(bytes(1 << 20))
+    paths = {"x": tmp_path / "missing1", "big": big, "y": tmp_path / "missing2"}
+    with pytest.raises(FileNotFoundError) as info:
+        sha256_files(paths, threads=threads)
+    assert info.value.filename == str(tmp_path / "missing1")
 
 
 def _log_durability(monkeypatch):

@@ -24,7 +24,7 @@ from mehs.dataset import manifest as mf
 from mehs.dataset.parallel import report_stage
 from mehs.dataset.portable import portable_provenance, portable_summary
 from mehs.errors import MehsError
-from mehs.io.atomic import sha256_file
+from mehs.io.atomic import sha256_files
 # re-exported: the library API (and tests) import them from here
 from mehs.dataset.cube_figures import (dynamic_range_stops, half_float_scale,  # noqa: F401
                                        luminance_low_end, to_31_bands)
@@ -89,22 +89,27 @@ def _build_scene(task: SceneTask) -> dict[str, Any]:
         report_stage(sid, "hash")
         with _timed(run, "hash"):
             files = input_files(task.source)
-            hashes = {name: sha256_file(p) for name, p in files.items()}
+            hashes = sha256_files(files, threads=_threads())
         key = mf.scene_key(hashes, _params_for_key(task), __version__)
         if task.previous_key == key:
             return {"id": sid, "key": key, "outcome": "skipped", "entry": None}
         tmp = Path(task.dataset) / "scenes" / f"{TMP_PREFIX}{sid}"
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
+        # the SHA-256 of files hashed as they were written, by file name
+        written: dict[str, str] = {}
         if task.source.kind == "hs":
-            quality, extra_prov = _build_from_cube(task, tmp, run)
+            quality, extra_prov = _build_from_cube(task, tmp, run, written)
         else:
-            quality, extra_prov = _build_from_bracket(task, tmp, run, hashes)
+            quality, extra_prov = _build_from_bracket(task, tmp, run, hashes, written)
         report_stage(sid, "hash outputs")
         with _timed(run, "hash"):
             outs = _outputs(tmp)
             out_files = {name: f"scenes/{sid}/{f.name}" for name, f in outs.items()}
-            out_sha = {name: sha256_file(f) for name, f in outs.items()}
+            out_sha = sha256_files({n: f for n, f in outs.items() if f.name not in written},
+                                   threads=_threads())
+            out_sha = {n: out_sha[n] if n in out_sha else written[f.name]
+                       for n, f in outs.items()}
         outcome, error, kind = "built", None, None
     except MehsError as exc:
         outcome, error, kind = "failed", str(exc), "input"
@@ -158,6 +163,14 @@ def _timed(run: dict[str, Any], stage: str):
         st[stage] = round(st.get(stage, 0.0) + time.perf_counter() - t0, 4)
 
 
+def _threads() -> int:
+    """The merge's thread count (``NUMBA_NUM_THREADS``, ``numba.set_num_threads``), for
+    hashing a scene's files side by side."""
+    from mehs.synthesis._ranges import thread_count
+
+    return thread_count()
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -178,8 +191,8 @@ def _check_recorded_hashes(root: Path, hashes: dict[str, str]) -> None:
                                   "truncated or missing)", root / rel)
 
 
-def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
-                        hashes: dict[str, str]) -> tuple[dict, dict]:
+def _build_from_bracket(task: SceneTask, tmp: Path, run: dict, hashes: dict[str, str],
+                        written: dict[str, str]) -> tuple[dict, dict]:
     import numpy as np
 
     from mehs.io.atomic import write_json_atomic
@@ -234,7 +247,7 @@ def _build_from_bracket(task: SceneTask, tmp: Path, run: dict,
     # the ground truth's own noise, for the pixels it does not resolve (mask bit 8)
     noise = model_for_fused(cube, summary, method=p.resample, fwhm=p.fwhm,
                             calibration=p.calibration)
-    _finish_scene(task, cube, mask, tmp, run, quality, noise)
+    _finish_scene(task, cube, mask, tmp, run, quality, written, noise)
     return quality, {}
 
 
@@ -270,7 +283,8 @@ def _quality(summary: dict, mask) -> dict[str, Any]:
     return _jsonable(q)
 
 
-def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]:
+def _build_from_cube(task: SceneTask, tmp: Path, run: dict,
+                     written: dict[str, str]) -> tuple[dict, dict]:
     import numpy as np
 
     from mehs.io.envi import read_envi
@@ -294,7 +308,7 @@ def _build_from_cube(task: SceneTask, tmp: Path, run: dict) -> tuple[dict, dict]
     # no bracket: exposure, saturation and ghost figures are unknown, not zero
     quality = {**_quality({}, mask), "exposure_ratios": None, "saturated_fraction": None,
                "ghost_fraction": None}
-    _finish_scene(task, cube, mask, tmp, run, quality)
+    _finish_scene(task, cube, mask, tmp, run, quality, written)
     return quality, {"source_bands": int(cube.bands)}
 
 
@@ -314,9 +328,12 @@ def _ignore_value(cube) -> float | None:
 
 
 def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: dict,
-                  noise: dict | None = None) -> None:
+                  written: dict[str, str], noise: dict | None = None) -> None:
     """Resample to 31 bands, make the RGB pair and preview, write everything into ``tmp``.
 
+    ``written`` receives ``{file name: SHA-256}`` of the files hashed as they were written
+    (the HS cube: ``write_envi`` drops its pages from the cache once written, and a
+    second read for the manifest's digest came from the disk).
     ``noise``: the band noise model of the 31-band cube
     (:func:`mehs.dataset.noisefloor.model_for_fused`); pixels it does not resolve get mask
     bit 8 and are counted (``noise_floor_fraction``; ``None`` without a model)."""
@@ -366,7 +383,8 @@ def _finish_scene(task: SceneTask, cube, mask, tmp: Path, run: dict, quality: di
     with _timed(run, "write"):
         hs = hs.with_data(data, units=cube.units, integration_time_ms=None, source=None,
                           metadata=_scale_header(scale, hs.bands))
-        write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat")
+        write_envi(tmp / "hs.hdr", hs, dtype=np.float32, interleave="bil", data_ext=".dat",
+                   sha256=written)
         write_exr_rgb(tmp / "hdr_rgb.exr", hdr, half=True,
                       header={"mehsRadianceScale": scale})
         write_png(tmp / "ldr_rgb.png", ldr)

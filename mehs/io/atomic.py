@@ -14,7 +14,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
 
 from mehs.errors import InputError
 
@@ -212,6 +212,41 @@ def sha256_file(path: str | Path) -> str:
         while n := fh.readinto(buf):
             h.update(view[:n])
         return h.hexdigest()
+
+
+def sha256_files(paths: Mapping[str, str | Path], *, threads: int | None = None
+                 ) -> dict[str, str]:
+    """``{name: hex SHA-256}`` of the files ``paths`` (``{name: path}``), several at a time.
+
+    One file's SHA-256 is a sequential chain, but hashlib releases the GIL while it
+    hashes: a scene's three 107 MB exposures took 0.26 s one after another on this
+    project's 2-core machine, where each core hashes ~1.7 GB/s (issue 16). The largest
+    files go first, on ``threads`` threads (default: the CPUs this process may use), so
+    that a big one does not start last. An error (a file that cannot be read) is raised
+    as :func:`sha256_file` raises it, for the first such file in ``paths``' order; the
+    files after it may have been hashed meanwhile.
+    """
+    items = list(paths.items())
+    if threads is None:
+        try:
+            threads = len(os.sched_getaffinity(0))
+        except AttributeError:      # not Linux
+            threads = os.cpu_count() or 1
+    threads = max(1, min(int(threads), len(items)))
+    if threads == 1:
+        return {name: sha256_file(p) for name, p in items}
+    from concurrent.futures import ThreadPoolExecutor
+
+    def size(p: str | Path) -> int:
+        try:
+            return os.stat(p).st_size
+        except OSError:             # raised again, with its name, by the hash below
+            return 0
+
+    order = sorted(range(len(items)), key=lambda i: -size(items[i][1]))
+    with ThreadPoolExecutor(threads, thread_name_prefix="mehs-sha256") as pool:
+        futures = {i: pool.submit(sha256_file, items[i][1]) for i in order}
+        return {items[i][0]: futures[i].result() for i in range(len(items))}
 
 
 def check_output_dir(path: str | Path, *, inputs=()) -> Path:
