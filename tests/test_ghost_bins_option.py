@@ -63,6 +63,20 @@ def test_fuse_records_the_width_and_the_radiance_does_not_change(moving_scene):
     assert auto.summary["ghost_fraction"] > 0 and one.summary["ghost_fraction"] > 0
 
 
+def test_fuse_bins_the_statistic_of_a_weighted_merge_too(moving_scene):
+    """Robertson's merge of a linear sensor has its binned statistic: auto takes it for the
+    camera's 204 bands, the radiance is the per-band fusion's, the object is found."""
+    from mehs.synthesis.bracket import load_bracket
+    from mehs.synthesis.fuse import fuse_bracket
+
+    b = load_bracket(moving_scene)
+    auto = fuse_bracket(b, method="robertson", response="linear", noise="recorded")
+    one = fuse_bracket(b, method="robertson", response="linear", noise="recorded", ghost_bins=1)
+    assert (auto.summary["ghost_chi2_bins"], one.summary["ghost_chi2_bins"]) == (4, 1)
+    assert np.array_equal(auto.radiance.data, one.radiance.data)
+    assert auto.summary["ghost_fraction"] > 0
+
+
 def test_fuse_refuses_bins_for_a_merge_without_them_before_any_work(moving_scene, monkeypatch):
     from mehs.synthesis import fuse as fuse_mod
     from mehs.synthesis.bracket import load_bracket
@@ -72,8 +86,6 @@ def test_fuse_refuses_bins_for_a_merge_without_them_before_any_work(moving_scene
 
     monkeypatch.setattr(fuse_mod, "choose_response", no_work)
     b = load_bracket(moving_scene)
-    with pytest.raises(InputError, match=r"--ghost-bins\) = 4 .*Poisson merge only, not 'debevec'"):
-        fuse_mod.fuse_bracket(b, method="debevec", ghost_bins=4)
     with pytest.raises(InputError, match=r"--ghost-bins\) = 2 needs a linear sensor"):
         fuse_mod.fuse_bracket(b, response="debevec", ghost_bins=2)
     with pytest.raises(InputError, match=r"ghost_bins \(--ghost-bins\) must be"):
@@ -109,9 +121,8 @@ def test_cli_fuse_takes_the_option(moving_scene, tmp_path, capsys):
                  "--response", "linear"]) == 0
     assert json.loads((out / "summary.json").read_text())["ghost_chi2_bins"] == 1
     for args, says in ((["--ghost-bins", "none"], "--ghost-bins must be 'auto' or a whole"),
-                       (["--ghost-bins", "4", "--method", "robertson"],
-                        "--ghost-bins) = 4 (bands summed per χ² term) is implemented for the "
-                        "Poisson merge only, not 'robertson'")):
+                       (["--ghost-bins", "4", "--response", "debevec"],
+                        "--ghost-bins) = 4 needs a linear sensor")):
         capsys.readouterr()
         assert main(["fuse", str(moving_scene), "--out", str(tmp_path / "f2"), *args]) != 0
         assert says in capsys.readouterr().err
@@ -125,8 +136,7 @@ def test_build_params_normalise_the_width_and_refuse_what_the_merge_cannot():
     assert BuildParams().ghost_bins == "auto"
     assert BuildParams(method="debevec", ghost_bins=1).ghost_bins == 1
     assert BuildParams(method="debevec", ghost_bins=4, ghosts="off").ghost_bins == 4
-    with pytest.raises(InputError, match=r"--ghost-bins\) = 4 .*Poisson merge only"):
-        BuildParams(method="debevec", ghost_bins=4)
+    assert BuildParams(method="robertson", ghost_bins=4).ghost_bins == 4
     with pytest.raises(InputError, match=r"ghost_bins \(--ghost-bins\) must be"):
         BuildParams(ghost_bins="wide")
 

@@ -163,8 +163,9 @@ def test_bins_other_than_one_are_refused_where_not_implemented_and_when_not_whol
     for bad in (0, -2, 2.5, True, "4.0", "four"):   # ("4", as a command line gives it: 4)
         with pytest.raises(InputError, match="consistency_bins"):
             merge_bracket(stack, t, darks=darks, consistency_bins=bad)
-    with pytest.raises(InputError, match="Poisson merge of a linear sensor"):
-        merge_bracket(stack, t, darks=darks, method="debevec", consistency_bins=4)
+    with pytest.raises(InputError, match="merges of a linear sensor"):
+        merge_bracket(stack, t, darks=darks, method="debevec", weighting="uniform",
+                      consistency_bins=4)
     # 17 exposures: more than the kernel's masks hold (review: the 17th was taken for censored)
     s17, t17, d17 = _stress_bracket(0, 17, nb=4)
     with pytest.raises(InputError, match="at most 16 exposures"):
@@ -193,10 +194,10 @@ def test_the_stored_binned_kernel_gives_the_numba_kernels_bits(tmp_path, monkeyp
     assert_same_merge_bits(stored, ref)
 
 
-def test_auto_bins_a_dense_spectrum_of_the_default_merge_only():
-    """Bins of 4 for the Poisson merge of a linear sensor's cube of ≥ 100 bands; one band
-    per bin for a few broad bands (a change may flip its sign between them) and for the
-    merges without a binned kernel."""
+def test_auto_bins_a_dense_spectrum_of_a_linear_merge_only():
+    """Bins of 4 for the merges of a linear sensor's cube of ≥ 100 bands; one band per bin
+    for a few broad bands (a change may flip its sign between them) and for the merges
+    without a binned kernel (another weighting than the hat)."""
     from mehs.synthesis.merge import AUTO_BINS_MIN_BANDS, AUTO_CONSISTENCY_BINS
 
     rng = np.random.default_rng(0)
@@ -208,7 +209,7 @@ def test_auto_bins_a_dense_spectrum_of_the_default_merge_only():
         r = merge_bracket(stack, t, darks=darks, noise=NOISE)
         assert r.info["consistency_bins"] == want
         assert (r.dof == -(-nb // want) * 2).all()
-        assert merge_bracket(stack, t, darks=darks, noise=NOISE,
-                             method="robertson").info["consistency_bins"] == 1
+        assert merge_bracket(stack, t, darks=darks, noise=NOISE, method="robertson",
+                             weighting="gaussian").info["consistency_bins"] == 1
         assert merge_bracket(stack, t, darks=darks, consistency=False).info[
             "consistency_bins"] is None

@@ -29,11 +29,11 @@ def configure(parser):
                              "(deghost), or skip the test (off) (default: detect)")
     parser.add_argument("--ghost-bins", default="auto", metavar="N",
                         help="adjacent bands summed per term of the ghost test's χ² statistic: "
-                             "auto (default: 4 for the Poisson merge of a linear sensor's cube "
-                             "of ≥ 100 bands, else 1), or N ≥ 1; 1 tests every band alone "
-                             "(spectra whose moving features change sign within a few bands). "
-                             "N > 1 needs the Poisson merge of a linear sensor and at most 16 "
-                             "exposures (auto takes 1 otherwise)")
+                             "auto (default: 4 for a linear sensor's cube of ≥ 100 bands, else "
+                             "1), or N ≥ 1; 1 tests every band alone (spectra whose moving "
+                             "features change sign within a few bands). N > 1 needs a linear "
+                             "sensor (not --response debevec) and at most 16 exposures (auto "
+                             "takes 1 otherwise)")
     parser.add_argument("--reference", default="auto",
                         help="exposure index used for ghost pixels with --ghosts deghost (default "
                              "auto: the one with most usable samples there)")
@@ -102,10 +102,9 @@ def run(args) -> int:
 
     check_bracket_paths(args.scene)
     check_output_dir(args.out, inputs=args.scene)  # before minutes of fusion, not after
-    from mehs.synthesis.merge_types import check_ghost_bins_method, consistency_bins_value
+    from mehs.synthesis.merge_types import consistency_bins_value
 
     args.ghost_bins = consistency_bins_value(args.ghost_bins, what="--ghost-bins")
-    check_ghost_bins_method(args.ghost_bins, args.method, args.ghosts)   # before any reading
     from mehs.cli._overwrite import refuse_existing
 
     if (Path(args.out) / "summary.json").exists():

@@ -66,13 +66,11 @@ class BuildParams:
                              f"{sorted(RESAMPLING_METHODS)}")
         if not (math.isfinite(self.fwhm) and self.fwhm > 0):
             raise InputError(f"target FWHM must be a positive number of nm, got {self.fwhm}")
-        from mehs.synthesis.merge_types import (GHOST_BINS_NAME, check_ghost_bins_method,
-                                                consistency_bins_value)
+        from mehs.synthesis.merge_types import GHOST_BINS_NAME, consistency_bins_value
 
         # "4" (a command line's) and 4 make the same key
         object.__setattr__(self, "ghost_bins",
                            consistency_bins_value(self.ghost_bins, what=GHOST_BINS_NAME))
-        check_ghost_bins_method(self.ghost_bins, self.method, self.ghosts)
 
 
 @dataclass

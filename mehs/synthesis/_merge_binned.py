@@ -38,6 +38,66 @@ from numba import njit
 from mehs.synthesis._merge_rows import _usable
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _bin_statistic(ysum, xps, bms, times, avar, g32, rel32, kk, chi2_l, dof_l):
+    """Add one bin's χ² and degrees of freedom to a line's ``chi2_l``, ``dof_l``, from the
+    scratch its bands' sample loops left: ``ysum`` (the bin's summed levels per
+    exposure), ``xps`` (its pooled estimate), ``bms`` (its exposure masks: used in every
+    band, low 16 bits; used or censored in every band, high 16 bits); ``kk`` its number
+    of bands (float32). Its own loop over the samples, inlined by numba into
+    :func:`merge_chunk_poisson_linear_binned` and
+    :mod:`mehs.synthesis._merge_binned_weighted`'s kernels."""
+    P = len(ysum)
+    ns = xps.shape[0]
+    f0 = np.float32(0.0)
+    f1 = np.float32(1.0)
+    two = np.float32(2.0)
+    for i in range(ns):
+        xp = xps[i]
+        m = bms[i]
+        um = m & 0xFFFF
+        cmb = (m >> 16) & ~um
+        sw = f0
+        swx = f0
+        swx2 = f0
+        nvb = f0
+        ncb = f0
+        for j in range(P):
+            tj = times[j]
+            itj = f1 / tj
+            itj2 = itj * itj
+            w = f1 / ((g32 * xp * tj + kk * avar[j]) * itj2 + rel32 * xp * xp)
+            okj = f1 if (um >> j) & 1 else f0
+            wx = okj * w * (ysum[j][i] * itj)
+            if j == 0:
+                sw = okj * w
+                swx = wx
+                swx2 = wx * (ysum[j][i] * itj)
+            else:
+                sw += okj * w
+                swx += wx
+                swx2 += wx * (ysum[j][i] * itj)
+            nvb += okj
+            ncb += f1 if (cmb >> j) & 1 else f0
+        mean = swx / sw if sw > f0 else f0
+        v = swx2 - swx * mean
+        q = v if v > f0 else f0
+        for j in range(1, P):
+            tj = times[j]
+            itj = f1 / tj
+            itj2 = itj * itj
+            w = f1 / ((g32 * xp * tj + kk * avar[j]) * itj2 + rel32 * xp * xp)
+            r = ysum[j][i] * itj - mean
+            cj = f1 if (cmb >> j) & 1 else f0
+            q += cj * (w * r * r if r > f0 else f0)
+        ne = nvb + ncb
+        m2 = (ne >= two) & (nvb > f0)
+        # products, not `q if m2 else 0`: with the branch LLVM sank the statistic
+        # into it and gathered times[j] and avar[j] under masks
+        chi2_l[i] += q * (f1 if m2 else f0)
+        dof_l[i] += (np.int32(ne) - np.int32(1)) * (np.int32(1) if m2 else np.int32(0))
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
 def merge_chunk_poisson_linear_binned(zs, darks, sat, times, gain, avar, rel_var, cal,
                                       want_chi2, clip, nbin, ysum, xps, bms, out, chi2, dof,
@@ -60,7 +120,6 @@ def merge_chunk_poisson_linear_binned(zs, darks, sat, times, gain, avar, rel_var
     rel32 = np.float32(rel_var)
     inf32 = np.float32(np.inf)
     fP = np.float32(P)
-    two = np.float32(2.0)
     for l in range(nl):
         ol_ = out[l]
         snr_l, msum_l, nvalid_l, nsat_l = snr[l], msum[l], nvalid[l], nsat[l]
@@ -139,48 +198,4 @@ def merge_chunk_poisson_linear_binned(zs, darks, sat, times, gain, avar, rel_var
                     m = okm | ((okm | cm) << 16)
                     bms[i] = m if first else (bms[i] & m)
             # -- the bin's statistic, from the scratch alone
-            kk = np.float32(kb)
-            for i in range(ns):
-                xp = xps[i]
-                m = bms[i]
-                um = m & 0xFFFF
-                cmb = (m >> 16) & ~um
-                sw = f0
-                swx = f0
-                swx2 = f0
-                nvb = f0
-                ncb = f0
-                for j in range(P):
-                    tj = times[j]
-                    itj = f1 / tj
-                    itj2 = itj * itj
-                    w = f1 / ((g32 * xp * tj + kk * avar[j]) * itj2 + rel32 * xp * xp)
-                    okj = f1 if (um >> j) & 1 else f0
-                    wx = okj * w * (ysum[j][i] * itj)
-                    if j == 0:
-                        sw = okj * w
-                        swx = wx
-                        swx2 = wx * (ysum[j][i] * itj)
-                    else:
-                        sw += okj * w
-                        swx += wx
-                        swx2 += wx * (ysum[j][i] * itj)
-                    nvb += okj
-                    ncb += f1 if (cmb >> j) & 1 else f0
-                mean = swx / sw if sw > f0 else f0
-                v = swx2 - swx * mean
-                q = v if v > f0 else f0
-                for j in range(1, P):
-                    tj = times[j]
-                    itj = f1 / tj
-                    itj2 = itj * itj
-                    w = f1 / ((g32 * xp * tj + kk * avar[j]) * itj2 + rel32 * xp * xp)
-                    r = ysum[j][i] * itj - mean
-                    cj = f1 if (cmb >> j) & 1 else f0
-                    q += cj * (w * r * r if r > f0 else f0)
-                ne = nvb + ncb
-                m2 = (ne >= two) & (nvb > f0)
-                # products, not `q if m2 else 0`: with the branch LLVM sank the statistic
-                # into it and gathered times[j] and avar[j] under masks
-                chi2_l[i] += q * (f1 if m2 else f0)
-                dof_l[i] += (np.int32(ne) - np.int32(1)) * (np.int32(1) if m2 else np.int32(0))
+            _bin_statistic(ysum, xps, bms, times, avar, g32, rel32, np.float32(kb), chi2_l, dof_l)

@@ -27,7 +27,7 @@ _MERGE_TAIL = (("gain", "f8"), ("avar", "f4:1"), ("rel_var", "f8"), ("cal", "f4:
                ("output 5", "i4:2"), ("output 6", "f4:2"))
 _WEIGHTED = _MERGE_HEAD + (("L", "i8"), ("floor", "f4")) + _MERGE_TAIL
 _MERGE_SOURCES = ("_merge_fused.py", "_merge_fused_weighted.py", "_merge_binned.py",
-                  "_merge_rows.py", "_cephes.py")
+                  "_merge_binned_weighted.py", "_merge_rows.py", "_cephes.py")
 _PTC_COMMON = (("y_j", "raw:2"), ("y_k", "raw:2"), ("raw_j", "f4:2"), ("raw_k", "f4:2"),
                ("sat", "f4:1"), ("nbr", "i8:1"), ("cell_bits", "i8"), ("key_row", "i4:1"),
                ("cp", "i4:1"), ("sat_row", "u1:1"), ("bp", "u1:1"))
@@ -46,7 +46,9 @@ def _check_merge_binned(P, args) -> None:
     """:func:`_check_merge`'s shapes, and the binned kernel's bin width and scratch."""
     zs, darks, sat, times = args[:4]
     out, *aux = args[-7:]
-    avar, cal, nbin, ysum, xps, bms = args[5], args[7], *args[10:14]
+    # the weighted kernels take L and floor after the times
+    k = 2 if len(args) == len(_WEIGHTED_BINNED) else 0
+    avar, cal, nbin, ysum, xps, bms = args[5 + k], args[7 + k], *args[10 + k:14 + k]
     _check_merge_arrays(P, zs, darks, sat, times, avar, cal, out, aux)
     ns = out.shape[2]
     if int(nbin) < 1:
@@ -134,9 +136,9 @@ class Spec:
 
 _POISSON = _MERGE_HEAD + _MERGE_TAIL
 # the binned statistic's kernel: its bin width and scratch rows before the outputs
-_POISSON_BINNED = (_MERGE_HEAD + _MERGE_TAIL[:6]
-                   + (("nbin", "i8"), ("ysum", "f4s:1"), ("xps", "f4:1"), ("bms", "i4:1"))
-                   + _MERGE_TAIL[6:])
+_BIN_SCRATCH = (("nbin", "i8"), ("ysum", "f4s:1"), ("xps", "f4:1"), ("bms", "i4:1"))
+_POISSON_BINNED = _MERGE_HEAD + _MERGE_TAIL[:6] + _BIN_SCRATCH + _MERGE_TAIL[6:]
+_WEIGHTED_BINNED = _WEIGHTED[:-7] + _BIN_SCRATCH + _WEIGHTED[-7:]
 _MERGE_WRITES = tuple(f"output {i}" for i in range(7))
 _PTC_SCRATCH = ("key_row", "cp", "sat_row", "bp")
 KERNELS = {
@@ -154,6 +156,11 @@ KERNELS = {
                               f"merge_chunk_{m}_linear{v}", _WEIGHTED, _MERGE_SOURCES,
                               _check_merge, writes=_MERGE_WRITES)
        for m in ("debevec", "robertson", "invvar") for v in ("", "_radiance")},
+    **{f"{m}_linear_binned": Spec("mehs.synthesis._merge_binned_weighted",
+                                  f"merge_chunk_{m}_linear_binned", _WEIGHTED_BINNED,
+                                  _MERGE_SOURCES, _check_merge_binned,
+                                  writes=_MERGE_WRITES + ("ysum", "xps", "bms"))
+       for m in ("debevec", "robertson", "invvar")},
     "ptc_pass": Spec("mehs.synthesis._ptc_kernels", "ptc_pass",
                      _PTC_COMMON
                      + (("r", "f8"), ("lo", "i8"), ("table", "u2:1"), ("med", "f8:1"),

@@ -22,7 +22,7 @@ from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
                                   NoiseModel, merge_bracket, warm_merge_kernel)
 from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, GHOST_BINS_NAME,
-                                         check_ghost_bins_method, consistency_bins_value)
+                                         consistency_bins_value)
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -181,10 +181,10 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_bins
         Adjacent bands summed per term of the merge's χ² ghost statistic
         (``consistency_bins`` of :func:`~mehs.synthesis.merge.merge_bracket`): ``"auto"``
-        (default: 4 for the Poisson merge of a linear sensor's cube of ≥ 100 bands, else
-        1) or a whole number; more than 1 only with the Poisson merge of a linear
-        sensor and at most 16 exposures (else an ``InputError`` before the merge; a curve
-        that ``response="auto"`` recovers is refused right after it is chosen).
+        (default: 4 for a linear sensor's cube of ≥ 100 bands, else 1) or a whole number;
+        more than 1 only for a linear sensor (every merge method) and at most 16 exposures
+        (else an ``InputError`` before the merge; a curve that ``response="auto"``
+        recovers is refused right after it is chosen).
         ``summary["ghost_chi2_bins"]`` records what was used.
     check_response
         After recovering a curve, run the self-consistency check of
@@ -211,7 +211,6 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_bins = consistency_bins_value(ghost_bins, what=GHOST_BINS_NAME)
     binned = ghost_bins not in ("auto", 1) and ghosts != "off"
     # refused before the response work where it can be known, not at the merge
-    check_ghost_bins_method(ghost_bins, method, ghosts)
     n_exp = len(bracket.times_ms)
     if binned and n_exp > BINNED_MAX_EXPOSURES:
         raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} takes at most "

@@ -93,6 +93,8 @@ _WEIGHTED_KINDS = {_CODES["debevec"]: "debevec_linear", _CODES["robertson"]: "ro
 #: the suffix of a one-pass kernel's radiance-only variant (no χ² statistic: its own
 #: machine code, see mehs.synthesis._merge_fused.merge_chunk_poisson_linear_radiance)
 _RADIANCE = "_radiance"
+#: ... and of its variant with the χ² of binned bands (mehs.synthesis._merge_binned)
+_BINNED = "_binned"
 
 
 def _numba_kernel(kind: str | None, code: int):
@@ -172,11 +174,13 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         bands detect more of the weakly moving pixels, whose change keeps its sign
         across neighbouring bands, and cost fewer divisions
         (:mod:`mehs.synthesis._merge_binned`); ``dof`` then counts bins. Implemented for
-        the Poisson merge of a linear sensor; ``"auto"`` (default) takes
-        :data:`AUTO_CONSISTENCY_BINS` there for cubes of at least
-        :data:`AUTO_BINS_MIN_BANDS` bands, and 1 otherwise (few broad bands, or the other
-        merges, whose kernels have no binned statistic yet). ``info["consistency_bins"]``
-        records the choice.
+        the one-pass merges of a linear sensor — every method with a linear curve, the
+        weighted ones with the hat weighting — at most 16 exposures; ``"auto"`` (default)
+        takes :data:`AUTO_CONSISTENCY_BINS` there for cubes of at least
+        :data:`AUTO_BINS_MIN_BANDS` bands, and 1 otherwise (few broad bands, or a
+        recovered curve or another weighting, whose kernels have no binned statistic).
+        The radiance does not depend on it. ``info["consistency_bins"]`` records the
+        choice.
     chunk_lines
         Most lines per kernel call. The kernel reads BIL inputs in place and writes
         straight into the output, so this bounds only the copy made for other
@@ -329,7 +333,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
     nbin = consistency_bins_value(consistency_bins, source)
     if nbin == "auto":
-        nbin = (AUTO_CONSISTENCY_BINS if kind == "poisson_linear" and nb >= AUTO_BINS_MIN_BANDS
+        nbin = (AUTO_CONSISTENCY_BINS if kind is not None and nb >= AUTO_BINS_MIN_BANDS
                 and P <= BINNED_MAX_EXPOSURES else 1)
     nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
@@ -337,12 +341,13 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             # the kernel packs two exposure masks into one int32 per sample
             raise InputError(f"consistency_bins={nbin} takes at most {BINNED_MAX_EXPOSURES} "
                              f"exposures, got {P}; use consistency_bins=1", source)
-        if kind != "poisson_linear":
-            raise InputError(f"consistency_bins={nbin} is implemented for the Poisson merge of "
-                             f"a linear sensor only (method {method!r}"
-                             + (", a recovered response curve)" if not linear else ")")
-                             + "; use consistency_bins=1", source)
-        kind = "poisson_linear_binned"
+        if kind is None:
+            why = (f"the {weighting!r} weighting" if linear and lin_g and not hat
+                   else "a recovered response curve")
+            raise InputError(f"consistency_bins={nbin} is implemented for the merges of a "
+                             f"linear sensor (a linear curve; for {method!r} the hat "
+                             f"weighting) only, not {why}; use consistency_bins=1", source)
+        kind += _BINNED
     if kind is not None and not consistency:
         kind += _RADIANCE
     native = None
@@ -356,7 +361,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     gain, rel2 = float(noise.gain), float(noise.relative) ** 2
 
     fused_poisson = kind is not None and kind.startswith("poisson_linear")
-    binned = kind == "poisson_linear_binned"
+    binned = kind is not None and kind.endswith(_BINNED)
 
     def work(l0: int, l1: int) -> None:
         parts = [np.asarray(v[l0:l1]) for v in views]
@@ -376,8 +381,9 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             # the bin's running sums, per chunk (each thread its own)
             scratch = (tuple(np.empty(ns, np.float32) for _ in range(P)),
                        np.empty(ns, np.float32), np.empty(ns, np.int32))
-            kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, True, bool(clip_negative),
-                   nbin, *scratch, *outs)
+            head = (parts, dk_k, sat, t32) + (() if fused_poisson else (L, np.float32(floor)))
+            kernel(*head, gain, avar, rel2, cal, True, bool(clip_negative), nbin, *scratch,
+                   *outs)
         elif fused_poisson:
             kernel(parts, dk_k, sat, t32, gain, avar, rel2, cal, bool(consistency),
                    bool(clip_negative), *outs)

@@ -117,12 +117,3 @@ def consistency_bins_value(value: Any, source: Any = None,
         return int(value)
     raise InputError(f"{what} must be 'auto' or a whole number of bands ≥ 1, got {value!r}",
                      source)
-
-
-def check_ghost_bins_method(ghost_bins: int | str, method: str, ghosts: str) -> None:
-    """Refuse a bin width > 1 (:func:`consistency_bins_value`'s) for a merge method without
-    a binned ghost statistic, before any work: the fusion and the dataset build."""
-    if ghost_bins not in ("auto", 1) and ghosts != "off" and method != "poisson":
-        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} (bands summed per χ² term) is "
-                         f"implemented for the Poisson merge only, not {method!r}; use 1 or "
-                         "auto")
