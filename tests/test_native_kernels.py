@@ -294,3 +294,37 @@ def test_a_child_compiling_elsewhere_is_neither_duplicated_nor_awaited(cache, mo
     assert _native.building("ptc_pass", np.float32)              # its own child
     assert _native.native_kernel("ptc_pass", np.float32, build=False) is not None
     assert not _native.building("ptc_pass", np.float32)          # stored
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_the_binned_entry_points_shape_check_finds_each_argument_in_both_layouts(weighted):
+    """The binned kernels index without bounds checks: their stored entry points' check
+    must refuse every mis-shaped argument, in the Poisson layout and in the weighted one
+    (``L`` and ``floor`` after the times). Review, session 35: no test refused one."""
+    from mehs.synthesis._native_specs import _check_merge_binned
+
+    P, nl, nb, ns = 3, 2, 6, 17
+    f4 = np.float32
+    head = [tuple(np.zeros((nl, nb, ns), np.uint16) for _ in range(P)),
+            np.zeros((P, nb, ns), f4), np.full(nb, 4000, f4), np.ones(P, f4)]
+    mid = [1.0, np.ones(P, f4), 0.0, np.ones(nb, f4), True, True, 4,
+           tuple(np.zeros(ns, f4) for _ in range(P)), np.zeros(ns, f4), np.zeros(ns, np.int32)]
+    outs = [np.zeros((nl, nb, ns), f4)] + [np.zeros((nl, ns), f4) for _ in range(6)]
+    extra = [4096, f4(0.5)] if weighted else []
+    at = len(head) + len(extra)            # where `mid` starts
+
+    def args(**change):
+        a = head + extra + mid + outs
+        for k, v in change.items():
+            a[{"avar": at + 1, "cal": at + 3, "nbin": at + 6, "ysum": at + 7, "xps": at + 8,
+               "bms": at + 9}[k]] = v
+        return a
+
+    _check_merge_binned(P, args())                                     # the right arrays
+    for k, v, says in (("avar", np.ones(P + 1, f4), "avar"), ("cal", np.ones(nb - 1, f4), "cal"),
+                       ("nbin", 0, "nbin"), ("ysum", tuple(np.zeros(ns - 1, f4) for _ in range(P)),
+                                             "scratch"),
+                       ("xps", np.zeros(ns + 1, f4), "scratch"),
+                       ("bms", np.zeros(2, np.int32), "scratch")):
+        with pytest.raises(TypeError, match=says):
+            _check_merge_binned(P, args(**{k: v}))

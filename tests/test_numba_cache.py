@@ -34,3 +34,16 @@ def test_an_edit_to_an_inlined_module_drops_the_cached_kernels(monkeypatch, tmp_
     assert not cached.exists() and other.exists()
     assert stamps[0].read_text().strip() != "0" * 64
     assert Path(nc.__file__).parent.joinpath("_merge_rows.py").is_file()
+
+
+def test_every_source_of_a_stored_kernel_is_followed_by_numbas_cache_too():
+    """The stored kernels' key lists their sources (``_native_specs``); numba's own cache of
+    the same kernels must follow the same files (review, session 35: the binned weighted
+    kernels' module was missing, and an edit to ``_bin_statistic`` left their cached
+    machine code — the old statistic — in use)."""
+    from mehs.synthesis import _native_specs
+    from mehs.synthesis._numba_cache import KERNEL_MODULES
+
+    for kind, spec in _native_specs.KERNELS.items():
+        stems = {Path(f).stem for f in spec.sources} | {spec.module.rsplit(".", 1)[1]}
+        assert stems <= set(KERNEL_MODULES), (kind, stems - set(KERNEL_MODULES))

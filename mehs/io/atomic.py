@@ -223,8 +223,8 @@ def sha256_files(paths: Mapping[str, str | Path], *, threads: int | None = None
     project's 2-core machine, where each core hashes ~1.7 GB/s (issue 16). The largest
     files go first, on ``threads`` threads (default: the CPUs this process may use), so
     that a big one does not start last. An error (a file that cannot be read) is raised
-    as :func:`sha256_file` raises it, for the first such file in ``paths``' order; the
-    files after it may have been hashed meanwhile.
+    as :func:`sha256_file` raises it, for the first such file in ``paths``' order, once
+    the hashes running then have ended (a file that cannot even be found goes first).
     """
     items = list(paths.items())
     if threads is None:
@@ -237,16 +237,22 @@ def sha256_files(paths: Mapping[str, str | Path], *, threads: int | None = None
         return {name: sha256_file(p) for name, p in items}
     from concurrent.futures import ThreadPoolExecutor
 
-    def size(p: str | Path) -> int:
+    def key(i: int) -> tuple[int, int]:
         try:
-            return os.stat(p).st_size
-        except OSError:             # raised again, with its name, by the hash below
-            return 0
+            return 1, -os.stat(items[i][1]).st_size
+        except OSError:             # first: raised again, with its name, by its hash
+            return 0, 0
 
-    order = sorted(range(len(items)), key=lambda i: -size(items[i][1]))
     with ThreadPoolExecutor(threads, thread_name_prefix="mehs-sha256") as pool:
-        futures = {i: pool.submit(sha256_file, items[i][1]) for i in order}
-        return {items[i][0]: futures[i].result() for i in range(len(items))}
+        futures = {i: pool.submit(sha256_file, items[i][1])
+                   for i in sorted(range(len(items)), key=key)}
+        try:
+            return {items[i][0]: futures[i].result() for i in range(len(items))}
+        except BaseException:
+            # no file hashed after the error is known (the pool waits for those running)
+            for f in futures.values():
+                f.cancel()
+            raise
 
 
 def check_output_dir(path: str | Path, *, inputs=()) -> Path:

@@ -11,12 +11,11 @@ expression (the same bits), with the Poisson binned kernel's bin bookkeeping and
 statistic (:func:`mehs.synthesis._merge_binned._bin_statistic`; its χ² and degrees of
 freedom to the bit, tested).
 
-:func:`_weighted_estimate` repeats the method's weighted estimate of
-:func:`mehs.synthesis._merge_fused_weighted._merge_weighted` rather than being shared with
-it: as a helper there it made the per-band Robertson merge 5–9 % slower (512²×204×3, the
-statistic on and off). With bins of 4 the 512²×204×3 merges take 18 % (Debevec) and 10 %
-(inverse variance) less than per band, Robertson's the same (benchmarks/RESULTS.md,
-"Issue 16, session 35").
+The method's weighted estimate is written out in the sample loop, as in
+:func:`mehs.synthesis._merge_fused_weighted._merge_weighted`, not shared with it through an
+inline helper returning ``(x, snum, sden)``: with such a helper LLVM kept this kernel's
+sample loop scalar at 256-bit vectors (numba's own build, or an AVX2 host: Debevec 193
+against 21 ms a 26-line chunk), and it made the per-band Robertson merge 5–9 % slower.
 """
 
 from __future__ import annotations
@@ -28,71 +27,6 @@ from mehs.synthesis._cephes import expf, logf
 from mehs.synthesis._merge_binned import _bin_statistic
 from mehs.synthesis._merge_fused_weighted import _method_weight
 from mehs.synthesis._merge_rows import DEBEVEC, INVVAR, ROBERTSON, _usable
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _weighted_estimate(zs, l, a, i, darks, times, avar, method, okm, xi, xp, has, st, st2,
-                       sav, g32, rel32, top, hmid, fl):
-    """``(x, snum, sden)`` of sample ``i`` of row ``(l, a)``: ``method``'s weighted
-    estimate from the usable exposures (bit mask ``okm``; ``xi`` the pooled estimate,
-    ``xp = max(xi, 0)``, ``has`` whether any exposure is usable, ``st``, ``st2``, ``sav``
-    the selection's Σt, Σt², Σa) and its SNR's ``snum / √sden``, as
-    :func:`mehs.synthesis._merge_fused_weighted._merge_weighted` computes them."""
-    P = len(zs)
-    f0 = np.float32(0.0)
-    f1 = np.float32(1.0)
-    half = np.float32(0.5)
-    inf32 = np.float32(np.inf)
-    deb = method == DEBEVEC
-    num = f0
-    den = f0
-    s1 = f0
-    s2 = f0
-    s3 = f0
-    for j in range(P):
-        tj = times[j]
-        okj = f1 if (okm >> j) & 1 else f0
-        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
-        w = _method_weight(method, okj, yj, xp, tj, avar[j], g32, top, hmid, fl)
-        if deb:
-            # g(y) = ln y of the fractional y = raw − dark (see _merge_weighted)
-            num += w * (logf(max(yj, half)) - np.float32(np.log(tj)))
-        else:
-            num += w * yj / tj
-        den += w
-        if deb:
-            r = w / tj
-            s1 += okj * w * r
-            s2 += okj * r * r * avar[j]
-            s3 += okj * w * w
-    if deb:
-        q = num / den if den > f0 else f0
-        xe = expf(q)
-        xm = xe if den > f0 else xi
-    else:
-        xw = num / (den if den > f0 else f1)
-        xm = xw if den > f0 else xi
-    # usable samples all with zero level weight: the pooled weights ω = t
-    pooled_w = (method == DEBEVEC or method == ROBERTSON) & (den == f0) & has
-    x = xm if (xm >= f0) & (xm < inf32) else f0
-    if deb:
-        snum = st if pooled_w else den
-        sden = (g32 * x * (st if pooled_w else s1) + (sav if pooled_w else s2)
-                + rel32 * x * x * (st2 if pooled_w else s3))
-    else:
-        snum = f0
-        sden = f0
-        for j in range(P):
-            tj = times[j]
-            aj = avar[j]
-            okj = f1 if (okm >> j) & 1 else f0
-            yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
-            w = (okj * tj if pooled_w
-                 else _method_weight(method, okj, yj, xp, tj, aj, g32, top, hmid, fl))
-            v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
-            snum += okj * w
-            sden += okj * w * w * v
-    return xm, snum, sden
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -118,6 +52,8 @@ def _merge_weighted_binned(zs, darks, sat, times, L, floor, gain, avar, rel_var,
     rel32 = np.float32(rel_var)
     inf32 = np.float32(np.inf)
     fP = np.float32(P)
+    half = np.float32(0.5)
+    deb = method == DEBEVEC
     for l in range(nl):
         ol_ = out[l]
         snr_l, msum_l, nvalid_l, nsat_l = snr[l], msum[l], nvalid[l], nsat[l]
@@ -175,9 +111,56 @@ def _merge_weighted_binned(zs, darks, sat, times, L, floor, gain, avar, rel_var,
                         nsa = nsc
                         xi = (np.float32(zs[0][l, a, i]) - darks[0, a, i]) / times[0]
                     xp = max(xi, f0)
-                    xm, snum, sden = _weighted_estimate(zs, l, a, i, darks, times, avar,
-                                                        method, okm, xi, xp, has, st, st2,
-                                                        sav, g32, rel32, top, hmid, fl)
+                    # -- the method's weighted estimate and its SNR (_merge_weighted's)
+                    num = f0
+                    den = f0
+                    s1 = f0
+                    s2 = f0
+                    s3 = f0
+                    for j in range(P):
+                        tj = times[j]
+                        okj = f1 if (okm >> j) & 1 else f0
+                        yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                        w = _method_weight(method, okj, yj, xp, tj, avar[j], g32, top, hmid, fl)
+                        if deb:
+                            # g(y) = ln y of the fractional y = raw − dark (see _merge_weighted)
+                            num += w * (logf(max(yj, half)) - np.float32(np.log(tj)))
+                        else:
+                            num += w * yj / tj
+                        den += w
+                        if deb:
+                            r = w / tj
+                            s1 += okj * w * r
+                            s2 += okj * r * r * avar[j]
+                            s3 += okj * w * w
+                    if deb:
+                        q = num / den if den > f0 else f0
+                        xe = expf(q)
+                        xm = xe if den > f0 else xi
+                    else:
+                        xw = num / (den if den > f0 else f1)
+                        xm = xw if den > f0 else xi
+                    # usable samples all with zero level weight: the pooled weights ω = t
+                    pooled_w = (method == DEBEVEC or method == ROBERTSON) & (den == f0) & has
+                    x = xm if (xm >= f0) & (xm < inf32) else f0
+                    if deb:
+                        snum = st if pooled_w else den
+                        sden = (g32 * x * (st if pooled_w else s1) + (sav if pooled_w else s2)
+                                + rel32 * x * x * (st2 if pooled_w else s3))
+                    else:
+                        snum = f0
+                        sden = f0
+                        for j in range(P):
+                            tj = times[j]
+                            aj = avar[j]
+                            okj = f1 if (okm >> j) & 1 else f0
+                            yj = np.float32(zs[j][l, a, i]) - darks[j, a, i]
+                            w = (okj * tj if pooled_w
+                                 else _method_weight(method, okj, yj, xp, tj, aj, g32, top,
+                                                     hmid, fl))
+                            v = (g32 * x * tj + aj) / (tj * tj) + rel32 * x * x
+                            snum += okj * w
+                            sden += okj * w * w * v
                     # -- write (the stage kernel's _write_row)
                     fin = (xm > -inf32) & (xm < inf32)
                     xo = xm if fin & (xm >= f0) else f0

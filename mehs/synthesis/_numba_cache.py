@@ -49,7 +49,8 @@ _told = False
 #: machine code in use — the old arithmetic, silently (an editable install after a
 #: ``git pull``). :func:`drop_stale_kernel_caches` keys them on all their sources.
 KERNEL_MODULES = ("_cephes", "_merge_rows", "_merge_kernels", "_merge_fused",
-                  "_merge_fused_weighted", "_merge_binned", "_ptc_kernels")
+                  "_merge_fused_weighted", "_merge_binned", "_merge_binned_weighted",
+                  "_ptc_kernels")
 _STAMP = "mehs-kernel-sources.sha256"
 _checked = False
 

@@ -342,11 +342,11 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
             raise InputError(f"consistency_bins={nbin} takes at most {BINNED_MAX_EXPOSURES} "
                              f"exposures, got {P}; use consistency_bins=1", source)
         if kind is None:
-            why = (f"the {weighting!r} weighting" if linear and lin_g and not hat
-                   else "a recovered response curve")
+            # (a weighted merge of a linear curve without its kernel: another weighting)
+            why = (f"the {weighting!r} weighting (the binned {method} kernel computes the "
+                   "hat)" if linear and lin_g and not hat else "a recovered response curve")
             raise InputError(f"consistency_bins={nbin} is implemented for the merges of a "
-                             f"linear sensor (a linear curve; for {method!r} the hat "
-                             f"weighting) only, not {why}; use consistency_bins=1", source)
+                             f"linear sensor only, not {why}; use consistency_bins=1", source)
         kind += _BINNED
     if kind is not None and not consistency:
         kind += _RADIANCE
