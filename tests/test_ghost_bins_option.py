@@ -173,6 +173,12 @@ def test_the_scene_key_changes_only_when_the_width_is_set(moving_scene):
     assert "ghost_bins" not in key_params()
     assert key_params(ghost_bins=1)["ghost_bins"] == 1
     assert key_params(ghost_bins="4") == key_params(ghost_bins=4) != key_params()
+    # "auto" came to bin the weighted merges' statistic (session 35): their scenes rebuild,
+    # the Poisson merge's (binned since the option existed) and untested ones keep their keys
+    for method in ("debevec", "robertson", "inverse-variance"):
+        assert key_params(method=method)["ghost_bins"] != "auto"
+        assert "ghost_bins" not in key_params(method=method, ghosts="off")
+    assert key_params(method="robertson") != key_params(method="robertson", ghost_bins=1)
 
 
 def test_build_rebuilds_a_scene_with_the_width_it_is_given(moving_scene, tmp_path):

@@ -124,6 +124,11 @@ def input_files(source: SceneSource) -> dict[str, Path]:
     return out
 
 
+#: The scene key's ``ghost_bins`` of a weighted merge (Debevec, Robertson, inverse variance)
+#: left at "auto", whose statistic that "auto" bins since session 35.
+AUTO_BINS_EVERY_LINEAR_MERGE = "auto (bins for every linear merge)"
+
+
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
     p = asdict(task.params)
     p["response"] = task.response_sha256  # the curve's content, not where it lives
@@ -132,7 +137,13 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
     if not p.get("allow_partial"):
         p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if p.get("ghost_bins") == "auto":
-        p.pop("ghost_bins", None)     # and those built before the option existed
+        if p.get("method") != "poisson" and p.get("ghosts") != "off":
+            # since session 35 "auto" bins the weighted merges' ghost statistic too: their
+            # scenes' ghost masks changed, so they rebuild (the Poisson merge's keep their
+            # keys: its "auto" has binned since the option existed)
+            p["ghost_bins"] = AUTO_BINS_EVERY_LINEAR_MERGE
+        else:
+            p.pop("ghost_bins", None)     # and those built before the option existed
     if task.source.kind == "hs":
         for k in ("method", "response", "ghosts", "ghost_bins"):
             p.pop(k, None)
