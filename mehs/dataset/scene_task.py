@@ -124,9 +124,10 @@ def input_files(source: SceneSource) -> dict[str, Path]:
     return out
 
 
-#: The scene key's ``ghost_bins`` of a weighted merge (Debevec, Robertson, inverse variance)
-#: left at "auto", whose statistic that "auto" bins since session 35.
-AUTO_BINS_EVERY_LINEAR_MERGE = "auto (bins for every linear merge)"
+#: The scene key's ``ghost_bins`` left at "auto" (with the ghost test on), since session 35
+#: changed what "auto" gives: bins for the weighted merges too, one band per bin for
+#: brackets of more than 3 exposures (mehs.synthesis.merge.AUTO_BINS_MAX_EXPOSURES).
+AUTO_BINS_RULE = "auto (session 35: bins of 4 for a linear merge of <= 3 exposures)"
 
 
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
@@ -137,13 +138,12 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
     if not p.get("allow_partial"):
         p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if p.get("ghost_bins") == "auto":
-        if p.get("method") != "poisson" and p.get("ghosts") != "off":
-            # since session 35 "auto" bins the weighted merges' ghost statistic too: their
-            # scenes' ghost masks changed, so they rebuild (the Poisson merge's keep their
-            # keys: its "auto" has binned since the option existed)
-            p["ghost_bins"] = AUTO_BINS_EVERY_LINEAR_MERGE
+        if p.get("ghosts") != "off":
+            # the ghost masks of a weighted merge's scenes (now binned) and of brackets of
+            # more than 3 exposures (now per band) changed: such scenes rebuild once
+            p["ghost_bins"] = AUTO_BINS_RULE
         else:
-            p.pop("ghost_bins", None)     # and those built before the option existed
+            p.pop("ghost_bins", None)     # no statistic: keys as before the option existed
     if task.source.kind == "hs":
         for k in ("method", "response", "ghosts", "ghost_bins"):
             p.pop(k, None)

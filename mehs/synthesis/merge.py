@@ -65,8 +65,8 @@ from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, MASK_GHOST, MASK_I
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
 # the types live in merge_types; callers import them from here
-__all__ = ["AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS", "MASK_GHOST", "MASK_INVALID",
-           "MASK_SATURATED", "MERGE_METHODS", "MergeResult", "NoiseModel",
+__all__ = ["AUTO_BINS_MAX_EXPOSURES", "AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS",
+           "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult", "NoiseModel",
            "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003", "merge_bracket",
            "merge_inverse_variance", "warm_merge_kernel"]
 
@@ -80,6 +80,11 @@ AUTO_CONSISTENCY_BINS = 4
 #: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
 #: change may flip its sign between them
 AUTO_BINS_MIN_BANDS = 100
+#: ... of brackets of at most this many exposures: the binned kernels' sample loops are
+#: vectorised (every division in vector form) for up to 3 exposures, not for 4 or more
+#: (9 of 25 divisions at 4), where they took 6–8.5× the per-band kernels' time (review of
+#: session 35; the Poisson one since session 33). More exposures keep one band per bin.
+AUTO_BINS_MAX_EXPOSURES = 3
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -177,8 +182,10 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         the one-pass merges of a linear sensor — every method with a linear curve, the
         weighted ones with the hat weighting — at most 16 exposures; ``"auto"`` (default)
         takes :data:`AUTO_CONSISTENCY_BINS` there for cubes of at least
-        :data:`AUTO_BINS_MIN_BANDS` bands, and 1 otherwise (few broad bands, or a
-        recovered curve or another weighting, whose kernels have no binned statistic).
+        :data:`AUTO_BINS_MIN_BANDS` bands and brackets of at most
+        :data:`AUTO_BINS_MAX_EXPOSURES` exposures, and 1 otherwise (few broad bands; more
+        exposures, for which the binned kernels are not vectorised; a recovered curve or
+        another weighting, whose kernels have no binned statistic).
         The radiance does not depend on it. ``info["consistency_bins"]`` records the
         choice.
     chunk_lines
@@ -334,7 +341,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
     nbin = consistency_bins_value(consistency_bins, source)
     if nbin == "auto":
         nbin = (AUTO_CONSISTENCY_BINS if kind is not None and nb >= AUTO_BINS_MIN_BANDS
-                and P <= BINNED_MAX_EXPOSURES else 1)
+                and P <= AUTO_BINS_MAX_EXPOSURES else 1)
     nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
         if P > BINNED_MAX_EXPOSURES:
