@@ -12,6 +12,7 @@ import errno
 import hashlib
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -224,7 +225,8 @@ def sha256_files(paths: Mapping[str, str | Path], *, threads: int | None = None
     files go first, on ``threads`` threads (default: the CPUs this process may use), so
     that a big one does not start last. An error (a file that cannot be read) is raised
     as :func:`sha256_file` raises it, for the first such file in ``paths``' order, once
-    the hashes running then have ended (a file that cannot even be found goes first).
+    the hashes running then have ended (a path that is missing or not a regular file
+    goes first).
     """
     items = list(paths.items())
     if threads is None:
@@ -239,9 +241,11 @@ def sha256_files(paths: Mapping[str, str | Path], *, threads: int | None = None
 
     def key(i: int) -> tuple[int, int]:
         try:
-            return 1, -os.stat(items[i][1]).st_size
+            st = os.stat(items[i][1])
         except OSError:             # first: raised again, with its name, by its hash
             return 0, 0
+        # a folder, a device: first too (its hash fails, or is no file's)
+        return (1, -st.st_size) if stat.S_ISREG(st.st_mode) else (0, 0)
 
     with ThreadPoolExecutor(threads, thread_name_prefix="mehs-sha256") as pool:
         futures = {i: pool.submit(sha256_file, items[i][1])
