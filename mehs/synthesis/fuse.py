@@ -182,10 +182,9 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         Adjacent bands summed per term of the merge's χ² ghost statistic
         (``consistency_bins`` of :func:`~mehs.synthesis.merge.merge_bracket`): ``"auto"``
         (default: 4 for a linear sensor's cube of ≥ 100 bands and ≤ 3 exposures, else 1)
-        or a whole number;
-        more than 1 only for a linear sensor (every merge method) and at most 16 exposures
-        (else an ``InputError`` before the merge; a curve that ``response="auto"``
-        recovers is refused right after it is chosen).
+        or a whole number; more than 1 only for a linear sensor (every merge method) and
+        at most 16 exposures (else an ``InputError`` before the merge; a curve that
+        ``response="auto"`` recovers is refused right after it is chosen).
         ``summary["ghost_chi2_bins"]`` records what was used.
     check_response
         After recovering a curve, run the self-consistency check of

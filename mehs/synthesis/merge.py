@@ -66,8 +66,8 @@ from mehs.synthesis.response import ResponseCurve, weighting_table
 
 # the types live in merge_types; callers import them from here
 __all__ = ["AUTO_BINS_MAX_EXPOSURES", "AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS",
-           "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult", "NoiseModel",
-           "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003", "merge_bracket",
+           "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
+           "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003", "merge_bracket",
            "merge_inverse_variance", "warm_merge_kernel"]
 
 #: the bands per bin of the χ² ghost statistic of ``consistency_bins="auto"`` where the
