@@ -9,15 +9,17 @@ raw dtype, number of exposures) compiles a C-callable entry point around the num
 kernel (``numba.cfunc``), keeps its object code in ``<cache>/kernels/`` and later
 processes load it straight into LLVM's JIT linker through llvmlite (tens of ms) and
 call it through ctypes, which releases the GIL as the numba kernel did. The
-numbers are the numba kernel's: it is the same compiled code (tested to the bit).
+numbers are the numba kernel's: the same source through the same compiler, at most
+tuned differently (tested to the bit).
 The kernels and their parameters are listed in :mod:`mehs.synthesis._native_specs`;
 linking and calling an entry is :mod:`._native_link`, compiling it in a child process
-(the host's widest vectors) :mod:`._native_child`.
+(the host's widest vectors; LLVM options that vectorise brackets of more than 3
+exposures) :mod:`._native_child`.
 
 The key of a stored object covers every input of the compilation: the source of
 the kernel modules, of this one and of the specs, the numba and llvmlite versions, the
-host CPU and its features, numba's CPU overrides, Python's version, the raw dtype and
-the number of exposures. An object whose recorded SHA-256 does not match, or that needs
+host CPU and its features, numba's CPU overrides, Python's version, the raw dtype, the
+number of exposures and the LLVM options. An object whose recorded SHA-256 does not match, or that needs
 a symbol this process cannot give it, is not loaded: it is compiled anew
 (or, if that fails, the numba kernel runs). The symbols numba's error handling
 refers to (raising a Python exception from compiled code) are bound to ``abort``:
@@ -130,7 +132,8 @@ def _sources(kind: str) -> str:
 
 
 def _key(kind: str, dtype: np.dtype, P: int) -> tuple[dict, str]:
-    key = dict(_base_key(), sources=_sources(kind), kernel=kind, dtype=dtype.name, exposures=P)
+    key = dict(_base_key(), sources=_sources(kind), kernel=kind, dtype=dtype.name, exposures=P,
+               llvm=list(_native_child.llvm_options(P)))
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:24]
     return key, f"{kind}-{dtype.name}-P{P}-{digest}"
 
@@ -275,6 +278,7 @@ def _child_build(kind: str, dtype: np.dtype, P: int, marker: str, key: dict, *,
     _key_base = {k: v for k, v in key.items()
                  if k not in ("sources", "kernel", "dtype", "exposures")}
     _in_child = True
+    _native_child.apply_llvm_options(key.get("llvm"))
     try:
         import fcntl
     except ImportError:     # not POSIX: no marker
@@ -386,7 +390,7 @@ def _build(kind: str, dtype: np.dtype, P: int) -> tuple[Callable | None, bool]:
     notice_compiling("the synthesis kernels")
     try:
         key, stem = _key(kind, dtype, P)
-        if key["tuning"] and not _in_child:
+        if (key["tuning"] or key["llvm"]) and not _in_child:
             fn = _build_in_child(kind, dtype, P, key)
             return fn, fn is None
         obj, symbol, undefined = _compile(kind, dtype, P)
@@ -403,8 +407,9 @@ def _build(kind: str, dtype: np.dtype, P: int) -> tuple[Callable | None, bool]:
 
 
 def _build_in_child(kind: str, dtype: np.dtype, P: int, key: dict) -> Callable | None:
-    """Compile the entry with the features of :func:`._native_child.tuning` in a child
-    process (numba's features are fixed for a whole process), wait, load it."""
+    """Compile the entry with the features of :func:`._native_child.tuning` and the LLVM
+    options of :func:`._native_child.llvm_options` in a child process (both are fixed
+    for a whole process), wait, load it."""
     files = _entry_files(kind, dtype, P)
     if files is None:
         return None
@@ -432,6 +437,12 @@ def _compile(kind: str, dtype: np.dtype, P: int) -> tuple[bytes, str, list[str]]
     skip_scipy_linalg_import()
     spec = KERNELS[kind]
     K = spec.dispatcher()
+    if _native_child.llvm_options(P):
+        # from its source, whatever numba's own cache holds (a kernel it cached without the
+        # options is linked as optimised IR and re-optimised: vectorised, by another route)
+        from numba import njit
+
+        K = njit(**{k: v for k, v in K.targetoptions.items() if k != "nopython"})(K.py_func)
     nbt = {"f4": types.float32, "f8": types.float64, "i4": types.int32, "i8": types.int64,
            "u1": types.uint8, "u2": types.uint16, "b1": types.boolean,
            "raw": getattr(types, dtype.name)}

@@ -17,6 +17,10 @@ process for all its code, so the stored kernels are compiled in a child process 
 those features: the parent's numba and a user's own numba code keep LLVM's choice.
 ``MEHS_KERNEL_VECTORS=256`` keeps LLVM's choice for the stored kernels too; a user's own
 ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES`` is left as it is.
+
+A child also compiles every kernel of more than :data:`DEFAULT_TUNED_EXPOSURES`
+exposures, with the LLVM options of :func:`llvm_options` (process-wide settings of
+LLVM, so not in the parent either).
 """
 
 from __future__ import annotations
@@ -37,6 +41,42 @@ def tuning() -> str:
     import llvmlite.binding as ll
 
     return "-prefer-256-bit" if ll.get_host_cpu_features().get("avx512f") else ""
+
+
+#: Exposures up to which LLVM's default tuning vectorises the one-pass merge kernels.
+DEFAULT_TUNED_EXPOSURES = 3
+
+
+def llvm_options(P: int) -> tuple[str, ...]:
+    """The LLVM options a stored kernel of ``P`` exposures is compiled with (none for 3 or
+    fewer).
+
+    The one-pass merges vectorise their sample loop with each sample's state in
+    registers, which needs the exposure loop inside it unrolled: ``P`` is a compile-time
+    constant, and numba indexes the tuple of exposures by the loop variable through a
+    ``switch`` that only unrolling removes. Beyond 3 exposures LLVM's full-unroll
+    threshold (300 at ``-O3``) left that loop rolled, so nothing vectorised: Debevec's
+    per-band merge took 11×, the Poisson merge 7–9× (8 exposures; binned: from 4) the time
+    per exposure of a 3-exposure bracket (``benchmarks/RESULTS.md``, "Issue 16, session
+    36"). Unrolled, the sample loop's run-time alias checks (arrays stored × arrays read,
+    growing with ``P``) pass LLVM's cap of 128 ("too many memory checks needed"); one
+    check per loop entry, a few hundred compares for 16 exposures against a row's
+    hundreds of samples. Both limits are raised, enough for every merge kernel up to
+    16 exposures (tested). The numbers stay the same: without ``fastmath`` each vector
+    lane computes what the scalar loop does (tested to the bit).
+    """
+    if P <= DEFAULT_TUNED_EXPOSURES:
+        return ()
+    return ("-unroll-threshold=4000", "-vectorize-memory-check-threshold=4096")
+
+
+def apply_llvm_options(options) -> None:
+    """Set LLVM's command-line ``options`` for this whole process (a child's)."""
+    if options:
+        import llvmlite.binding as ll
+
+        for option in options:
+            ll.set_option("mehs", option)
 
 
 def start(kind: str, dtype_name: str, P: int, marker: Path, key: dict, *,
