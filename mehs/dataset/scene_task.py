@@ -124,10 +124,11 @@ def input_files(source: SceneSource) -> dict[str, Path]:
     return out
 
 
-#: The scene key's ``ghost_bins`` left at "auto" (with the ghost test on), since session 35
-#: changed what "auto" gives: bins for the weighted merges too, one band per bin for
-#: brackets of more than 3 exposures (mehs.synthesis.merge.AUTO_BINS_MAX_EXPOSURES).
-AUTO_BINS_RULE = "auto (session 35: bins of 4 for a linear merge of <= 3 exposures)"
+#: The scene key's ``ghost_bins`` left at "auto" (with the ghost test on), since sessions
+#: 35 and 36 changed what "auto" gives: bins for the weighted merges too (35), and for
+#: brackets of 4 to 16 exposures (36; 35 had kept one band per bin beyond 3 exposures,
+#: mehs.synthesis.merge.AUTO_BINS_MAX_EXPOSURES).
+AUTO_BINS_RULE = "auto (session 36: bins of 4 for a linear merge of <= 16 exposures)"
 
 
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
@@ -139,8 +140,9 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
         p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if p.get("ghost_bins") == "auto":
         if p.get("ghosts") != "off":
-            # the ghost masks of a weighted merge's scenes (now binned) and of brackets of
-            # more than 3 exposures (now per band) changed: such scenes rebuild once
+            # the ghost masks of a weighted merge's scenes and of brackets of more than 3
+            # exposures (now binned) changed: such scenes rebuild once (the key cannot
+            # tell a bracket's exposures before reading it)
             p["ghost_bins"] = AUTO_BINS_RULE
         else:
             p.pop("ghost_bins", None)     # no statistic: keys as before the option existed

@@ -181,7 +181,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
     ghost_bins
         Adjacent bands summed per term of the merge's χ² ghost statistic
         (``consistency_bins`` of :func:`~mehs.synthesis.merge.merge_bracket`): ``"auto"``
-        (default: 4 for a linear sensor's cube of ≥ 100 bands and ≤ 3 exposures, else 1)
+        (default: 4 for a linear sensor's cube of ≥ 100 bands and ≤ 16 exposures, else 1)
         or a whole number; more than 1 only for a linear sensor (every merge method) and
         at most 16 exposures (else an ``InputError`` before the merge; a curve that
         ``response="auto"`` recovers is refused right after it is chosen).

@@ -80,11 +80,13 @@ AUTO_CONSISTENCY_BINS = 4
 #: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
 #: change may flip its sign between them
 AUTO_BINS_MIN_BANDS = 100
-#: ... of brackets of at most this many exposures: the binned kernels' sample loops are
-#: vectorised (every division in vector form) for up to 3 exposures, not for 4 or more
-#: (9 of 25 divisions at 4), where they took 6–8.5× the per-band kernels' time (review of
-#: session 35; the Poisson one since session 33). More exposures keep one band per bin.
-AUTO_BINS_MAX_EXPOSURES = 3
+#: ... of brackets of at most this many exposures: all the binned kernels take. Their
+#: stored (mehs cache) kernels are vectorised up to 16 exposures, as fast per exposure as
+#: for 3 (mehs.synthesis._native_child.llvm_options; session 35 had held "auto" to 3
+#: exposures, beyond which they were scalar). numba's own build of the one-pass kernels
+#: (no mehs cache folder, a platform where stored kernels cannot be linked) stays scalar
+#: beyond 3 exposures, per band or binned, except the per-band Poisson merge up to 5.
+AUTO_BINS_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -183,9 +185,8 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         weighted ones with the hat weighting — at most 16 exposures; ``"auto"`` (default)
         takes :data:`AUTO_CONSISTENCY_BINS` there for cubes of at least
         :data:`AUTO_BINS_MIN_BANDS` bands and brackets of at most
-        :data:`AUTO_BINS_MAX_EXPOSURES` exposures, and 1 otherwise (few broad bands; more
-        exposures, for which the binned kernels are not vectorised; a recovered curve or
-        another weighting, whose kernels have no binned statistic).
+        :data:`AUTO_BINS_MAX_EXPOSURES` (16) exposures, and 1 otherwise (few broad bands;
+        a recovered curve or another weighting, whose kernels have no binned statistic).
         The radiance does not depend on it. ``info["consistency_bins"]`` records the
         choice.
     chunk_lines
