@@ -87,7 +87,8 @@ def test_fuse_refuses_bins_for_a_merge_without_them_before_any_work(moving_scene
 
     monkeypatch.setattr(fuse_mod, "choose_response", no_work)
     b = load_bracket(moving_scene)
-    with pytest.raises(InputError, match=r"--ghost-bins\) = 2 needs a linear sensor"):
+    with pytest.raises(InputError, match=r"--ghost-bins\) = 2 needs a linear sensor, and the "
+                                         "response asked for is 'debevec'"):
         fuse_mod.fuse_bracket(b, response="debevec", ghost_bins=2)
     with pytest.raises(InputError, match=r"ghost_bins \(--ghost-bins\) must be"):
         fuse_mod.fuse_bracket(b, ghost_bins=0)
@@ -151,7 +152,7 @@ def test_cli_build_names_the_option_and_refuses_a_non_linear_curve_up_front(
     curve = bent.save(tmp_path / "bent.json")
     for args, says in ((["--ghost-bins", "wide"], "--ghost-bins must be 'auto' or a whole"),
                        (["--ghost-bins", "2", "--response", str(curve)],
-                        "--ghost-bins) = 2 needs a linear sensor and this response curve "
+                        "--ghost-bins) = 2 needs a linear sensor, and this response curve "
                         "is 'debevec'"),
                        (["--from-hs", "--ghost-bins", "x"], "--ghost-bins must be")):
         capsys.readouterr()

@@ -176,11 +176,10 @@ def build_dataset(scenes: Iterable[str | Path | SceneSource], out: str | Path, *
         loaded = ResponseCurve.load(response)
         if params.ghost_bins not in ("auto", 1) and params.ghosts != "off" \
                 and not loaded.is_linear:
-            from mehs.synthesis.merge_types import GHOST_BINS_NAME
+            from mehs.synthesis.merge_types import refuse_bins_for_curve
 
-            raise InputError(f"{GHOST_BINS_NAME} = {params.ghost_bins} needs a linear sensor "
-                             f"and this response curve is {loaded.method!r}; use 1 or auto",
-                             response)
+            refuse_bins_for_curve(params.ghost_bins, "this response curve", loaded.method,
+                                  response)
         response_sha = sha256_file(response)
     return _run_build(srcs, Path(out), params, response_sha, workers=workers, force=force,
                       fractions=fractions, rules=rules, scheduler=scheduler,

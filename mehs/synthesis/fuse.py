@@ -22,7 +22,7 @@ from mehs.synthesis.bracket import Bracket
 from mehs.synthesis.merge import (MASK_GHOST, MASK_INVALID, MASK_SATURATED, MERGE_METHODS,
                                   NoiseModel, merge_bracket, warm_merge_kernel)
 from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, GHOST_BINS_NAME,
-                                         consistency_bins_value)
+                                         consistency_bins_value, refuse_bins_for_curve)
 from mehs.synthesis.fuse_response import (  # noqa: F401 - re-exported (library API)
     LINEARITY_TOLERANCE, ResponseUndeterminedWarning, check_recovered_response, choose_response,
     recover_response)
@@ -217,8 +217,7 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
                          f"{BINNED_MAX_EXPOSURES} exposures, this bracket has {n_exp}; use 1 "
                          "or auto", bracket.source)
     if binned and isinstance(response, str) and response == "debevec":
-        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor: a recovered "
-                         "(debevec) response curve has no binned statistic; use 1 or auto")
+        refuse_bins_for_curve(ghost_bins, "the response asked for", "debevec", bracket.source)
     if reference != "auto" and not (isinstance(reference, (int, np.integer))
                                     and 0 <= reference < n_exp):
         raise InputError(f"reference must be 'auto' or an exposure index 0..{n_exp - 1}, "
@@ -289,10 +288,8 @@ def fuse_bracket(bracket: Bracket, *, method: str = "poisson", response: Any = "
         calibration = None
     cal = 1.0 if calibration is None else calibration
     if binned and not curve.is_linear:
-        raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor, and this "
-                         f"bracket's response is {curve.method!r} (not linear): the merge of "
-                         "a non-linear curve has no binned statistic; use 1 or auto",
-                         bracket.source)
+        refuse_bins_for_curve(ghost_bins, "this bracket's response", curve.method,
+                              bracket.source)
     t1 = time.perf_counter()
     mr = merge_bracket([e.data for e in bracket.exposures], bracket.times_ms, method=method,
                        response=curve, darks=bracket.darks, bit_depth=bracket.bit_depth,

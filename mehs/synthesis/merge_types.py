@@ -25,6 +25,20 @@ BINNED_MAX_EXPOSURES = 16
 GHOST_BINS_NAME = "ghost_bins (--ghost-bins)"
 
 
+def refuse_bins_for_curve(ghost_bins, whose: str, curve: str, source=None) -> None:
+    """Raise the ``InputError`` of a bin width > 1 with a non-linear response curve:
+    ``whose`` names it ("this bracket's response"), ``curve`` is its method.
+
+    Said alike wherever it is known before the merge, whose own refusal would come only
+    after the response and noise work: :func:`mehs.synthesis.fuse.fuse_bracket` for
+    ``response="debevec"`` and again once ``auto`` has chosen a curve,
+    :func:`mehs.dataset.build.build_dataset` for a curve file before any scene.
+    """
+    raise InputError(f"{GHOST_BINS_NAME} = {ghost_bins} needs a linear sensor, and {whose} "
+                     f"is {curve!r} (not linear): the merge of a non-linear curve has no "
+                     "binned statistic; use 1 or auto", source)
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Noise of a dark-subtracted, linearised sample ``y`` (DN) of an exposure of ``t`` ms.
