@@ -175,12 +175,48 @@ def test_the_scene_key_names_the_width_or_the_rule_of_auto(moving_scene):
     assert key_params(ghost_bins="4") == key_params(ghost_bins=4) != key_params()
     # what "auto" gives changed in session 35 (bins for the weighted merges) and 36 (bins
     # for 4 to 16 exposures): scenes built with it rebuild once, under a key that names
-    # the rule; scenes built without the ghost test keep their keys
-    session35 = "auto (session 35: bins of 4 for a linear merge of <= 3 exposures)"
+    # the rule (next test); scenes built without the ghost test keep their keys
     for method in ("poisson", "debevec", "robertson", "inverse-variance"):
-        assert key_params(method=method)["ghost_bins"] not in (None, "auto", 1, 4, session35)
+        assert key_params(method=method)["ghost_bins"] not in (None, "auto", 1, 4)
         assert "ghost_bins" not in key_params(method=method, ghosts="off")
     assert key_params(method="robertson") != key_params(method="robertson", ghost_bins=1)
+
+
+def test_auto_keeps_session_35s_key_for_brackets_it_merges_as_then(moving_scene, tmp_path):
+    """Session 36 changed what auto gives for brackets of 4 to 16 exposures only: a
+    bracket of at most 3 keeps its key (no rebuild), one of more gets the new rule. The
+    count is the bracket's complete exposures (a scene folder) or its folders (Specim IQ)."""
+    import shutil
+
+    from mehs.capture.scene import make_scene
+    from mehs.capture.sensor import SensorModel
+    from mehs.capture.simulate import simulate_bracket, write_simulated_scene
+    from mehs.dataset.scene_list import SceneSource, collect_scenes
+    from mehs.dataset.scene_task import (AUTO_BINS_RULE, AUTO_BINS_RULE_35, BuildParams,
+                                         SceneTask, _params_for_key, bracket_exposures)
+
+    def rule(src):
+        return _params_for_key(SceneTask(src, "ds", BuildParams()))["ghost_bins"]
+
+    (three,) = collect_scenes([moving_scene])
+    assert bracket_exposures(three) == 3 and rule(three) == AUTO_BINS_RULE_35
+    scene = make_scene("colorchecker", 8, 8, motion=True, seed=7)
+    sim = simulate_bracket(scene, SensorModel(seed=3), (0.05, 0.2, 0.8, 3.2, 12.8), seed=0)
+    five_dir = write_simulated_scene(sim, tmp_path / "five", scene_id="five")
+    (five,) = collect_scenes([five_dir])
+    assert bracket_exposures(five) == 5 and rule(five) == AUTO_BINS_RULE
+    # an exposure the capture did not finish is not merged (allow_partial) nor counted
+    partial_dir = tmp_path / "partial"
+    shutil.copytree(five_dir, partial_dir)
+    meta = json.loads((partial_dir / "scene.json").read_text())
+    for exp in meta["exposures"][3:]:
+        exp["status"] = "incomplete"
+    (partial_dir / "scene.json").write_text(json.dumps(meta))
+    (partial,) = collect_scenes([partial_dir])
+    assert bracket_exposures(partial) == 3 and rule(partial) == AUTO_BINS_RULE_35
+    for n, want in ((3, AUTO_BINS_RULE_35), (4, AUTO_BINS_RULE)):
+        iq = SceneSource("iq", "specim", tuple(f"/nowhere/{k}" for k in range(n)))
+        assert rule(iq) == want
 
 
 def test_build_rebuilds_a_scene_with_the_width_it_is_given(moving_scene, tmp_path):

@@ -127,8 +127,25 @@ def input_files(source: SceneSource) -> dict[str, Path]:
 #: The scene key's ``ghost_bins`` left at "auto" (with the ghost test on), since sessions
 #: 35 and 36 changed what "auto" gives: bins for the weighted merges too (35), and for
 #: brackets of 4 to 16 exposures (36; 35 had kept one band per bin beyond 3 exposures,
-#: mehs.synthesis.merge.AUTO_BINS_MAX_EXPOSURES).
+#: mehs.synthesis.merge.AUTO_BINS_MAX_EXPOSURES). A bracket of at most 3 exposures gets
+#: what session 35 gave, so its key keeps session 35's rule: only the others rebuild.
 AUTO_BINS_RULE = "auto (session 36: bins of 4 for a linear merge of <= 16 exposures)"
+AUTO_BINS_RULE_35 = "auto (session 35: bins of 4 for a linear merge of <= 3 exposures)"
+AUTO_BINS_RULE_35_EXPOSURES = 3
+
+
+def bracket_exposures(source: SceneSource) -> int | None:
+    """The exposures a scene's bracket merges, from its listing alone (None for a cube):
+    a scene folder's complete ones (those :func:`input_files` keys and
+    :func:`~mehs.synthesis.bracket.load_bracket` reads), one per Specim IQ folder."""
+    if source.kind == "scene":
+        from mehs.capture.scenefolder import read_scene_json
+
+        meta = read_scene_json(Path(source.paths[0]))
+        return sum(1 for exp in meta["exposures"] if exp.get("status") == "complete")
+    if source.kind == "specim":
+        return len(source.paths)
+    return None
 
 
 def _params_for_key(task: SceneTask) -> dict[str, Any]:
@@ -140,10 +157,11 @@ def _params_for_key(task: SceneTask) -> dict[str, Any]:
         p.pop("allow_partial", None)  # keys of complete scenes stay what they were
     if p.get("ghost_bins") == "auto":
         if p.get("ghosts") != "off":
-            # the ghost masks of a weighted merge's scenes and of brackets of more than 3
-            # exposures (now binned) changed: such scenes rebuild once (the key cannot
-            # tell a bracket's exposures before reading it)
-            p["ghost_bins"] = AUTO_BINS_RULE
+            # the ghost masks of a weighted merge's scenes (session 35) and of brackets of
+            # more than 3 exposures (36, now binned) changed: such scenes rebuild once
+            n = bracket_exposures(task.source)
+            p["ghost_bins"] = (AUTO_BINS_RULE_35 if n is not None
+                               and n <= AUTO_BINS_RULE_35_EXPOSURES else AUTO_BINS_RULE)
         else:
             p.pop("ghost_bins", None)     # no statistic: keys as before the option existed
     if task.source.kind == "hs":
