@@ -163,7 +163,8 @@ def test_auto_bins_the_brackets_the_binned_kernels_take():
                              (AUTO_BINS_MAX_EXPOSURES + 1, 1, ("poisson",))):
         t = [2.0 ** j for j in range(P)]
         E = rng.uniform(0.5, 3, (2, 3, nb))
-        stack = [np.rint(E * tj + 60 + rng.normal(0, 2, E.shape)).astype(np.uint16) for tj in t]
+        stack = [np.clip(np.rint(E * tj + 60 + rng.normal(0, 2, E.shape)), 0, 4095)
+                 .astype(np.uint16) for tj in t]
         kw = dict(darks=[np.full((3, nb), 60.0)] * P, noise=NoiseModel(1.7, 3.0))
         for method in methods:
             r = merge_bracket(stack, t, method=method, **kw)

@@ -9,10 +9,12 @@ stay numba's to the bit.
 
 from __future__ import annotations
 
+import os
 import platform
 import re
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -20,6 +22,15 @@ from _checks import assert_same_merge_bits
 
 from mehs.synthesis import _native, _native_child
 from mehs.synthesis.merge import NoiseModel, merge_bracket
+
+
+# numba told to build without vectors: nothing to look for in the code
+_NO_VECTOR_BUILD = any((os.environ.get("NUMBA_CPU_NAME", "").lower() == "generic",
+                        os.environ.get("NUMBA_OPT", "").strip() == "0",
+                        os.environ.get("NUMBA_BOUNDSCHECK", "").strip() not in ("", "0")))
+_SKIP_NO_VECTORS = pytest.mark.skipif(_NO_VECTOR_BUILD, reason="numba set to build without "
+                                      "vectorisation (NUMBA_CPU_NAME=generic, NUMBA_OPT=0 or "
+                                      "NUMBA_BOUNDSCHECK)")
 
 
 @pytest.fixture()
@@ -43,12 +54,62 @@ def test_llvm_options_only_beyond_three_exposures_and_in_the_key(fresh):
 
 def test_a_child_whose_options_differ_from_the_key_builds_nothing(fresh, monkeypatch):
     """A parent that asked for other LLVM options (another mehs) gets no entry under its
-    key from this child: it would not be the code the key names."""
+    key from this child: it would not be the code the key names. (Run here with the
+    child's process-wide effects held back, in case the guard ever fails.)"""
+    applied = []
+    monkeypatch.setattr(_native_child, "apply_llvm_options", applied.append)
+    monkeypatch.setattr(_native, "_in_child", False)
     key = dict(_native._key("poisson_linear", np.dtype(np.uint16), 5)[0], llvm=[])
     fresh.mkdir(parents=True)
     _native._child_build("poisson_linear", np.dtype(np.uint16), 5, str(fresh / "x.building"),
                          key, wait=True)
-    assert not list(fresh.glob("*.o"))
+    assert not list(fresh.glob("*.o")) and not applied
+
+
+_IR_CHECK = """
+import re, sys
+import numpy as np, numba
+from mehs.synthesis import _native_child
+from mehs.synthesis._native_specs import KERNELS
+P = int(sys.argv[1])
+_native_child.apply_llvm_options(_native_child.llvm_options(P))
+f4 = np.float32
+nl, nb, ns = 2, 3, 16
+for kind in sys.argv[2:]:
+    K = KERNELS[kind].dispatcher()
+    kernel = numba.njit(nogil=True, error_model="numpy")(K.py_func)
+    zs = tuple(np.full((nl, nb, ns), 100 * (j + 1), np.uint16) for j in range(P))
+    outs = (np.zeros((nl, nb, ns), f4), np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32),
+            np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32), np.zeros((nl, ns), np.int32),
+            np.zeros((nl, ns), f4))
+    head = (zs, np.zeros((P, nb, ns), f4), np.full(nb, 4000, f4), (2.0 ** np.arange(P)).astype(f4))
+    if not kind.startswith("poisson"):
+        head += (4096, f4(0.5))
+    mid = (1.5, np.full(P, 9, f4), 0.0, np.ones(nb, f4), True, True)
+    scratch = ((2, tuple(np.zeros(ns, f4) for _ in range(P)), np.zeros(ns, f4),
+                np.zeros(ns, np.int32)) if kind.endswith("_binned") else ())
+    kernel(*head, *mid, *scratch, *outs)
+    (ir,) = kernel.inspect_llvm().values()
+    print(kind, len(re.findall(r"fdiv (?:\\w+ )*<\\d+ x float>", ir)),
+          len(re.findall(r"fdiv (?:\\w+ )*float", ir)))
+"""
+
+
+@_SKIP_NO_VECTORS
+def test_the_options_vectorise_every_one_pass_kernel_at_16_exposures():
+    """Every division of each one-pass kernel has its vector form (a scalar one remains
+    per division for the loop's remainder) when compiled with the options for 16
+    exposures, in a process of its own (the options are process-wide). With LLVM's
+    defaults none of these has one; an option a later LLVM no longer knows would be
+    ignored without a word and fail here."""
+    kinds = ["poisson_linear", "poisson_linear_binned", "debevec_linear",
+             "debevec_linear_binned", "robertson_linear", "invvar_linear_binned"]
+    got = subprocess.run([sys.executable, "-c", _IR_CHECK, "16", *kinds], capture_output=True,
+                         text=True, timeout=600, check=True).stdout.split("\n")
+    counts = {k: (int(v), int(s)) for k, v, s in (line.split() for line in got if line)}
+    assert set(counts) == set(kinds)
+    for kind, (vector, scalar) in counts.items():
+        assert scalar > 0 and vector >= scalar, (kind, vector, scalar)
 
 
 def _bracket(P, seed):
@@ -76,7 +137,8 @@ def test_a_stored_kernel_of_many_exposures_is_vectorised_with_numbas_bits(
     stored = merge_bracket(stack, t, **kw)
     assert _native.is_stored(kind, np.uint16, P)
     objdump = shutil.which("objdump")
-    if objdump is not None and platform.machine().lower() in ("x86_64", "amd64"):
+    if (objdump is not None and platform.machine().lower() in ("x86_64", "amd64")
+            and not _NO_VECTOR_BUILD):
         (obj,) = fresh.glob(f"{kind}-uint16-P{P}-*.o")
         code = subprocess.run([objdump, "-d", str(obj)], capture_output=True, text=True,
                               check=True).stdout

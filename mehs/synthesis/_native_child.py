@@ -43,7 +43,9 @@ def tuning() -> str:
     return "-prefer-256-bit" if ll.get_host_cpu_features().get("avx512f") else ""
 
 
-#: Exposures up to which LLVM's default tuning vectorises the one-pass merge kernels.
+#: Exposures up to which LLVM's default tuning vectorises every one-pass merge kernel
+#: (numba's own build: the per-band Poisson, Robertson and inverse-variance ones up to 5,
+#: Debevec's and the binned ones up to 3, none from 6).
 DEFAULT_TUNED_EXPOSURES = 3
 
 
@@ -54,16 +56,18 @@ def llvm_options(P: int) -> tuple[str, ...]:
     The one-pass merges vectorise their sample loop with each sample's state in
     registers, which needs the exposure loop inside it unrolled: ``P`` is a compile-time
     constant, and numba indexes the tuple of exposures by the loop variable through a
-    ``switch`` that only unrolling removes. Beyond 3 exposures LLVM's full-unroll
-    threshold (300 at ``-O3``) left that loop rolled, so nothing vectorised: Debevec's
-    per-band merge took 11×, the Poisson merge 7–9× (8 exposures; binned: from 4) the time
+    ``switch`` that only unrolling removes. LLVM's full-unroll threshold (300 at
+    ``-O3``) left that loop rolled in Debevec's and the binned kernels from 4 exposures
+    and in every kernel from 6, whose sample loops then stayed scalar: 8.5–13× the time
     per exposure of a 3-exposure bracket (``benchmarks/RESULTS.md``, "Issue 16, session
     36"). Unrolled, the sample loop's run-time alias checks (arrays stored × arrays read,
     growing with ``P``) pass LLVM's cap of 128 ("too many memory checks needed"); one
     check per loop entry, a few hundred compares for 16 exposures against a row's
     hundreds of samples. Both limits are raised, enough for every merge kernel up to
-    16 exposures (tested). The numbers stay the same: without ``fastmath`` each vector
-    lane computes what the scalar loop does (tested to the bit).
+    16 exposures (tested on the kernels' code: ``set_option`` ignores an option LLVM
+    does not know, so a renamed one would leave them scalar silently). The numbers stay
+    the same: without ``fastmath`` each vector lane computes what the scalar loop does
+    (tested to the bit).
     """
     if P <= DEFAULT_TUNED_EXPOSURES:
         return ()

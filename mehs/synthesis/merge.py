@@ -83,9 +83,11 @@ AUTO_BINS_MIN_BANDS = 100
 #: ... of brackets of at most this many exposures: all the binned kernels take. Their
 #: stored (mehs cache) kernels are vectorised up to 16 exposures, as fast per exposure as
 #: for 3 (mehs.synthesis._native_child.llvm_options; session 35 had held "auto" to 3
-#: exposures, beyond which they were scalar). numba's own build of the one-pass kernels
-#: (no mehs cache folder, a platform where stored kernels cannot be linked) stays scalar
-#: beyond 3 exposures, per band or binned, except the per-band Poisson merge up to 5.
+#: exposures, beyond which they were scalar). The choice does not depend on where the
+#: kernel comes from, at a price where numba's own build runs (no mehs cache folder, a
+#: platform where stored kernels cannot be linked): there the binned kernels are scalar
+#: from 4 exposures, the per-band ones but Debevec's from 6, so brackets of 4 or 5
+#: exposures merge ~5× slower than per band (review of session 36).
 AUTO_BINS_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
