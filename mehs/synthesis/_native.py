@@ -19,13 +19,13 @@ exposures) :mod:`._native_child`.
 The key of a stored object covers every input of the compilation: the source of
 the kernel modules, of this one and of the specs, the numba and llvmlite versions, the
 host CPU and its features, numba's CPU overrides, Python's version, the raw dtype, the
-number of exposures and the LLVM options. An object whose recorded SHA-256 does not match, or that needs
-a symbol this process cannot give it, is not loaded: it is compiled anew
-(or, if that fails, the numba kernel runs). The symbols numba's error handling
-refers to (raising a Python exception from compiled code) are bound to ``abort``:
-the kernels cannot raise (``error_model="numpy"``, no bounds checks, no allocation),
-so those paths are dead; were one ever reached, the process stops loudly rather
-than returning a wrong number.
+number of exposures and the LLVM options. An object whose recorded SHA-256 does not
+match, or that needs a symbol this process cannot give it, is not loaded: it is
+compiled anew (or, if that fails, the numba kernel runs). The symbols numba's error
+handling refers to (raising a Python exception from compiled code) are bound to
+``abort``: the kernels cannot raise (``error_model="numpy"``, no bounds checks, no
+allocation), so those paths are dead; were one ever reached, the process stops loudly
+rather than returning a wrong number.
 
 The cache folder is :func:`mehs._cache.cache_dir`'s (``MEHS_CACHE_DIR``; empty: no
 stored objects, numba's dispatchers run as before).

@@ -7,7 +7,7 @@ own module holds its algorithm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -25,7 +25,7 @@ BINNED_MAX_EXPOSURES = 16
 GHOST_BINS_NAME = "ghost_bins (--ghost-bins)"
 
 
-def refuse_bins_for_curve(ghost_bins, whose: str, curve: str, source=None) -> None:
+def refuse_bins_for_curve(ghost_bins, whose: str, curve: str, source=None) -> NoReturn:
     """Raise the ``InputError`` of a bin width > 1 with a non-linear response curve:
     ``whose`` names it ("this bracket's response"), ``curve`` is its method.
 
