@@ -59,36 +59,18 @@ from typing import Any, Sequence
 import numpy as np
 
 from mehs.errors import InputError
-from mehs.synthesis.merge_types import (BINNED_MAX_EXPOSURES, MASK_GHOST, MASK_INVALID,
-                                        MASK_SATURATED, MergeResult, NoiseModel,
+from mehs.synthesis.merge_types import (AUTO_BINS_MAX_EXPOSURES, AUTO_BINS_MIN_BANDS,
+                                        AUTO_CONSISTENCY_BINS, BINNED_MAX_EXPOSURES,
+                                        MASK_GHOST, MASK_INVALID, MASK_SATURATED, MergeResult,
+                                        NoiseModel, auto_consistency_bins,
                                         consistency_bins_value)
 from mehs.synthesis.response import ResponseCurve, weighting_table
 
-# the types live in merge_types; callers import them from here
+# the types and the ghost-bins rule live in merge_types; callers import them from here
 __all__ = ["AUTO_BINS_MAX_EXPOSURES", "AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS",
            "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
            "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003", "merge_bracket",
            "merge_inverse_variance", "warm_merge_kernel"]
-
-#: the bands per bin of the χ² ghost statistic of ``consistency_bins="auto"`` where the
-#: merge has a binned statistic (benchmarks/bench_ghost_bands.py: bins of 4 flag 99.8 % of
-#: the pixels whose change is 10–30σ over all bands, the per-band statistic 93.5 %; ~15 %
-#: less merge time, benchmarks/RESULTS.md "Issue 16, session 33")
-AUTO_CONSISTENCY_BINS = 4
-#: ... for cubes of at least this many bands: a dense spectrum, whose neighbouring bands a
-#: moving object changes alike (a Specim IQ's 204 bands are 3 nm apart, an FX10's 224
-#: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
-#: change may flip its sign between them
-AUTO_BINS_MIN_BANDS = 100
-#: ... of brackets of at most this many exposures: all the binned kernels take. Their
-#: stored (mehs cache) kernels are vectorised up to 16 exposures, as fast per exposure as
-#: for 3 (mehs.synthesis._native_child.llvm_options; session 35 had held "auto" to 3
-#: exposures, beyond which they were scalar). The choice does not depend on where the
-#: kernel comes from, at a price where numba's own build runs (no mehs cache folder, a
-#: platform where stored kernels cannot be linked): there the binned kernels are scalar
-#: from 4 exposures, the per-band ones but Debevec's from 6, so brackets of 4 or 5
-#: exposures merge ~5× slower than per band (review of session 36).
-AUTO_BINS_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
@@ -343,8 +325,7 @@ def merge_bracket(stack: Sequence[np.ndarray], times_ms: Sequence[float], *,
         kind = (_WEIGHTED_KINDS[code] if linear and hat and lin_g else None)
     nbin = consistency_bins_value(consistency_bins, source)
     if nbin == "auto":
-        nbin = (AUTO_CONSISTENCY_BINS if kind is not None and nb >= AUTO_BINS_MIN_BANDS
-                and P <= AUTO_BINS_MAX_EXPOSURES else 1)
+        nbin = auto_consistency_bins(kind is not None, nb, P)
     nbin = min(nbin, nb)      # (one bin of every band at most)
     if consistency and nbin > 1:
         if P > BINNED_MAX_EXPOSURES:

@@ -20,6 +20,36 @@ MASK_SATURATED, MASK_GHOST, MASK_INVALID = 1, 2, 4
 #: exposures in an int32).
 BINNED_MAX_EXPOSURES = 16
 
+#: the bands per bin of the χ² ghost statistic of ``consistency_bins="auto"`` where the
+#: merge has a binned statistic (benchmarks/bench_ghost_bands.py: bins of 4 flag 99.8 % of
+#: the pixels whose change is 10–30σ over all bands, the per-band statistic 93.5 %; ~15 %
+#: less merge time, benchmarks/RESULTS.md "Issue 16, session 33")
+AUTO_CONSISTENCY_BINS = 4
+#: ... for cubes of at least this many bands: a dense spectrum, whose neighbouring bands a
+#: moving object changes alike (a Specim IQ's 204 bands are 3 nm apart, an FX10's 224
+#: 2.7 nm); a few broad bands (31 at 10 nm, three colours) keep one band per bin, as a
+#: change may flip its sign between them
+AUTO_BINS_MIN_BANDS = 100
+#: ... of brackets of at most this many exposures: all the binned kernels take. Their
+#: stored (mehs cache) kernels are vectorised up to 16 exposures, as fast per exposure as
+#: for 3 (mehs.synthesis._native_child.llvm_options; session 35 had held "auto" to 3
+#: exposures, beyond which they were scalar). The choice does not depend on where the
+#: kernel comes from, at a price where numba's own build runs (no mehs cache folder, a
+#: platform where stored kernels cannot be linked): there the binned kernels are scalar
+#: from 4 exposures, the per-band ones but Debevec's from 6, so brackets of 4 or 5
+#: exposures merge ~5× slower than per band (review of session 36).
+AUTO_BINS_MAX_EXPOSURES = BINNED_MAX_EXPOSURES
+
+
+def auto_consistency_bins(binned_kernel: bool, bands: int, exposures: int) -> int:
+    """The bin width ``consistency_bins="auto"`` takes: :data:`AUTO_CONSISTENCY_BINS` for
+    a merge with a binned statistic (``binned_kernel``: a linear sensor's one-pass merge)
+    of at least :data:`AUTO_BINS_MIN_BANDS` bands and at most
+    :data:`AUTO_BINS_MAX_EXPOSURES` exposures, else 1."""
+    return (AUTO_CONSISTENCY_BINS if binned_kernel and bands >= AUTO_BINS_MIN_BANDS
+            and exposures <= AUTO_BINS_MAX_EXPOSURES else 1)
+
+
 #: How the fusion and the build name the bin width in their messages: the library's
 #: argument and the command-line option.
 GHOST_BINS_NAME = "ghost_bins (--ghost-bins)"
