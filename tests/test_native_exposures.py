@@ -1,7 +1,8 @@
 """Stored merge kernels of brackets beyond 3 exposures, vectorised (issue 16, session 36).
 
-Beyond 3 exposures LLVM's default tuning left the one-pass kernels' exposure loop rolled,
-so their sample loop stayed scalar: 7–11× the time per exposure of a 3-exposure bracket.
+LLVM's default tuning left the one-pass kernels' exposure loop rolled beyond 3 exposures
+(Debevec's and the binned kernels; every kernel from 6), so their sample loop stayed
+scalar: 8.5–13× the time per exposure of a 3-exposure bracket.
 :mod:`mehs.synthesis._native_child` compiles those stored kernels in a child process with
 LLVM options that unroll it and allow the sample loop's alias checks. The numbers must
 stay numba's to the bit.
