@@ -97,14 +97,15 @@ for kind in sys.argv[2:]:
 
 
 @_SKIP_NO_VECTORS
-def test_the_options_vectorise_every_one_pass_kernel_at_16_exposures():
-    """Every division of each one-pass kernel has its vector form (a scalar one remains
+def test_the_options_vectorise_the_one_pass_kernels_at_16_exposures():
+    """Every division of one-pass kernels has its vector form (a scalar one remains
     per division for the loop's remainder) when compiled with the options for 16
     exposures, in a process of its own (the options are process-wide). With LLVM's
-    defaults none of these has one; an option a later LLVM no longer knows would be
-    ignored without a word and fail here."""
-    kinds = ["poisson_linear", "poisson_linear_binned", "debevec_linear",
-             "debevec_linear_binned", "robertson_linear", "invvar_linear_binned"]
+    defaults none of these three has one (0 of 10, 13, 15); an option a later LLVM no
+    longer knows would be ignored without a word and fail here."""
+    # the default, and the two largest bodies (the others vectorised alike when checked:
+    # twelve kinds at 4–16 exposures, session 36; a compile at 16 exposures takes seconds)
+    kinds = ["poisson_linear", "debevec_linear_binned", "robertson_linear_binned"]
     got = subprocess.run([sys.executable, "-c", _IR_CHECK, "16", *kinds], capture_output=True,
                          text=True, timeout=600, check=True).stdout.split("\n")
     counts = {k: (int(v), int(s)) for k, v, s in (line.split() for line in got if line)}
