@@ -30,10 +30,10 @@ def configure(parser):
     parser.add_argument("--ghost-bins", default="auto", metavar="N",
                         help="adjacent bands summed per term of the ghost test's χ² statistic: "
                              "auto (default: 4 for a linear sensor's cube of ≥ 100 bands and "
-                             "≤ 16 exposures, else 1), or N ≥ 1; 1 tests every band alone (spectra whose moving "
-                             "features change sign within a few bands). N > 1 needs a linear "
-                             "sensor (not --response debevec) and at most 16 exposures (auto "
-                             "takes 1 otherwise)")
+                             "≤ 16 exposures, else 1), or N ≥ 1; 1 tests every band alone "
+                             "(spectra whose moving features change sign within a few bands). "
+                             "N > 1 needs a linear sensor (not --response debevec) and at most "
+                             "16 exposures (auto takes 1 otherwise)")
     parser.add_argument("--reference", default="auto",
                         help="exposure index used for ghost pixels with --ghosts deghost (default "
                              "auto: the one with most usable samples there)")

@@ -69,8 +69,8 @@ from mehs.synthesis.response import ResponseCurve, weighting_table
 # the types and the ghost-bins rule live in merge_types; callers import them from here
 __all__ = ["AUTO_BINS_MAX_EXPOSURES", "AUTO_BINS_MIN_BANDS", "AUTO_CONSISTENCY_BINS",
            "MASK_GHOST", "MASK_INVALID", "MASK_SATURATED", "MERGE_METHODS", "MergeResult",
-           "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003", "merge_bracket",
-           "merge_inverse_variance", "warm_merge_kernel"]
+           "NoiseModel", "merge_Debevec1997", "merge_Hanji2020", "merge_Robertson2003",
+           "merge_bracket", "merge_inverse_variance", "warm_merge_kernel"]
 
 #: Most bytes of input one merge chunk copies (all exposures) when it cannot read in place.
 COPY_CHUNK_BYTES = 16 << 20
