@@ -15,8 +15,9 @@ the torch version and the source of every mehs module the network is built
 from and of the probes themselves (an edit re-measures). A user network may
 hold configuration outside its ``repr``, so it is probed in every process.
 
-The cache folder is ``MEHS_CACHE_DIR`` if set (empty: no cache), else
-``$XDG_CACHE_HOME/mehs`` or ``~/.cache/mehs``. A file that does not parse or
+The cache folder is :func:`mehs._cache.cache_dir`'s: ``MEHS_CACHE_DIR`` if set (empty: no
+cache), else ``$XDG_CACHE_HOME/mehs`` or ``~/.cache/mehs`` (a private temporary folder
+where that cannot be written). A file that does not parse or
 does not carry its key is ignored and rewritten; writes are atomic.
 """
 

@@ -11,7 +11,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from mehs.synthesis._numba_cache import ensure_cache_locator
 from mehs.synthesis._ranges import run_ranges
+
+# before the first cache=True decorator: numba refuses one it has nowhere to cache
+ensure_cache_locator()
 
 # ---------------------------------------------------------------- response solve
 @njit(cache=True)

@@ -55,6 +55,69 @@ _STAMP = "mehs-kernel-sources.sha256"
 _checked = False
 
 
+_locator_added = False
+
+
+def ensure_cache_locator() -> bool:
+    """Give numba a cache folder for mehs's kernels where it has none of its own.
+
+    numba caches a ``cache=True`` function in ``__pycache__`` beside its source, else in
+    ``~/.cache/numba``; with neither writable — mehs installed by root in a container
+    image and run by a user without a home folder — it refused to decorate the kernels:
+    ``import mehs.synthesis._cephes`` raised "cannot cache function 'logf': no locator
+    available", and every fusion with it. A last locator is appended to numba's list,
+    for the files of this folder only (other code's caching is untouched, and numba's
+    own locators keep precedence): the mehs cache folder's ``numba/`` (whose default
+    place falls back to a private temporary folder, :func:`mehs._cache.cache_dir`), or
+    with ``MEHS_CACHE_DIR`` empty the private temporary folder's. numba internals:
+    anything unexpected leaves numba as it is. True if the locator is (now) in place.
+    """
+    global _locator_added
+    if _locator_added:
+        return True
+    try:
+        from numba.core import caching
+
+        classes = caching.CacheImpl._locator_classes
+        base = getattr(caching, "UserProvidedCacheLocator", None) \
+            or caching._UserProvidedCacheLocator
+    except (ImportError, AttributeError):
+        return False
+    here = os.path.dirname(os.path.realpath(__file__))
+
+    class MehsFallbackLocator(base):
+        """numba's locator of a user-provided folder, answering for mehs's kernels only
+        and choosing its folder itself (not ``NUMBA_CACHE_DIR``)."""
+
+        def __init__(self, py_func, py_file, root):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = os.path.join(root, self.get_suitable_cache_subpath(py_file))
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if (not os.path.exists(py_file)
+                    or os.path.dirname(os.path.realpath(py_file)) != here):
+                return None
+            from mehs._cache import cache_dir, private_temp_dir
+
+            for root in (cache_dir(), private_temp_dir()):
+                if root is None:
+                    continue
+                self = cls(py_func, py_file, str(root / "numba"))
+                try:
+                    self.ensure_cache_path()
+                except OSError:
+                    continue
+                return self
+            return None
+
+    if not any(c.__name__ == "MehsFallbackLocator" for c in classes):
+        classes.append(MehsFallbackLocator)
+    _locator_added = True
+    return True
+
+
 def drop_stale_kernel_caches() -> None:
     """Remove numba's cached kernels of :data:`KERNEL_MODULES` when any of their sources
     changed since they were cached (once per process; before any of them loads)."""
@@ -62,6 +125,7 @@ def drop_stale_kernel_caches() -> None:
     if _checked:
         return
     _checked = True
+    ensure_cache_locator()
     import hashlib
     from pathlib import Path
 
