@@ -224,8 +224,11 @@ def test_a_child_does_not_import_from_the_working_folder(fresh, monkeypatch, tmp
     assert not ran.exists()
 
 
-def test_no_home_folder_means_no_cache_not_an_error(monkeypatch):
-    """(review) Path.home() raises for a container user without one"""
+def test_no_home_folder_means_no_cache_not_an_error(monkeypatch, tmp_path):
+    """(review) Path.home() raises for a container user without one; with no usable
+    temporary folder either (else the cache moves there: test_cache_fallback) nothing
+    is cached and the merge runs numba's kernel"""
+    import tempfile
     from pathlib import Path
 
     from mehs._cache import cache_dir
@@ -237,6 +240,8 @@ def test_no_home_folder_means_no_cache_not_an_error(monkeypatch):
         raise RuntimeError("Could not determine home directory.")
 
     monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    (tmp_path / "a-file").write_text("x")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "a-file" / "tmp"))
     assert cache_dir() is None
     assert _native.native_kernel("poisson_linear", np.uint16, 3) is None
     stack, t, darks = _bracket()
