@@ -137,7 +137,7 @@ def test_a_deep_chain_of_attention_runs_until_every_statistic_is_the_images():
         whole = net(torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None])[0]
     whole = whole.permute(1, 2, 0).numpy()
     model = SimpleNamespace(network=net, device="cpu", name="mst4", tiling=dict(
-        bytes_per_pixel=1.0, max_bytes=64 * 400, blend=16, align=a,
+        bytes_per_pixel=1.0, max_bytes=64 * 560, blend=16, align=a,
         margin=margin))
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)       # settled
