@@ -57,16 +57,18 @@ def _consistency(zs, l, a, i, darks, s, times, avar, g32, rel32, xp, okm, cm):
     mean = swx / sw if sw > f0 else f0
     v = swx2 - swx * mean
     q = v if v > f0 else f0
-    if cm != 0:
-        # a sample saturated where the others predicted it well below
-        for j in range(1, P):
-            if (cm >> j) & 1:
-                tj = times[j]
-                itj = f1 / tj
-                itj2 = itj * itj
-                w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
-                r = (s - darks[j, a, i]) * itj - mean
-                q += w * r * r if r > f0 else f0
+    # a sample saturated where the others predicted it well below (the bits of cm). Not
+    # under `if cm != 0` or `if (cm >> j) & 1`: LLVM if-converts that in the vectorised
+    # loop anyway, and numba on Python >= 3.12 left reference counts of the arrays read
+    # in such a block unpruned, whose calls kept the sample loop scalar (8-10x slower).
+    # Adding 0.0 where the bit is clear leaves q's bits as they were.
+    for j in range(1, P):
+        tj = times[j]
+        itj = f1 / tj
+        itj2 = itj * itj
+        w = f1 / ((g32 * xp * tj + avar[j]) * itj2 + rel32 * xp * xp)
+        r = (s - darks[j, a, i]) * itj - mean
+        q += w * r * r if ((cm >> j) & 1 != 0) & (r > f0) else f0
     return q
 
 
