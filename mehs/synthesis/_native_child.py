@@ -111,10 +111,19 @@ def start(kind: str, dtype_name: str, P: int, marker: Path, key: dict, *,
         import llvmlite.binding as ll
 
         env["NUMBA_CPU_FEATURES"] = ll.get_host_cpu_features().flatten() + "," + extra
+    # a working folder deleted under the parent: Python 3.13 then failed to import numpy
+    # in the child ("SystemError: error return without exception set") even with the
+    # folder off sys.path; relative paths mean nothing there, so the child starts in
+    # mehs's own folder instead
+    try:
+        os.getcwd()
+        cwd = None
+    except OSError:
+        cwd = root
     return subprocess.Popen(
         [sys.executable, "-c", code, kind, dtype_name, str(P), root, str(marker),
          json.dumps(key), "1" if background else "0"],
-        env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        env=env, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)
 
 
