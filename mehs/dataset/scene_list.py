@@ -175,10 +175,7 @@ def read_scene_list_csv(path: str | Path) -> list[SceneSource]:
 
 def read_scene_list_toml(path: str | Path) -> list[SceneSource]:
     """Read a TOML scene list (``[[scene]]`` tables with ``id`` and ``folders``)."""
-    try:
-        import tomllib
-    except ImportError:  # Python 3.10: the same parser, packaged as tomli
-        import tomli as tomllib
+    import tomllib
 
     path = Path(path)
     try:
