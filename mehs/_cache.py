@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import stat
-import tempfile
 from pathlib import Path
 
 
@@ -36,12 +35,13 @@ def cache_dir() -> Path | None:
             base = None
     if base:
         folder = Path(base) / "mehs"
-        if _usable(folder):
+        if writable_folder(folder):
             return folder
     return private_temp_dir()
 
 
-def _usable(folder: Path) -> bool:
+def writable_folder(folder: Path) -> bool:
+    """Whether files can be stored in ``folder`` (created, with its parents, if missing)."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:
@@ -59,6 +59,8 @@ def private_temp_dir() -> Path | None:
     that another user made first is refused, not adopted. (On Windows the temporary
     directory is the user's own.)
     """
+    import tempfile     # (here: ~ms of imports that most calls never need)
+
     uid = os.getuid() if hasattr(os, "getuid") else None
     name = "mehs-cache" if uid is None else f"mehs-cache-{uid}"
     folder = Path(tempfile.gettempdir()) / name

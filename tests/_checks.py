@@ -2,9 +2,45 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
+
+#: numba told to build without vectors: nothing to look for in the kernels' code
+NO_VECTOR_BUILD = any((os.environ.get("NUMBA_CPU_NAME", "").lower() == "generic",
+                       os.environ.get("NUMBA_OPT", "").strip() == "0",
+                       os.environ.get("NUMBA_BOUNDSCHECK", "").strip() not in ("", "0")))
+
+
+def one_pass_division_counts(entry, *, weighted: bool, binned: bool) -> tuple[int, int, str]:
+    """``(vector, scalar, ir)``: the ``fdiv`` of a one-pass merge kernel compiled afresh by
+    numba (numba shows no code of a cached kernel) for 2 × 3 × 16 samples of
+    :data:`DEFAULT_TUNED_EXPOSURES` exposures, in vector and in scalar form, and its IR.
+    A vectorised kernel keeps one scalar division per vector one for the loop's remainder."""
+    import re
+
+    import numba
+
+    from mehs.synthesis._native_child import DEFAULT_TUNED_EXPOSURES
+
+    kernel = numba.njit(nogil=True, error_model="numpy")(entry.py_func)
+    P, nl, nb, ns = DEFAULT_TUNED_EXPOSURES, 2, 3, 16
+    f4 = np.float32
+    zs = tuple(np.full((nl, nb, ns), 100 * (j + 1), np.uint16) for j in range(P))
+    outs = (np.zeros((nl, nb, ns), f4), np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32),
+            np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32), np.zeros((nl, ns), np.int32),
+            np.zeros((nl, ns), f4))
+    scratch = ((2, tuple(np.zeros(ns, f4) for _ in range(P)), np.zeros(ns, f4),
+                np.zeros(ns, np.int32)) if binned else ())
+    head = (zs, np.zeros((P, nb, ns), f4), np.full(nb, 4000, f4),
+            (4.0 ** np.arange(P)).astype(f4)) + ((4096, f4(0.5)) if weighted else ())
+    kernel(*head, 1.5, np.full(P, 9, f4), 0.0, np.ones(nb, f4), True, True, *scratch, *outs)
+    assert outs[0].max() > 0 and outs[2].max() > 0
+    (ir,) = kernel.inspect_llvm().values()
+    return (len(re.findall(r"fdiv (?:\w+ )*<\d+ x float>", ir)),
+            len(re.findall(r"fdiv (?:\w+ )*float", ir)), ir)
+
 
 #: every output of :func:`mehs.synthesis.merge.merge_bracket` that is an array
 MERGE_FIELDS = ("radiance", "confidence", "mask", "chi2", "dof", "mean_radiance")

@@ -9,14 +9,12 @@ same choice of samples, and the Poisson binned statistic is checked against a nu
 statistic written from the formula in ``test_merge_binned``.
 """
 
-import os
-
 import numpy as np
 import pytest
 
-from _checks import assert_same_merge_bits
+from _checks import NO_VECTOR_BUILD as _NO_VECTOR_BUILD
+from _checks import assert_same_merge_bits, one_pass_division_counts
 from mehs.errors import InputError
-from mehs.synthesis._native_child import DEFAULT_TUNED_EXPOSURES
 from mehs.synthesis.merge import (AUTO_BINS_MAX_EXPOSURES, AUTO_BINS_MIN_BANDS,
                                   AUTO_CONSISTENCY_BINS, NoiseModel, merge_bracket)
 from mehs.synthesis.merge_types import BINNED_MAX_EXPOSURES
@@ -108,11 +106,6 @@ def test_the_stored_weighted_binned_kernel_gives_the_numba_kernels_bits(tmp_path
     assert_same_merge_bits(stored, ref)
 
 
-_NO_VECTOR_BUILD = any((os.environ.get("NUMBA_CPU_NAME", "").lower() == "generic",
-                        os.environ.get("NUMBA_OPT", "").strip() == "0",
-                        os.environ.get("NUMBA_BOUNDSCHECK", "").strip() not in ("", "0")))
-
-
 @pytest.mark.skipif(_NO_VECTOR_BUILD, reason="numba set to build without vectorisation "
                     "(NUMBA_CPU_NAME=generic, NUMBA_OPT=0 or NUMBA_BOUNDSCHECK)")
 @pytest.mark.parametrize("name", ["debevec", "robertson", "invvar", "poisson"])
@@ -125,30 +118,12 @@ def test_llvm_vectorises_the_binned_kernels_with_its_default_tuning(name):
     tuple kept Debevec's and Robertson's sample loops scalar in numba's own (256-bit)
     build: 9× the per-band time, to the same bits. Compiled afresh (numba shows no code of
     a cached kernel)."""
-    import re
-
-    import numba
-
     from mehs.synthesis import _merge_binned, _merge_binned_weighted
 
     module = _merge_binned if name == "poisson" else _merge_binned_weighted
-    entry = getattr(module, f"merge_chunk_{name}_linear_binned")
-    kernel = numba.njit(nogil=True, error_model="numpy")(entry.py_func)
-    P, nl, nb, ns = DEFAULT_TUNED_EXPOSURES, 2, 3, 16
-    f4 = np.float32
-    zs = tuple(np.full((nl, nb, ns), 100 * (j + 1), np.uint16) for j in range(P))
-    outs = (np.zeros((nl, nb, ns), f4), np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32),
-            np.zeros((nl, ns), f4), np.zeros((nl, ns), np.int32), np.zeros((nl, ns), np.int32),
-            np.zeros((nl, ns), f4))
-    scratch = (tuple(np.zeros(ns, f4) for _ in range(P)), np.zeros(ns, f4),
-               np.zeros(ns, np.int32))
-    head = (zs, np.zeros((P, nb, ns), f4), np.full(nb, 4000, f4),
-            (4.0 ** np.arange(P)).astype(f4)) + (() if name == "poisson" else (4096, f4(0.5)))
-    kernel(*head, 1.5, np.full(P, 9, f4), 0.0, np.ones(nb, f4), True, True, 2, *scratch, *outs)
-    assert outs[0].max() > 0 and outs[2].max() > 0
-    (ir,) = kernel.inspect_llvm().values()
-    vector = len(re.findall(r"fdiv (?:\w+ )*<\d+ x float>", ir))
-    scalar = len(re.findall(r"fdiv (?:\w+ )*float", ir))
+    vector, scalar, _ = one_pass_division_counts(
+        getattr(module, f"merge_chunk_{name}_linear_binned"), weighted=name != "poisson",
+        binned=True)
     assert scalar > 0 and vector >= scalar, (name, vector, scalar)
 
 

@@ -10,7 +10,6 @@ stay numba's to the bit.
 
 from __future__ import annotations
 
-import os
 import platform
 import re
 import shutil
@@ -19,16 +18,13 @@ import sys
 
 import numpy as np
 import pytest
+from _checks import NO_VECTOR_BUILD as _NO_VECTOR_BUILD
 from _checks import assert_same_merge_bits
 
 from mehs.synthesis import _native, _native_child
 from mehs.synthesis.merge import NoiseModel, merge_bracket
 
 
-# numba told to build without vectors: nothing to look for in the code
-_NO_VECTOR_BUILD = any((os.environ.get("NUMBA_CPU_NAME", "").lower() == "generic",
-                        os.environ.get("NUMBA_OPT", "").strip() == "0",
-                        os.environ.get("NUMBA_BOUNDSCHECK", "").strip() not in ("", "0")))
 _SKIP_NO_VECTORS = pytest.mark.skipif(_NO_VECTOR_BUILD, reason="numba set to build without "
                                       "vectorisation (NUMBA_CPU_NAME=generic, NUMBA_OPT=0 or "
                                       "NUMBA_BOUNDSCHECK)")

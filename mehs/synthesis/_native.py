@@ -366,11 +366,9 @@ def _load(kind: str, dtype: np.dtype, P: int) -> Callable | None:
 
 def _writable(folder: Path) -> bool:
     """Whether entries can be stored in ``folder`` (created if missing)."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return False
-    return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+    from mehs._cache import writable_folder
+
+    return writable_folder(folder)
 
 
 def _build(kind: str, dtype: np.dtype, P: int) -> tuple[Callable | None, bool]:
