@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mehs.synthesis._numba_cache import ensure_cache_locator
+from mehs.synthesis._numba_cache import ensure_cache_locator, notice_if_uncached
 from mehs.synthesis._ranges import run_ranges
 
 # before the first cache=True decorator: numba refuses one it has nowhere to cache
@@ -295,6 +295,4 @@ def stratified_pick(levels, order, n, strata, L):
 
 
 # a first-ever run compiles for seconds: say so instead of looking hung (issue 16)
-from mehs.synthesis._numba_cache import notice_if_uncached  # noqa: E402
-
 notice_if_uncached(_debevec_pcg_range, "the synthesis kernels")

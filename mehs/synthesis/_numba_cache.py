@@ -101,7 +101,8 @@ def ensure_cache_locator() -> bool:
                 return None
             from mehs._cache import cache_dir, private_temp_dir
 
-            for root in (cache_dir(), private_temp_dir()):
+            for where in (cache_dir, private_temp_dir):     # the second only if needed
+                root = where()
                 if root is None:
                     continue
                 self = cls(py_func, py_file, str(root / "numba"))
